@@ -1,0 +1,331 @@
+"""CiA 402 master logic shared by the drive and the load machine: SDO access, state machine, heartbeat.
+
+Both devices are canopen RemoteNodes built from an EDS kept in the repo, accessed by SDO only
+(expedited or segmented; never block transfer, which LocalNode-based peers do not support). Every SDO
+failure becomes an SdoError naming the node, the object (index:sub and EDS name) and the abort code's
+meaning, because "Code 0x06090030" alone does not tell an operator which setpoint was refused.
+
+Enabling follows drivers.cia402.PATH_TO_OPERATION_ENABLED one command at a time and waits, with a
+deadline, for the statusword to show each step; disabling is the safety path and tries every step even
+when one fails (subclasses add their own "make it harmless first" steps, e.g. torque 0).
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import canopen
+from canopen.emcy import EmcyError
+from canopen.objectdictionary import ODVariable
+from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
+from can import CanError
+
+from drivers.canopen_bus import CanBus
+from drivers.cia402 import (
+    CONTROLWORD,
+    PATH_TO_OPERATION_ENABLED,
+    Command402,
+    State402,
+    decode_statusword,
+)
+from drivers.errors import (
+    NotConnectedError,
+    SdoAbortError,
+    SdoError,
+    SdoTimeoutError,
+    StateTransitionError,
+)
+
+OD_CONTROLWORD = 0x6040
+OD_STATUSWORD = 0x6041
+OD_ERROR_CODE = 0x603F
+OD_MODE_OF_OPERATION = 0x6060
+OD_MODE_DISPLAY = 0x6061
+OD_CONSUMER_HEARTBEAT = 0x1016
+OD_PRODUCER_HEARTBEAT = 0x1017
+
+CONSUMER_HEARTBEAT_TIME_MS = 500
+"""How long the device waits for the service heartbeat before it falls safe (0x1016:1, low 16 bits)."""
+
+DEFAULT_PRODUCER_HEARTBEAT_MS = 100
+"""Drive heartbeat period we configure if the device has its producer heartbeat (0x1017) switched off."""
+
+HEARTBEAT_ALIVE_PERIODS = 3.0
+"""The device counts as alive if its heartbeat was seen within this many of its periods."""
+
+STATUS_POLL_INTERVAL_S = 0.002
+"""Pause between statusword reads while waiting for a state change (each read is one SDO round trip)."""
+
+
+class Cia402Master:
+    """SDO access and CiA 402 state machine of one remote node.
+
+    bus: a connected (or later connected) CanBus; node_id: the device's node id; eds_path: its EDS;
+    mode_of_operation: the 0x6060 value enable() writes (4 profile torque, 3 profile velocity);
+    sdo_timeout_s: how long one SDO request waits for its answer.
+    """
+
+    device_kind = "CiA 402 device"
+
+    def __init__(self, bus: CanBus, node_id: int, eds_path: Path, mode_of_operation: int,
+                 sdo_timeout_s: float = 0.5):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node_id must be 1..127, got {node_id}")
+        if sdo_timeout_s <= 0:
+            raise ValueError(f"sdo_timeout_s must be > 0, got {sdo_timeout_s}")
+        self.bus = bus
+        self.node_id = node_id
+        self.mode_of_operation = mode_of_operation
+        self.sdo_timeout_s = sdo_timeout_s
+        self.node = canopen.RemoteNode(node_id, str(eds_path))
+        # per-instance override of the class default (0.3 s); one attempt, no silent retries
+        self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+        self.node.sdo.MAX_RETRIES = 1
+        # one SDO transfer at a time: the SDO client keeps a single response queue per node
+        self._sdo_lock = threading.RLock()
+        self._network: canopen.Network | None = None
+        self._heartbeat_lock = threading.Lock()
+        self._heartbeat_seen_monotonic: float | None = None
+        self._heartbeat_nmt_state: int | None = None
+        self.heartbeat_period_ms: int | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    def connect(self) -> None:
+        """Attach the node to the bus's network, start heartbeat monitoring, set NMT OPERATIONAL and
+        configure the device to consume the service heartbeat (so it falls safe if we die)."""
+        network = self.bus.network
+        if self._network is not None:
+            return
+        if self.node_id in network:
+            raise RuntimeError(f"node {self.node_id} is already on this network (two clients for one node?)")
+        network.add_node(self.node)
+        # wall-clock arrival time of our own, independent of the transport's timestamp clock
+        network.subscribe(0x700 + self.node_id, self._on_heartbeat)
+        self._network = network
+        try:
+            self.node.nmt.state = "OPERATIONAL"
+            consumer = (self.bus.service_node_id << 16) | CONSUMER_HEARTBEAT_TIME_MS
+            self.write(OD_CONSUMER_HEARTBEAT, 1, consumer)
+            period_ms = int(self.read(OD_PRODUCER_HEARTBEAT))
+            if period_ms == 0:
+                self.write(OD_PRODUCER_HEARTBEAT, 0, DEFAULT_PRODUCER_HEARTBEAT_MS)
+                period_ms = DEFAULT_PRODUCER_HEARTBEAT_MS
+            self.heartbeat_period_ms = period_ms
+            self._after_connect()
+        except BaseException:
+            self.close()
+            raise
+
+    def _after_connect(self) -> None:
+        """Hook for subclasses: read constants the device reports (e.g. rated torque)."""
+
+    def close(self) -> None:
+        """Detach from the network (no SDO traffic; call disable() first to leave the device safe)."""
+        network, self._network = self._network, None
+        if network is None:
+            return
+        try:
+            network.unsubscribe(0x700 + self.node_id, self._on_heartbeat)
+        except (KeyError, ValueError):
+            pass
+        if network.nodes.get(self.node_id) is self.node:
+            del network[self.node_id]
+
+    @property
+    def connected(self) -> bool:
+        return self._network is not None and self.bus.connected
+
+    def _require_connected(self) -> None:
+        if not self.connected:
+            raise NotConnectedError(f"{self.device_kind} node {self.node_id}: not connected (call connect() first)")
+
+    # -- SDO access with clear errors ---------------------------------------------------------------
+    def _object_name(self, index: int, subindex: int) -> str:
+        od = self.node.object_dictionary
+        try:
+            entry = od[index]
+            if isinstance(entry, ODVariable):
+                return entry.name
+            return f"{entry.name}.{entry[subindex].name}"
+        except KeyError:
+            return "<not in EDS>"
+
+    def _variable(self, index: int, subindex: int):
+        entry = self.node.sdo[index]
+        if isinstance(entry, SdoVariable):
+            return entry
+        return entry[subindex]
+
+    def _translate(self, action: str, index: int, subindex: int, exc: Exception, value: Any = None) -> SdoError:
+        name = self._object_name(index, subindex)
+        if isinstance(exc, SdoAbortedError):
+            meaning = SdoAbortedError.CODES.get(exc.code, "unknown abort code")
+            return SdoAbortError(self.node_id, action, index, subindex, name,
+                                 f"aborted with 0x{exc.code:08X} ({meaning})", abort_code=exc.code, value=value)
+        if isinstance(exc, SdoCommunicationError) and "No SDO response" in str(exc):
+            return SdoTimeoutError(self.node_id, action, index, subindex, name,
+                                   f"no SDO response within {self.sdo_timeout_s:g} s "
+                                   f"(is node {self.node_id} on the bus and powered?)", value=value)
+        if isinstance(exc, CanError):
+            return SdoError(self.node_id, action, index, subindex, name, f"CAN transport error: {exc}", value=value)
+        return SdoError(self.node_id, action, index, subindex, name, f"{type(exc).__name__}: {exc}", value=value)
+
+    def read(self, index: int, subindex: int = 0) -> Any:
+        """Read one object by SDO (decoded per its EDS data type)."""
+        self._require_connected()
+        with self._sdo_lock:
+            try:
+                return self._variable(index, subindex).raw
+            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+                raise self._translate("read", index, subindex, exc) from exc
+
+    def write(self, index: int, subindex: int, value: Any) -> None:
+        """Write one object by SDO (encoded per its EDS data type; expedited when it fits in 4 bytes)."""
+        self._require_connected()
+        with self._sdo_lock:
+            try:
+                self._variable(index, subindex).raw = value
+            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+                raise self._translate("write", index, subindex, exc, value) from exc
+            except (struct.error, TypeError, ValueError) as exc:
+                name = self._object_name(index, subindex)
+                raise ValueError(f"node {self.node_id}: value {value!r} does not fit 0x{index:04X}:{subindex:02X} "
+                                 f"'{name}': {exc}") from exc
+
+    def download_domain(self, index: int, subindex: int, data: bytes) -> None:
+        """Write a DOMAIN object by segmented SDO transfer (block transfer is never used)."""
+        self._require_connected()
+        with self._sdo_lock:
+            try:
+                self.node.sdo.download(index, subindex, bytes(data), force_segment=True)
+            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+                raise self._translate("write", index, subindex, exc, f"<{len(data)} bytes>") from exc
+
+    # -- CiA 402 state machine ----------------------------------------------------------------------
+    def statusword(self) -> int:
+        return int(self.read(OD_STATUSWORD))
+
+    def state(self) -> State402:
+        """Current CiA 402 state, decoded from the statusword (one SDO read)."""
+        statusword = self.statusword()
+        try:
+            return decode_statusword(statusword)
+        except ValueError as exc:
+            raise SdoError(self.node_id, "read", OD_STATUSWORD, 0, self._object_name(OD_STATUSWORD, 0),
+                           str(exc)) from exc
+
+    def send_command(self, command: Command402) -> None:
+        """Write the controlword that carries one CiA 402 command."""
+        self.write(OD_CONTROLWORD, 0, CONTROLWORD[command])
+
+    def wait_for_state(self, accept: Callable[[State402], bool], deadline: float, what: str,
+                       last_command: Command402 | None = None) -> State402:
+        """Poll the statusword until accept(state) or the monotonic deadline passes."""
+        while True:
+            state = self.state()
+            if accept(state):
+                return state
+            if time.monotonic() >= deadline:
+                sent = f" after {last_command.name}" if last_command is not None else ""
+                raise StateTransitionError(
+                    f"{self.device_kind} node {self.node_id}: {what} did not happen{sent}; "
+                    f"still {state.name} (statusword 0x{self.statusword():04X}){self._fault_hint(state)}")
+            time.sleep(STATUS_POLL_INTERVAL_S)
+
+    def _fault_hint(self, state: State402) -> str:
+        if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+            return ""
+        try:
+            code = int(self.read(OD_ERROR_CODE))
+        except SdoError:
+            return ""
+        desc = EmcyError(code, 0, b"", 0.0).get_desc()
+        return f"; error code 0x{code:04X} ({desc})"
+
+    def enable(self, timeout_s: float = 2.0) -> None:
+        """Set the mode of operation, then walk the CiA 402 state machine to OPERATION_ENABLED.
+
+        One command per step, taken from PATH_TO_OPERATION_ENABLED for the state the device reports;
+        after each command we wait for the state to change. A fault is reset with a rising edge on
+        controlword bit 7. Raises StateTransitionError when timeout_s (for the whole walk) runs out.
+        """
+        self._require_connected()
+        self.write(OD_MODE_OF_OPERATION, 0, self.mode_of_operation)
+        deadline = time.monotonic() + timeout_s
+        state = self.state()
+        while state is not State402.OPERATION_ENABLED:
+            command = PATH_TO_OPERATION_ENABLED.get(state)
+            if command is None:
+                # transient states (NOT_READY_TO_SWITCH_ON, FAULT_REACTION_ACTIVE) advance by themselves
+                state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
+                                            f"leaving {state.name} on its own")
+                continue
+            if command is Command402.FAULT_RESET:
+                # fault reset acts on the 0 -> 1 edge of bit 7
+                self.send_command(Command402.DISABLE_VOLTAGE)
+            self.send_command(command)
+            state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
+                                        f"transition out of {state.name} towards OPERATION_ENABLED", command)
+
+    def _safe_steps(self) -> list[tuple[str, Callable[[], None]]]:
+        """Steps that make the device harmless before its power stage goes off (subclasses add)."""
+        return []
+
+    def disable(self, timeout_s: float = 2.0) -> None:
+        """Safety path: make the device harmless, then DISABLE_VOLTAGE and wait for SWITCH_ON_DISABLED.
+
+        Every step is tried even if an earlier one failed (a lost SDO must not keep the power stage
+        on); the first error is raised after all steps ran.
+        """
+        errors: list[BaseException] = []
+        steps = self._safe_steps() + [
+            ("disable voltage", lambda: self.send_command(Command402.DISABLE_VOLTAGE)),
+            ("wait for SWITCH_ON_DISABLED", lambda: self.wait_for_state(
+                lambda s: s in (State402.SWITCH_ON_DISABLED, State402.FAULT), time.monotonic() + timeout_s,
+                "switching off", Command402.DISABLE_VOLTAGE)),
+        ]
+        for _name, step in steps:
+            try:
+                step()
+            except Exception as exc:  # noqa: BLE001 - keep going, report the first one
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+    # -- heartbeat and EMCY -------------------------------------------------------------------------
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._heartbeat_lock:
+            self._heartbeat_seen_monotonic = time.monotonic()
+            self._heartbeat_nmt_state = data[0] & 0x7F if data else None
+
+    def heartbeat_age_s(self) -> float | None:
+        """Seconds since the device's last heartbeat (None: never seen)."""
+        with self._heartbeat_lock:
+            seen = self._heartbeat_seen_monotonic
+        return None if seen is None else time.monotonic() - seen
+
+    def heartbeat_alive(self) -> bool:
+        """True if the device's heartbeat was seen within 3 of its periods (0x1017, read at connect)."""
+        age = self.heartbeat_age_s()
+        if age is None or not self.heartbeat_period_ms:
+            return False
+        return age <= HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0
+
+    @property
+    def nmt_state(self) -> int | None:
+        """NMT state byte of the last heartbeat (5 operational, 127 pre-operational, 4 stopped)."""
+        with self._heartbeat_lock:
+            return self._heartbeat_nmt_state
+
+    @property
+    def emcy_log(self) -> list[EmcyError]:
+        """EMCY messages received from the device since the node was created (oldest first)."""
+        return list(self.node.emcy.log)
+
+    @property
+    def emcy_active(self) -> list[EmcyError]:
+        """EMCY errors not yet cleared by an error-reset EMCY."""
+        return list(self.node.emcy.active)

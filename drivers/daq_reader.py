@@ -1,0 +1,276 @@
+"""DAQ stream reader: one thread reads the serial port, decodes whole chunks, and queues the samples.
+
+The DAQ sample counter is the clock of every measurement, so the reader must not lose or reorder
+samples and must say where the stream had a hole (gap_before). It also provides backpressure: the
+thread stops reading while `max_buffered_samples` are unconsumed. Against the emulator in
+`--speedup 0` the plant only advances when its pty write succeeds, so plant time stops while nobody
+measures, and memory stays bounded on a real DAQ too (the OS buffer then overflows, which shows up as
+sequence gaps instead of an ever-growing queue).
+
+Decoding is vectorised in drivers.daq_protocol.FrameDecoder; the thread does per-chunk work only.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time
+
+import numpy as np
+import serial
+
+from drivers.daq_protocol import FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
+from drivers.errors import DaqDisconnected, DaqTimeout
+
+__all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DecodedSamples", "DecoderCounters"]
+
+SERIAL_READ_TIMEOUT_S = 0.05
+"""pyserial read timeout: bounds how long the thread takes to notice close() or freed space."""
+
+COALESCE_MAX_BYTES = 1 << 18
+"""Most bytes decoded in one batch when the port has a backlog (about 22000 samples)."""
+
+DEFAULT_BAUDRATE = 2_000_000
+"""16 kHz x 12 bytes x 10 bit = 1.92 Mbit/s; ignored by ptys, sockets and USB CDC devices."""
+
+_FIELDS = ("index", "angle_rad", "accel_fs", "flags", "gap_before")
+
+
+def concat_samples(blocks: list[DecodedSamples]) -> DecodedSamples:
+    """Concatenate blocks in order (one block is returned as is)."""
+    if len(blocks) == 1:
+        return blocks[0]
+    return DecodedSamples(*(np.concatenate([getattr(b, name) for b in blocks]) for name in _FIELDS))
+
+
+def empty_samples() -> DecodedSamples:
+    return DecodedSamples(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, bool))
+
+
+def slice_samples(block: DecodedSamples, start: int, stop: int | None = None) -> DecodedSamples:
+    return DecodedSamples(*(getattr(block, name)[start:stop] for name in _FIELDS))
+
+
+class DaqReader:
+    """Reads DAQ frames from any pyserial URL (/dev/ttyACM0, /dev/pts/N, socket://host:port, loop://).
+
+    max_buffered_samples: the thread pauses reading when this many samples wait unconsumed (a pending
+    read(n) with a larger n raises the limit to n for its duration so it can complete).
+    read_chunk_bytes: the most bytes one serial read asks for; larger chunks decode faster.
+    """
+
+    def __init__(self, url: str, max_buffered_samples: int = 16384, read_chunk_bytes: int = 8192,
+                 baudrate: int = DEFAULT_BAUDRATE):
+        if max_buffered_samples < 1:
+            raise ValueError(f"max_buffered_samples must be >= 1, got {max_buffered_samples}")
+        if read_chunk_bytes < FRAME_BYTES:
+            raise ValueError(f"read_chunk_bytes must be >= {FRAME_BYTES}, got {read_chunk_bytes}")
+        self.url = url
+        self.max_buffered_samples = max_buffered_samples
+        self.read_chunk_bytes = read_chunk_bytes
+        self.baudrate = baudrate
+        self._port: serial.SerialBase | None = None
+        self._thread: threading.Thread | None = None
+        self._cond = threading.Condition()
+        self._blocks: collections.deque[DecodedSamples] = collections.deque()
+        self._buffered = 0
+        self._demand = 0
+        self._stop = False
+        self._running = False
+        self._error: BaseException | None = None
+        self._counters = DecoderCounters()
+        self._bytes_read = 0
+        self._samples_delivered = 0
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    def start(self) -> "DaqReader":
+        """Open the port and start the reader thread."""
+        if self._thread is not None:
+            raise RuntimeError(f"DAQ reader for {self.url} already started")
+        self._port = serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate)
+        self._stop = False
+        self._running = True
+        self._thread = threading.Thread(target=self._run, name=f"daq-reader {self.url}", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, join_timeout_s: float = 2.0) -> None:
+        """Stop the thread (joined with a timeout) and close the port. Idempotent."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        port = self._port
+        if port is not None and hasattr(port, "cancel_read"):
+            try:
+                port.cancel_read()
+            except Exception:  # noqa: BLE001 - best effort wake-up, the read timeout also ends it
+                pass
+        thread = self._thread
+        if thread is not None:
+            thread.join(join_timeout_s)
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # noqa: BLE001 - the port may already be gone (EIO)
+                pass
+        self._port = None
+
+    def __enter__(self) -> "DaqReader":
+        if self._thread is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    # -- reader thread ------------------------------------------------------------------------------
+    def _run(self) -> None:
+        decoder = FrameDecoder()
+        port = self._port
+        assert port is not None
+        cond = self._cond
+        try:
+            while True:
+                with cond:
+                    while not self._stop and self._buffered >= max(self.max_buffered_samples, self._demand):
+                        cond.wait(SERIAL_READ_TIMEOUT_S)
+                    if self._stop:
+                        return
+                    room = max(self.max_buffered_samples, self._demand) - self._buffered
+                # never read more than fits: that is what lets the writer block (backpressure)
+                room_bytes = room * FRAME_BYTES
+                nbytes = min(self.read_chunk_bytes, room_bytes)
+                chunk = port.read(nbytes)
+                if not chunk:
+                    continue
+                if len(chunk) == nbytes and nbytes < room_bytes:
+                    chunk = self._coalesce(port, chunk, min(room_bytes, COALESCE_MAX_BYTES))
+                samples = decoder.feed(chunk)
+                counters = dataclasses.replace(decoder.counters)
+                with cond:
+                    if len(samples):
+                        self._blocks.append(samples)
+                        self._buffered += len(samples)
+                    self._counters = counters
+                    self._bytes_read += len(chunk)
+                    cond.notify_all()
+        except BaseException as exc:  # noqa: BLE001 - reported to the consumer as DaqDisconnected
+            with cond:
+                if not self._stop:
+                    self._error = exc
+        finally:
+            with cond:
+                self._running = False
+                cond.notify_all()
+
+    def _coalesce(self, port: serial.SerialBase, first: bytes, cap_bytes: int) -> bytes:
+        """While the port has a backlog, read more chunks and decode them as one: decoding has a fixed
+        cost per call, so a backlog (emulator faster than real time) is worked off in large batches,
+        while in real time (no backlog) the latency stays that of one chunk."""
+        parts = [first]
+        total = len(first)
+        while total < cap_bytes and port.in_waiting:
+            want = min(self.read_chunk_bytes, cap_bytes - total)
+            more = port.read(want)
+            parts.append(more)
+            total += len(more)
+            if len(more) < want:
+                break
+        return b"".join(parts) if len(parts) > 1 else first
+
+    # -- consumer side ------------------------------------------------------------------------------
+    def read(self, n: int, timeout_s: float) -> DecodedSamples:
+        """The next n samples in stream order (blocks joined or split as needed).
+
+        Raises DaqTimeout if fewer than n arrived within timeout_s (the ones that did arrive stay queued
+        for the next read), DaqDisconnected if the reader thread has stopped and fewer than n are left.
+        """
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            if self._thread is None:
+                raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
+            self._demand = n
+            self._cond.notify_all()
+            try:
+                while self._buffered < n:
+                    if not self._running:
+                        raise DaqDisconnected(self._disconnected_message(n))
+                    remaining_s = deadline - time.monotonic()
+                    if remaining_s <= 0:
+                        raise DaqTimeout(
+                            f"DAQ {self.url}: only {self._buffered} of {n} samples arrived within {timeout_s:g} s "
+                            f"({self._bytes_read} bytes read so far, decoder {self._counters})")
+                    self._cond.wait(remaining_s)
+                return self._take(n)
+            finally:
+                self._demand = 0
+                self._cond.notify_all()
+
+    def _disconnected_message(self, n: int) -> str:
+        if self._error is not None:
+            cause = f"{type(self._error).__name__}: {self._error}"
+        elif self._stop:
+            cause = "reader closed"
+        else:
+            cause = "reader thread ended"
+        return (f"DAQ {self.url} disconnected ({cause}); {self._buffered} of {n} requested samples were left "
+                f"after {self._samples_delivered} delivered")
+
+    def _take(self, n: int) -> DecodedSamples:
+        """Pop exactly n samples (caller holds the lock and has checked that n are buffered)."""
+        if n == 0:
+            return empty_samples()
+        parts: list[DecodedSamples] = []
+        needed = n
+        while needed:
+            head = self._blocks[0]
+            if len(head) <= needed:
+                parts.append(self._blocks.popleft())
+                needed -= len(head)
+            else:
+                parts.append(slice_samples(head, 0, needed))
+                self._blocks[0] = slice_samples(head, needed)
+                needed = 0
+        self._buffered -= n
+        self._samples_delivered += n
+        return concat_samples(parts)
+
+    def discard_buffered(self) -> int:
+        """Drop every queued sample (e.g. stale data from before a setpoint); returns how many."""
+        with self._cond:
+            dropped = self._buffered
+            self._samples_delivered += dropped
+            self._blocks.clear()
+            self._buffered = 0
+            self._cond.notify_all()
+            return dropped
+
+    # -- introspection ------------------------------------------------------------------------------
+    @property
+    def counters(self) -> DecoderCounters:
+        """Snapshot of the decoder's counters (CRC failures, gaps, ...), consistent with the queue."""
+        with self._cond:
+            return dataclasses.replace(self._counters)
+
+    @property
+    def buffered_samples(self) -> int:
+        with self._cond:
+            return self._buffered
+
+    @property
+    def bytes_read(self) -> int:
+        with self._cond:
+            return self._bytes_read
+
+    @property
+    def running(self) -> bool:
+        with self._cond:
+            return self._running
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why the reader thread stopped, if it stopped on its own."""
+        with self._cond:
+            return self._error

@@ -1,0 +1,197 @@
+"""The drive under test (inverter + PMSM) as seen from the service: CiA 402 profile torque plus the
+manufacturer injection record 0x2000 (docs/interfaces.md).
+
+Units are converted here and nowhere else: the service speaks newtons-metres, rpm, volts and radians;
+the wire speaks per mille of the rated torque, mV and REAL32. Setpoints are checked before anything
+goes out, so a refused value never reaches the bench half-applied.
+"""
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import dataclass
+
+from drivers import DRIVE_EDS
+from drivers.canopen_bus import CanBus
+from drivers.cia402 import State402
+from drivers.cia402_master import Cia402Master
+from drivers.errors import ConfigurationError, SdoError
+
+MODE_PROFILE_TORQUE = 4
+
+OD_VELOCITY_ACTUAL = 0x606C      # I32, rpm (mechanical)
+OD_TARGET_TORQUE = 0x6071        # I16, per mille of rated torque
+OD_RATED_TORQUE = 0x6076         # U32, mNm
+OD_TORQUE_ACTUAL = 0x6077        # I16, per mille of rated torque
+OD_DC_LINK_VOLTAGE = 0x6079      # U32, mV
+OD_INJECTION = 0x2000
+SUB_HARMONIC_ORDER = 1           # U8
+SUB_INJECTION_MODE = 2           # U8: 0 off, 1 manual, 2 LUT
+SUB_THETA_COS = 3                # REAL32 rad, staged
+SUB_THETA_SIN = 4                # REAL32 rad, staged
+SUB_GAMMA_MAX = 5                # REAL32 rad
+SUB_DECOUPLING = 6               # U8
+SUB_COMMIT = 7                   # U8: write 1 applies the staged pair; reads commits mod 256
+OD_LUT = 0x2001
+SUB_LUT_DATA = 1                 # DOMAIN
+SUB_LUT_CRC = 2                  # U32, CRC-32 of the LUT in force
+SUB_LUT_STATUS = 3               # U8
+OD_VOLTAGE_REFERENCE = 0x2010
+SUB_UD_REF = 1                   # REAL32 V
+SUB_UQ_REF = 2                   # REAL32 V
+
+INJECTION_OFF = 0
+INJECTION_MANUAL = 1
+INJECTION_LUT = 2
+
+PER_MILLE = 1000.0
+
+
+@dataclass(frozen=True)
+class DriveStatus:
+    """One snapshot of the drive, in SI-ish units (read by SDO, one object after the other)."""
+    state: State402
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    ud_ref_v: float
+    uq_ref_v: float
+
+
+class DriveClient(Cia402Master):
+    """CANopen client of the drive under test (default node 5), SDO only.
+
+    connect() reads the rated torque (0x6076) once; torque setpoints and readings are scaled with it.
+    Every setpoint the drive applies toggles the DAQ sync flag; methods that write setpoints return
+    how many such writes they made so the caller can count toggles.
+    """
+
+    device_kind = "drive"
+
+    def __init__(self, bus: CanBus, node_id: int, sdo_timeout_s: float = 0.5):
+        super().__init__(bus, node_id, DRIVE_EDS, MODE_PROFILE_TORQUE, sdo_timeout_s)
+        self.rated_torque_nm: float | None = None
+
+    def _after_connect(self) -> None:
+        rated_mnm = int(self.read(OD_RATED_TORQUE))
+        if rated_mnm <= 0:
+            raise ConfigurationError(f"drive node {self.node_id}: motor rated torque 0x6076 is {rated_mnm} mNm; "
+                                     "cannot scale torque setpoints")
+        self.rated_torque_nm = rated_mnm / 1000.0
+
+    def _safe_steps(self):
+        return [("target torque 0", lambda: self.write(OD_TARGET_TORQUE, 0, 0)),
+                ("injection off", self.injection_off)]
+
+    # -- setpoints ----------------------------------------------------------------------------------
+    def _rated_nm(self) -> float:
+        self._require_connected()
+        assert self.rated_torque_nm is not None
+        return self.rated_torque_nm
+
+    def torque_to_per_mille(self, torque_nm: float) -> int:
+        """Wire value of a torque setpoint; ValueError outside +-rated torque (nothing is sent)."""
+        rated_nm = self._rated_nm()
+        if not math.isfinite(torque_nm) or abs(torque_nm) > rated_nm * (1.0 + 1e-9):
+            raise ValueError(f"torque {torque_nm!r} Nm outside the drive's range +-{rated_nm:g} Nm "
+                             "(motor rated torque, 0x6076)")
+        return max(-1000, min(1000, round(torque_nm / rated_nm * PER_MILLE)))
+
+    def set_torque_nm(self, torque_nm: float) -> int:
+        """Target torque 0x6071 in per mille of the rated torque. Returns the per-mille value sent."""
+        per_mille = self.torque_to_per_mille(torque_nm)
+        self.write(OD_TARGET_TORQUE, 0, per_mille)
+        return per_mille
+
+    def set_injection(self, theta_cos_rad: float, theta_sin_rad: float) -> int:
+        """Stage theta = [theta_cos, theta_sin] (REAL32, rad), switch to manual injection if it is not
+        already on, and commit so that the drive applies the pair atomically.
+
+        Returns the number of setpoints applied (sync-flag toggles to expect): 1, or 2 when the
+        injection mode had to be switched to manual as well.
+        """
+        for name, value in (("theta_cos_rad", theta_cos_rad), ("theta_sin_rad", theta_sin_rad)):
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value!r}")
+        self._require_connected()
+        self.write(OD_INJECTION, SUB_THETA_COS, float(theta_cos_rad))
+        self.write(OD_INJECTION, SUB_THETA_SIN, float(theta_sin_rad))
+        applied = 0
+        # read, not cached: the drive switches injection off by itself on a fault
+        if int(self.read(OD_INJECTION, SUB_INJECTION_MODE)) != INJECTION_MANUAL:
+            self.write(OD_INJECTION, SUB_INJECTION_MODE, INJECTION_MANUAL)
+            applied += 1
+        self.write(OD_INJECTION, SUB_COMMIT, 1)
+        return applied + 1
+
+    def injection_off(self) -> None:
+        """Injection mode 0 (off); always written, it is part of the safety path."""
+        self.write(OD_INJECTION, SUB_INJECTION_MODE, INJECTION_OFF)
+
+    def set_injection_mode(self, mode: int) -> None:
+        """Injection mode 0x2000:2: 0 off, 1 manual (theta from 0x2000:3/4), 2 LUT."""
+        if mode not in (INJECTION_OFF, INJECTION_MANUAL, INJECTION_LUT):
+            raise ValueError(f"injection mode must be 0 (off), 1 (manual) or 2 (LUT), got {mode!r}")
+        self.write(OD_INJECTION, SUB_INJECTION_MODE, mode)
+
+    def injection_mode(self) -> int:
+        return int(self.read(OD_INJECTION, SUB_INJECTION_MODE))
+
+    def commit_count(self) -> int:
+        """Number of theta commits the drive has applied, modulo 256 (0x2000:7 read-back)."""
+        return int(self.read(OD_INJECTION, SUB_COMMIT))
+
+    def set_harmonic_order(self, h: int) -> None:
+        """Harmonic order h of the injection (0x2000:1, U8)."""
+        if isinstance(h, bool) or int(h) != h or not 1 <= int(h) <= 255:
+            raise ValueError(f"harmonic order must be an integer 1..255, got {h!r}")
+        self.write(OD_INJECTION, SUB_HARMONIC_ORDER, int(h))
+
+    def harmonic_order(self) -> int:
+        return int(self.read(OD_INJECTION, SUB_HARMONIC_ORDER))
+
+    def set_gamma_max_rad(self, gamma_max_rad: float) -> None:
+        """Injection amplitude limit (0x2000:5, REAL32 rad); the drive clamps |theta| to it."""
+        if not math.isfinite(gamma_max_rad) or not 0.0 < gamma_max_rad <= math.pi:
+            raise ValueError(f"gamma_max_rad must be in (0, pi], got {gamma_max_rad!r}")
+        self.write(OD_INJECTION, SUB_GAMMA_MAX, float(gamma_max_rad))
+
+    def gamma_max_rad(self) -> float:
+        return float(self.read(OD_INJECTION, SUB_GAMMA_MAX))
+
+    def set_decoupling(self, on: bool) -> None:
+        """Decoupling of the current controller (0x2000:6, DESIGN section 3.1)."""
+        self.write(OD_INJECTION, SUB_DECOUPLING, 1 if on else 0)
+
+    # -- LUT download (issue 3) ---------------------------------------------------------------------
+    def download_lut(self, blob: bytes) -> int:
+        """Download a LUT image to 0x2001:1 (segmented SDO) and check the drive's CRC-32 read-back
+        (0x2001:2) against ours. Returns the CRC. The image format is defined by the LUT exporter."""
+        if not blob:
+            raise ValueError("LUT image is empty")
+        self.download_domain(OD_LUT, SUB_LUT_DATA, blob)
+        expected = zlib.crc32(blob) & 0xFFFFFFFF
+        reported = int(self.read(OD_LUT, SUB_LUT_CRC))
+        if reported != expected:
+            raise SdoError(self.node_id, "read", OD_LUT, SUB_LUT_CRC, self._object_name(OD_LUT, SUB_LUT_CRC),
+                           f"LUT CRC-32 read-back 0x{reported:08X} != 0x{expected:08X} of the {len(blob)} bytes sent "
+                           f"(LUT status {self.lut_status()})")
+        return reported
+
+    def lut_crc(self) -> int:
+        return int(self.read(OD_LUT, SUB_LUT_CRC))
+
+    def lut_status(self) -> int:
+        return int(self.read(OD_LUT, SUB_LUT_STATUS))
+
+    # -- readings -----------------------------------------------------------------------------------
+    def read_status(self) -> DriveStatus:
+        rated_nm = self._rated_nm()
+        state = self.state()
+        torque_per_mille = int(self.read(OD_TORQUE_ACTUAL))
+        speed_rpm = float(self.read(OD_VELOCITY_ACTUAL))
+        udc_mv = int(self.read(OD_DC_LINK_VOLTAGE))
+        ud_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UD_REF))
+        uq_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UQ_REF))
+        return DriveStatus(state=state, torque_nm=torque_per_mille / PER_MILLE * rated_nm, speed_rpm=speed_rpm,
+                           udc_v=udc_mv / 1000.0, ud_ref_v=ud_ref_v, uq_ref_v=uq_ref_v)

@@ -1,0 +1,86 @@
+"""The DAQ's serial port, emulated by a pty: frames go into the master, readers open the slave.
+
+The slave is put in raw mode and kept open by the emulator, so the device node stays valid before
+(and between) readers. Two write disciplines:
+
+- blocking (`--speedup 0`): a chunk is written completely before the plant goes on; a reader that
+  does not read fills the pty buffer, the write waits, and plant time stops (backpressure);
+- paced (`--speedup X > 0`): the plant runs on the wall clock like a real DAQ; what the pty cannot
+  take is kept up to `max_pending_bytes` and then dropped in whole frames (the reader sees a
+  sequence gap, as with a real overrun).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import select
+import threading
+import tty
+
+from drivers.daq_protocol import FRAME_BYTES
+
+log = logging.getLogger(__name__)
+
+
+class DaqPty:
+    def __init__(self, max_pending_bytes: int = 1 << 20):
+        self.master_fd, self.slave_fd = os.openpty()
+        tty.setraw(self.slave_fd)
+        self.name = os.ttyname(self.slave_fd)
+        os.set_blocking(self.master_fd, False)
+        self.max_pending_bytes = max_pending_bytes
+        self._pending = bytearray()
+        self.bytes_written = 0
+        self.frames_dropped = 0
+        self._closed = False
+
+    def write_blocking(self, data: bytes, stop: threading.Event) -> bool:
+        """Write all of data unless `stop` is set first. Returns False if stopped."""
+        self._pending += data
+        while self._pending:
+            if stop.is_set():
+                return False
+            self._flush(timeout_s=0.1)
+        return True
+
+    def write_paced(self, data: bytes) -> None:
+        """Write what the pty takes now; keep the rest, dropping whole frames beyond the limit."""
+        self._pending += data
+        self._flush(timeout_s=0.0)
+        excess = len(self._pending) - self.max_pending_bytes
+        if excess > 0:
+            # keep the tail of a partly written frame so the stream stays frame aligned
+            partial = (FRAME_BYTES - self.bytes_written % FRAME_BYTES) % FRAME_BYTES
+            drop = ((excess + FRAME_BYTES - 1) // FRAME_BYTES) * FRAME_BYTES
+            drop = min(drop, ((len(self._pending) - partial) // FRAME_BYTES) * FRAME_BYTES)
+            if drop > 0:
+                del self._pending[partial:partial + drop]
+                self.frames_dropped += drop // FRAME_BYTES
+
+    def _flush(self, timeout_s: float) -> None:
+        if self._closed:
+            self._pending.clear()
+            return
+        try:
+            _, writable, _ = select.select([], [self.master_fd], [], timeout_s)
+        except (OSError, ValueError):
+            return
+        if not writable:
+            return
+        try:
+            n = os.write(self.master_fd, self._pending[:65536])
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            log.warning("DAQ pty write failed: %s", exc)
+            return
+        del self._pending[:n]
+        self.bytes_written += n
+
+    def close(self) -> None:
+        self._closed = True
+        for fd in (self.master_fd, self.slave_fd):
+            try:
+                os.close(fd)
+            except OSError:
+                pass

@@ -1,0 +1,205 @@
+"""Thin routes: validate, call the service layer, shape the answer."""
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import Literal
+
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from fastapi.responses import PlainTextResponse, StreamingResponse
+from pydantic import ValidationError
+
+from service.api.deps import OperatorDep, ServiceDep
+from service.api.schemas import IdentificationCreate, JobPublic, SweepCreate, SweepPublic
+from service.bench import LimitError
+from service.engine import TransitionError
+from service.events import format_sse
+from service.identify import parse_options, public_result
+from service.lut_export import FORMATS, export_map
+from service.maps import public_map
+
+router = APIRouter(prefix="/api/v1")
+
+
+def _options(method: str, options: dict):
+    try:
+        return parse_options(method, options)
+    except ValidationError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+                            [{"loc": ["body", "options", *e["loc"]], "msg": e["msg"], "type": e["type"]}
+                             for e in exc.errors()]) from None
+
+
+def _limit_error(exc: Exception) -> HTTPException:
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+                         [{"loc": ["body"], "msg": str(exc), "type": "value_error.bench_limits"}])
+
+
+def _job_public(service, job: dict) -> JobPublic:
+    result = None
+    if job.get("result_id"):
+        row = service.storage.get_result(job["result_id"])
+        result = public_result(row) if row else None
+    return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
+                     sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
+                     started_at=job["started_at"], finished_at=job["finished_at"], result=result)
+
+
+def _sweep_public(service, sweep: dict, with_points: bool = False) -> SweepPublic:
+    points = None
+    if with_points:
+        points = [{"operating_point": {"torque_nm": r["torque_nm"], "speed_rpm": r["speed_rpm"], "udc_v": r["udc_v"]},
+                   "state": r["status"], "error": r["error"], "result": public_result({**r, "traces_json": "{}"})}
+                  for r in service.storage.sweep_results(sweep["id"])]
+    return SweepPublic(
+        id=sweep["id"], state=sweep["state"], method=sweep["method"], harmonic_order=sweep["harmonic_order"],
+        grid=json.loads(sweep["grid_json"]), options=json.loads(sweep["options_json"]),
+        progress={"done": sweep["done_points"], "failed": sweep["failed_points"], "total": sweep["total_points"]},
+        map_id=sweep["map_id"], error=sweep["error"], bench_identity=sweep["bench_identity"],
+        software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
+        finished_at=sweep["finished_at"], points=points)
+
+
+# --- bench --------------------------------------------------------------------------------------------
+@router.get("/bench/status")
+def bench_status(service: ServiceDep) -> dict:
+    return service.bench.status()
+
+
+@router.get("/version")
+def version(service: ServiceDep) -> dict:
+    return {"software_version": service.version, "bench": service.bench.identity}
+
+
+# --- identifications and jobs ----------------------------------------------------------------------------
+@router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic)
+def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
+    options = _options(body.method, body.options)
+    try:
+        job_id = service.engine.submit_identification(body.operating_point, body.method, options)
+    except LimitError as exc:
+        raise _limit_error(exc) from None
+    return _job_public(service, service.storage.get_job(job_id))
+
+
+@router.get("/jobs", response_model=list[JobPublic])
+def list_jobs(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[JobPublic]:
+    return [_job_public(service, j) for j in service.storage.list_jobs(limit)]
+
+
+@router.get("/jobs/{job_id}", response_model=JobPublic)
+def get_job(job_id: int, service: ServiceDep) -> JobPublic:
+    job = service.storage.get_job(job_id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist")
+    return _job_public(service, job)
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobPublic)
+def cancel_job(job_id: int, service: ServiceDep, _: OperatorDep) -> JobPublic:
+    try:
+        service.engine.cancel_job(job_id)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist") from None
+    except TransitionError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return _job_public(service, service.storage.get_job(job_id))
+
+
+@router.get("/results/{result_id}")
+def get_result(result_id: int, service: ServiceDep) -> dict:
+    row = service.storage.get_result(result_id)
+    if row is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"result {result_id} does not exist")
+    return public_result(row)
+
+
+# --- sweeps -------------------------------------------------------------------------------------------------
+@router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic)
+def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
+    options = _options(body.method, body.options)
+    try:
+        sweep_id = service.engine.submit_sweep(body.grid, body.method, options)
+    except LimitError as exc:
+        raise _limit_error(exc) from None
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+                            [{"loc": ["body", "grid"], "msg": str(exc), "type": "value_error"}]) from None
+    return _sweep_public(service, service.storage.get_sweep(sweep_id))
+
+
+@router.get("/sweeps", response_model=list[SweepPublic])
+def list_sweeps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[SweepPublic]:
+    return [_sweep_public(service, s) for s in service.storage.list_sweeps(limit)]
+
+
+@router.get("/sweeps/{sweep_id}", response_model=SweepPublic)
+def get_sweep(sweep_id: int, service: ServiceDep) -> SweepPublic:
+    sweep = service.storage.get_sweep(sweep_id)
+    if sweep is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist")
+    return _sweep_public(service, sweep, with_points=True)
+
+
+@router.post("/sweeps/{sweep_id}/{action}", response_model=SweepPublic)
+def control_sweep(sweep_id: int, action: Literal["pause", "resume", "cancel"], service: ServiceDep,
+                  _: OperatorDep) -> SweepPublic:
+    handler = {"pause": service.engine.pause_sweep, "resume": service.engine.resume_sweep,
+               "cancel": service.engine.cancel_sweep}[action]
+    try:
+        handler(sweep_id)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist in this service run") from None
+    except TransitionError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return _sweep_public(service, service.storage.get_sweep(sweep_id))
+
+
+# --- maps -----------------------------------------------------------------------------------------------------
+@router.get("/maps")
+def list_maps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[dict]:
+    return service.storage.list_maps(limit)
+
+
+@router.get("/maps/{map_id}")
+def get_map(map_id: int, service: ServiceDep) -> dict:
+    m = public_map(service.storage, map_id)
+    if m is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
+    return m
+
+
+@router.get("/maps/{map_id}/export")
+def export(map_id: int, service: ServiceDep,
+           format: Literal["csv", "json", "c", "dcm"] = Query("csv", description="csv | json | c | dcm")) -> PlainTextResponse:
+    m = public_map(service.storage, map_id)
+    if m is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
+    ext = {"csv": "csv", "json": "json", "c": "h", "dcm": "dcm"}[format]
+    return PlainTextResponse(export_map(m, format), media_type=FORMATS[format],
+                             headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{ext}"'})
+
+
+# --- events -----------------------------------------------------------------------------------------------------
+@router.get("/events")
+async def events(request: Request, service: ServiceDep) -> StreamingResponse:
+    token = service.broker.subscribe()
+    _, queue = token
+
+    async def stream():
+        try:
+            yield format_sse("bench.status", json.dumps(service.bench.status(), default=str))
+            while True:
+                if await request.is_disconnected():
+                    break
+                try:
+                    event_type, data = await asyncio.wait_for(queue.get(), timeout=15.0)
+                except asyncio.TimeoutError:
+                    yield ": keep-alive\n\n"
+                    continue
+                yield format_sse(event_type, data)
+        finally:
+            service.broker.unsubscribe(token)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

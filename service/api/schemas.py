@@ -1,0 +1,54 @@
+"""Request/response schemas (Create / Public families)."""
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.operating_point import OperatingPoint
+from service.plans import Grid
+
+
+class IdentificationCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    operating_point: OperatingPoint
+    method: Literal["adaptive", "grid"] = "adaptive"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class SweepCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    grid: Grid
+    method: Literal["adaptive", "grid"] = "adaptive"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobPublic(BaseModel):
+    id: int
+    kind: str
+    state: str
+    request: dict[str, Any]
+    sweep_id: int | None = None
+    error: str | None = None
+    created_at: str
+    started_at: str | None = None
+    finished_at: str | None = None
+    result: dict[str, Any] | None = None
+
+
+class SweepPublic(BaseModel):
+    id: int
+    state: str
+    method: str
+    harmonic_order: int
+    grid: dict[str, Any]
+    options: dict[str, Any]
+    progress: dict[str, int]
+    map_id: int | None = None
+    error: str | None = None
+    bench_identity: str
+    software_version: str
+    created_at: str
+    started_at: str | None = None
+    finished_at: str | None = None
+    points: list[dict[str, Any]] | None = None

@@ -1,0 +1,92 @@
+"""The service layer: settings, storage, bench, engine and events wired together.
+
+API routes and the CLI call this; they hold no logic of their own. With `bench_mode = "emulate"`
+the emulator is started as a child process and its endpoints fill the bench settings, so the rest
+of the service sees only wires and settings strings.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from service import __version__
+from service.bench import Bench
+from service.emulator_process import EmulatorProcess
+from service.engine import Engine
+from service.events import EventBroker
+from service.settings import Settings
+from service.storage import Storage
+
+log = logging.getLogger(__name__)
+
+
+def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Settings:
+    can = endpoints["can"]
+    return settings.model_copy(update={
+        "can": settings.can.model_copy(update={"interface": can["interface"], "channel": can["channel"],
+                                               "host": can.get("host"), "port": can.get("port"),
+                                               "drive_node": endpoints.get("drive_node", 5),
+                                               "load_node": endpoints.get("load_node", 6)}),
+        "daq": settings.daq.model_copy(update={"url": endpoints["daq"],
+                                               "sample_rate_hz": endpoints.get("sample_rate_hz", settings.daq.sample_rate_hz)}),
+        "supply": settings.supply.model_copy(update={"url": endpoints["supply"]}),
+    })
+
+
+class CalibrationService:
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.storage = Storage(settings.server.db_path)
+        self.broker = EventBroker()
+        self.emulator: EmulatorProcess | None = None
+        self.bench: Bench | None = None
+        self.engine: Engine | None = None
+        self.version = __version__
+        self._status_stop = threading.Event()
+        self._status_thread: threading.Thread | None = None
+
+    def start(self, status_period_s: float | None = 1.0) -> None:
+        self.storage.fail_unfinished_jobs("the service stopped while this was running")
+        settings = self.settings
+        identity = settings.bench_name
+        if settings.bench_mode == "emulate":
+            em = settings.emulator
+            self.emulator = EmulatorProcess(em.scenario, em.seed, em.speedup, em.start_timeout_s)
+            endpoints = self.emulator.start()
+            settings = settings_with_emulator(settings, endpoints)
+            identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (f":seed={em.seed}" if em.seed is not None else "")
+        self.settings = settings
+        try:
+            self.bench = Bench(settings, identity)
+            self.bench.connect()
+            self.engine = Engine(self.storage, self.bench, settings, self.broker)
+            self.engine.start()
+        except Exception:
+            self.stop()
+            raise
+        if status_period_s:
+            self._status_thread = threading.Thread(target=self._poll_status, args=(status_period_s,),
+                                                   name="ripplecal-status", daemon=True)
+            self._status_thread.start()
+
+    def stop(self) -> None:
+        self._status_stop.set()
+        if self.engine is not None:
+            self.engine.stop()
+        if self.bench is not None:
+            self.bench.close()          # leaves the bench safe (torque off, injection off)
+        if self.emulator is not None:
+            self.emulator.stop()
+
+    def _poll_status(self, period_s: float) -> None:
+        while not self._status_stop.wait(period_s):
+            status = self.bench.refresh_status()
+            self.broker.publish("bench.status", status)
+
+    def __enter__(self) -> "CalibrationService":
+        self.start(status_period_s=None)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

@@ -1,0 +1,137 @@
+"""LUT export for firmware: CSV, JSON and a C header, each carrying the axes, units, harmonic order
+and software version. Values are stored as theta = (theta_cos, theta_sin) in rad, the space in
+which the drive interpolates (never across the 0/360 deg wrap of delta); gamma/delta in degrees
+are given for reading. Cells without a valid result export theta = 0 (no injection) and valid = 0."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import re
+
+from service import __version__
+
+FORMATS = {"csv": "text/csv", "json": "application/json", "c": "text/x-csrc", "dcm": "text/plain"}
+
+
+def _grid_values(m: dict, key: str) -> list[list[list[float]]]:
+    """[udc][speed][torque] array of a cell field (0 where the cell is not ok)."""
+    axes = m["axes"]
+    by_op = {(c["torque_nm"], c["speed_rpm"], c["udc_v"]): c for c in m["cells"]}
+    out = []
+    for u in axes["udc_v"]:
+        plane = []
+        for n in axes["speed_rpm"]:
+            row = []
+            for t in axes["torque_nm"]:
+                c = by_op.get((t, n, u))
+                ok = c is not None and c["status"] == "ok"
+                row.append((1.0 if ok else 0.0) if key == "valid" else (c[key] if ok else 0.0))
+            plane.append(row)
+        out.append(plane)
+    return out
+
+
+def export_csv(m: dict) -> str:
+    buf = io.StringIO()
+    buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
+    buf.write(f"# software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}\n")
+    buf.write(f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n")
+    buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
+                "suppression_db", "status"])
+    for c in m["cells"]:
+        ok = c["status"] == "ok"
+        w.writerow([c["torque_nm"], c["speed_rpm"], c["udc_v"],
+                    repr(c["theta_cos"]) if ok else 0.0, repr(c["theta_sin"]) if ok else 0.0,
+                    c["gamma_deg"] if ok else "", c["delta_deg"] if ok else "",
+                    "" if c["suppression_db"] is None else round(c["suppression_db"], 2), c["status"]])
+    return buf.getvalue()
+
+
+def export_json(m: dict) -> str:
+    return json.dumps({
+        "format": "ripplecal-lut", "format_version": 1, "software_version": __version__,
+        "map_id": m["id"], "harmonic_order": m["harmonic_order"], "method": m["method"],
+        "bench": m["bench_identity"], "created_at": m["created_at"],
+        "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
+        "axes": m["axes"], "index_order": ["udc_v", "speed_rpm", "torque_nm"],
+        "theta_cos_rad": _grid_values(m, "theta_cos"), "theta_sin_rad": _grid_values(m, "theta_sin"),
+        "valid": _grid_values(m, "valid"), "cells": m["cells"],
+    }, indent=1)
+
+
+def _c_array(values) -> str:
+    if isinstance(values, list) and values and isinstance(values[0], list):
+        return "{" + ", ".join(_c_array(v) for v in values) + "}"
+    return "{" + ", ".join(_c_float(v) for v in values) + "}"
+
+
+def _c_float(value: float) -> str:
+    text = f"{float(value):.9g}"
+    if not any(ch in text for ch in ".en"):
+        text += ".0"            # "0f" is not a C literal; "0.0f" is
+    return text + "f"
+
+
+def export_c(m: dict) -> str:
+    nt, nn, nu = (len(m["axes"][k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
+    guard = f"RIPPLECAL_LUT_MAP{m['id']}_H"
+    version = re.sub(r"[^0-9A-Za-z.+-]", "", __version__)
+    valid = [[[int(v) for v in row] for row in plane] for plane in _grid_values(m, "valid")]
+    lines = [
+        f"/* ripplecal LUT for harmonic injection: map {m['id']}, method {m['method']}.",
+        f" * Bench: {m['bench_identity']}; created {m['created_at']}; software version {version}.",
+        " * v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e)  [rad], applied as a voltage-angle",
+        " * rotation (|u_dq*| = |u_dq|). Interpolate theta_cos and theta_sin (never gamma/delta across",
+        " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
+        " */",
+        f"#ifndef {guard}", f"#define {guard}", "",
+        "#include <stdint.h>", "",
+        f'#define RIPPLECAL_LUT_SOFTWARE_VERSION "{version}"',
+        f"#define RIPPLECAL_LUT_HARMONIC_ORDER {int(m['harmonic_order'])}u",
+        f"#define RIPPLECAL_LUT_N_TORQUE {nt}u",
+        f"#define RIPPLECAL_LUT_N_SPEED {nn}u",
+        f"#define RIPPLECAL_LUT_N_UDC {nu}u", "",
+        f"/* torque axis, Nm */\nstatic const float ripplecal_lut_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
+        f"/* speed axis, rpm (mechanical) */\nstatic const float ripplecal_lut_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
+        f"/* DC-link voltage axis, V */\nstatic const float ripplecal_lut_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};", "",
+        f"/* theta_cos, rad */\nstatic const float ripplecal_lut_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
+        f"/* theta_sin, rad */\nstatic const float ripplecal_lut_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
+        f"/* 1 where the cell holds an identified value */\nstatic const uint8_t ripplecal_lut_valid[{nu}][{nn}][{nt}] = "
+        + "{" + ", ".join("{" + ", ".join("{" + ", ".join(str(v) for v in row) + "}" for row in plane) + "}" for plane in valid) + "};",
+        "", f"#endif /* {guard} */", "",
+    ]
+    return "\n".join(lines)
+
+
+def export_dcm(m: dict) -> str:
+    """DCM 2.0 (calibration data exchange format read by INCA / CANape): one KENNFELD per U_dc and
+    theta component, x = torque (Nm), y = speed (rpm)."""
+    axes = m["axes"]
+    nt, nn = len(axes["torque_nm"]), len(axes["speed_rpm"])
+    out = [f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
+           f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
+           "KONSERVIERUNG_FORMAT 2.0", ""]
+    for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid")):
+        for k, udc in enumerate(axes["udc_v"]):
+            plane = _grid_values(m, key)[k]
+            out += [f"KENNFELD RIPPLECAL_H{m['harmonic_order']}_{name}_U{udc:g}V".replace(".", "P") + f" {nt} {nn}",
+                    f'   LANGNAME "{name.lower()} at U_dc = {udc:g} V"',
+                    f'   EINHEIT_X "Nm"', f'   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"-" if key == "valid" else "rad"}"',
+                    "   ST/X   " + "   ".join(f"{t:g}" for t in axes["torque_nm"])]
+            for j, speed in enumerate(axes["speed_rpm"]):
+                out += [f"   ST/Y   {speed:g}", "   WERT   " + "   ".join(f"{v:.9g}" for v in plane[j])]
+            out += ["END", ""]
+    return "\n".join(out)
+
+
+EXPORTERS = {"csv": export_csv, "json": export_json, "c": export_c, "dcm": export_dcm}
+
+
+def export_map(m: dict, fmt: str) -> str:
+    if fmt not in EXPORTERS:
+        raise ValueError(f"format {fmt!r} is not supported; choose one of {sorted(EXPORTERS)}")
+    return EXPORTERS[fmt](m)

@@ -1,0 +1,217 @@
+"""Measuring at one operating point on the DAQ sample clock.
+
+`DaqCursor` consumes the DAQ stream in order and counts the drive's sync-flag toggles (bit 2, one
+per applied setpoint, DESIGN 5). `OperatingPointSession` implements the MeasurementSession of the
+identification methods: it knows the exact sample at which each setpoint took effect, settles on
+the data, and measures windows of whole harmonic periods, discarding any window that holds a gap,
+a bad frame, a fault flag or another setpoint change.
+
+Plant time is counted on the DAQ clock from the sample at which each setpoint took effect to the
+end of the last window measured under it; samples that were buffered before a setpoint took effect
+are not the method's time (on a real bench they correspond to CAN latency, in the emulator's fast
+mode to buffered data) and are reported separately as `stale_samples`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
+from service.harmonic import electrical_frequency_hz, phasor
+from service.identification.session import Window
+
+BAD_FLAGS = FLAG_OVER_RANGE | FLAG_SENSOR_FAULT
+
+
+class MeasurementError(RuntimeError):
+    """The bench did not deliver what a measurement needs (settling, valid windows, sync)."""
+
+
+class RunCancelled(RuntimeError):
+    """The operator cancelled the run; raised at the next DAQ read."""
+
+
+@dataclass
+class Chunk:
+    samples: DecodedSamples
+    toggle_offsets: np.ndarray     # offsets within the chunk where the sync level changed
+
+
+class DaqCursor:
+    """In-order consumer of a DaqReader that counts sync toggles."""
+
+    def __init__(self, reader, read_timeout_s: float):
+        self.reader = reader
+        self.read_timeout_s = read_timeout_s
+        self.toggles_seen = 0
+        self.last_index = -1
+        self._level: int | None = None
+
+    def read(self, n: int) -> Chunk:
+        samples = self.reader.read(n, self.read_timeout_s)
+        level = (samples.flags & FLAG_SYNC_INPUT) != 0
+        prev = np.empty_like(level)
+        prev[1:] = level[:-1]
+        prev[0] = level[0] if self._level is None else bool(self._level)
+        toggles = np.flatnonzero(level != prev)
+        self._level = int(level[-1])
+        self.toggles_seen += len(toggles)
+        self.last_index = int(samples.index[-1])
+        return Chunk(samples, toggles)
+
+
+def _slice(s: DecodedSamples, start: int, stop: int | None = None) -> DecodedSamples:
+    return DecodedSamples(s.index[start:stop], s.angle_rad[start:stop], s.accel_fs[start:stop],
+                          s.flags[start:stop], s.gap_before[start:stop])
+
+
+def _concat(parts: list[DecodedSamples]) -> DecodedSamples:
+    return DecodedSamples(*(np.concatenate([getattr(p, f) for p in parts])
+                            for f in ("index", "angle_rad", "accel_fs", "flags", "gap_before")))
+
+
+class OperatingPointSession:
+    """MeasurementSession over the real wires (drive over CANopen, alpha over the DAQ)."""
+
+    CHUNK_SAMPLES = 256
+    MAX_WINDOW_ATTEMPTS = 5
+
+    def __init__(self, bench, cursor: DaqCursor, harmonic_order: int, sample_rate_hz: float,
+                 pole_pairs: int, settle_after_theta_s: float = 0.02):
+        self.bench = bench
+        self.cursor = cursor
+        self.harmonic_order = harmonic_order
+        self.sample_rate_hz = sample_rate_hz
+        self.pole_pairs = pole_pairs
+        self.settle_after_theta_s = settle_after_theta_s
+        self._pending: DecodedSamples | None = None   # samples read past the point we needed
+        self._segment_start: int | None = None
+        self._plant_samples = 0
+        self.stale_samples = 0
+        self.windows_discarded = 0
+        self.speed_rpm_measured: float | None = None
+
+    # --- the DAQ stream, in order --------------------------------------------------------------
+    def _next(self, n: int) -> DecodedSamples:
+        cancel = getattr(self.bench, "cancel_event", None)
+        if cancel is not None and cancel.is_set():
+            raise RunCancelled("run cancelled")
+        if self._pending is not None and len(self._pending):
+            take = _slice(self._pending, 0, n)
+            rest = _slice(self._pending, n)
+            self._pending = rest if len(rest) else None
+            return take
+        return self.cursor.read(n).samples
+
+    def _push_back(self, s: DecodedSamples) -> None:
+        self._pending = s if self._pending is None else _concat([s, self._pending])
+
+    def wait_for_effect(self, max_plant_s: float = 2.0) -> int:
+        """Consume the stream up to the sample at which the last expected setpoint took effect.
+
+        Returns that sample's index. Samples before it are stale (buffered before the setpoint)."""
+        if self._pending is not None:
+            # pending samples were already seen by the cursor: their toggles are counted; they
+            # predate every write made since, so they are stale
+            self.stale_samples += len(self._pending)
+            self._pending = None
+        budget = int(max_plant_s * self.sample_rate_hz)
+        consumed = 0
+        while True:
+            before = self.cursor.toggles_seen
+            chunk = self.cursor.read(self.CHUNK_SAMPLES)
+            missing = self.bench.setpoints_written() - before
+            if len(chunk.toggle_offsets) >= missing > 0:
+                offset = int(chunk.toggle_offsets[missing - 1])
+                self.stale_samples += offset
+                self._push_back(_slice(chunk.samples, offset))
+                self._segment_start = int(chunk.samples.index[offset])
+                return self._segment_start
+            if missing <= 0:
+                raise MeasurementError("sync accounting error: more sync toggles seen than setpoints written")
+            consumed += len(chunk.samples)
+            self.stale_samples += len(chunk.samples)
+            if consumed > budget:
+                raise MeasurementError(
+                    f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
+                    f"({self.bench.setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
+
+    def skip(self, seconds: float) -> None:
+        """Let the plant settle for `seconds` of plant time (counted as the method's time)."""
+        n = int(round(seconds * self.sample_rate_hz))
+        while n > 0:
+            got = self._next(min(n, 4096))
+            n -= len(got)
+            self._count_until(int(got.index[-1]))
+
+    def _count_until(self, end_index: int) -> None:
+        if self._segment_start is not None and end_index >= self._segment_start:
+            self._plant_samples += end_index - self._segment_start + 1
+            self._segment_start = end_index + 1
+
+    # --- MeasurementSession ----------------------------------------------------------------------
+    def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
+        self.bench.send_theta(theta_cos_rad, theta_sin_rad)
+        self.wait_for_effect()
+        self.skip(self.settle_after_theta_s)
+
+    def measure(self, periods: int) -> Window:
+        for _ in range(self.MAX_WINDOW_ATTEMPTS):
+            n = self._samples_for(periods)
+            s = self._next(n)
+            if len(s) < n:
+                s = _concat([s, self._next(n - len(s))])
+            self._count_until(int(s.index[-1]))
+            bad = np.flatnonzero(s.gap_before[1:] | ((s.flags[:] & BAD_FLAGS) != 0)[1:] |
+                                 (((s.flags & FLAG_SYNC_INPUT) != 0)[1:] != ((s.flags & FLAG_SYNC_INPUT) != 0)[:-1]))
+            if (s.flags[0] & BAD_FLAGS) or len(bad):
+                self.windows_discarded += 1
+                continue
+            p = phasor(s.accel_fs, s.angle_rad, self.harmonic_order, periods)
+            used = _slice(s, 0, p.samples)
+            self._push_back(_slice(s, p.samples))
+            return Window(p, used.accel_fs, used.angle_rad, self.plant_time_s)
+        raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid "
+                               "(DAQ gaps, bad frames, sensor fault or over-range)")
+
+    def _samples_for(self, periods: int) -> int:
+        speed = self.speed_rpm_measured
+        if not speed:
+            raise MeasurementError("speed unknown: settle the operating point first")
+        f_h = abs(speed) / 60.0 * self.pole_pairs * self.harmonic_order
+        return int(math.ceil(periods * self.sample_rate_hz / f_h * 1.02)) + 8
+
+    @property
+    def plant_time_s(self) -> float:
+        return self._plant_samples / self.sample_rate_hz
+
+    def reset_plant_time(self) -> None:
+        self._plant_samples = 0
+
+    # --- operating-point settling ----------------------------------------------------------------
+    def settle_operating_point(self, target_speed_rpm: float, settle_s: float, tolerance: float = 0.005,
+                               max_plant_s: float = 20.0) -> float:
+        """After the OP setpoints: wait for their effect, for the speed (from the encoder angle) to
+        hold within `tolerance` of the target for 3 consecutive 20 ms blocks, then `settle_s` more.
+        Returns the plant time (s) it took."""
+        start = self.wait_for_effect(max_plant_s)
+        block = int(0.02 * self.sample_rate_hz)
+        steady, elapsed = 0, 0
+        while steady < 3:
+            s = self._next(block)
+            elapsed += len(s)
+            speed = electrical_frequency_hz(s.angle_rad, self.sample_rate_hz) * 60.0 / self.pole_pairs
+            steady = steady + 1 if abs(speed - target_speed_rpm) <= tolerance * abs(target_speed_rpm) else 0
+            if elapsed > max_plant_s * self.sample_rate_hz:
+                raise MeasurementError(f"speed did not settle at {target_speed_rpm:g} rpm within {max_plant_s} s "
+                                       f"of plant time (last {speed:.1f} rpm)")
+        self.speed_rpm_measured = speed
+        self._segment_start = None
+        skip_n = int(settle_s * self.sample_rate_hz)
+        while skip_n > 0:
+            got = self._next(min(skip_n, 4096))
+            skip_n -= len(got)
+            elapsed += len(got)
+        return elapsed / self.sample_rate_hz

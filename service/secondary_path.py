@@ -1,0 +1,87 @@
+"""Secondary path S: injection theta (rad) -> h-th harmonic phasor of the measured acceleration.
+
+Model (paper eq. 14-20, DESIGN section 3), evaluated at w = h*omega_e:
+
+    S(jw) = G_Salpha(jw) * G_EM,m * (jw I - A)^-1 B * exp(-jw T_d) * G_comp
+    G_comp = [-u_q, u_d]^T                    (eq. 10, V per rad of injection angle)
+    G_d    = exp(-jw T_d)                     (eq. 17, T_d = delay_periods / f_ctrl)
+    A, B   from R_s, L_d, L_q, omega_e        (eq. 18), G_EM,e = (sI - A)^-1 B (eq. 19)
+    G_EM,m = [0, k_T], k_T = 1.5 N_p psi_p    (eq. 20, Nm/A)
+    G_Salpha(s) = (1/J) * (w0^2 / -z) * (s - z) / ((s - p1)(s - p2)),  G_Salpha(0) = 1/J
+                 (zero z, poles p1,2 identified on the bench, paper sec. 2.3; rad/s^2 per Nm)
+
+S is returned in units of sensor full scale per rad (the DAQ reports alpha / full scale).
+
+Complex form used throughout the service: with Theta = theta_cos - j*theta_sin = gamma*exp(j*delta)
+and A = a_c - j*a_s (the harmonic phasor, DESIGN section 3), the steady state (eq. 15) is
+    A = S * (Theta_d + Theta),
+which is the 2x2 real form a = S_ss (theta_d + theta) with S_ss = [[S_r, S_i], [-S_i, S_r]].
+"""
+from __future__ import annotations
+
+import cmath
+import math
+
+import numpy as np
+
+from service.operating_point import OperatingPoint, SteadyState, nominal_steady_state
+from service.settings import Settings
+
+
+def g_salpha(s: complex, inertia_kg_m2: float, zero_rad_s: float, pole_re_rad_s: float,
+             pole_im_rad_s: float) -> complex:
+    """Torque -> angular acceleration (rad/s^2 per Nm), second order with one zero, unit DC gain * 1/J."""
+    p1 = complex(pole_re_rad_s, pole_im_rad_s)
+    p2 = p1.conjugate()
+    w0_sq = abs(p1) ** 2
+    return (1.0 / inertia_kg_m2) * (w0_sq / -zero_rad_s) * (s - zero_rad_s) / ((s - p1) * (s - p2))
+
+
+def model_secondary_path(settings: Settings, op: OperatingPoint, harmonic_order: int,
+                         steady: SteadyState | None = None) -> complex:
+    """S(j h omega_e) of eq. 14 in full-scale units per rad, from the nominal parameters."""
+    motor, ctrl, mech = settings.motor, settings.control, settings.mechanics
+    steady = steady or nominal_steady_state(op, motor)
+    w = harmonic_order * steady.omega_e_rad_s
+    s = 1j * w
+    a = np.array([[-motor.r_s_ohm / motor.l_d_h, steady.omega_e_rad_s * motor.l_q_h / motor.l_d_h],
+                  [-steady.omega_e_rad_s * motor.l_d_h / motor.l_q_h, -motor.r_s_ohm / motor.l_q_h]])
+    b = np.diag([1.0 / motor.l_d_h, 1.0 / motor.l_q_h])
+    g_em_e = np.linalg.solve(s * np.eye(2) - a, b)                       # eq. 19
+    k_t = 1.5 * motor.pole_pairs * motor.psi_p_vs                         # eq. 20
+    g_em_m = np.array([0.0, k_t])
+    t_d = ctrl.delay_periods / ctrl.control_rate_hz                      # eq. 17
+    g_comp = np.array([-steady.u_q_v, steady.u_d_v])                      # eq. 10
+    torque_per_rad = g_em_m @ g_em_e @ g_comp * cmath.exp(-s * t_d)
+    alpha_per_rad = g_salpha(s, mech.inertia_kg_m2, mech.zero_rad_s, mech.pole_re_rad_s, mech.pole_im_rad_s) * torque_per_rad
+    return complex(alpha_per_rad) / settings.daq.accel_full_scale_rad_s2
+
+
+def s_matrix(s: complex) -> np.ndarray:
+    """2x2 real form S_ss = [[S_r, S_i], [-S_i, S_r]] mapping theta to [a_c, a_s] (DESIGN 3)."""
+    return np.array([[s.real, s.imag], [-s.imag, s.real]])
+
+
+def theta_complex(theta_cos: float, theta_sin: float) -> complex:
+    """Theta = theta_cos - j theta_sin = gamma * exp(j delta) (eq. 21-22)."""
+    return complex(theta_cos, -theta_sin)
+
+
+def theta_parts(theta: complex) -> tuple[float, float]:
+    """(theta_cos, theta_sin) of the complex Theta."""
+    return theta.real, -theta.imag
+
+
+def gamma_delta(theta_cos: float, theta_sin: float) -> tuple[float, float]:
+    """gamma = |theta| (eq. 21), delta = -atan2(theta_sin, theta_cos) in [0, 2 pi) (eq. 22); radians."""
+    return math.hypot(theta_cos, theta_sin), (-math.atan2(theta_sin, theta_cos)) % (2.0 * math.pi)
+
+
+def theta_from_gamma_delta(gamma_rad: float, delta_rad: float) -> tuple[float, float]:
+    """Inverse of eq. 21-22: theta_cos = gamma cos(delta), theta_sin = -gamma sin(delta)."""
+    return gamma_rad * math.cos(delta_rad), -gamma_rad * math.sin(delta_rad)
+
+
+def phase_error_deg(s_hat: complex, s_true: complex) -> float:
+    """Phase of S_hat against S, wrapped to (-180, 180] degrees."""
+    return math.degrees(cmath.phase(s_hat / s_true))

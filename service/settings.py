@@ -1,0 +1,161 @@
+"""Settings: one TOML file plus environment overrides; the defaults run the emulated bench.
+
+Environment overrides: RIPPLECAL_<SECTION>__<FIELD>=value, e.g. RIPPLECAL_CAN__CHANNEL=can1,
+RIPPLECAL_SERVER__PORT=8001. Values are parsed as TOML scalars where possible ("5" -> 5).
+The `motor`, `control` and `mechanics` sections are the bench's NOMINAL parameters (datasheet,
+commissioning): the identification's model S_hat (eq. 14-20) is computed from them, never from the
+emulator's truth.
+"""
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CanSettings(_Section):
+    interface: str = "socketcand"
+    channel: str = "can0"
+    host: str | None = "127.0.0.1"
+    port: int | None = None
+    bitrate: int | None = None
+    service_node_id: int = Field(1, ge=1, le=127)
+    heartbeat_period_ms: int = Field(100, ge=10, le=10_000)
+    drive_node: int = Field(5, ge=1, le=127)
+    load_node: int = Field(6, ge=1, le=127)
+    sdo_timeout_s: float = Field(0.5, gt=0)
+
+
+class DaqSettings(_Section):
+    url: str | None = None
+    sample_rate_hz: float = Field(16_000.0, gt=0)
+    accel_full_scale_rad_s2: float = Field(500.0, gt=0)
+    read_timeout_s: float = Field(5.0, gt=0)
+
+
+class SupplySettings(_Section):
+    url: str | None = None
+    timeout_s: float = Field(1.0, gt=0)
+
+
+class MotorSettings(_Section):
+    """Nominal machine parameters (paper Table 1 bench)."""
+    pole_pairs: int = Field(4, ge=1)
+    r_s_ohm: float = Field(0.010, gt=0)
+    l_d_h: float = Field(20e-6, gt=0)
+    l_q_h: float = Field(20e-6, gt=0)
+    psi_p_vs: float = Field(7.0e-3, gt=0)
+    rated_torque_nm: float = Field(5.0, gt=0)
+    i_max_a: float = Field(113.0, gt=0)
+
+
+class ControlSettings(_Section):
+    """Nominal current control: bandwidth, controller rate, total control delay (eq. 17)."""
+    bandwidth_hz: float = Field(160.0, gt=0)
+    control_rate_hz: float = Field(16_000.0, gt=0)
+    delay_periods: float = Field(1.5, ge=0)
+
+
+class MechanicsSettings(_Section):
+    """G_Salpha(s): torque (Nm) -> measured angular acceleration (rad/s^2), paper sec. 2.3."""
+    inertia_kg_m2: float = Field(2.0e-3, gt=0)
+    zero_rad_s: float = -35954.0
+    pole_re_rad_s: float = -19.6
+    pole_im_rad_s: float = 6746.2
+
+
+class IdentificationSettings(_Section):
+    harmonic_order: int = Field(6, ge=1, le=60)
+    gamma_max_deg: float = Field(15.0, gt=0, le=45)
+
+
+class SafetySettings(_Section):
+    max_torque_nm: float = Field(5.0, gt=0)
+    max_speed_rpm: float = Field(6000.0, gt=0)
+    min_udc_v: float = Field(6.0, ge=0)
+    max_udc_v: float = Field(60.0, gt=0)
+
+
+class EmulatorSettings(_Section):
+    scenario: str = "paper-bench"
+    seed: int | None = None
+    speedup: float = Field(0.0, ge=0)
+    start_timeout_s: float = Field(60.0, gt=0)
+
+
+class ServerSettings(_Section):
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    db_path: str = "data/ripplecal.db"
+
+
+class Settings(_Section):
+    bench_mode: Literal["emulate", "bench"] = "emulate"
+    bench_name: str = "emulated"
+    can: CanSettings = CanSettings()
+    daq: DaqSettings = DaqSettings()
+    supply: SupplySettings = SupplySettings()
+    motor: MotorSettings = MotorSettings()
+    control: ControlSettings = ControlSettings()
+    mechanics: MechanicsSettings = MechanicsSettings()
+    identification: IdentificationSettings = IdentificationSettings()
+    safety: SafetySettings = SafetySettings()
+    emulator: EmulatorSettings = EmulatorSettings()
+    server: ServerSettings = ServerSettings()
+
+
+class SettingsError(ValueError):
+    """A settings file or override that cannot be used; the message says which key and why."""
+
+
+ENV_PREFIX = "RIPPLECAL_"
+
+
+def _parse_env_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def load_settings(path: str | Path | None = None, environ: dict[str, str] | None = None,
+                  overrides: dict[str, Any] | None = None) -> Settings:
+    """Settings from defaults <- TOML file <- environment <- explicit overrides (CLI flags)."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            data = tomllib.loads(p.read_text())
+        except FileNotFoundError:
+            raise SettingsError(f"settings file {p} does not exist") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SettingsError(f"settings file {p} is not valid TOML: {exc}") from None
+    env = os.environ if environ is None else environ
+    for key, raw in env.items():
+        if not key.startswith(ENV_PREFIX):
+            continue
+        parts = key[len(ENV_PREFIX):].lower().split("__")
+        node = data
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = _parse_env_value(raw)
+    for dotted, value in (overrides or {}).items():
+        if value is None:
+            continue
+        parts = dotted.split(".")
+        node = data
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    try:
+        return Settings.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise SettingsError(f"invalid settings: {problems}") from None

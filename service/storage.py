@@ -1,0 +1,233 @@
+"""SQLite storage: numbered migrations (migrations/NNNN_*.sql, PRAGMA user_version) and the
+repository functions the service uses. One connection per call, WAL mode, every write in one
+transaction, so a failure in one operating point never touches the results of others."""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import re
+import secrets
+import sqlite3
+import threading
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator
+
+MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+_MIGRATION_NAME = re.compile(r"^(\d{4})_[a-z0-9_]+\.sql$")
+
+
+class StorageError(RuntimeError):
+    pass
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+def migrations(directory: Path = MIGRATIONS_DIR) -> list[tuple[int, Path]]:
+    found = []
+    for path in sorted(directory.glob("*.sql")):
+        m = _MIGRATION_NAME.match(path.name)
+        if not m:
+            raise StorageError(f"migration file {path.name} is not named NNNN_description.sql")
+        found.append((int(m.group(1)), path))
+    numbers = [n for n, _ in found]
+    if numbers != list(range(1, len(found) + 1)):
+        raise StorageError(f"migrations must be numbered 1..N without gaps, found {numbers}")
+    return found
+
+
+class Storage:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._write_lock = threading.Lock()
+        self.migrate()
+
+    @contextlib.contextmanager
+    def connect(self) -> Iterator[sqlite3.Connection]:
+        conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None)
+        conn.row_factory = sqlite3.Row
+        conn.execute("PRAGMA foreign_keys = ON")
+        conn.execute("PRAGMA journal_mode = WAL")
+        try:
+            yield conn
+        finally:
+            conn.close()
+
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        with self._write_lock, self.connect() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+
+    def migrate(self) -> int:
+        with self._write_lock, self.connect() as conn:
+            current = conn.execute("PRAGMA user_version").fetchone()[0]
+            available = migrations()
+            if current > len(available):
+                raise StorageError(f"database {self.path} is at schema {current}, newer than this software ({len(available)})")
+            for number, path in available[current:]:
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    for statement in _split_sql(path.read_text()):
+                        conn.execute(statement)
+                    conn.execute(f"PRAGMA user_version = {number}")
+                    conn.execute("COMMIT")
+                except Exception as exc:
+                    conn.execute("ROLLBACK")
+                    raise StorageError(f"migration {path.name} failed: {exc}") from exc
+            return conn.execute("PRAGMA user_version").fetchone()[0]
+
+    # --- tokens ------------------------------------------------------------------------------------
+    def create_token(self, role: str, label: str = "") -> tuple[int, str]:
+        token = "rc_" + secrets.token_urlsafe(32)
+        with self.transaction() as conn:
+            cur = conn.execute("INSERT INTO api_tokens (role, token_sha256, label, created_at) VALUES (?, ?, ?, ?)",
+                               (role, _sha256(token), label, now_iso()))
+            return cur.lastrowid, token
+
+    def revoke_token(self, token_id: int) -> bool:
+        with self.transaction() as conn:
+            cur = conn.execute("UPDATE api_tokens SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL", (now_iso(), token_id))
+            return cur.rowcount == 1
+
+    def token_role(self, token: str) -> str | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT role FROM api_tokens WHERE token_sha256 = ? AND revoked_at IS NULL",
+                               (_sha256(token),)).fetchone()
+            return row["role"] if row else None
+
+    def list_tokens(self) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT id, role, label, created_at, revoked_at FROM api_tokens ORDER BY id")]
+
+    # --- jobs --------------------------------------------------------------------------------------
+    def create_job(self, kind: str, request: dict, sweep_id: int | None = None) -> int:
+        with self.transaction() as conn:
+            return conn.execute("INSERT INTO jobs (kind, state, request_json, sweep_id, created_at) VALUES (?, 'queued', ?, ?, ?)",
+                                (kind, json.dumps(request), sweep_id, now_iso())).lastrowid
+
+    def update_job(self, job_id: int, **fields: Any) -> None:
+        _update(self, "jobs", job_id, fields)
+
+    def get_job(self, job_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            return dict(row) if row else None
+
+    def list_jobs(self, limit: int = 100) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT * FROM jobs ORDER BY id DESC LIMIT ?", (limit,))]
+
+    def fail_unfinished_jobs(self, reason: str) -> None:
+        """On start-up: jobs and sweeps a previous process left running cannot still be running."""
+        with self.transaction() as conn:
+            conn.execute("UPDATE jobs SET state = 'failed', error = ?, finished_at = ? WHERE state IN ('queued', 'running')",
+                         (reason, now_iso()))
+            conn.execute("UPDATE sweeps SET state = 'failed', error = ?, finished_at = ? WHERE state IN ('queued', 'running', 'paused')",
+                         (reason, now_iso()))
+
+    # --- sweeps ------------------------------------------------------------------------------------
+    def create_sweep(self, method: str, harmonic_order: int, grid: dict, options: dict, total: int,
+                     bench_identity: str, software_version: str) -> int:
+        with self.transaction() as conn:
+            return conn.execute(
+                "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
+                "software_version, created_at) VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?)",
+                (method, harmonic_order, json.dumps(grid), json.dumps(options), total, bench_identity, software_version,
+                 now_iso())).lastrowid
+
+    def update_sweep(self, sweep_id: int, **fields: Any) -> None:
+        _update(self, "sweeps", sweep_id, fields)
+
+    def get_sweep(self, sweep_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM sweeps WHERE id = ?", (sweep_id,)).fetchone()
+            return dict(row) if row else None
+
+    def list_sweeps(self, limit: int = 100) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT * FROM sweeps ORDER BY id DESC LIMIT ?", (limit,))]
+
+    # --- results -----------------------------------------------------------------------------------
+    def insert_result(self, row: dict, sweep_progress: dict | None = None) -> int:
+        """One result in its own transaction (with the sweep's progress counters, if any)."""
+        cols = ", ".join(row)
+        marks = ", ".join("?" for _ in row)
+        with self.transaction() as conn:
+            rid = conn.execute(f"INSERT INTO results ({cols}) VALUES ({marks})", tuple(row.values())).lastrowid
+            if sweep_progress:
+                sets = ", ".join(f"{k} = {k} + ?" for k in sweep_progress)
+                conn.execute(f"UPDATE sweeps SET {sets} WHERE id = ?", (*sweep_progress.values(), row["sweep_id"]))
+            return rid
+
+    def get_result(self, result_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM results WHERE id = ?", (result_id,)).fetchone()
+            return dict(row) if row else None
+
+    def sweep_results(self, sweep_id: int) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT * FROM results WHERE sweep_id = ? ORDER BY id", (sweep_id,))]
+
+    # --- maps --------------------------------------------------------------------------------------
+    def create_map(self, sweep_id: int | None, harmonic_order: int, method: str, axes: dict,
+                   cells: list[tuple[int | None, float, float, float]], bench_identity: str, software_version: str) -> int:
+        with self.transaction() as conn:
+            map_id = conn.execute(
+                "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (sweep_id, harmonic_order, method, json.dumps(axes), bench_identity, software_version, now_iso())).lastrowid
+            conn.executemany("INSERT INTO map_cells (map_id, result_id, torque_nm, speed_rpm, udc_v) VALUES (?, ?, ?, ?, ?)",
+                             [(map_id, *cell) for cell in cells])
+            if sweep_id is not None:
+                conn.execute("UPDATE sweeps SET map_id = ? WHERE id = ?", (map_id, sweep_id))
+            return map_id
+
+    def get_map(self, map_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM maps WHERE id = ?", (map_id,)).fetchone()
+            if not row:
+                return None
+            cells = conn.execute(
+                "SELECT c.torque_nm, c.speed_rpm, c.udc_v, r.id AS result_id, r.status, r.theta_cos, r.theta_sin, "
+                "r.gamma_deg, r.delta_deg, r.suppression_db, r.error FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
+                "WHERE c.map_id = ? ORDER BY c.udc_v, c.speed_rpm, c.torque_nm", (map_id,)).fetchall()
+            return {**dict(row), "cells": [dict(c) for c in cells]}
+
+    def list_maps(self, limit: int = 100) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute(
+                "SELECT id, sweep_id, harmonic_order, method, created_at FROM maps ORDER BY id DESC LIMIT ?", (limit,))]
+
+
+_IDENT = re.compile(r"^[a-z_]+$")
+
+
+def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -> None:
+    if not fields:
+        return
+    for key in fields:
+        if not _IDENT.match(key):
+            raise StorageError(f"bad column name {key!r}")
+    sets = ", ".join(f"{k} = ?" for k in fields)
+    with storage.transaction() as conn:
+        conn.execute(f"UPDATE {table} SET {sets} WHERE id = ?", (*fields.values(), row_id))
+
+
+def _sha256(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def _split_sql(script: str) -> list[str]:
+    """Statements of a migration script (no semicolons inside our literals; comments stripped)."""
+    lines = [line.split("--", 1)[0] for line in script.splitlines()]
+    return [stmt.strip() for stmt in "\n".join(lines).split(";") if stmt.strip()]

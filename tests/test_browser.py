@@ -1,0 +1,229 @@
+"""Browser test of the dashboard against the real service (which starts the emulated bench).
+
+Runs Debian's Chromium (/usr/bin/chromium) through Python Playwright; never downloads a browser.
+Outside CI the test is skipped when Chromium or Playwright is missing; in CI (env CI set) it fails.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.browser
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+]
+STARTUP_TIMEOUT_S = 60.0
+STOP_GRACE_S = 10.0
+DRIVE_STATES = re.compile(
+    r"^(not_ready_to_switch_on|switch_on_disabled|ready_to_switch_on|switched_on|"
+    r"operation_enabled|quick_stop_active|fault_reaction_active|fault)$"
+)
+NUMBER = r"/^-?\d+(\.\d+)?$/"
+
+
+def _require_browser():
+    """Skip (outside CI) or fail (in CI) when the browser stack is unavailable."""
+    in_ci = bool(os.environ.get("CI"))
+    problems = []
+    if not Path(CHROMIUM).exists():
+        problems.append(f"{CHROMIUM} is absent (apt-get install chromium)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        problems.append("Python package playwright is not installed (pip install -e .[test])")
+    if problems:
+        reason = "browser test needs: " + "; ".join(problems)
+        if in_ci:
+            pytest.fail(reason + " — required in CI", pytrace=False)
+        pytest.skip(reason)
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _log_tail(path: Path, n: int = 60) -> str:
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return "(no service log)"
+    return "\n".join(lines[-n:])
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """SIGTERM the service; after STOP_GRACE_S kill it and whatever it left in its session."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=STOP_GRACE_S)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the service leads its own session (start_new_session)
+        except ProcessLookupError:
+            pass
+        proc.wait(timeout=5)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    """The real ripplecal service on a free loopback port, with its own database."""
+    _require_browser()
+    tmp = tmp_path_factory.mktemp("svc")
+    port = _free_port()
+    log_path = tmp / "service.log"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--db", str(tmp / "ripplecal.db")]
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(
+            cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        last_err = None
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"service exited with {proc.returncode} during start-up:\n{_log_tail(log_path)}",
+                            pytrace=False)
+            try:
+                with urllib.request.urlopen(base + "/api/v1/bench/status", timeout=2) as r:
+                    if r.status == 200:
+                        json.load(r)
+                        break
+            except (urllib.error.URLError, OSError, ValueError) as e:
+                last_err = e
+            if time.monotonic() > deadline:
+                pytest.fail(f"service not reachable on {base} within {STARTUP_TIMEOUT_S:.0f} s "
+                            f"(last error: {last_err}):\n{_log_tail(log_path)}", pytrace=False)
+            time.sleep(0.25)
+        yield {"base": base, "log": log_path, "proc": proc}
+    finally:
+        _stop(proc)
+
+
+@pytest.fixture(scope="module")
+def browser(service):
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def _open(browser, base):
+    """A fresh page on the dashboard that records console errors, page errors and requests."""
+    context = browser.new_context(viewport={"width": 1600, "height": 1000})
+    page = context.new_page()
+    rec = {"console": [], "pageerrors": [], "requests": [], "failed": []}
+    page.on("console", lambda m: rec["console"].append(f"{m.type}: {m.text}") if m.type == "error" else None)
+    page.on("pageerror", lambda e: rec["pageerrors"].append(str(e)))
+    page.on("request", lambda r: rec["requests"].append(r.url))
+    page.on("requestfailed", lambda r: rec["failed"].append(f"{r.url}: {r.failure}"))
+    page.goto(base + "/", wait_until="load")
+    return context, page, rec
+
+
+def test_dashboard_shows_live_bench_status(service, browser, tmp_path):
+    base = service["base"]
+    context, page, rec = _open(browser, base)
+    try:
+        try:
+            # drive state: one of the CiA 402 states
+            page.wait_for_function(
+                """(re) => {
+                    const el = document.querySelector('[data-testid="drive-state"]');
+                    return el && new RegExp(re).test(el.textContent.trim());
+                }""",
+                arg=DRIVE_STATES.pattern, timeout=30_000,
+            )
+            # DC-link voltage and speed filled with numbers
+            page.wait_for_function(
+                f"""() => ['drive-udc', 'drive-speed'].every((id) => {{
+                    const el = document.querySelector(`[data-testid="${{id}}"]`);
+                    return el && {NUMBER}.test(el.textContent.trim());
+                }})""",
+                timeout=30_000,
+            )
+        except Exception:
+            page.screenshot(path=str(tmp_path / "dashboard_failure.png"), full_page=True)
+            raise AssertionError(
+                "bench status not shown: drive-state=%r drive-udc=%r drive-speed=%r\nconsole: %s\nservice log:\n%s"
+                % (page.text_content('[data-testid="drive-state"]'), page.text_content('[data-testid="drive-udc"]'),
+                   page.text_content('[data-testid="drive-speed"]'), rec["console"] + rec["pageerrors"],
+                   _log_tail(service["log"])))
+
+        state = page.text_content('[data-testid="drive-state"]').strip()
+        assert DRIVE_STATES.match(state), state
+        udc = float(page.text_content('[data-testid="drive-udc"]'))
+        speed = float(page.text_content('[data-testid="drive-speed"]'))
+        assert 0.0 < udc < 1000.0, f"implausible DC-link voltage {udc} V"
+        assert abs(speed) < 100_000.0, f"implausible speed {speed} rpm"
+        assert page.text_content('[data-testid="bench-connected"]').strip() in ("yes", "no")
+
+        # Plotly comes from the service itself, not from a CDN
+        assert page.evaluate("typeof window.Plotly") == "object", "window.Plotly undefined: /vendor/plotly.min.js"
+        assert any(u == base + "/vendor/plotly.min.js" for u in rec["requests"]), rec["requests"]
+
+        # the sweep and map sections loaded without error
+        page.wait_for_selector('[data-testid="sweep-table"]', state="attached")
+        assert page.is_hidden('[data-testid="sweep-error"]')
+
+        # give the SSE stream a moment to deliver events, then check the page stayed clean
+        page.wait_for_timeout(2500)
+        assert page.get_attribute('[data-testid="live-mode"]', "data-mode") == "live", \
+            "no bench.status received over SSE /api/v1/events (dashboard fell back to polling)"
+        foreign = [u for u in rec["requests"]
+                   if not u.startswith(base + "/") and not u.startswith(("data:", "blob:"))]
+        assert not foreign, f"requests outside the service: {foreign}"
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+        assert not [f for f in rec["failed"] if "/api/v1/events" not in f], rec["failed"]
+        page.screenshot(path=str(tmp_path / "dashboard.png"), full_page=True)
+    finally:
+        context.close()
+
+
+def test_sweep_form_without_token_shows_auth_error(service, browser):
+    """POST /sweeps without a token is refused (nothing moves); the page says why."""
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.evaluate("localStorage.removeItem('ripplecal.token')")
+        page.fill('[data-testid="token"]', "")
+        page.fill('[data-testid="sweep-torque"]', "1")
+        page.fill('[data-testid="sweep-speed"]', "1000")
+        page.fill('[data-testid="sweep-udc"]', "12")
+        page.click('[data-testid="sweep-submit"]')
+        err = page.locator('[data-testid="sweep-error"]')
+        err.wait_for(state="visible", timeout=10_000)
+        assert "token missing or invalid" in err.inner_text()
+        assert page.is_hidden('[data-testid="sweep-ok"]')
+        assert not rec["pageerrors"], rec["pageerrors"]
+    finally:
+        context.close()

@@ -1,0 +1,272 @@
+"""CANopen drivers against real canopen LocalNode peers on python-can virtual buses (no mocks).
+
+The peers load the same EDS files as the clients and walk the same CiA 402 transition table, so these
+tests exercise the real SDO protocol, NMT, heartbeat and EMCY paths end to end.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+
+import pytest
+from canopen.sdo import SdoAbortedError
+
+from drivers import DRIVE_EDS, LOAD_EDS
+from drivers.canopen_bus import CanBus
+from drivers.cia402 import CONTROLWORD, Command402, State402
+from drivers.drive import DriveClient, DriveStatus
+from drivers.errors import SdoAbortError, SdoTimeoutError, StateTransitionError
+from drivers.load_machine import LoadClient, LoadStatus
+from drivers_peers import Cia402Peer, unique_channel
+
+DRIVE_NODE = 5
+LOAD_NODE = 6
+SERVICE_NODE = 1
+
+
+@pytest.fixture
+def channel():
+    return unique_channel()
+
+
+@pytest.fixture
+def bus(channel):
+    with CanBus("virtual", channel, service_node_id=SERVICE_NODE, heartbeat_period_ms=50) as can_bus:
+        yield can_bus
+
+
+@pytest.fixture
+def drive_peer(channel):
+    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS, heartbeat_ms=50)
+    yield peer
+    peer.close()
+
+
+@pytest.fixture
+def drive(bus, drive_peer):
+    client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.5)
+    client.connect()
+    yield client
+    client.close()
+
+
+@pytest.fixture
+def load_peer(channel):
+    peer = Cia402Peer(channel, LOAD_NODE, LOAD_EDS)
+    yield peer
+    peer.close()
+
+
+def wait_until(predicate, timeout_s: float, interval_s: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval_s)
+    return predicate()
+
+
+def test_connect_configures_heartbeat_consumer_and_reads_rated_torque(drive, drive_peer):
+    assert drive_peer.node.nmt.state == "OPERATIONAL"
+    assert drive_peer.value(0x1016, 1) == (SERVICE_NODE << 16) | 500
+    assert drive.rated_torque_nm == pytest.approx(5.0)
+    assert drive.heartbeat_period_ms == 50
+
+
+def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer):
+    assert drive.state() is State402.SWITCH_ON_DISABLED
+    drive.enable(timeout_s=2.0)
+    assert drive.state() is State402.OPERATION_ENABLED
+    assert drive_peer.value(0x6060) == 4
+    assert drive_peer.writes_to(0x6040) == [CONTROLWORD[Command402.SHUTDOWN], CONTROLWORD[Command402.SWITCH_ON],
+                                            CONTROLWORD[Command402.ENABLE_OPERATION]]
+    drive.set_torque_nm(1.0)
+    drive.set_injection(0.01, 0.02)
+    drive.disable(timeout_s=2.0)
+    assert drive.state() is State402.SWITCH_ON_DISABLED
+    # the safety path made the drive harmless before switching the power stage off
+    assert drive_peer.value(0x6071) == 0
+    assert drive_peer.value(0x2000, 2) == 0
+
+
+def test_enable_resets_a_fault_with_a_rising_edge(drive, drive_peer):
+    drive_peer.set_statusword(State402.FAULT)
+    drive.enable(timeout_s=2.0)
+    assert drive_peer.state is State402.OPERATION_ENABLED
+    assert drive_peer.writes_to(0x6040)[:2] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
+
+
+def test_enable_times_out_with_a_clear_error_when_the_device_does_not_follow(drive, drive_peer):
+    drive_peer.node._write_callbacks.remove(drive_peer._on_write)  # device ignores controlwords now
+    with pytest.raises(StateTransitionError, match=r"drive node 5: .*SWITCH_ON_DISABLED.*after SHUTDOWN"):
+        drive.enable(timeout_s=0.2)
+
+
+def test_torque_is_sent_in_per_mille_of_rated_torque(drive, drive_peer):
+    assert drive.set_torque_nm(2.5) == 500
+    assert drive.set_torque_nm(-5.0) == -1000
+    drive.set_torque_nm(0.0012)
+    assert drive_peer.writes_to(0x6071) == [500, -1000, 0]
+    drive_peer.set_value(0x6077, 0, 498)
+    drive_peer.set_value(0x606C, 0, 2001)
+    drive_peer.set_value(0x6079, 0, 12_000)
+    drive_peer.set_value(0x2010, 1, -1.5)
+    drive_peer.set_value(0x2010, 2, 7.25)
+    status = drive.read_status()
+    assert isinstance(status, DriveStatus)
+    assert status == DriveStatus(state=State402.SWITCH_ON_DISABLED, torque_nm=pytest.approx(2.49),
+                                 speed_rpm=2001.0, udc_v=pytest.approx(12.0), ud_ref_v=pytest.approx(-1.5),
+                                 uq_ref_v=pytest.approx(7.25))
+
+
+@pytest.mark.parametrize("torque_nm", [5.01, -6.0, math.nan, math.inf])
+def test_out_of_range_torque_is_rejected_before_sending(drive, drive_peer, torque_nm):
+    before = len(drive_peer.writes)
+    with pytest.raises(ValueError, match="outside the drive's range"):
+        drive.set_torque_nm(torque_nm)
+    time.sleep(0.05)
+    assert len(drive_peer.writes) == before
+
+
+def test_device_refusal_names_object_and_abort_meaning(drive, drive_peer):
+    with pytest.raises(SdoAbortError) as info:
+        drive.write(0x6071, 0, 1500)  # bypasses the client-side check on purpose
+    message = str(info.value)
+    assert "0x6071:00 'Target torque'" in message
+    assert "0x06090030" in message and "Value range of parameter exceeded" in message
+    assert info.value.abort_code == 0x06090030
+
+
+def test_set_injection_writes_real32_pair_sets_manual_and_commits(drive, drive_peer):
+    assert drive.set_injection(0.0123, -0.0456) == 2  # mode switched on + commit
+    assert drive_peer.writes_to(0x2000, 3) == [pytest.approx(0.0123, rel=1e-6)]
+    assert drive_peer.writes_to(0x2000, 4) == [pytest.approx(-0.0456, rel=1e-6)]
+    assert drive_peer.writes_to(0x2000, 2) == [1]
+    assert drive_peer.writes_to(0x2000, 7) == [1]
+    raw = drive_peer.node.data_store[0x2000][3]
+    assert len(raw) == 4 and struct.unpack("<f", raw)[0] == pytest.approx(0.0123, rel=1e-6)
+    # the mode is already manual: only the pair and the commit go out
+    assert drive.set_injection(0.02, 0.0) == 1
+    assert drive_peer.writes_to(0x2000, 2) == [1]
+    assert drive_peer.writes_to(0x2000, 7) == [1, 1]
+    assert drive.commit_count() == 2
+    index_order = [(i, s) for (i, s, _v) in drive_peer.writes if i == 0x2000]
+    assert index_order == [(0x2000, 3), (0x2000, 4), (0x2000, 2), (0x2000, 7), (0x2000, 3), (0x2000, 4), (0x2000, 7)]
+    drive.injection_off()
+    assert drive_peer.value(0x2000, 2) == 0
+
+
+def test_injection_parameters(drive, drive_peer):
+    drive.set_harmonic_order(12)
+    drive.set_gamma_max_rad(0.1)
+    drive.set_decoupling(True)
+    assert drive_peer.value(0x2000, 1) == 12
+    assert drive_peer.value(0x2000, 5) == pytest.approx(0.1, rel=1e-6)
+    assert drive_peer.value(0x2000, 6) == 1
+    drive.set_decoupling(False)
+    assert drive_peer.value(0x2000, 6) == 0
+    for bad in (0, 256, 2.5):
+        with pytest.raises(ValueError):
+            drive.set_harmonic_order(bad)
+    with pytest.raises(ValueError):
+        drive.set_gamma_max_rad(-0.1)
+
+
+def test_sdo_timeout_on_missing_node_names_the_object(bus, drive_peer):
+    ghost = DriveClient(bus, 42, sdo_timeout_s=0.1)
+    t0 = time.monotonic()
+    with pytest.raises(SdoTimeoutError) as info:
+        ghost.connect()
+    assert time.monotonic() - t0 < 1.0
+    message = str(info.value)
+    assert "node 42" in message and "0x1016:01" in message and "Consumer heartbeat time" in message
+    assert "no SDO response within 0.1 s" in message
+    assert not ghost.connected  # a failed connect leaves nothing attached
+
+
+def test_disable_tries_every_step_and_raises_the_first_error(bus, channel):
+    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS)
+    try:
+        client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.1)
+        client.connect()
+        client.enable()
+        # the injection record is refused from now on; torque 0 and disable voltage must still go out
+        def refuse_injection(index, subindex, od, data, **_kwargs):
+            if index == 0x2000:
+                raise SdoAbortedError(0x08000022)  # "because of the present device state"
+
+        peer.node._write_callbacks.insert(0, refuse_injection)
+        with pytest.raises(SdoAbortError, match=r"0x2000:02 'Harmonic injection.Injection mode'.*0x08000022"):
+            client.disable()
+        assert peer.value(0x6071) == 0
+        assert peer.state is State402.SWITCH_ON_DISABLED
+        client.close()
+    finally:
+        peer.close()
+
+
+def test_can_bus_produces_service_heartbeat(channel):
+    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS)
+    frames: list[tuple[float, bytes]] = []
+    peer.network.subscribe(0x701, lambda can_id, data, ts: frames.append((time.monotonic(), bytes(data))))
+    try:
+        with CanBus("virtual", channel, service_node_id=1, heartbeat_period_ms=50):
+            assert wait_until(lambda: len(frames) >= 4, 1.0)
+        assert all(data == b"\x05" for _, data in frames)
+        stopped_at = len(frames)
+        time.sleep(0.2)
+        assert len(frames) <= stopped_at + 1  # heartbeat ends with the connection
+    finally:
+        peer.close()
+
+
+def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
+    assert wait_until(drive.heartbeat_alive, 1.0)
+    assert wait_until(lambda: drive.nmt_state == 5, 1.0)  # the NMT start command took effect
+    drive_peer.node.emcy.send(0x8130, 0x11)
+    assert wait_until(lambda: len(drive.emcy_log) == 1, 1.0)
+    assert drive.emcy_log[0].code == 0x8130
+    drive_peer.stop_heartbeat()
+    assert wait_until(lambda: not drive.heartbeat_alive(), 1.0)
+
+
+def test_load_client_enables_and_sets_speed(bus, load_peer):
+    load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=0.5)
+    load.connect()
+    load.enable()
+    assert load_peer.state is State402.OPERATION_ENABLED
+    assert load_peer.value(0x6060) == 3
+    assert load.set_speed_rpm(2000.4) == 2000
+    assert load_peer.writes_to(0x60FF) == [2000]
+    load_peer.set_value(0x606C, 0, 1998)
+    load_peer.set_value(0x6077, 0, -250)
+    status = load.read_status()
+    assert status == LoadStatus(state=State402.OPERATION_ENABLED, speed_rpm=1998.0, torque_nm=pytest.approx(-0.25))
+    load.disable()
+    assert load_peer.writes_to(0x60FF)[-1] == 0
+    assert load_peer.state is State402.SWITCH_ON_DISABLED
+    load.close()
+
+
+def test_drive_and_load_share_one_bus_concurrently(bus, drive, drive_peer, load_peer):
+    load = LoadClient(bus, LOAD_NODE)
+    load.connect()
+    errors: list[BaseException] = []
+
+    def poll_drive():
+        try:
+            for _ in range(20):
+                drive.read_status()
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    thread = threading.Thread(target=poll_drive)
+    thread.start()
+    for speed in range(0, 2000, 100):
+        load.set_speed_rpm(speed)
+    thread.join(10)
+    assert not errors
+    assert load_peer.writes_to(0x60FF) == list(range(0, 2000, 100))
+    load.close()

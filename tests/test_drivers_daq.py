@@ -1,0 +1,217 @@
+"""DaqReader against a real pty (the emulator's transport) and a loopback TCP socket, no mocks.
+
+Frames are made with drivers.daq_protocol.encode_frames, the encoder the emulator uses, and written to
+the pty master by a writer thread; the reader opens the slave by its /dev/pts path like any serial port.
+"""
+from __future__ import annotations
+
+import math
+import os
+import socket
+import threading
+import time
+import tty
+
+import numpy as np
+import pytest
+
+from drivers.daq_protocol import FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, FRAME_BYTES, encode_frames
+from drivers.daq_reader import DaqDisconnected, DaqReader, DaqTimeout
+
+
+def make_stream(n: int, first_seq: int = 0, seed: int = 1) -> tuple[bytes, dict[str, np.ndarray]]:
+    rng = np.random.default_rng(seed)
+    seq = first_seq + np.arange(n)
+    angle = (np.arange(n) * 977) % 65536
+    accel = rng.integers(-32767, 32768, n)
+    flags = np.where(np.arange(n) % 50 == 0, FLAG_SYNC_INPUT, 0)
+    flags[n // 3] |= FLAG_SENSOR_FAULT
+    return encode_frames(seq, angle, accel, flags), {"angle": angle, "accel": accel, "flags": flags}
+
+
+class PtyWriter:
+    """The pty master side: writes byte pieces from a thread (blocking writes, like the emulator)."""
+
+    def __init__(self):
+        self.master_fd, self.slave_fd = os.openpty()
+        tty.setraw(self.slave_fd)
+        self.path = os.ttyname(self.slave_fd)
+        self.bytes_written = 0
+        self.error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+
+    def write_in_thread(self, data: bytes, piece_bytes: int = 4096) -> threading.Thread:
+        def run():
+            try:
+                view = memoryview(data)
+                for start in range(0, len(data), piece_bytes):
+                    piece = view[start:start + piece_bytes]
+                    while piece:
+                        written = os.write(self.master_fd, piece)
+                        self.bytes_written += written
+                        piece = piece[written:]
+            except OSError as exc:
+                self.error = exc
+
+        self._thread = threading.Thread(target=run, name="pty-writer", daemon=True)
+        self._thread.start()
+        return self._thread
+
+    def close_master(self) -> None:
+        if self.master_fd >= 0:
+            os.close(self.master_fd)
+            self.master_fd = -1
+
+    def close(self) -> None:
+        self.close_master()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        if self.slave_fd >= 0:
+            os.close(self.slave_fd)
+            self.slave_fd = -1
+
+
+@pytest.fixture
+def pty_writer():
+    writer = PtyWriter()
+    yield writer
+    writer.close()
+
+
+def test_samples_arrive_in_order_with_values(pty_writer):
+    n = 6000
+    stream, truth = make_stream(n, first_seq=65536 - 1000)  # crosses the 16-bit sequence wrap
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write_in_thread(stream, piece_bytes=1000)  # pieces cut frames in half
+        first = reader.read(1234, timeout_s=5.0)
+        rest = reader.read(n - 1234, timeout_s=5.0)
+    assert len(first) == 1234 and len(rest) == n - 1234
+    index = np.concatenate([first.index, rest.index])
+    np.testing.assert_array_equal(index, np.arange(n))
+    angle = np.concatenate([first.angle_rad, rest.angle_rad])
+    np.testing.assert_allclose(angle, truth["angle"] * 2 * math.pi / 65536)
+    accel = np.concatenate([first.accel_fs, rest.accel_fs])
+    np.testing.assert_allclose(accel, truth["accel"] / 32767)
+    np.testing.assert_array_equal(np.concatenate([first.flags, rest.flags]), truth["flags"])
+    assert not first.gap_before.any() and not rest.gap_before.any()
+    assert reader.counters.frames == n and reader.counters.crc_failures == 0
+
+
+def test_corrupted_frame_and_dropped_bytes_are_counted_and_marked(pty_writer):
+    n = 1000
+    stream, _ = make_stream(n)
+    data = bytearray(stream)
+    data[100 * FRAME_BYTES + 5] ^= 0xFF                          # frame 100: bad CRC
+    del data[300 * FRAME_BYTES + 3: 300 * FRAME_BYTES + 8]       # frame 300: five bytes lost
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write_in_thread(bytes(data))
+        samples = reader.read(n - 2, timeout_s=5.0)
+        counters = reader.counters
+    expected_index = np.delete(np.arange(n), [100, 300])
+    np.testing.assert_array_equal(samples.index, expected_index)
+    np.testing.assert_array_equal(np.flatnonzero(samples.gap_before), [100, 299])  # samples 101 and 301
+    assert counters.crc_failures >= 1
+    assert counters.sequence_gaps == 2
+    assert counters.samples_lost == 2
+    assert counters.bytes_skipped > 0
+
+
+def test_backpressure_reader_stops_reading_until_consumed(pty_writer):
+    n = 200_000  # 2.4 MB, far more than the pty buffers
+    max_buffered = 500
+    stream, _ = make_stream(n)
+    with DaqReader(pty_writer.path, max_buffered_samples=max_buffered, read_chunk_bytes=1200) as reader:
+        writer = pty_writer.write_in_thread(stream)
+        time.sleep(0.5)
+        written_early = pty_writer.bytes_written
+        time.sleep(0.3)
+        # nobody consumes: the queue is full, the reader has stopped, so the writer is blocked
+        assert writer.is_alive()
+        assert pty_writer.bytes_written == written_early
+        assert reader.buffered_samples <= max_buffered
+        assert reader.bytes_read <= (max_buffered + 1) * FRAME_BYTES
+        assert pty_writer.bytes_written < len(stream) // 10
+        # consuming lets the stream flow again, without loss
+        next_index = 0
+        while next_index < n:
+            block = reader.read(min(4000, n - next_index), timeout_s=5.0)
+            assert block.index[0] == next_index and not block.gap_before.any()
+            next_index = int(block.index[-1]) + 1
+        writer.join(5.0)
+        assert pty_writer.bytes_written == len(stream)
+        assert reader.counters.frames == n
+
+
+def test_read_larger_than_buffer_limit_completes(pty_writer):
+    stream, _ = make_stream(3000)
+    with DaqReader(pty_writer.path, max_buffered_samples=256) as reader:
+        pty_writer.write_in_thread(stream)
+        samples = reader.read(3000, timeout_s=5.0)
+    np.testing.assert_array_equal(samples.index, np.arange(3000))
+
+
+def test_timeout_says_how_many_arrived_and_keeps_them(pty_writer):
+    stream, _ = make_stream(100)
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write_in_thread(stream).join(2.0)
+        t0 = time.monotonic()
+        with pytest.raises(DaqTimeout, match="only 100 of 200 samples arrived within 0.3 s"):
+            reader.read(200, timeout_s=0.3)
+        assert 0.25 < time.monotonic() - t0 < 2.0
+        samples = reader.read(100, timeout_s=1.0)  # nothing was lost by the timeout
+    np.testing.assert_array_equal(samples.index, np.arange(100))
+
+
+def test_disconnect_when_the_master_closes(pty_writer):
+    stream, _ = make_stream(50)
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write_in_thread(stream).join(2.0)
+        assert len(reader.read(50, timeout_s=2.0)) == 50
+        pty_writer.close_master()
+        t0 = time.monotonic()
+        with pytest.raises(DaqDisconnected, match="disconnected"):
+            reader.read(10, timeout_s=5.0)
+        assert time.monotonic() - t0 < 2.0  # reported at once, not after the timeout
+        assert reader.error is not None
+
+
+def test_read_before_start_is_an_error():
+    reader = DaqReader("loop://")
+    with pytest.raises(DaqDisconnected, match="not started"):
+        reader.read(1, timeout_s=0.1)
+
+
+def test_decoding_keeps_up_with_two_million_samples_per_second():
+    """Large chunks over loopback TCP: the reader thread must sustain >= 2 MS/s (the emulator at
+    speedup 0 produces as fast as we consume, so reader throughput bounds identification speed)."""
+    n = 1_000_000
+    stream, _ = make_stream(n)
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+
+    def serve():
+        conn, _ = server.accept()
+        with conn:
+            time.sleep(0.2)  # pyserial's socket:// open() discards whatever arrived before it finished
+            conn.sendall(stream)
+            time.sleep(1.0)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        with DaqReader(f"socket://127.0.0.1:{port}", max_buffered_samples=1 << 18,
+                       read_chunk_bytes=1 << 18) as reader:
+            first = reader.read(1, timeout_s=5.0)  # the clock starts with the first sample
+            t0 = time.perf_counter()
+            got = 1
+            last = int(first.index[0])
+            while got < n:
+                block = reader.read(min(1 << 16, n - got), timeout_s=5.0)
+                assert block.index[0] == last + 1
+                last = int(block.index[-1])
+                got += len(block)
+            rate = n / (time.perf_counter() - t0)
+    finally:
+        server.close()
+        thread.join(3.0)
+    assert rate >= 2e6, f"reader sustained only {rate / 1e6:.2f} MS/s"

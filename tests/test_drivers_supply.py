@@ -1,0 +1,87 @@
+"""ScpiSupply against a small SCPI peer on a loopback TCP socket (pyserial URL socket://127.0.0.1:PORT)."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from drivers.dc_supply import ScpiSupply
+from drivers.errors import ScpiError, ScpiTimeout
+from drivers_peers import ScpiPeer
+
+
+@pytest.fixture
+def peer():
+    server = ScpiPeer()
+    yield server
+    server.close()
+
+
+def test_identify_set_and_read_voltage_and_output(peer):
+    with ScpiSupply(peer.url, timeout_s=1.0) as supply:
+        assert supply.identify() == ScpiPeer.IDN
+        assert supply.set_voltage(12.5) == pytest.approx(12.5)
+        assert supply.voltage_setpoint() == pytest.approx(12.5)
+        assert supply.measure_voltage() == pytest.approx(0.0)  # output still off
+        supply.output(True)
+        assert supply.measure_voltage() == pytest.approx(12.5)
+        supply.output(False)
+        assert supply.measure_voltage() == pytest.approx(0.0)
+    assert peer.commands == ["*IDN?", "VOLT 12.5", "VOLT?", "VOLT?", "MEAS:VOLT?", "OUTP ON", "MEAS:VOLT?",
+                             "OUTP OFF", "MEAS:VOLT?"]
+
+
+def test_setpoint_the_supply_did_not_take_is_an_error():
+    server = ScpiPeer(max_voltage_v=30.0)
+    try:
+        with ScpiSupply(server.url) as supply:
+            with pytest.raises(ScpiError, match="read back as 30 V after 'VOLT 48'"):
+                supply.set_voltage(48.0)
+            with pytest.raises(ValueError):
+                supply.set_voltage(-1.0)
+    finally:
+        server.close()
+
+
+def test_silent_peer_times_out_with_a_clear_error():
+    server = ScpiPeer(silent=True)
+    try:
+        with ScpiSupply(server.url, timeout_s=0.3) as supply:
+            t0 = time.monotonic()
+            with pytest.raises(ScpiTimeout, match=r"no reply to 'MEAS:VOLT\?' within 0.3 s"):
+                supply.measure_voltage()
+            assert 0.25 < time.monotonic() - t0 < 1.5
+            supply.output(True)  # commands without a reply still go out
+        time.sleep(0.1)
+        assert "OUTP ON" in server.commands
+    finally:
+        server.close()
+
+
+def test_garbled_reply_is_an_error():
+    """A peer that answers with something that is not a number (wrong instrument, wrong baud rate)."""
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+
+    def serve():
+        conn, _ = server.accept()
+        with conn:
+            conn.settimeout(2.0)
+            try:
+                while conn.recv(256):
+                    conn.sendall(b"\xff\xfeOK?\n")
+            except OSError:
+                pass
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        with ScpiSupply(f"socket://127.0.0.1:{port}", timeout_s=0.5) as supply:
+            time.sleep(0.1)
+            with pytest.raises(ScpiError, match=r"garbled reply to 'VOLT\?'"):
+                supply.voltage_setpoint()
+    finally:
+        server.close()
+        thread.join(3.0)
