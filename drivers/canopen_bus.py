@@ -70,6 +70,11 @@ class CanBus:
             bus = can.Bus(**self.bus_kwargs())
             network = canopen.Network(bus)
             network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+            # python-can's software periodic task serialises its sends with this per-bus lock (created
+            # lazily if absent); sharing canopen's send lock keeps heartbeat and SDO frames from being
+            # sent by two threads at once on transports that are not thread-safe (socketcand's TCP text)
+            if not hasattr(bus, "_lock_send_periodic"):
+                bus._lock_send_periodic = network.send_lock
             try:
                 network.connect()
                 self._heartbeat_task = network.send_periodic(

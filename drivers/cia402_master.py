@@ -210,7 +210,9 @@ class Cia402Master:
 
     def state(self) -> State402:
         """Current CiA 402 state, decoded from the statusword (one SDO read)."""
-        statusword = self.statusword()
+        return self._decode(self.statusword())
+
+    def _decode(self, statusword: int) -> State402:
         try:
             return decode_statusword(statusword)
         except ValueError as exc:
@@ -225,14 +227,15 @@ class Cia402Master:
                        last_command: Command402 | None = None) -> State402:
         """Poll the statusword until accept(state) or the monotonic deadline passes."""
         while True:
-            state = self.state()
+            statusword = self.statusword()
+            state = self._decode(statusword)
             if accept(state):
                 return state
             if time.monotonic() >= deadline:
                 sent = f" after {last_command.name}" if last_command is not None else ""
                 raise StateTransitionError(
                     f"{self.device_kind} node {self.node_id}: {what} did not happen{sent}; "
-                    f"still {state.name} (statusword 0x{self.statusword():04X}){self._fault_hint(state)}")
+                    f"still {state.name} (statusword 0x{statusword:04X}){self._fault_hint(state)}")
             time.sleep(STATUS_POLL_INTERVAL_S)
 
     def _fault_hint(self, state: State402) -> str:

@@ -43,6 +43,11 @@ SUB_UQ_REF = 2                   # REAL32 V
 INJECTION_OFF = 0
 INJECTION_MANUAL = 1
 INJECTION_LUT = 2
+INJECTION_MODES = {"off": INJECTION_OFF, "manual": INJECTION_MANUAL, "lut": INJECTION_LUT}
+
+# writes the drive applies as a new setpoint, each toggling the DAQ sync line once (docs/interfaces.md)
+SETPOINT_OBJECTS = frozenset({(OD_TARGET_TORQUE, 0), (OD_INJECTION, SUB_HARMONIC_ORDER), (OD_INJECTION, SUB_INJECTION_MODE),
+                              (OD_INJECTION, SUB_DECOUPLING), (OD_INJECTION, SUB_COMMIT)})
 
 PER_MILLE = 1000.0
 
@@ -62,8 +67,9 @@ class DriveClient(Cia402Master):
     """CANopen client of the drive under test (default node 5), SDO only.
 
     connect() reads the rated torque (0x6076) once; torque setpoints and readings are scaled with it.
-    Every setpoint the drive applies toggles the DAQ sync flag; methods that write setpoints return
-    how many such writes they made so the caller can count toggles.
+    Every setpoint the drive applies toggles the DAQ sync flag once. `setpoints_written` counts the
+    accepted writes to those objects (SETPOINT_OBJECTS), so the caller can tell, by comparing with the
+    toggles it has seen on the DAQ, the exact sample at which its last setpoint took effect.
     """
 
     device_kind = "drive"
@@ -71,6 +77,12 @@ class DriveClient(Cia402Master):
     def __init__(self, bus: CanBus, node_id: int, sdo_timeout_s: float = 0.5):
         super().__init__(bus, node_id, DRIVE_EDS, MODE_PROFILE_TORQUE, sdo_timeout_s)
         self.rated_torque_nm: float | None = None
+        self.setpoints_written = 0
+
+    def write(self, index: int, subindex: int, value) -> None:
+        super().write(index, subindex, value)
+        if (index, subindex) in SETPOINT_OBJECTS:
+            self.setpoints_written += 1
 
     def _after_connect(self) -> None:
         rated_mnm = int(self.read(OD_RATED_TORQUE))
@@ -104,34 +116,27 @@ class DriveClient(Cia402Master):
         return per_mille
 
     def set_injection(self, theta_cos_rad: float, theta_sin_rad: float) -> int:
-        """Stage theta = [theta_cos, theta_sin] (REAL32, rad), switch to manual injection if it is not
-        already on, and commit so that the drive applies the pair atomically.
-
-        Returns the number of setpoints applied (sync-flag toggles to expect): 1, or 2 when the
-        injection mode had to be switched to manual as well.
-        """
+        """Stage theta = [theta_cos, theta_sin] (REAL32, rad) and commit, so that the drive applies the
+        pair atomically at its next control period. Exactly one setpoint (one sync toggle); the
+        injection mode is set separately with set_injection_mode. Returns 1."""
         for name, value in (("theta_cos_rad", theta_cos_rad), ("theta_sin_rad", theta_sin_rad)):
             if not math.isfinite(value):
                 raise ValueError(f"{name} must be finite, got {value!r}")
         self._require_connected()
         self.write(OD_INJECTION, SUB_THETA_COS, float(theta_cos_rad))
         self.write(OD_INJECTION, SUB_THETA_SIN, float(theta_sin_rad))
-        applied = 0
-        # read, not cached: the drive switches injection off by itself on a fault
-        if int(self.read(OD_INJECTION, SUB_INJECTION_MODE)) != INJECTION_MANUAL:
-            self.write(OD_INJECTION, SUB_INJECTION_MODE, INJECTION_MANUAL)
-            applied += 1
         self.write(OD_INJECTION, SUB_COMMIT, 1)
-        return applied + 1
+        return 1
 
     def injection_off(self) -> None:
         """Injection mode 0 (off); always written, it is part of the safety path."""
         self.write(OD_INJECTION, SUB_INJECTION_MODE, INJECTION_OFF)
 
-    def set_injection_mode(self, mode: int) -> None:
-        """Injection mode 0x2000:2: 0 off, 1 manual (theta from 0x2000:3/4), 2 LUT."""
+    def set_injection_mode(self, mode: int | str) -> None:
+        """Injection mode 0x2000:2: "off"/0, "manual"/1 (theta from 0x2000:3/4), "lut"/2."""
+        mode = INJECTION_MODES.get(mode, mode) if isinstance(mode, str) else mode
         if mode not in (INJECTION_OFF, INJECTION_MANUAL, INJECTION_LUT):
-            raise ValueError(f"injection mode must be 0 (off), 1 (manual) or 2 (LUT), got {mode!r}")
+            raise ValueError(f"injection mode must be off/manual/lut (0/1/2), got {mode!r}")
         self.write(OD_INJECTION, SUB_INJECTION_MODE, mode)
 
     def injection_mode(self) -> int:

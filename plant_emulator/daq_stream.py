@@ -6,13 +6,14 @@ The slave is put in raw mode and kept open by the emulator, so the device node s
 - blocking (`--speedup 0`): a chunk is written completely before the plant goes on; a reader that
   does not read fills the pty buffer, the write waits, and plant time stops (backpressure);
 - paced (`--speedup X > 0`): the plant runs on the wall clock like a real DAQ; what the pty cannot
-  take is kept up to `max_pending_bytes` and then dropped in whole frames (the reader sees a
-  sequence gap, as with a real overrun).
+  take is kept up to `max_pending_bytes` (64 KiB, ~0.34 s at 16 kHz) and then dropped in whole
+  frames (the reader sees a sequence gap, as with a real overrun, and no stale backlog).
 """
 from __future__ import annotations
 
 import logging
 import os
+import queue
 import select
 import threading
 import tty
@@ -23,7 +24,7 @@ log = logging.getLogger(__name__)
 
 
 class DaqPty:
-    def __init__(self, max_pending_bytes: int = 1 << 20):
+    def __init__(self, max_pending_bytes: int = 1 << 16):
         self.master_fd, self.slave_fd = os.openpty()
         tty.setraw(self.slave_fd)
         self.name = os.ttyname(self.slave_fd)
@@ -42,6 +43,33 @@ class DaqPty:
                 return False
             self._flush(timeout_s=0.1)
         return True
+
+    def start_writer(self, stop: threading.Event, depth: int = 2) -> None:
+        """Blocking writes from a thread of their own, so the kernel's tty work overlaps the physics
+        on a second core; `submit` blocks when `depth` batches wait (the backpressure stays)."""
+        self._queue: queue.Queue[bytes] = queue.Queue(maxsize=depth)
+        self._writer_stop = stop
+        self._writer = threading.Thread(target=self._writer_loop, name="daq-writer", daemon=True)
+        self._writer.start()
+
+    def submit(self, data: bytes) -> bool:
+        """Queue a batch for the writer thread; waits while the queue is full. False if stopped."""
+        while not self._writer_stop.is_set():
+            try:
+                self._queue.put(data, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _writer_loop(self) -> None:
+        while not self._writer_stop.is_set():
+            try:
+                data = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if not self.write_blocking(data, self._writer_stop):
+                return
 
     def write_paced(self, data: bytes) -> None:
         """Write what the pty takes now; keep the rest, dropping whole frames beyond the limit."""
@@ -78,6 +106,9 @@ class DaqPty:
         self.bytes_written += n
 
     def close(self) -> None:
+        writer = getattr(self, "_writer", None)
+        if writer is not None and writer.is_alive():
+            writer.join(timeout=2.0)
         self._closed = True
         for fd in (self.master_fd, self.slave_fd):
             try:

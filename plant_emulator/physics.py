@@ -20,7 +20,8 @@ Per control period k (paper section 2, Fig. 3):
              discretised exactly for the ZOH input with the 2x2 matrix exponential at w_e(k)
   torque     T_em = 1.5 N_p (psi_p i_q + (L_d - L_q) i_d i_q) + d                (eq. 20 plus d)
              d = D cos(h phi_e + phi_D) + D_2 cos(2 h phi_e + phi_D2), D = d_0 + d_2 (T*/T_rated)^2
-  shaft      J dw_m/dt = T_em + T_lm - B w_m  (T_lm: load machine torque, PI speed loop)
+  shaft      J dw_m/dt = T_em + T_lm - B w_m  (T_lm: load machine torque: ramped speed reference,
+             PI speed loop plus acceleration feed-forward)
   sensor     alpha_meas = H(z) dw_m/dt + noise, H = J G_Salpha (zero z, poles p, H(0) = 1,
              section 2.3), bilinear with pre-warping at |p|; int16 counts of the full scale.
 Decoupling (paper section 3.1): the harmonic currents the injection causes are estimated with the
@@ -328,6 +329,7 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
         t_em = 1.5 * n_p * (psi * i_q + (ld - lq) * i_d * i_q) + dist
         # load machine: ramped reference, PI speed loop (bumpless when switched on)
         if load_on:
+            ref_prev = load_ref
             if load_ref < load_target - ramp:
                 load_ref += ramp
             elif load_ref > load_target + ramp:
@@ -335,7 +337,8 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
             else:
                 load_ref = load_target
             e_w = load_ref - w_m
-            t_lm = p[P_LOAD_KP] * e_w + load_int
+            # acceleration feed-forward J dref/dt: the ramp needs no integrator wind-up (no overshoot)
+            t_lm = p[P_LOAD_KP] * e_w + load_int + p[P_J] * (load_ref - ref_prev) / ts
             if t_lm > tmax:
                 t_lm = tmax
             elif t_lm < -tmax:

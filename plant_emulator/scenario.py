@@ -53,7 +53,7 @@ def resolve(name_or_path: str | None) -> Path:
     if not name_or_path:
         name_or_path = DEFAULT_SCENARIO
     path = Path(name_or_path)
-    if path.suffix == ".toml" and path.exists():
+    if path.is_file():
         return path
     candidate = SCENARIO_DIR / f"{name_or_path}.toml"
     if candidate.exists():

@@ -77,7 +77,7 @@ class Bench:
         self.load = LoadClient(self.bus, s.can.load_node, sdo_timeout_s=s.can.sdo_timeout_s)
         self.load.connect()
         self.supply = ScpiSupply(s.supply.url, timeout_s=s.supply.timeout_s)
-        self.daq = DaqReader(s.daq.url)
+        self.daq = DaqReader(s.daq.url, max_buffered_samples=4096)   # little stale data before each setpoint
         self.daq.start()
         self.cursor = DaqCursor(self.daq, s.daq.read_timeout_s)
         self.refresh_status()

@@ -206,7 +206,11 @@ class Engine:
                 self.storage.update_job(job_id, state="cancelled", finished_at=now_iso())
             except Exception as exc:
                 log.error("job %s failed: %s", job_id, traceback.format_exc())
-                self.storage.update_job(job_id, state="failed", error=f"{type(exc).__name__}: {exc}", finished_at=now_iso())
+                error = f"{type(exc).__name__}: {exc}"
+                self.storage.update_job(job_id, state="failed", error=error, finished_at=now_iso())
+                if job["sweep_id"] is not None:
+                    self.storage.update_sweep(job["sweep_id"], state="failed", error=error, finished_at=now_iso())
+                    self._publish_sweep(job["sweep_id"])
             self._publish_job(job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
@@ -268,7 +272,7 @@ class Engine:
                 rid = self.storage.insert_result(row, sweep_progress=progress)
                 self.broker.publish("sweep.point", {"sweep_id": sweep_id, "operating_point": op.model_dump(),
                                                     "state": row["status"],
-                                                    "result": public_result({**row, "id": rid, "traces_json": "{}"})})
+                                                    "result": public_result({**self.storage.get_result(rid), "traces_json": "{}"})})
                 self._publish_sweep(sweep_id)
         finally:
             self.bench.cancel_event = None

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
+from drivers.daq_reader import concat_samples as _concat, slice_samples as _slice
 from service.harmonic import electrical_frequency_hz, phasor
 from service.identification.session import Window
 
@@ -62,16 +63,6 @@ class DaqCursor:
         return Chunk(samples, toggles)
 
 
-def _slice(s: DecodedSamples, start: int, stop: int | None = None) -> DecodedSamples:
-    return DecodedSamples(s.index[start:stop], s.angle_rad[start:stop], s.accel_fs[start:stop],
-                          s.flags[start:stop], s.gap_before[start:stop])
-
-
-def _concat(parts: list[DecodedSamples]) -> DecodedSamples:
-    return DecodedSamples(*(np.concatenate([getattr(p, f) for p in parts])
-                            for f in ("index", "angle_rad", "accel_fs", "flags", "gap_before")))
-
-
 class OperatingPointSession:
     """MeasurementSession over the real wires (drive over CANopen, alpha over the DAQ)."""
 
@@ -108,10 +99,12 @@ class OperatingPointSession:
     def _push_back(self, s: DecodedSamples) -> None:
         self._pending = s if self._pending is None else _concat([s, self._pending])
 
-    def wait_for_effect(self, max_plant_s: float = 2.0) -> int:
+    def wait_for_effect(self, max_plant_s: float = 10.0) -> int:
         """Consume the stream up to the sample at which the last expected setpoint took effect.
 
-        Returns that sample's index. Samples before it are stale (buffered before the setpoint)."""
+        Returns that sample's index. Samples before it are stale (buffered before the setpoint). The
+        budget must cover what the pty and the reader hold (about 1-2 s of plant time in the
+        emulator's fast mode) plus the drive's reaction."""
         if self._pending is not None:
             # pending samples were already seen by the cursor: their toggles are counted; they
             # predate every write made since, so they are stale

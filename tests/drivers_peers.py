@@ -11,6 +11,7 @@ import socket
 import struct
 import threading
 import uuid
+import zlib
 from pathlib import Path
 
 import can
@@ -86,6 +87,9 @@ class Cia402Peer:
                 new_state = DEVICE_TRANSITIONS.get((self.state, command))
                 if new_state is not None:
                     self.set_statusword(new_state)
+        elif index == 0x2001 and subindex == 1:
+            self.set_value(0x2001, 2, zlib.crc32(bytes(data)) & 0xFFFFFFFF)
+            self.set_value(0x2001, 3, 1)
         elif index == 0x2000 and subindex == 7 and value == 1:
             with self.lock:
                 self.commits += 1

@@ -9,6 +9,7 @@ import math
 import struct
 import threading
 import time
+import zlib
 
 import pytest
 from canopen.sdo import SdoAbortedError
@@ -17,7 +18,7 @@ from drivers import DRIVE_EDS, LOAD_EDS
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus
-from drivers.errors import SdoAbortError, SdoTimeoutError, StateTransitionError
+from drivers.errors import NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
 from drivers_peers import Cia402Peer, unique_channel
 
@@ -139,21 +140,24 @@ def test_device_refusal_names_object_and_abort_meaning(drive, drive_peer):
     assert info.value.abort_code == 0x06090030
 
 
-def test_set_injection_writes_real32_pair_sets_manual_and_commits(drive, drive_peer):
-    assert drive.set_injection(0.0123, -0.0456) == 2  # mode switched on + commit
+def test_set_injection_writes_real32_pair_and_commits(drive, drive_peer):
+    before = drive.setpoints_written
+    assert drive.set_injection(0.0123, -0.0456) == 1  # one commit = one setpoint (one sync toggle)
+    assert drive.setpoints_written == before + 1
     assert drive_peer.writes_to(0x2000, 3) == [pytest.approx(0.0123, rel=1e-6)]
     assert drive_peer.writes_to(0x2000, 4) == [pytest.approx(-0.0456, rel=1e-6)]
-    assert drive_peer.writes_to(0x2000, 2) == [1]
+    assert drive_peer.writes_to(0x2000, 2) == []      # the mode is a separate setpoint
     assert drive_peer.writes_to(0x2000, 7) == [1]
     raw = drive_peer.node.data_store[0x2000][3]
     assert len(raw) == 4 and struct.unpack("<f", raw)[0] == pytest.approx(0.0123, rel=1e-6)
-    # the mode is already manual: only the pair and the commit go out
-    assert drive.set_injection(0.02, 0.0) == 1
+    drive.set_injection_mode("manual")
     assert drive_peer.writes_to(0x2000, 2) == [1]
+    assert drive.set_injection(0.02, 0.0) == 1
     assert drive_peer.writes_to(0x2000, 7) == [1, 1]
     assert drive.commit_count() == 2
+    assert drive.setpoints_written == before + 3
     index_order = [(i, s) for (i, s, _v) in drive_peer.writes if i == 0x2000]
-    assert index_order == [(0x2000, 3), (0x2000, 4), (0x2000, 2), (0x2000, 7), (0x2000, 3), (0x2000, 4), (0x2000, 7)]
+    assert index_order == [(0x2000, 3), (0x2000, 4), (0x2000, 7), (0x2000, 2), (0x2000, 3), (0x2000, 4), (0x2000, 7)]
     drive.injection_off()
     assert drive_peer.value(0x2000, 2) == 0
 
@@ -270,3 +274,31 @@ def test_drive_and_load_share_one_bus_concurrently(bus, drive, drive_peer, load_
     assert not errors
     assert load_peer.writes_to(0x60FF) == list(range(0, 2000, 100))
     load.close()
+
+
+def test_bus_passes_only_the_options_that_are_set():
+    assert CanBus("socketcand", "can0", host="127.0.0.1", port=29536).bus_kwargs() == {
+        "interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 29536}
+    assert CanBus("virtual", "bench").bus_kwargs() == {"interface": "virtual", "channel": "bench"}
+    assert CanBus("pcan", "PCAN_USBBUS1", bitrate=500_000).bus_kwargs()["bitrate"] == 500_000
+
+
+def test_clients_need_a_connected_bus(channel):
+    bus = CanBus("virtual", channel)
+    with pytest.raises(NotConnectedError, match="not connected"):
+        bus.network
+    with pytest.raises(NotConnectedError):
+        DriveClient(bus, DRIVE_NODE).connect()
+    with pytest.raises(NotConnectedError, match="drive node 5: not connected"):
+        DriveClient(bus, DRIVE_NODE).set_torque_nm(1.0)
+
+
+def test_lut_download_is_segmented_and_crc_checked(drive, drive_peer):
+    blob = bytes(range(256)) * 5  # 1280 bytes: many segments
+    crc = drive.download_lut(blob)
+    assert crc == zlib.crc32(blob)
+    assert drive_peer.writes_to(0x2001, 1) == [blob]
+    assert drive.lut_status() == 1
+    drive_peer.node._write_callbacks.remove(drive_peer._on_write)  # the device stops updating its CRC
+    with pytest.raises(SdoError, match="LUT CRC-32 read-back"):
+        drive.download_lut(b"other table")

@@ -25,13 +25,13 @@ def _options(method: str, options: dict):
     try:
         return parse_options(method, options)
     except ValidationError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             [{"loc": ["body", "options", *e["loc"]], "msg": e["msg"], "type": e["type"]}
                              for e in exc.errors()]) from None
 
 
 def _limit_error(exc: Exception) -> HTTPException:
-    return HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                          [{"loc": ["body"], "msg": str(exc), "type": "value_error.bench_limits"}])
 
 
@@ -123,7 +123,7 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
     except LimitError as exc:
         raise _limit_error(exc) from None
     except ValueError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY,
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             [{"loc": ["body", "grid"], "msg": str(exc), "type": "value_error"}]) from None
     return _sweep_public(service, service.storage.get_sweep(sweep_id))
 

@@ -1,0 +1,192 @@
+"""Firmware of the emulated drive (node 5): CiA 402 profile torque + harmonic injection record.
+
+Object dictionary: drivers/eds/drive.eds, semantics: docs/interfaces.md. The fast control loop
+(current control, injection, delay) is in physics.py; this module is the slow firmware around it:
+it validates SDO writes, stages setpoints, and hands them to the control loop at a chunk boundary.
+
+Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
+commit (0x2000:7), injection mode (0x2000:2), harmonic order (0x2000:1) or decoupling (0x2000:6)
+becomes one event. At each chunk start the control loop takes at most ONE event, applies it from the
+chunk's first sample on and toggles the sync level there, so each event is exactly one visible
+toggle (two at the same sample would cancel). gamma_max (0x2000:5) takes effect at the next chunk
+without a toggle: it only clamps |theta|.
+
+Safety: power (torque, injection) only in OPERATION_ENABLED with U_dc >= udc_min_v; heartbeat loss
+-> FAULT, EMCY 0x8130, target torque 0 and injection mode off (applied at once, without toggles:
+this is the drive's reaction, not a service setpoint).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import zlib
+from collections import deque
+
+import numpy as np
+from canopen.sdo import SdoAbortedError
+
+from drivers.cia402 import State402
+
+from . import physics as ph
+from .cia402_device import ABORT_VALUE_RANGE, Cia402Device
+
+log = logging.getLogger(__name__)
+
+MODE_PROFILE_TORQUE = 4
+INJ_OFF, INJ_MANUAL, INJ_LUT = 0, 1, 2
+PER_MILLE = 1000.0
+MAX_HARMONIC_ORDER = 255
+
+
+class DriveFirmware(Cia402Device):
+    mode_of_operation = MODE_PROFILE_TORQUE
+
+    def __init__(self, network, node_id: int, eds_path: str, udc_min_v: float = 6.0):
+        super().__init__(network, node_id, eds_path)
+        od = self.node.object_dictionary
+        self.rated_torque_nm = int(od[0x6076].default) / 1000.0
+        self.udc_min_v = udc_min_v
+        # setpoints in force in the control loop
+        self.torque_nm = 0.0
+        self.inj_mode = int(od[0x2000][2].default)
+        self.harmonic_order = int(od[0x2000][1].default)
+        self.theta = (0.0, 0.0)
+        self.gamma_max_rad = float(od[0x2000][5].default)
+        self.decoupling = int(od[0x2000][6].default)
+        self.sync_level = 0
+        self.commit_count = 0
+        self.events_applied = 0
+        self._events: deque[tuple[str, object]] = deque()
+        # LUT (issue 3: stored and CRC'd, not yet used by the control loop)
+        self.lut_blob = b""
+        self.lut_crc = 0
+        self.lut_status = 0
+        # measurements published by the control loop
+        self.speed_rpm = 0.0
+        self.torque_actual_nm = 0.0
+        self.udc_v = 0.0
+        self.ud_ref_v = 0.0
+        self.uq_ref_v = 0.0
+
+    # -- SDO ---------------------------------------------------------------------------------------
+    def read_object(self, index: int, subindex: int):
+        if index == 0x6077:
+            return int(np.clip(round(self.torque_actual_nm / self.rated_torque_nm * PER_MILLE), -32768, 32767))
+        if index == 0x606C:
+            return int(round(self.speed_rpm))
+        if index == 0x6079:
+            return int(max(0.0, round(self.udc_v * 1000.0)))
+        if index == 0x2010:
+            if subindex == 1:
+                return float(self.ud_ref_v)
+            if subindex == 2:
+                return float(self.uq_ref_v)
+        if index == 0x2000 and subindex == 7:
+            return self.commit_count & 0xFF
+        if index == 0x2001:
+            if subindex == 2:
+                return self.lut_crc
+            if subindex == 3:
+                return self.lut_status
+        return None
+
+    def write_object(self, index: int, subindex: int, value) -> None:
+        if index == 0x6071:
+            if abs(int(value)) > 1000:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._events.append(("torque", int(value) / PER_MILLE * self.rated_torque_nm))
+        elif index == 0x2000:
+            self._write_injection(subindex, value)
+        elif index == 0x2001 and subindex == 1:
+            blob = bytes(value)
+            self.lut_blob = blob
+            self.lut_crc = zlib.crc32(blob) & 0xFFFFFFFF
+            self.lut_status = 1   # received; interpretation comes with issue 3
+
+    def _write_injection(self, subindex: int, value) -> None:
+        if subindex == 1:
+            if not 1 <= int(value) <= MAX_HARMONIC_ORDER:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._events.append(("harmonic_order", int(value)))
+        elif subindex == 2:
+            if int(value) not in (INJ_OFF, INJ_MANUAL, INJ_LUT):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._events.append(("inj_mode", int(value)))
+        elif subindex in (3, 4):
+            if not math.isfinite(float(value)) or abs(float(value)) > math.pi:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+        elif subindex == 5:
+            g = float(value)
+            if not (math.isfinite(g) and 0.0 <= g <= math.pi):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self.gamma_max_rad = g
+        elif subindex == 6:
+            if int(value) not in (0, 1):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._events.append(("decoupling", int(value)))
+        elif subindex == 7:
+            if int(value) == 1:
+                staged = (float(self.stored(0x2000, 3)), float(self.stored(0x2000, 4)))
+                self._events.append(("theta", staged))
+                self.commit_count += 1
+            elif int(value) != 0:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+
+    # -- state machine hooks -----------------------------------------------------------------------
+    def state_changed(self, old: State402, new: State402) -> None:
+        if new == State402.FAULT:
+            self._events.clear()
+            self.torque_nm = 0.0
+            self.inj_mode = INJ_OFF
+            self.store(0x6071, 0, 0)
+            self.store(0x2000, 2, INJ_OFF)
+
+    # -- control loop interface (physics thread) ---------------------------------------------------
+    def effective_theta(self) -> tuple[float, float]:
+        """Theta the control loop uses: committed pair clamped to gamma_max (mode manual);
+        zero when off, and in LUT mode until issue 3 interprets the LUT."""
+        if self.inj_mode != INJ_MANUAL:
+            return 0.0, 0.0
+        c, s = self.theta
+        g = math.hypot(c, s)
+        if g > self.gamma_max_rad and g > 0.0:
+            k = self.gamma_max_rad / g
+            return c * k, s * k
+        return c, s
+
+    def chunk_setpoints(self, sp: np.ndarray, udc_v: float) -> bool:
+        """Fill the control loop's setpoints for the next chunk. Applies at most one pending event
+        and toggles the sync level for it; returns True if it did."""
+        with self.lock:
+            applied = False
+            if self._events:
+                kind, value = self._events.popleft()
+                if kind == "torque":
+                    self.torque_nm = float(value)
+                elif kind == "theta":
+                    self.theta = value
+                elif kind == "inj_mode":
+                    self.inj_mode = int(value)
+                elif kind == "harmonic_order":
+                    self.harmonic_order = int(value)
+                elif kind == "decoupling":
+                    self.decoupling = int(value)
+                self.sync_level ^= 1
+                self.events_applied += 1
+                applied = True
+            sp[ph.S_POWER] = 1.0 if (self.power_on and udc_v >= self.udc_min_v) else 0.0
+            sp[ph.S_TORQUE_NM] = self.torque_nm
+            sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN] = self.effective_theta()
+            sp[ph.S_H] = float(self.harmonic_order)
+            sp[ph.S_DECOUPLING] = float(self.decoupling)
+            sp[ph.S_UDC_V] = udc_v
+            sp[ph.S_SYNC] = float(self.sync_level)
+            return applied
+
+    def publish(self, speed_rpm: float, torque_nm: float, udc_v: float, ud_ref_v: float, uq_ref_v: float) -> None:
+        """Measurements of the control loop, served by SDO (0x606C, 0x6077, 0x6079, 0x2010)."""
+        self.speed_rpm = speed_rpm
+        self.torque_actual_nm = torque_nm
+        self.udc_v = udc_v
+        self.ud_ref_v = ud_ref_v
+        self.uq_ref_v = uq_ref_v

@@ -1,0 +1,238 @@
+"""The emulator process: wires physics, firmware, CAN, DAQ pty and supply together and runs them.
+
+Threads: the plant thread (chunks of physics -> frames -> pty, setpoints taken at chunk starts),
+the canopen notifier (SDO server, NMT, heartbeats of the two LocalNodes), the socketcand server
+(accept/read + virtual-bus pump), the SCPI server, and a heartbeat watchdog. The main thread waits
+for SIGTERM/SIGINT and then closes everything; the exit code is 0.
+
+Plant time is the DAQ sample counter. `speedup` 0: the plant runs as fast as the DAQ reader
+consumes (blocking pty writes); X > 0: paced to X times real time on the wall clock.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import uuid
+
+import canopen
+import numpy as np
+
+from drivers import DRIVE_EDS, LOAD_EDS
+from drivers.daq_protocol import encode_frames
+
+from . import physics as ph
+from . import scenario as scn
+from .daq_stream import DaqPty
+from .drive_firmware import DriveFirmware
+from .load_machine import LoadMachineFirmware
+from .scpi_supply import DcSupply, ScpiServer
+from .socketcand_server import SocketcandServer
+
+log = logging.getLogger("plant_emulator")
+
+DRIVE_NODE = 5
+LOAD_NODE = 6
+CHUNK_SAMPLES = 256           # physics chunk: setpoints are taken at chunk starts (16 ms at 16 kHz)
+FRAME_BATCH_CHUNKS = 16       # chunks per encode+write when running fast (256 ms plant time)
+FAST_SPEEDUP = 8.0            # below this (paced, > 0) every chunk is written at once
+U_REF_MEAN_SAMPLES = 1024     # 0x2010: mean over the last 1024 periods
+WATCHDOG_PERIOD_S = 0.02
+RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
+
+
+class Emulator:
+    def __init__(self, sc: scn.Scenario, speedup: float = 1.0, can_port: int = 0, supply_port: int = 0,
+                 chunk_samples: int = CHUNK_SAMPLES):
+        self.scenario = sc
+        self.speedup = float(speedup)
+        self.chunk = int(chunk_samples)
+        self.params = scn.build_params(sc)
+        self.sample_rate_hz = sc.sample_rate_hz
+        self.plant = ph.Plant(self.params, noise_seed=sc.seed if sc.seed is not None else 0)
+        self.sp = ph.new_setpoints(0.0)
+        self.stop_event = threading.Event()
+        self.samples = 0
+        self.supply = DcSupply(sc.udc_v, seed=sc.seed)
+        self.scpi = ScpiServer(self.supply, port=supply_port)
+        self.bus_channel = f"ripplecal-emulator-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self.can_server = SocketcandServer(self.bus_channel, port=can_port)
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.1
+        self.network.connect(interface="virtual", channel=self.bus_channel, receive_own_messages=False)
+        fw = sc.section("firmware")
+        self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
+        self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS))
+        self.daq = DaqPty()
+        self._threads: list[threading.Thread] = []
+        self._closed = False
+
+    # -- endpoints -----------------------------------------------------------------------------------
+    def endpoints(self) -> dict:
+        return {
+            "can": {"interface": "socketcand", "host": self.can_server.host, "port": self.can_server.port,
+                    "channel": self.can_server.channel},
+            "daq": self.daq.name,
+            "supply": self.scpi.url,
+            "drive_node": DRIVE_NODE,
+            "load_node": LOAD_NODE,
+            "sample_rate_hz": int(round(self.sample_rate_hz)),
+            "scenario": self.scenario.name,
+            "seed": self.scenario.seed,
+        }
+
+    # -- lifecycle -----------------------------------------------------------------------------------
+    def start(self) -> "Emulator":
+        warm_up()
+        self.can_server.start()
+        self.scpi.start()
+        self.drive.boot()
+        self.load.boot()
+        self._threads = [threading.Thread(target=self._plant_loop, name="plant", daemon=True),
+                         threading.Thread(target=self._watchdog, name="heartbeat-watchdog", daemon=True)]
+        for t in self._threads:
+            t.start()
+        return self
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.stop_event.set()
+        for t in self._threads:
+            t.join(timeout=3.0)
+        for closer in (self.drive.shutdown, self.load.shutdown, self.network.disconnect, self.can_server.close,
+                       self.scpi.close, self.daq.close):
+            try:
+                closer()
+            except Exception:
+                log.exception("error while closing")
+
+    # -- threads -------------------------------------------------------------------------------------
+    def _watchdog(self) -> None:
+        while not self.stop_event.wait(WATCHDOG_PERIOD_S):
+            try:
+                self.drive.check_heartbeat()
+                self.load.check_heartbeat()
+            except Exception:
+                log.exception("heartbeat watchdog")
+
+    def _plant_loop(self) -> None:
+        try:
+            self._run_plant()
+        except Exception:
+            log.exception("plant thread died")
+            self.stop_event.set()
+
+    def _run_plant(self) -> None:
+        n = self.chunk
+        p, x, sp = self.params, self.plant.x, self.sp
+        # frames are encoded and written per batch of chunks: encode_frames costs ~70 us per call
+        # regardless of size, which would cap the plant near 200x real time with single chunks
+        batch = 1 if 0.0 < self.speedup < FAST_SPEEDUP else FRAME_BATCH_CHUNKS
+        angle_b = np.empty(n * batch, dtype=np.uint16)
+        accel_b = np.empty(n * batch, dtype=np.int16)
+        flags_b = np.empty(n * batch, dtype=np.uint16)
+        in_batch = 0
+        summary = np.zeros(ph.N_SUMMARY)
+        no_trace = np.zeros((0, ph.N_TRACE))
+        ramp = np.arange(n * batch, dtype=np.int64)
+        rng = self.plant.rng
+        noise_on = p[ph.P_NOISE] > 0.0
+        zeros = np.zeros(n)
+        n_mean = max(1, int(math.ceil(U_REF_MEAN_SAMPLES / n)))
+        ud_hist = np.zeros(n_mean)
+        uq_hist = np.zeros(n_mean)
+        if self.speedup <= 0.0:
+            self.daq.start_writer(self.stop_event)
+        t0 = time.monotonic()
+        plant_t0 = 0
+        while not self.stop_event.is_set():
+            udc = self.supply.actual_v()
+            self.drive.chunk_setpoints(sp, udc)
+            self.load.chunk_setpoints(sp)
+            noise = rng.standard_normal(n) if noise_on else zeros
+            lo = in_batch * n
+            ph.simulate_chunk(x, p, sp, noise, angle_b[lo:lo + n], accel_b[lo:lo + n], flags_b[lo:lo + n],
+                              summary, no_trace)
+            in_batch += 1
+            self.samples += n
+            # publish the firmware's measurements (read by SDO)
+            k = (self.samples // n) % n_mean
+            ud_hist[k] = summary[ph.Y_UD_SUM]
+            uq_hist[k] = summary[ph.Y_UQ_SUM]
+            filled = min(n_mean, self.samples // n) * n
+            speed_rpm = float(summary[ph.Y_OMEGA_SUM]) / n * RAD_S_TO_RPM
+            self.drive.publish(speed_rpm, float(summary[ph.Y_TORQUE_EST_SUM]) / n, udc,
+                               float(ud_hist.sum()) / filled, float(uq_hist.sum()) / filled)
+            self.load.publish(speed_rpm, float(summary[ph.Y_LOAD_TORQUE_SUM]) / n)
+            if in_batch < batch:
+                continue
+            seq = (self.samples - n * batch + ramp) & 0xFFFF
+            frames = encode_frames(seq, angle_b, accel_b, flags_b)
+            in_batch = 0
+            if self.speedup <= 0.0:
+                if not self.daq.submit(frames):
+                    break
+            else:
+                self.daq.write_paced(frames)
+                target = t0 + (self.samples - plant_t0) / self.sample_rate_hz / self.speedup
+                delay = target - time.monotonic()
+                if delay > 0:
+                    self.stop_event.wait(delay)
+                elif delay < -1.0:   # fell behind (machine busy): do not try to catch up
+                    t0 = time.monotonic()
+                    plant_t0 = self.samples
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the chunk function before the endpoints are announced."""
+    sc = scn.load(scn.DEFAULT_SCENARIO)
+    plant = ph.Plant(scn.build_params(sc))
+    plant.run(ph.new_setpoints(12.0), 4)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m plant_emulator",
+                                 description="Emulated PMSM test bench: socketcand CANopen, DAQ pty, SCPI supply.")
+    ap.add_argument("--scenario", default=scn.DEFAULT_SCENARIO, help="scenario name or TOML path (default paper-bench)")
+    ap.add_argument("--seed", type=int, default=None, help="perturb the truth within the scenario's [seed] ranges")
+    ap.add_argument("--speedup", type=float, default=1.0,
+                    help="X times real time; 0 = as fast as the DAQ reader consumes (default 1)")
+    ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
+    ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
+    ap.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    args = ap.parse_args(argv)
+    if args.speedup < 0:
+        ap.error("--speedup must be >= 0")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING), stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    sc = scn.load(args.scenario, seed=args.seed)
+    emu = Emulator(sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port)
+    try:
+        emu.start()
+        sys.stdout.write(json.dumps(emu.endpoints()) + "\n")
+        sys.stdout.flush()
+        while not stop.is_set() and not emu.stop_event.is_set():
+            stop.wait(0.2)
+    finally:
+        emu.close()
+    return 0 if not emu.stop_event.is_set() or stop.is_set() else 1

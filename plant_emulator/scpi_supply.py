@@ -1,0 +1,230 @@
+"""Emulated programmable DC supply: the supply model and its SCPI server on TCP (loopback).
+
+Clients use a pyserial `socket://127.0.0.1:PORT` URL. Lines end with \\n; several commands may be
+joined with ';'. Keywords are case-insensitive and accept SCPI short and long forms
+(VOLT/VOLTage, OUTP/OUTPut, MEAS/MEASure, optional SOUR/SOURce root). Commands:
+
+    *IDN?               -> ripplecal,emulated-supply,0,0.1
+    *RST, *CLS          reset (output off, scenario voltage) / clear the error queue
+    *OPC?               -> 1
+    VOLT <v>            setpoint in V, 0..60 (else error -222 queued); no reply
+    VOLT?               -> setpoint
+    MEAS:VOLT?          -> actual output voltage: 0 with the output off, else setpoint + ~1 mV noise
+    OUTP ON|OFF|1|0     output switch; no reply
+    OUTP?               -> 1 / 0
+    SYST:ERR?           -> oldest queued error, or 0,"No error"
+
+As with real instruments, a command never gets a reply and errors go to the error queue; an unknown
+query queues -113 "Undefined header" and gets no reply.
+"""
+from __future__ import annotations
+
+import logging
+import random
+import re
+import selectors
+import socket
+import threading
+from collections import deque
+
+log = logging.getLogger(__name__)
+
+IDN = "ripplecal,emulated-supply,0,0.1"
+MAX_VOLTAGE_V = 60.0
+MAX_LINE_BYTES = 1024
+ERROR_QUEUE_LEN = 16
+
+
+class DcSupply:
+    """The supply itself. Output starts OFF at the scenario's voltage."""
+
+    def __init__(self, voltage_v: float, noise_v: float = 1e-3, seed: int | None = 0):
+        self._initial_v = float(voltage_v)
+        self._lock = threading.Lock()
+        self.setpoint_v = float(voltage_v)
+        self.output_on = False
+        self._noise_v = noise_v
+        self._rng = random.Random(seed)
+        self.errors: deque[str] = deque(maxlen=ERROR_QUEUE_LEN)
+
+    def actual_v(self) -> float:
+        """Voltage at the DC link as the physics sees it (no noise: the DC link is filtered)."""
+        with self._lock:
+            return self.setpoint_v if self.output_on else 0.0
+
+    def measured_v(self) -> float:
+        with self._lock:
+            if not self.output_on:
+                return 0.0
+            return max(0.0, self.setpoint_v + self._rng.gauss(0.0, self._noise_v))
+
+    def reset(self) -> None:
+        with self._lock:
+            self.setpoint_v = self._initial_v
+            self.output_on = False
+
+    def set_voltage(self, v: float) -> None:
+        with self._lock:
+            self.setpoint_v = v
+
+    def set_output(self, on: bool) -> None:
+        with self._lock:
+            self.output_on = on
+
+    # -- SCPI ---------------------------------------------------------------------------------------
+    def handle_line(self, line: str) -> list[str]:
+        """Execute one line (';'-separated commands). Returns the reply lines (queries only)."""
+        replies = []
+        for command in line.split(";"):
+            command = command.strip()
+            if command:
+                reply = self._execute(command)
+                if reply is not None:
+                    replies.append(reply)
+        return replies
+
+    def _error(self, code: int, text: str) -> None:
+        self.errors.append(f'{code},"{text}"')
+
+    def _execute(self, command: str) -> str | None:
+        header, _, arg = command.partition(" ")
+        arg = arg.strip()
+        h = header.upper()
+        is_query = h.endswith("?")
+        if h == "*IDN?":
+            return IDN
+        if h == "*OPC?":
+            return "1"
+        if h == "*RST":
+            self.reset()
+            return None
+        if h == "*CLS":
+            self.errors.clear()
+            return None
+        if _match(h, r"(SYST(EM)?:)ERR(OR)?(:NEXT)?\?"):
+            return self.errors.popleft() if self.errors else '0,"No error"'
+        if _match(h, r"((SOUR(CE)?:)?VOLT(AGE)?(:LEV(EL)?)?(:IMM(EDIATE)?)?(:AMPL(ITUDE)?)?)\?"):
+            return f"{self.setpoint_v:.4f}"
+        if _match(h, r"(SOUR(CE)?:)?VOLT(AGE)?(:LEV(EL)?)?(:IMM(EDIATE)?)?(:AMPL(ITUDE)?)?"):
+            try:
+                v = float(arg)
+            except ValueError:
+                self._error(-104, "Data type error")
+                return None
+            if not 0.0 <= v <= MAX_VOLTAGE_V:
+                self._error(-222, "Data out of range")
+                return None
+            self.set_voltage(v)
+            return None
+        if _match(h, r"MEAS(URE)?(:SCAL(AR)?)?:VOLT(AGE)?(:DC)?\?"):
+            return f"{self.measured_v():.4f}"
+        if _match(h, r"OUTP(UT)?(:STAT(E)?)?\?"):
+            return "1" if self.output_on else "0"
+        if _match(h, r"OUTP(UT)?(:STAT(E)?)?"):
+            a = arg.upper()
+            if a in ("ON", "1"):
+                self.set_output(True)
+            elif a in ("OFF", "0"):
+                self.set_output(False)
+            else:
+                self._error(-224, "Illegal parameter value")
+            return None
+        self._error(-113, f"Undefined header; {command[:40]}")
+        log.info("SCPI: unknown %s %r", "query" if is_query else "command", command)
+        return None
+
+
+def _match(header: str, pattern: str) -> bool:
+    return re.fullmatch(pattern, header) is not None
+
+
+class ScpiServer:
+    """Line-based SCPI over TCP for one DcSupply; any number of clients, one thread."""
+
+    def __init__(self, supply: DcSupply, host: str = "127.0.0.1", port: int = 0):
+        self.supply = supply
+        self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listen.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._listen.bind((host, port))
+        self._listen.listen(4)
+        self._listen.setblocking(False)
+        self.host, self.port = self._listen.getsockname()[:2]
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self._listen, selectors.EVENT_READ)
+        self._buffers: dict[socket.socket, bytearray] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="scpi-supply", daemon=True)
+
+    @property
+    def url(self) -> str:
+        return f"socket://{self.host}:{self.port}"
+
+    def start(self) -> "ScpiServer":
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        for sock in list(self._buffers):
+            sock.close()
+        self._buffers.clear()
+        self._listen.close()
+        self._sel.close()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                events = self._sel.select(timeout=0.1)
+            except OSError:
+                break
+            for key, _ in events:
+                sock = key.fileobj
+                if sock is self._listen:
+                    try:
+                        conn, _ = self._listen.accept()
+                    except OSError:
+                        continue
+                    conn.settimeout(2.0)
+                    self._buffers[conn] = bytearray()
+                    self._sel.register(conn, selectors.EVENT_READ)
+                    continue
+                try:
+                    self._read(sock)
+                except Exception:
+                    log.exception("SCPI: client error")
+                    self._drop(sock)
+
+    def _read(self, sock: socket.socket) -> None:
+        try:
+            data = sock.recv(4096)
+        except (socket.timeout, BlockingIOError):
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(sock)
+            return
+        buf = self._buffers[sock]
+        buf += data
+        while True:
+            nl = buf.find(b"\n")
+            if nl < 0:
+                if len(buf) > MAX_LINE_BYTES:
+                    log.warning("SCPI: over-long line dropped")
+                    buf.clear()
+                break
+            line = bytes(buf[:nl]).decode("ascii", errors="replace").strip("\r ")
+            del buf[:nl + 1]
+            replies = self.supply.handle_line(line)
+            if replies:
+                sock.sendall(("\n".join(replies) + "\n").encode("ascii"))
+
+    def _drop(self, sock) -> None:
+        self._buffers.pop(sock, None)
+        try:
+            self._sel.unregister(sock)
+        except (KeyError, ValueError):
+            pass
+        sock.close()

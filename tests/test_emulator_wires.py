@@ -1,0 +1,135 @@
+"""plant_emulator's wire servers in-process: socketcand bridge, SCPI supply, DAQ pty."""
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+import uuid
+
+import can
+import numpy as np
+import pytest
+
+from drivers.daq_protocol import FrameDecoder, encode_frames
+from plant_emulator.daq_stream import DaqPty
+from plant_emulator.scpi_supply import DcSupply
+from plant_emulator.socketcand_server import SocketcandServer, format_frame, parse_send
+
+
+def test_frame_text_round_trip():
+    msg = parse_send("send 705 3 1 a ff")
+    assert (msg.arbitration_id, bytes(msg.data), msg.is_extended_id) == (0x705, b"\x01\x0a\xff", False)
+    msg.timestamp = 1700000000.25
+    assert format_frame(msg) == "< frame 705 1700000000.250000 010AFF >"
+    for bad in ("send 705 2 1", "send xyz 1 1", "send 705 9 1 2 3 4 5 6 7 8 9", "send 800 0"):
+        with pytest.raises(ValueError):
+            parse_send(bad)
+
+
+@pytest.fixture()
+def server():
+    channel = f"test-{uuid.uuid4().hex}"
+    srv = SocketcandServer(channel).start()
+    internal = can.Bus(interface="virtual", channel=channel)
+    try:
+        yield srv, internal
+    finally:
+        internal.shutdown()
+        srv.close()
+
+
+def client(srv) -> can.BusABC:
+    return can.Bus(interface="socketcand", host=srv.host, port=srv.port, channel="can0")
+
+
+def recv_until(bus, can_id, timeout=2.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        msg = bus.recv(0.1)
+        if msg is not None and msg.arbitration_id == can_id:
+            return msg
+    return None
+
+
+def test_clients_and_internal_bus_see_each_other(server):
+    srv, internal = server
+    a, b = client(srv), client(srv)
+    try:
+        time.sleep(0.3)   # handshake grace period
+        a.send(can.Message(arbitration_id=0x605, data=[0x40, 0x18, 0x10, 1, 0, 0, 0, 0], is_extended_id=False))
+        got_internal = recv_until(internal, 0x605)
+        got_b = recv_until(b, 0x605)
+        assert got_internal is not None and bytes(got_internal.data) == bytes([0x40, 0x18, 0x10, 1, 0, 0, 0, 0])
+        assert got_b is not None and bytes(got_b.data) == bytes(got_internal.data)
+        internal.send(can.Message(arbitration_id=0x585, data=[0x43, 0x18, 0x10, 1, 0xAC, 0x0E, 0, 0],
+                                  is_extended_id=False))
+        for bus in (a, b):
+            got = recv_until(bus, 0x585)
+            assert got is not None and got.data[4] == 0xAC
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+def test_malformed_input_and_disconnects_do_not_kill_the_server(server):
+    srv, internal = server
+    raw = socket.create_connection((srv.host, srv.port))
+    assert raw.recv(64) == b"< hi >"
+    raw.sendall(b"< open can0 >")
+    assert raw.recv(64) == b"< ok >"
+    raw.sendall(b"< rawmode >")
+    assert raw.recv(64) == b"< ok >"
+    raw.sendall(b"garbage < send zz 1 1 > < send 123 2 1 > < bogus > < send 123 1 7 >")
+    got = recv_until(internal, 0x123)
+    assert got is not None and bytes(got.data) == b"\x07"
+    raw.close()
+    time.sleep(0.2)
+    c = client(srv)   # still serving
+    c.shutdown()
+
+
+def test_scpi_supply_commands():
+    s = DcSupply(12.0)
+    assert s.handle_line("*IDN?") == ["ripplecal,emulated-supply,0,0.1"]
+    assert s.handle_line("OUTP?") == ["0"] and s.actual_v() == 0.0
+    assert s.handle_line("VOLT 24.5") == []
+    assert s.handle_line("volt?;outp on;OUTPut?") == ["24.5000", "1"]
+    assert float(s.handle_line("MEAS:VOLT?")[0]) == pytest.approx(24.5, abs=0.01)
+    assert s.actual_v() == 24.5
+    assert s.handle_line("VOLT 61") == [] and s.actual_v() == 24.5
+    assert s.handle_line("FOO 1") == []
+    assert s.handle_line("SYST:ERR?") == ['-222,"Data out of range"']
+    assert s.handle_line("SYST:ERR?")[0].startswith("-113")
+    assert s.handle_line("SYST:ERR?") == ['0,"No error"']
+
+
+def test_pty_paced_drops_whole_frames_and_blocking_waits():
+    pty = DaqPty(max_pending_bytes=1200)
+    try:
+        frames = encode_frames(np.arange(4000), np.zeros(4000), np.zeros(4000), np.zeros(4000))
+        for k in range(10):   # nobody reads: the pty fills, then whole frames are dropped
+            pty.write_paced(frames[k * 4800:(k + 1) * 4800])
+        assert pty.frames_dropped > 0
+        fd = os.open(pty.name, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            data = b""
+            for _ in range(50):
+                try:
+                    data += os.read(fd, 65536)
+                except BlockingIOError:
+                    pty.write_paced(b"")
+                    time.sleep(0.01)
+            dec = FrameDecoder()
+            s = dec.feed(data)
+            assert len(s) > 0 and dec.counters.crc_failures == 0 and dec.counters.sequence_gaps >= 1
+        finally:
+            os.close(fd)
+        stop = threading.Event()
+        t = threading.Timer(0.3, stop.set)
+        t.start()
+        # blocking write with no reader returns False once stopped instead of hanging
+        assert pty.write_blocking(frames * 20, stop) is False
+        t.cancel()
+    finally:
+        pty.close()
