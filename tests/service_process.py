@@ -53,7 +53,8 @@ class ServiceProcess:
         raise TimeoutError(f"service not ready in {timeout_s} s: {self.log_text()[-3000:]}")
 
     def log_text(self) -> str:
-        self.log.flush()
+        if not self.log.closed:
+            self.log.flush()
         return Path(self.log.name).read_text()
 
     def stop(self) -> int | None:
