@@ -1,0 +1,63 @@
+"""Identification figures on the emulated bench (run: python tests/benchmarks/bench_identification.py).
+
+Starts the service layer with plant_emulator (paper-bench, fast mode) and measures:
+- adaptive at OP1 {2.5 Nm, 2000 rpm, 12 V}: plant time (DAQ samples / rate), suppression, wall time;
+- grid search (the paper's 360 points) at OP1: plant time and its ratio to the adaptive one;
+- a 3 x 3 sweep (torque 1, 2.5, 4 Nm x speed 1000, 2000, 2500 rpm): wall time.
+"""
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from service.calibration_service import CalibrationService  # noqa: E402
+from service.identify import parse_options, public_result  # noqa: E402
+from service.operating_point import OperatingPoint  # noqa: E402
+from service.plans import Grid  # noqa: E402
+from service.settings import load_settings  # noqa: E402
+
+OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+
+
+def wait(predicate, timeout_s=900):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if (v := predicate()) is not None:
+            return v
+        time.sleep(0.02)
+    raise TimeoutError
+
+
+def run_job(svc, method):
+    t0 = time.perf_counter()
+    job_id = svc.engine.submit_identification(OP1, method, parse_options(method, {}))
+    job = wait(lambda: j if (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") else None)
+    assert job["state"] == "done", job
+    return public_result(svc.storage.get_result(job["result_id"])), time.perf_counter() - t0
+
+
+def main() -> None:
+    db = Path(tempfile.mkdtemp()) / "bench.db"
+    settings = load_settings(environ={}, overrides={"server.db_path": str(db)})
+    with CalibrationService(settings) as svc:
+        adaptive, wall_a = run_job(svc, "adaptive")
+        print(f"adaptive at OP1: plant time {adaptive['plant_time_s']:.3f} s, suppression {adaptive['suppression_db']:.1f} dB, "
+              f"gamma {adaptive['gamma_deg']:.3f} deg, delta {adaptive['delta_deg']:.2f} deg, wall {wall_a:.2f} s")
+        grid, wall_g = run_job(svc, "grid")
+        print(f"grid (360 points) at OP1: plant time {grid['plant_time_s']:.2f} s "
+              f"({grid['plant_time_s'] / adaptive['plant_time_s']:.1f} x adaptive), suppression {grid['suppression_db']:.1f} dB, "
+              f"wall {wall_g:.1f} s")
+        t0 = time.perf_counter()
+        sweep_id = svc.engine.submit_sweep(Grid(torque_nm=[1, 2.5, 4], speed_rpm=[1000, 2000, 2500], udc_v=[12]),
+                                           "adaptive", parse_options("adaptive", {}))
+        sweep = wait(lambda: s if (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed", "cancelled") else None)
+        print(f"3 x 3 sweep (adaptive): wall time {time.perf_counter() - t0:.1f} s, state {sweep['state']}, "
+              f"{sweep['failed_points']} failed")
+
+
+if __name__ == "__main__":
+    main()
