@@ -20,7 +20,8 @@ from drivers.daq_reader import DaqReader
 from drivers.dc_supply import ScpiSupply
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
-from service.measurement import DaqCursor, MeasurementError, OperatingPointSession
+from service.harmonic import electrical_frequency_hz
+from service.measurement import DaqCursor, OperatingPointSession
 from service.operating_point import OperatingPoint
 from service.settings import Settings
 
@@ -175,14 +176,19 @@ class Bench:
                 raise BenchError(f"DC supply did not reach {udc_v:g} V within {timeout_s} s (measures {measured:g} V)")
             time.sleep(0.02)
 
-    def make_safe(self) -> None:
-        """Torque off, injection off, drive disabled, load stopped. Tries every step, raises the first error."""
+    def make_safe(self, standstill_timeout_plant_s: float = 5.0) -> None:
+        """Torque off, injection off, drive disabled, load stopped; then wait (on the DAQ clock,
+        bounded) for standstill. Tries every step, raises the first error."""
         errors = []
         steps = []
         if self.drive is not None:
-            steps += [lambda: self.drive.set_torque_nm(0.0), self.drive.injection_off, self.drive.disable]
+            steps.append(self.drive.disable)    # target torque 0, injection off, disable voltage
         if self.load is not None:
-            steps += [lambda: self.load.set_speed_rpm(0.0), self.load.disable]
+            steps.append(lambda: self.load.set_speed_rpm(0.0))
+            if self.cursor is not None:
+                # brake with the load's speed loop before disabling it (a disabled load coasts)
+                steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))
+            steps.append(self.load.disable)
         with self._lock:
             for step in steps:
                 try:
@@ -192,3 +198,13 @@ class Bench:
                     log.error("make_safe step failed: %s", exc)
         if errors:
             raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
+
+    def _wait_standstill(self, timeout_plant_s: float, below_rpm: float = 20.0) -> None:
+        """Consume the DAQ until the encoder shows the shaft below `below_rpm`."""
+        block = int(0.02 * self.settings.daq.sample_rate_hz)
+        for _ in range(int(timeout_plant_s / 0.02)):
+            chunk = self.cursor.read(block).samples
+            f_e = electrical_frequency_hz(chunk.angle_rad, self.settings.daq.sample_rate_hz)
+            if abs(f_e * 60.0 / self.settings.motor.pole_pairs) < below_rpm:
+                return
+        raise BenchError(f"shaft still turning {timeout_plant_s} s (plant time) after the stop command")

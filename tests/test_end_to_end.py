@@ -85,6 +85,13 @@ def test_bench_left_safe_after_identification(service, adaptive):
         time.sleep(0.2)
         status = client.get("/api/v1/bench/status").json()
     assert status["drive"]["state"] != "operation_enabled"
+    # make_safe brakes the load to standstill before disabling it (judged on the DAQ encoder)
+    status = client.get("/api/v1/bench/status").json()
+    deadline = time.monotonic() + 5
+    while (status["load"]["state"] == "operation_enabled" or abs(status["load"]["speed_rpm"]) > 50) and time.monotonic() < deadline:
+        time.sleep(0.3)
+        status = client.get("/api/v1/bench/status").json()
+    assert status["load"]["state"] != "operation_enabled" and abs(status["load"]["speed_rpm"]) <= 50
 
 
 def test_grid_agrees_with_adaptive_within_half_a_step(service, adaptive):
