@@ -74,6 +74,7 @@ class DaqReader:
         self._cond = threading.Condition()
         self._blocks: collections.deque[DecodedSamples] = collections.deque()
         self._buffered = 0
+        self._flush_requested = False
         self._demand = 0
         self._stop = False
         self._running = False
@@ -132,11 +133,23 @@ class DaqReader:
         try:
             while True:
                 with cond:
-                    while not self._stop and self._buffered >= max(self.max_buffered_samples, self._demand):
+                    while (not self._stop and not self._flush_requested
+                           and self._buffered >= max(self.max_buffered_samples, self._demand)):
                         cond.wait(SERIAL_READ_TIMEOUT_S)
                     if self._stop:
                         return
+                    flush_now = self._flush_requested
                     room = max(self.max_buffered_samples, self._demand) - self._buffered
+                if flush_now:
+                    # done here, by the thread that reads: flushing under a blocked read breaks pyserial
+                    try:
+                        port.reset_input_buffer()
+                    except (OSError, serial.SerialException, AttributeError):
+                        pass    # not every pyserial URL type can flush
+                    with cond:
+                        self._flush_requested = False
+                        cond.notify_all()
+                    continue
                 # never read more than fits: that is what lets the writer block (backpressure)
                 room_bytes = room * FRAME_BYTES
                 nbytes = min(self.read_chunk_bytes, room_bytes)
@@ -237,9 +250,15 @@ class DaqReader:
         self._samples_delivered += n
         return concat_samples(parts)
 
-    def discard_buffered(self) -> int:
-        """Drop every queued sample (e.g. stale data from before a setpoint); returns how many."""
+    def discard_buffered(self, flush_port: bool = False) -> int:
+        """Drop every queued sample (e.g. stale data from before a setpoint); returns how many.
+        flush_port also drops what the OS holds for the port (the next frame then starts with a
+        resynchronisation, which marks a gap)."""
         with self._cond:
+            if flush_port and self._running:
+                self._flush_requested = True
+                self._cond.notify_all()
+                self._cond.wait_for(lambda: not self._flush_requested or not self._running, timeout=2.0)
             dropped = self._buffered
             self._samples_delivered += dropped
             self._blocks.clear()

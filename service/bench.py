@@ -62,6 +62,7 @@ class Bench:
         self.cursor: DaqCursor | None = None
         self.busy = False
         self.cancel_event = None                # set by the engine; checked at every DAQ read
+        self._gamma_max_rad: float | None = None  # of the run in progress
         self._status: dict[str, Any] = {"connected": False, "bench": identity, "busy": False,
                                         "drive": None, "load": None, "daq": None, "updated_at": None, "error": None}
 
@@ -123,7 +124,8 @@ class Bench:
 
     # --- running an operating point ------------------------------------------------------------------
     def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        gamma_max = math.radians(self.settings.identification.gamma_max_deg)
+        """Theta to the drive; refuses (before anything is sent) a gamma above the run's gamma_max."""
+        gamma_max = self._gamma_max_rad or math.radians(self.settings.identification.gamma_max_deg)
         if math.hypot(theta_cos_rad, theta_sin_rad) > gamma_max * (1 + 1e-9):
             raise LimitError(f"gamma {math.degrees(math.hypot(theta_cos_rad, theta_sin_rad)):.3f} deg exceeds gamma_max")
         self.drive.set_injection(theta_cos_rad, theta_sin_rad)
@@ -133,15 +135,19 @@ class Bench:
         return self.drive.setpoints_written
 
     @contextlib.contextmanager
-    def operating_point(self, op: OperatingPoint, harmonic_order: int, settle_s: float = 0.25) -> Iterator[OperatingPointSession]:
-        """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe."""
+    def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
+                        settle_s: float = 0.25) -> Iterator[OperatingPointSession]:
+        """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
+        gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps."""
         check_limits(op, self.settings)
         s = self.settings
         with self._lock:
             self.busy = True
+            self._gamma_max_rad = min(gamma_max_rad or math.inf, math.radians(self.settings.identification.gamma_max_deg))
             try:
                 session = OperatingPointSession(self, self.cursor, harmonic_order, s.daq.sample_rate_hz,
-                                                s.motor.pole_pairs)
+                                                s.motor.pole_pairs, sync_input=s.daq.sync_input,
+                                                no_sync_settle_s=s.daq.no_sync_settle_s)
                 self._go_to(op, harmonic_order, session)
                 session.op_settle_plant_s = session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
@@ -151,6 +157,7 @@ class Bench:
                     self.make_safe()
                 finally:
                     self.busy = False
+                    self._gamma_max_rad = None
 
     def _go_to(self, op: OperatingPoint, harmonic_order: int, session: OperatingPointSession) -> None:
         s = self.settings
@@ -160,7 +167,7 @@ class Bench:
         self.load.enable()
         self.load.set_speed_rpm(op.speed_rpm)
         self.drive.enable()
-        self.drive.set_gamma_max_rad(math.radians(s.identification.gamma_max_deg))
+        self.drive.set_gamma_max_rad(self._gamma_max_rad)
         self.drive.set_harmonic_order(harmonic_order)
         self.drive.set_injection(0.0, 0.0)
         self.drive.set_injection_mode("manual")

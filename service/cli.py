@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--torque", type=_floats, required=True, help="torques, Nm, comma-separated")
             p.add_argument("--speed", type=_floats, required=True, help="speeds, rpm, comma-separated")
             p.add_argument("--udc", type=_floats, default=[12.0], help="DC-link voltages, V, comma-separated")
-        p.add_argument("--method", choices=["adaptive", "grid"], default="adaptive")
+        p.add_argument("--method", choices=["adaptive", "grid", "probe"], default="adaptive")
         p.add_argument("--options", help="method options as JSON, e.g. '{\"mu_per_s\": 10}'")
         p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
         p.add_argument("--json", action="store_true", help="print the full result as JSON")

@@ -6,13 +6,14 @@ import math
 from typing import Any
 
 from service import __version__
-from service.identification import AdaptiveOptions, GridOptions, IdentificationResult, identify_adaptive, identify_grid
+from service.identification import (AdaptiveOptions, GridOptions, IdentificationResult, ProbeOptions, identify_adaptive,
+                                    identify_grid, identify_probe)
 from service.operating_point import OperatingPoint
 from service.secondary_path import model_secondary_path
 from service.settings import Settings
 from service.storage import now_iso
 
-OPTION_MODELS = {"adaptive": AdaptiveOptions, "grid": GridOptions}
+OPTION_MODELS = {"adaptive": AdaptiveOptions, "grid": GridOptions, "probe": ProbeOptions}
 
 
 def parse_options(method: str, options: dict[str, Any] | None):
@@ -27,11 +28,13 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
     gamma_max_rad = math.radians(getattr(options, "gamma_max_deg", None) or settings.identification.gamma_max_deg)
     gamma_max_rad = min(gamma_max_rad, math.radians(settings.identification.gamma_max_deg))
     s_hat = model_secondary_path(settings, op, h)
-    with bench.operating_point(op, h) as session:
+    with bench.operating_point(op, h, gamma_max_rad) as session:
         if method == "adaptive":
             result = identify_adaptive(session, s_hat, options, gamma_max_rad)
         elif method == "grid":
             result = identify_grid(session, s_hat, options, gamma_max_rad)
+        elif method == "probe":
+            result = identify_probe(session, s_hat, options, gamma_max_rad)
         else:
             raise ValueError(f"unknown method {method!r}")
         result.details["op_settle_plant_s"] = getattr(session, "op_settle_plant_s", None)

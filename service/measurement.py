@@ -70,13 +70,16 @@ class OperatingPointSession:
     MAX_WINDOW_ATTEMPTS = 5
 
     def __init__(self, bench, cursor: DaqCursor, harmonic_order: int, sample_rate_hz: float,
-                 pole_pairs: int, settle_after_theta_s: float = 0.02):
+                 pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
+                 no_sync_settle_s: float = 0.4):
         self.bench = bench
         self.cursor = cursor
         self.harmonic_order = harmonic_order
         self.sample_rate_hz = sample_rate_hz
         self.pole_pairs = pole_pairs
         self.settle_after_theta_s = settle_after_theta_s
+        self.sync_input = sync_input
+        self.no_sync_settle_s = no_sync_settle_s
         self._pending: DecodedSamples | None = None   # samples read past the point we needed
         self._segment_start: int | None = None
         self._plant_samples = 0
@@ -110,6 +113,8 @@ class OperatingPointSession:
             # predate every write made since, so they are stale
             self.stale_samples += len(self._pending)
             self._pending = None
+        if not self.sync_input:
+            return self._settle_on_data(max_plant_s)
         budget = int(max_plant_s * self.sample_rate_hz)
         consumed = 0
         while True:
@@ -130,6 +135,26 @@ class OperatingPointSession:
                 raise MeasurementError(
                     f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
                     f"({self.bench.setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
+
+    def _settle_on_data(self, max_plant_s: float) -> int:
+        """A bench without the sync line: drop what is buffered, let `no_sync_settle_s` of plant time
+        pass (it must exceed what the DAQ path can still hold, and the plant's settling), then wait
+        until two consecutive one-turn phasors agree. Returns the first sample counted as the
+        setpoint's time (the first sample read after the write: honest, if pessimistic)."""
+        self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+        first = self.cursor.read(1).samples
+        self._segment_start = int(first.index[0])
+        self.skip(self.no_sync_settle_s)
+        periods = self.harmonic_order                       # one electrical turn
+        previous = self.measure(periods)
+        for _ in range(int(max_plant_s * self.sample_rate_hz / max(previous.phasor.samples, 1))):
+            current = self.measure(periods)
+            # agree within 5 % or within 3 standard deviations of a phasor of noise (std(alpha) sqrt(2/N))
+            noise = float(np.std(current.alpha_fs)) * math.sqrt(2.0 / len(current.alpha_fs))
+            if abs(current.phasor.complex - previous.phasor.complex) <= 0.05 * abs(current.phasor.complex) + 3 * noise:
+                return self._segment_start
+            previous = current
+        raise MeasurementError(f"the harmonic did not settle within {max_plant_s} s of plant time (no sync line)")
 
     def skip(self, seconds: float) -> None:
         """Let the plant settle for `seconds` of plant time (counted as the method's time)."""
@@ -157,8 +182,9 @@ class OperatingPointSession:
             if len(s) < n:
                 s = _concat([s, self._next(n - len(s))])
             self._count_until(int(s.index[-1]))
-            bad = np.flatnonzero(s.gap_before[1:] | ((s.flags[:] & BAD_FLAGS) != 0)[1:] |
-                                 (((s.flags & FLAG_SYNC_INPUT) != 0)[1:] != ((s.flags & FLAG_SYNC_INPUT) != 0)[:-1]))
+            sync = (s.flags & FLAG_SYNC_INPUT) != 0
+            setpoint_changed = (sync[1:] != sync[:-1]) if self.sync_input else np.zeros(len(s) - 1, bool)
+            bad = np.flatnonzero(s.gap_before[1:] | ((s.flags & BAD_FLAGS) != 0)[1:] | setpoint_changed)
             if (s.flags[0] & BAD_FLAGS) or len(bad):
                 self.windows_discarded += 1
                 continue
@@ -189,7 +215,11 @@ class OperatingPointSession:
         """After the OP setpoints: wait for their effect, for the speed (from the encoder angle) to
         hold within `tolerance` of the target for 3 consecutive 20 ms blocks, then `settle_s` more.
         Returns the plant time (s) it took."""
-        start = self.wait_for_effect(max_plant_s)
+        if self.sync_input:
+            self.wait_for_effect(max_plant_s)
+        else:
+            self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+            self.skip(self.no_sync_settle_s)
         block = int(0.02 * self.sample_rate_hz)
         steady, elapsed = 0, 0
         while steady < 3:

@@ -38,6 +38,8 @@ class DaqSettings(_Section):
     sample_rate_hz: float = Field(16_000.0, gt=0)
     accel_full_scale_rad_s2: float = Field(500.0, gt=0)
     read_timeout_s: float = Field(5.0, gt=0)
+    sync_input: bool = Field(True, description="the drive's sync line is wired to the DAQ (flag bit 2)")
+    no_sync_settle_s: float = Field(0.4, gt=0, description="without the sync line: plant time to let pass after a setpoint")
 
 
 class SupplySettings(_Section):

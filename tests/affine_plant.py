@@ -1,5 +1,7 @@
 """A closed-form plant for unit tests of the identification algorithms (eq. 15):
-alpha(phi) = Re{S (Theta_d + Theta) exp(j h phi)} + noise, sampled at constant speed.
+alpha(phi) = Re{(S (Theta_d + Theta) + R conj(Theta_d + Theta)) exp(j h phi)} + noise, sampled at
+constant speed. R = 0 is a scalar complex secondary path (DESIGN 3's rotation-form S_ss); R != 0 is
+the general real 2x2 S_ss a machine with L_d != L_q or dead time shows.
 
 It synthesises real sample records so that the phasor demodulation is exercised too; its truth
 (S, Theta_d) is known to the test, which checks the algorithms against -Theta_d in closed form."""
@@ -16,14 +18,15 @@ from service.identification.session import Window
 class AffinePlantSession:
     def __init__(self, s_true: complex, theta_d: complex, harmonic_order: int = 6, speed_rpm: float = 2000.0,
                  pole_pairs: int = 4, sample_rate_hz: float = 16000.0, noise_fs: float = 0.0, seed: int = 0,
-                 settle_samples: int = 160):
-        self.s_true, self.theta_d = s_true, theta_d
+                 settle_samples: int = 160, r_conj: complex = 0j):
+        self.s_true, self.theta_d, self.r_conj = s_true, theta_d, r_conj
         self.harmonic_order = harmonic_order
         self.sample_rate_hz = sample_rate_hz
         self.omega_e = speed_rpm / 60 * 2 * math.pi * pole_pairs
         self.noise_fs = noise_fs
         self.rng = np.random.default_rng(seed)
         self.settle_samples = settle_samples
+        self.settle_after_theta_s = settle_samples / sample_rate_hz
         self.theta = 0j
         self.sample = 0
         self._plant_samples = 0
@@ -39,7 +42,8 @@ class AffinePlantSession:
         n = int(math.ceil(periods * 2 * math.pi / (self.harmonic_order * self.omega_e) * self.sample_rate_hz)) + 4
         k = self.sample + np.arange(n)
         angle = (self.omega_e * k / self.sample_rate_hz) % (2 * math.pi)
-        a = self.s_true * (self.theta_d + self.theta)
+        total = self.theta_d + self.theta
+        a = self.s_true * total + self.r_conj * total.conjugate()
         alpha = np.real(a * np.exp(1j * self.harmonic_order * angle)) + self.noise_fs * self.rng.standard_normal(n)
         p = phasor(alpha, angle, self.harmonic_order, periods)
         self.sample += p.samples

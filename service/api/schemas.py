@@ -12,14 +12,14 @@ from service.plans import Grid
 class IdentificationCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     operating_point: OperatingPoint
-    method: Literal["adaptive", "grid"] = "adaptive"
+    method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
 
 
 class SweepCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     grid: Grid
-    method: Literal["adaptive", "grid"] = "adaptive"
+    method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -4,5 +4,7 @@ cross-check) and, later, probe (ours). Each method is a pure algorithm over a `M
 from service.identification.result import IdentificationResult, METHODS
 from service.identification.adaptive import AdaptiveOptions, identify_adaptive
 from service.identification.grid import GridOptions, identify_grid
+from service.identification.probe import ProbeOptions, identify_probe
 
-__all__ = ["IdentificationResult", "METHODS", "AdaptiveOptions", "identify_adaptive", "GridOptions", "identify_grid"]
+__all__ = ["IdentificationResult", "METHODS", "AdaptiveOptions", "identify_adaptive", "GridOptions", "identify_grid",
+           "ProbeOptions", "identify_probe"]

@@ -33,3 +33,13 @@ def spectrum_traces(before: Window, after: Window) -> dict:
         "alpha_before": snippet(before),
         "alpha_after": snippet(after),
     }
+
+
+def time_to_suppression(history: list, uncompensated_amplitude: float, target_db: float) -> float | None:
+    """Plant time (s) at the end of the first window whose residual is `target_db` below the
+    uncompensated amplitude; None if none was. history rows: [plant_time_s, theta_cos, theta_sin, amplitude]."""
+    limit = uncompensated_amplitude * 10 ** (-target_db / 20.0)
+    for t, _tc, _ts, amp in history[1:]:
+        if amp <= limit:
+            return t
+    return None

@@ -1,14 +1,25 @@
 """Grid search (paper sec. 3, Fig. 8) with an affine least-squares fit over all grid points (ours).
 
-Every grid point (gamma_i, delta_i) gives a measured phasor A_i. The plant is affine in theta
-(eq. 15: A = S (Theta_d + Theta)), so all points together determine S and B = S Theta_d by complex
-linear least squares A_i = S Theta_i + B, and theta* = -Theta_d = -B / S, far finer than the grid step.
+Every grid point (gamma_i, delta_i) gives a measured phasor A_i. The plant is affine in the
+injection's h-th harmonic (eq. 15: A = S (Theta_d + Theta)), so all points together determine S and
+B = S Theta_d by complex linear least squares A_i = S Theta_i + B, and theta* = -B / S, far finer
+than the grid step.
+
+The exact rotation (eq. 3-4) is not linear in gamma: u_q* = u_q cos(v) + u_d sin(v) with
+v = gamma cos(x), x = h phi_e + delta, and by the Jacobi-Anger expansion
+    sin(gamma cos x) = 2 J1(gamma) cos x - 2 J3(gamma) cos 3x + ...,  cos(gamma cos x) = J0(gamma) - 2 J2(gamma) cos 2x + ...
+so the h-th harmonic of the injected voltage is exactly proportional to 2 J1(gamma) e^{j delta}, not to
+gamma e^{j delta} (they differ by gamma^2/8: 0.4 % at 10 deg, enough to bias a 360-point fit by more
+than the 40 dB target allows). The fit therefore uses Theta_eff = 2 J1(gamma) e^{j delta} and maps the
+result back by solving 2 J1(gamma*) = |Theta_eff*|. A second fit over the points near theta* then
+removes what other non-linearity (dead time, saturation) leaves.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from scipy import optimize, special
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.identification.common import measure_uncompensated, spectrum_traces, verify
@@ -27,8 +38,11 @@ class GridOptions(BaseModel):
     delta_stop_deg: float = Field(340.0, ge=0, lt=360)
     delta_step_deg: float = Field(20.0, gt=0)
     window_periods: int = Field(18, ge=2, le=10_000)
+    settle_s: float = Field(0.12, ge=0, le=10, description="plant time after each grid point's theta before measuring: "
+                            "a theta step rings the shaft resonance (tau = 1/19.6 s), which leaks into the phasor")
     verify_periods: int = Field(144, ge=2)
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
+    gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -47,17 +61,57 @@ class GridOptions(BaseModel):
         return np.round(np.arange(self.delta_start_deg, self.delta_stop_deg + 1e-9, self.delta_step_deg), 9)
 
 
-def affine_fit(thetas: np.ndarray, phasors: np.ndarray) -> tuple[complex, complex, float]:
-    """Least squares A_i = S Theta_i + B over complex arrays; returns (S, Theta*, rms residual)."""
-    design = np.column_stack([thetas, np.ones_like(thetas)])
-    (s, b), *_ = np.linalg.lstsq(design, phasors, rcond=None)
-    rms = float(np.sqrt(np.mean(np.abs(design @ np.array([s, b]) - phasors) ** 2)))
-    return complex(s), complex(-b / s), rms
+def effective_injection(theta: np.ndarray) -> np.ndarray:
+    """Theta_eff = 2 J1(gamma) e^{j delta}: the h-th harmonic the exact rotation injects (see module doc)."""
+    gamma = np.abs(theta)
+    scale = np.where(gamma > 1e-12, 2.0 * special.j1(gamma) / np.maximum(gamma, 1e-12), 1.0)
+    return theta * scale
+
+
+def gamma_from_effective(gamma_eff: float) -> float:
+    """Inverse of gamma -> 2 J1(gamma) on [0, 1.8] rad (monotonic there)."""
+    if gamma_eff <= 0.0:
+        return 0.0
+    if gamma_eff >= 2.0 * special.j1(1.8):
+        return 1.8
+    return float(optimize.brentq(lambda g: 2.0 * special.j1(g) - gamma_eff, 0.0, 1.8, xtol=1e-12))
+
+
+def affine_fit(thetas: np.ndarray, phasors: np.ndarray) -> tuple[complex, complex, float, np.ndarray]:
+    """Least squares of the general real-affine model a = M theta_eff + b (2x2 real M, DESIGN 3's
+    S_ss without assuming its rotation structure: a machine with L_d != L_q, dead time or
+    saturation answers cos- and sin-injections differently). Returns (S, theta*, rms, M) where S is
+    the rotation part of M, (M11 + M22)/2 + j (M12 - M21)/2, and theta* = -M^-1 b mapped back from
+    Theta_eff to gamma."""
+    eff = effective_injection(thetas)
+    design = np.column_stack([eff.real, -eff.imag, np.ones(len(eff))])      # [theta_cos, theta_sin, 1]
+    target = np.column_stack([phasors.real, -phasors.imag])                 # [a_c, a_s]
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    m = coef[:2].T                                                          # a = m @ theta + b
+    b = coef[2]
+    rms = float(np.sqrt(np.mean(np.sum((design @ coef - target) ** 2, axis=1))))
+    theta_eff = -np.linalg.solve(m, b)
+    theta_eff_c = complex(theta_eff[0], -theta_eff[1])
+    theta = np.exp(1j * np.angle(theta_eff_c)) * gamma_from_effective(abs(theta_eff_c))
+    s = complex((m[0, 0] + m[1, 1]) / 2, (m[0, 1] - m[1, 0]) / 2)
+    return s, complex(theta), rms, m
+
+
+def local_affine_fit(thetas: np.ndarray, phasors: np.ndarray, around: complex, radius_rad: float,
+                     min_points: int = 12) -> tuple[complex, complex, float, int, np.ndarray]:
+    """The affine fit over the points within `radius_rad` of `around` (at least the `min_points` nearest)."""
+    distance = np.abs(thetas - around)
+    near = distance <= radius_rad
+    if near.sum() < min_points:
+        near = distance <= np.sort(distance)[min(min_points, len(distance)) - 1]
+    s, theta, rms, m = affine_fit(thetas[near], phasors[near])
+    return s, theta, rms, int(near.sum()), m
 
 
 def identify_grid(session: MeasurementSession, s_hat: complex | None, options: GridOptions,
                   gamma_max_rad: float) -> IdentificationResult:
     h = session.harmonic_order
+    session.settle_after_theta_s = options.settle_s
     before = measure_uncompensated(session, options.verify_periods)
     points = []
     for gamma_deg in options.gammas_deg():
@@ -73,7 +127,9 @@ def identify_grid(session: MeasurementSession, s_hat: complex | None, options: G
     best = int(np.argmin(amplitude))
     thetas = grid[:, 2] - 1j * grid[:, 3]
     phasors = grid[:, 4] - 1j * grid[:, 5]
-    s_fit, theta_fit, fit_rms = affine_fit(thetas, phasors)
+    s_global, theta_global, global_rms, _ = affine_fit(thetas, phasors)
+    radius = max(math.radians(3 * options.gamma_step_deg), 0.5 * abs(theta_global))
+    s_fit, theta_fit, fit_rms, fit_points, m_fit = local_affine_fit(thetas, phasors, theta_global, radius)
     if abs(theta_fit) > gamma_max_rad:
         theta_fit = theta_fit * (gamma_max_rad / abs(theta_fit))
     min_tc, min_ts = float(grid[best, 2]), float(grid[best, 3])
@@ -91,7 +147,11 @@ def identify_grid(session: MeasurementSession, s_hat: complex | None, options: G
                         "theta_cos": min_tc, "theta_sin": min_ts, "amplitude_fs": float(amplitude[best])},
             "fit": {"theta_cos": fit_tc, "theta_sin": fit_ts,
                     "gamma_deg": math.degrees(abs(theta_fit)),
-                    "delta_deg": math.degrees(np.angle(theta_fit)) % 360.0, "rms_fs": fit_rms},
+                    "delta_deg": math.degrees(np.angle(theta_fit)) % 360.0, "rms_fs": fit_rms,
+                    "points": fit_points, "radius_deg": math.degrees(radius), "s_matrix": m_fit.tolist()},
+            "fit_global": {"gamma_deg": math.degrees(abs(theta_global)),
+                           "delta_deg": math.degrees(np.angle(theta_global)) % 360.0, "rms_fs": global_rms,
+                           "s": {"re": s_global.real, "im": s_global.imag}},
             "reported": options.result,
         },
         traces={"grid": np.round(grid[:, [0, 1, 4, 5]], 7).tolist(),

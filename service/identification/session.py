@@ -21,6 +21,7 @@ class Window:
 class MeasurementSession(Protocol):
     harmonic_order: int
     sample_rate_hz: float
+    settle_after_theta_s: float      # plant time apply_theta lets pass after the setpoint took effect
 
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         """Send theta to the drive and return once it is in effect and the plant has settled."""
