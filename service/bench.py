@@ -130,6 +130,16 @@ class Bench:
             raise LimitError(f"gamma {math.degrees(math.hypot(theta_cos_rad, theta_sin_rad)):.3f} deg exceeds gamma_max")
         self.drive.set_injection(theta_cos_rad, theta_sin_rad)
 
+    def download_lut(self, image: bytes) -> int:
+        """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns the CRC.
+        Refused while a run holds the bench."""
+        if not self._lock.acquire(timeout=1.0):
+            raise BenchError("the bench is busy with a run; download the LUT when it is idle")
+        try:
+            return self.drive.download_lut(image)
+        finally:
+            self._lock.release()
+
     def setpoints_written(self) -> int:
         """Setpoints the drive has accepted so far; each toggles the DAQ sync line once (docs/interfaces.md)."""
         return self.drive.setpoints_written

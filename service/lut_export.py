@@ -9,6 +9,10 @@ import io
 import json
 import math
 import re
+import struct
+import zlib
+
+import numpy as np
 
 from service import __version__
 
@@ -126,6 +130,29 @@ def export_dcm(m: dict) -> str:
                 out += [f"   ST/Y   {speed:g}", "   WERT   " + "   ".join(f"{v:.9g}" for v in plane[j])]
             out += ["END", ""]
     return "\n".join(out)
+
+
+LUT_MAGIC = b"RCL1"
+LUT_FORMAT_VERSION = 1
+LUT_MAX_CELLS = 4096
+
+
+def lut_image(m: dict) -> bytes:
+    """The binary image the drive takes on 0x2001:1 (docs/interfaces.md, "LUT image")."""
+    axes = m["axes"]
+    nt, nn, nu = (len(axes[k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
+    if nt * nn * nu > LUT_MAX_CELLS:
+        raise ValueError(f"map has {nt * nn * nu} cells; the drive takes at most {LUT_MAX_CELLS}")
+    for key in ("torque_nm", "speed_rpm", "udc_v"):
+        if any(b <= a for a, b in zip(axes[key], axes[key][1:])):
+            raise ValueError(f"axis {key} is not strictly increasing")
+    body = struct.pack("<4sHBBHHHH", LUT_MAGIC, LUT_FORMAT_VERSION, int(m["harmonic_order"]), 0, nt, nn, nu, 0)
+    for key in ("torque_nm", "speed_rpm", "udc_v"):
+        body += np.asarray(axes[key], dtype="<f4").tobytes()
+    body += np.asarray(_grid_values(m, "theta_cos"), dtype="<f4").tobytes()
+    body += np.asarray(_grid_values(m, "theta_sin"), dtype="<f4").tobytes()
+    body += np.asarray(_grid_values(m, "valid"), dtype=np.uint8).tobytes()
+    return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
 
 
 EXPORTERS = {"csv": export_csv, "json": export_json, "c": export_c, "dcm": export_dcm}

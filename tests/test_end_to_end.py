@@ -134,6 +134,11 @@ def test_sweep_map_and_exports(service, tmp_path):
         subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "t"), str(tmp_path / "t.c")],
                        check=True, cwd=tmp_path)
         assert subprocess.run([str(tmp_path / "t")]).returncode == 0
+    # the LUT goes into the drive (segmented SDO); the drive's CRC read-back matches the image
+    r = client.post(f"/api/v1/maps/{m['id']}/download")
+    assert r.status_code == 200, r.text
+    assert r.json()["cells"] == 9 and r.json()["crc32"].startswith("0x")
+    assert httpx.post(f"{service[0].base}/api/v1/maps/{m['id']}/download").status_code == 401
     # the CLI exports the same map from the same database
     out = cli("export", str(m["id"]), "--format", "csv", "--db", str(db)).stdout
     assert out == csv_text

@@ -123,3 +123,23 @@ def test_dcm_export_has_one_map_per_component(storage):
     assert "KONSERVIERUNG_FORMAT 2.0" in text
     assert text.count("KENNFELD ") == 3 and text.count("END") == 3
     assert "ST/X   1   2.5" in text and __version__ in text
+
+
+def test_lut_image_is_what_the_drive_parses(storage):
+    """The service's image against the drive firmware's parser (plant_emulator.lut_image): symmetric pair."""
+    import zlib
+
+    from plant_emulator.lut_image import LutImageError, parse
+    from service.lut_export import lut_image
+    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)})))
+    image = lut_image(m)
+    lut = parse(image)
+    assert lut.crc == zlib.crc32(image) and lut.harmonic_order == 6
+    assert list(lut.torque_nm) == [1.0, 2.5] and list(lut.speed_rpm) == [1000.0, 2000.0]
+    tc, ts = lut.theta(2.5, 2000.0, 12.0)             # grid point: the 4th result, gamma 4 deg, delta 280 deg
+    assert math.degrees(math.hypot(tc, ts)) == pytest.approx(4.0, rel=1e-6)
+    assert not lut.valid[0, 1, 0]
+    bad = bytearray(image)
+    bad[40] ^= 0x01
+    with pytest.raises(LutImageError):
+        parse(bytes(bad))

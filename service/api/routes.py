@@ -11,11 +11,11 @@ from pydantic import ValidationError
 
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.schemas import IdentificationCreate, JobPublic, SweepCreate, SweepPublic
-from service.bench import LimitError
+from service.bench import BenchError, LimitError
 from service.engine import TransitionError
 from service.events import format_sse
 from service.identify import parse_options, public_result
-from service.lut_export import FORMATS, export_map
+from service.lut_export import FORMATS, export_map, lut_image
 from service.maps import public_map
 
 router = APIRouter(prefix="/api/v1")
@@ -178,6 +178,26 @@ def export(map_id: int, service: ServiceDep,
     ext = {"csv": "csv", "json": "json", "c": "h", "dcm": "dcm"}[format]
     return PlainTextResponse(export_map(m, format), media_type=FORMATS[format],
                              headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{ext}"'})
+
+
+@router.post("/maps/{map_id}/download")
+def download_map(map_id: int, service: ServiceDep, _: OperatorDep) -> dict:
+    """Build the map's LUT image and download it into the drive (0x2001), CRC read back."""
+    m = public_map(service.storage, map_id)
+    if m is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
+    try:
+        image = lut_image(m)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+    try:
+        crc = service.bench.download_lut(image)
+    except BenchError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    except Exception as exc:   # SDO abort / timeout: the drive refused or did not answer
+        raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"drive refused the LUT: {exc}") from None
+    return {"map_id": map_id, "bytes": len(image), "crc32": f"0x{crc:08X}", "cells": len(m["cells"]),
+            "harmonic_order": m["harmonic_order"]}
 
 
 # --- events -----------------------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """Identification figures on the emulated bench (run: python tests/benchmarks/bench_identification.py).
 
 Starts the service layer with plant_emulator (paper-bench, fast mode) and measures:
-- adaptive at OP1 {2.5 Nm, 2000 rpm, 12 V}: plant time (DAQ samples / rate), suppression, wall time;
+- adaptive and probe at OP1 {2.5 Nm, 2000 rpm, 12 V}: plant time to 40 dB and in all (DAQ samples /
+  rate), suppression, wall time;
 - grid search (the paper's 360 points) at OP1: plant time and its ratio to the adaptive one;
 - a 3 x 3 sweep (torque 1, 2.5, 4 Nm x speed 1000, 2000, 2500 rpm): wall time.
 """
@@ -45,12 +46,20 @@ def main() -> None:
     settings = load_settings(environ={}, overrides={"server.db_path": str(db)})
     with CalibrationService(settings) as svc:
         adaptive, wall_a = run_job(svc, "adaptive")
-        print(f"adaptive at OP1: plant time {adaptive['plant_time_s']:.3f} s, suppression {adaptive['suppression_db']:.1f} dB, "
+        print(f"adaptive at OP1: plant time to 40 dB {adaptive['details']['time_to_40db_s']} s, total plant time "
+              f"{adaptive['plant_time_s']:.3f} s, suppression {adaptive['suppression_db']:.1f} dB, "
               f"gamma {adaptive['gamma_deg']:.3f} deg, delta {adaptive['delta_deg']:.2f} deg, wall {wall_a:.2f} s")
+        probe, wall_p = run_job(svc, "probe")
+        print(f"probe at OP1: plant time to 40 dB {probe['details']['time_to_40db_s']} s, total plant time "
+              f"{probe['plant_time_s']:.3f} s, suppression {probe['suppression_db']:.1f} dB, "
+              f"gamma {probe['gamma_deg']:.3f} deg, delta {probe['delta_deg']:.2f} deg, wall {wall_p:.2f} s; "
+              f"model vs measured S: {probe['details']['model_gain_error_db']:+.2f} dB, "
+              f"{probe['details']['model_phase_error_deg']:+.1f} deg")
         grid, wall_g = run_job(svc, "grid")
         print(f"grid (360 points) at OP1: plant time {grid['plant_time_s']:.2f} s "
-              f"({grid['plant_time_s'] / adaptive['plant_time_s']:.1f} x adaptive), suppression {grid['suppression_db']:.1f} dB, "
-              f"wall {wall_g:.1f} s")
+              f"({grid['plant_time_s'] / adaptive['plant_time_s']:.1f} x adaptive, "
+              f"{grid['plant_time_s'] / probe['plant_time_s']:.1f} x probe), fit gamma {grid['gamma_deg']:.3f} deg, "
+              f"delta {grid['delta_deg']:.2f} deg, suppression {grid['suppression_db']:.1f} dB, wall {wall_g:.1f} s")
         t0 = time.perf_counter()
         sweep_id = svc.engine.submit_sweep(Grid(torque_nm=[1, 2.5, 4], speed_rpm=[1000, 2000, 2500], udc_v=[12]),
                                            "adaptive", parse_options("adaptive", {}))
