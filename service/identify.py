@@ -79,6 +79,7 @@ def public_result(row: dict) -> dict:
     detail = json.loads(row.get("detail_json") or "{}")
     return {
         "id": row["id"], "status": row["status"], "error": row["error"], "method": row["method"],
+        "message": detail.get("message"),
         "operating_point": {"torque_nm": row["torque_nm"], "speed_rpm": row["speed_rpm"], "udc_v": row["udc_v"]},
         "harmonic_order": row["harmonic_order"],
         "gamma_deg": row.get("gamma_deg"), "delta_deg": row.get("delta_deg"),

@@ -95,7 +95,14 @@ def service(tmp_path_factory):
     port = _free_port()
     log_path = tmp / "service.log"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--db", str(tmp / "ripplecal.db")]
+    db = tmp / "ripplecal.db"
+    # an operator token in the same database, created before the service opens it
+    made = subprocess.run([sys.executable, "-m", "service.cli", "token", "create", "--role", "operator", "--db", str(db)],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    if made.returncode != 0 or not made.stdout.strip():
+        pytest.fail(f"token create failed ({made.returncode}):\n{made.stdout}\n{made.stderr}", pytrace=False)
+    operator_token = made.stdout.strip().splitlines()[-1].strip()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--db", str(db)]
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(
             cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -120,7 +127,7 @@ def service(tmp_path_factory):
                 pytest.fail(f"service not reachable on {base} within {STARTUP_TIMEOUT_S:.0f} s "
                             f"(last error: {last_err}):\n{_log_tail(log_path)}", pytrace=False)
             time.sleep(0.25)
-        yield {"base": base, "log": log_path, "proc": proc}
+        yield {"base": base, "log": log_path, "proc": proc, "token": operator_token}
     finally:
         _stop(proc)
 
@@ -226,5 +233,94 @@ def test_sweep_form_without_token_shows_auth_error(service, browser):
         assert "token missing or invalid" in err.inner_text()
         assert page.is_hidden('[data-testid="sweep-ok"]')
         assert not rec["pageerrors"], rec["pageerrors"]
+    finally:
+        context.close()
+
+
+IDENTIFY_TIMEOUT_MS = 90_000
+RESULT_PLOTS = ("plot-theta", "plot-amplitude", "plot-spectrum", "plot-alpha")  # Fig. 9 (2), Fig. 10 (2)
+
+
+def test_identify_panel_runs_probe_and_shows_result(service, browser, tmp_path):
+    """One probe identification through the Identify panel; the result view draws Fig. 9 and Fig. 10."""
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.fill('[data-testid="token"]', service["token"])
+        page.fill('[data-testid="identify-torque"]', "2.5")
+        page.fill('[data-testid="identify-speed"]', "2000")
+        page.fill('[data-testid="identify-udc"]', "12")
+        page.select_option('[data-testid="identify-method"]', "probe")
+        page.fill('[data-testid="identify-options"]', "")
+        page.click('[data-testid="identify-submit"]')
+        try:
+            page.locator('[data-testid="identify-job"]').wait_for(state="visible", timeout=10_000)
+            page.wait_for_function(
+                """() => {
+                    const s = document.querySelector('[data-testid="identify-state"]');
+                    return s && ['done', 'failed', 'cancelled'].includes(s.dataset.state);
+                }""",
+                timeout=IDENTIFY_TIMEOUT_MS,
+            )
+        except Exception:
+            page.screenshot(path=str(tmp_path / "identify_failure.png"), full_page=True)
+            err = page.locator('[data-testid="identify-error"]')
+            raise AssertionError(
+                "identification did not finish: job=%r error=%r\nconsole: %s\nservice log:\n%s"
+                % (page.text_content('[data-testid="identify-job"]'),
+                   err.inner_text() if err.is_visible() else None,
+                   rec["console"] + rec["pageerrors"], _log_tail(service["log"])))
+        state = page.get_attribute('[data-testid="identify-state"]', "data-state")
+        assert state == "done", f"job {state}: {page.text_content('[data-testid=identify-note]')}"
+        assert page.is_hidden('[data-testid="identify-error"]'), page.inner_text('[data-testid="identify-error"]')
+
+        # the result view shows this job's result, with its numbers
+        page.wait_for_function(
+            """(ids) => ids.every((id) => {
+                const gd = document.querySelector(`[data-testid="${id}"]`);
+                return gd && gd.classList.contains('js-plotly-plot') && Array.isArray(gd.data) && gd.data.length > 0;
+            })""",
+            arg=list(RESULT_PLOTS), timeout=10_000,
+        )
+        assert page.inner_text('[data-testid="result-status"]').strip() == "ok"
+        assert "probe" in page.inner_text('[data-testid="result-title"]')
+        nums = {k: page.inner_text(f'[data-testid="result-{k}"]').strip() for k in ("gamma", "delta", "suppression")}
+        for k, v in nums.items():
+            assert re.fullmatch(r"-?\d+(\.\d+)?", v), f"result-{k} shows {v!r}"
+        assert 0.0 < float(nums["gamma"]) <= 15.0, nums          # gamma_max default 15 deg
+        assert -360.0 <= float(nums["delta"]) <= 360.0, nums
+        assert float(nums["suppression"]) > 0.0, nums
+
+        # Fig. 9: theta_cos / theta_sin and the h-th amplitude over plant time, drawn with points
+        points = page.evaluate(
+            """(ids) => Object.fromEntries(ids.map((id) => {
+                const gd = document.querySelector(`[data-testid="${id}"]`);
+                return [id, gd.data.map((t) => (t.y || []).length)];
+            }))""",
+            list(RESULT_PLOTS),
+        )
+        assert len(points["plot-theta"]) == 2 and min(points["plot-theta"]) >= 2, points
+        assert points["plot-amplitude"][0] >= 2, points
+        assert page.evaluate("document.querySelector('[data-testid=\"plot-amplitude\"]')._fullLayout.yaxis.type") == "log"
+        # Fig. 10: orders 1..24 before and after as bars; the alpha snippets before and after
+        assert points["plot-spectrum"] == [24, 24], points
+        assert len(points["plot-alpha"]) == 2 and min(points["plot-alpha"]) > 10, points
+        assert page.locator('[data-testid="plot-spectrum"] .barlayer .trace').count() == 2
+        assert page.locator('[data-testid="plot-theta"] .scatterlayer .trace').count() == 2
+        # Fig. 8 belongs to the grid method only
+        assert page.is_hidden('[data-testid="plot-grid"]')
+        # axis titles carry units
+        titles = page.evaluate(
+            """(ids) => ids.map((id) => {
+                const fl = document.querySelector(`[data-testid="${id}"]`)._fullLayout;
+                return [fl.xaxis.title.text, fl.yaxis.title.text];
+            })""",
+            list(RESULT_PLOTS),
+        )
+        for xt, yt in titles:
+            assert "(" in xt and "(" in yt, titles
+
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+        page.screenshot(path=str(tmp_path / "identify.png"), full_page=True)
     finally:
         context.close()
