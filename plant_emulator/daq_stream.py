@@ -34,6 +34,35 @@ class DaqPty:
         self.bytes_written = 0
         self.frames_dropped = 0
         self._closed = False
+        self._hung = False
+        self._fd_lock = threading.Lock()
+
+    def hang_up(self) -> None:
+        """Fault hook: the DAQ is unplugged. Readers of the slave get EOF/EIO; frames are discarded."""
+        with self._fd_lock:
+            if self._hung or self._closed:
+                return
+            self._hung = True
+            self._pending.clear()
+            for fd in (self.master_fd, self.slave_fd):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    def reopen(self) -> str:
+        """Fault hook: the DAQ is plugged in again, as a new pty. Returns its name."""
+        with self._fd_lock:
+            if not self._hung:
+                return self.name
+            self.master_fd, self.slave_fd = os.openpty()
+            tty.setraw(self.slave_fd)
+            self.name = os.ttyname(self.slave_fd)
+            os.set_blocking(self.master_fd, False)
+            self._pending.clear()
+            self.bytes_written = 0
+            self._hung = False
+            return self.name
 
     def write_blocking(self, data: bytes, stop: threading.Event) -> bool:
         """Write all of data unless `stop` is set first. Returns False if stopped."""
@@ -86,7 +115,7 @@ class DaqPty:
                 self.frames_dropped += drop // FRAME_BYTES
 
     def _flush(self, timeout_s: float) -> None:
-        if self._closed:
+        if self._closed or self._hung:
             self._pending.clear()
             return
         try:
@@ -95,13 +124,17 @@ class DaqPty:
             return
         if not writable:
             return
-        try:
-            n = os.write(self.master_fd, self._pending[:65536])
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            log.warning("DAQ pty write failed: %s", exc)
-            return
+        with self._fd_lock:
+            if self._closed or self._hung:
+                self._pending.clear()
+                return
+            try:
+                n = os.write(self.master_fd, self._pending[:262144])
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                log.warning("DAQ pty write failed: %s", exc)
+                return
         del self._pending[:n]
         self.bytes_written += n
 
@@ -109,8 +142,10 @@ class DaqPty:
         writer = getattr(self, "_writer", None)
         if writer is not None and writer.is_alive():
             writer.join(timeout=2.0)
-        self._closed = True
-        for fd in (self.master_fd, self.slave_fd):
+        with self._fd_lock:
+            was_hung = self._hung
+            self._closed = True
+        for fd in (() if was_hung else (self.master_fd, self.slave_fd)):
             try:
                 os.close(fd)
             except OSError:

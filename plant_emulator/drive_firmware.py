@@ -5,11 +5,17 @@ Object dictionary: drivers/eds/drive.eds, semantics: docs/interfaces.md. The fas
 it validates SDO writes, stages setpoints, and hands them to the control loop at a chunk boundary.
 
 Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
-commit (0x2000:7), injection mode (0x2000:2), harmonic order (0x2000:1) or decoupling (0x2000:6)
-becomes one event. At each chunk start the control loop takes at most ONE event, applies it from the
+commit (0x2000:7), injection mode (0x2000:2), harmonic order (0x2000:1), decoupling (0x2000:6) or
+voltage estimate (0x2000:8, eq. 11) becomes one event. At each chunk start the control loop takes at most ONE event, applies it from the
 chunk's first sample on and toggles the sync level there, so each event is exactly one visible
 toggle (two at the same sample would cancel). gamma_max (0x2000:5) takes effect at the next chunk
 without a toggle: it only clamps |theta|.
+
+LUT (0x2001): a download is parsed and checked (lut_image.parse, docs/interfaces.md "LUT image");
+a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
+download refused). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
+block) start: theta interpolated in (torque command, measured speed, measured U_dc), clamped to
+gamma_max; the injection then runs at the LUT's harmonic order.
 
 Safety: power (torque, injection) only in OPERATION_ENABLED with U_dc >= udc_min_v; heartbeat loss
 -> FAULT, EMCY 0x8130, target torque 0 and injection mode off (applied at once, without toggles:
@@ -28,7 +34,10 @@ from canopen.sdo import SdoAbortedError
 from drivers.cia402 import State402
 
 from . import physics as ph
+from . import lut_image
 from .cia402_device import ABORT_VALUE_RANGE, Cia402Device
+
+ABORT_CANNOT_STORE = 0x08000020     # data cannot be transferred or stored to the application
 
 log = logging.getLogger(__name__)
 
@@ -53,14 +62,17 @@ class DriveFirmware(Cia402Device):
         self.theta = (0.0, 0.0)
         self.gamma_max_rad = float(od[0x2000][5].default)
         self.decoupling = int(od[0x2000][6].default)
+        self.voltage_estimate = int(od[0x2000][8].default)
         self.sync_level = 0
         self.commit_count = 0
         self.events_applied = 0
         self._events: deque[tuple[str, object]] = deque()
-        # LUT (issue 3: stored and CRC'd, not yet used by the control loop)
+        # LUT in force (None: no LUT)
+        self.lut: lut_image.Lut | None = None
         self.lut_blob = b""
         self.lut_crc = 0
         self.lut_status = 0
+        self.lut_refused = 0
         # measurements published by the control loop
         self.speed_rpm = 0.0
         self.torque_actual_nm = 0.0
@@ -99,9 +111,17 @@ class DriveFirmware(Cia402Device):
             self._write_injection(subindex, value)
         elif index == 0x2001 and subindex == 1:
             blob = bytes(value)
+            try:
+                lut = lut_image.parse(blob)
+            except lut_image.LutImageError as exc:
+                log.warning("drive: LUT download refused: %s", exc)
+                self.lut_status = 2
+                self.lut_refused += 1
+                raise SdoAbortedError(ABORT_CANNOT_STORE) from None
+            self.lut = lut
             self.lut_blob = blob
             self.lut_crc = zlib.crc32(blob) & 0xFFFFFFFF
-            self.lut_status = 1   # received; interpretation comes with issue 3
+            self.lut_status = 1
 
     def _write_injection(self, subindex: int, value) -> None:
         if subindex == 1:
@@ -124,6 +144,10 @@ class DriveFirmware(Cia402Device):
             if int(value) not in (0, 1):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
             self._events.append(("decoupling", int(value)))
+        elif subindex == 8:
+            if int(value) not in (0, 1):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._events.append(("voltage_estimate", int(value)))
         elif subindex == 7:
             if int(value) == 1:
                 staged = (float(self.stored(0x2000, 3)), float(self.stored(0x2000, 4)))
@@ -143,21 +167,30 @@ class DriveFirmware(Cia402Device):
 
     # -- control loop interface (physics thread) ---------------------------------------------------
     def effective_theta(self) -> tuple[float, float]:
-        """Theta the control loop uses: committed pair clamped to gamma_max (mode manual);
-        zero when off, and in LUT mode until issue 3 interprets the LUT."""
-        if self.inj_mode != INJ_MANUAL:
+        """Theta the control loop uses: mode manual: the committed pair; mode LUT: the LUT
+        interpolated at (torque command, measured speed, measured U_dc); off (or LUT mode without a
+        LUT): zero. Clamped to gamma_max."""
+        if self.inj_mode == INJ_MANUAL:
+            c, s = self.theta
+        elif self.inj_mode == INJ_LUT and self.lut is not None:
+            c, s = self.lut.theta(self.torque_nm, self.speed_rpm, self.udc_v)
+        else:
             return 0.0, 0.0
-        c, s = self.theta
         g = math.hypot(c, s)
         if g > self.gamma_max_rad and g > 0.0:
             k = self.gamma_max_rad / g
             return c * k, s * k
         return c, s
 
+    def has_pending(self) -> bool:
+        """True while setpoint events wait (the plant then runs single chunks)."""
+        return bool(self._events)
+
     def chunk_setpoints(self, sp: np.ndarray, udc_v: float) -> bool:
         """Fill the control loop's setpoints for the next chunk. Applies at most one pending event
         and toggles the sync level for it; returns True if it did."""
         with self.lock:
+            self.udc_v = udc_v
             applied = False
             if self._events:
                 kind, value = self._events.popleft()
@@ -171,14 +204,18 @@ class DriveFirmware(Cia402Device):
                     self.harmonic_order = int(value)
                 elif kind == "decoupling":
                     self.decoupling = int(value)
+                elif kind == "voltage_estimate":
+                    self.voltage_estimate = int(value)
                 self.sync_level ^= 1
                 self.events_applied += 1
                 applied = True
             sp[ph.S_POWER] = 1.0 if (self.power_on and udc_v >= self.udc_min_v) else 0.0
             sp[ph.S_TORQUE_NM] = self.torque_nm
             sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN] = self.effective_theta()
-            sp[ph.S_H] = float(self.harmonic_order)
+            lut_h = self.inj_mode == INJ_LUT and self.lut is not None
+            sp[ph.S_H] = float(self.lut.harmonic_order if lut_h else self.harmonic_order)
             sp[ph.S_DECOUPLING] = float(self.decoupling)
+            sp[ph.S_VEST] = float(self.voltage_estimate)
             sp[ph.S_UDC_V] = udc_v
             sp[ph.S_SYNC] = float(self.sync_level)
             return applied

@@ -1,32 +1,49 @@
 """Physics of the emulated bench at the controller rate: pure functions over state arrays.
 
-One call of `simulate_chunk` advances drive firmware control loop + PMSM + shaft + load machine +
-accelerometer by n control periods T_s (1/16 kHz in paper-bench). Everything is in SI units
-(V, A, Ohm, H, Wb, Nm, rad, rad/s, rad/s^2, kg m^2); no CAN, no pty, no threads here, so tests run
-the physics directly. The state lives in flat float64 arrays indexed by the X_*/P_*/S_* constants
-below (numba compiles them as constants).
+One call of `simulate` advances drive firmware control loop + inverter + PMSM + shaft + load machine
++ accelerometer + DAQ framing by n control periods T_s (1/16 kHz in paper-bench), in chunks of
+`chunk` samples (setpoints are constant over a call; the chunk-rate firmware tasks run at every chunk
+start). Everything is in SI units (V, A, Ohm, H, Wb, Nm, rad, rad/s, rad/s^2, kg m^2); no CAN, no pty,
+no threads here, so tests run the physics directly. The state lives in flat float64 arrays indexed
+by the X_*/P_*/S_* constants below (numba compiles them as constants); the scenario's tables
+(saturation, disturbance map) live in one flat array `tab` whose offsets are in `p`.
 
+Chunk-rate firmware task (every `chunk` samples, like a real drive's 1 kHz torque task):
+  torque -> current references from the NOMINAL parameters ([firmware]) (feed-forward): MTPA (i_d = 0 for
+  L_d = L_q, else the MTPA curve), and above the voltage limit field weakening: i_d < 0 such that
+  the nominal steady-state |u_dq| = margin * U_dc/sqrt(3) (on the side of the constant-torque curve
+  nearer MTPA); current limit I_max (i_d has priority). Per period, a slow voltage loop (as drives do to
+  survive parameter errors) adds delta i_d <= 0 while the PI output |u| exceeds fw_target U_dc/sqrt(3):
+  d(delta i_d)/dt = -w_fw (|u| - u_target) / (|w_e| L_d,nom), i_q cut to the current limit.
 Per control period k (paper section 2, Fig. 3):
-  firmware   i_q* = T*/(1.5 N_p psi_nom), i_d* = 0 (`torque_to_current_ref`), PI current control in dq
-             with pole-zero cancellation (K_p = 2 pi f_bw L_nom, K_i = 2 pi f_bw R_nom) plus feed-forward
-             of back-EMF and cross coupling from the references, |u_dq| <= U_dc/sqrt(3) (vector scaling,
-             conditional-integration anti-windup).
+  PI         u = K_p e + integral + feed-forward of back-EMF and cross coupling computed from the
+             REFERENCES (not the measured currents), |u| <= U_dc/sqrt(3) (vector scaling,
+             conditional-integration anti-windup). K_p = 2 pi f_bw L_nom, K_i = 2 pi f_bw R_nom.
   injection  v_inj = theta_cos cos(h phi_e) + theta_sin sin(h phi_e)            (eq. 3, 12)
-             u*_d = u_d cos v - u_q sin v,  u*_q = u_d sin v + u_q cos v         (eq. 4, exact rotation)
-  delay      u*(k) is applied (ZOH in dq) during period k+1: 1 period computation + 0.5 period
-             from the ZOH = 1.5 T_s (Table 1, eq. 17)
+             default: u* = R(v_inj) u (exact rotation, |u*| = |u|, eq. 2-4);
+             eq. 11 variant (S_VEST): u* = u + (R(v_inj) - I) u_hat0, u_hat0 = sat(G_EM^-1 G_cl i*)
+             from the nominal model (the injection no longer follows the PI output's harmonics).
+  decoupl.   (S_DECOUPLING, section 3.1) the harmonic currents the applied injection voltage u* - u
+             causes are estimated with the nominal model and subtracted from the measured currents.
+  delay      u*(k) is applied during period k+1 (one period computation + ZOH = 1.5 T_s, Table 1).
+             The firmware's inverse Park uses the angle advanced to the middle of that period (P_ANGLE_COMP,
+             standard practice); the inverter holds the alpha-beta vector over the period, so the dq
+             average is u* sinc(w_e T_s/2) (and rotated by -1.5 w_e T_s without angle compensation).
+  inverter   dead time: per phase x the voltage error -U_dc T_dead f_pwm sgn(i_x), averaged over the
+             period (sgn linear within the larger of +-i_zc and half the current change per period),
+             transformed to dq with the electrical angle: its own 6k harmonics.
   PMSM       L_d di_d/dt = u_d - R i_d + w_e L_q i_q
              L_q di_q/dt = u_q - R i_q - w_e (L_d i_d + psi_p)                   (eq. 18, 19)
-             discretised exactly for the ZOH input with the 2x2 matrix exponential at w_e(k)
+             exact ZOH discretisation with the 2x2 matrix exponential at w_e; L_d, L_q, psi_p from the
+             saturation tables at the (1 ms low-pass filtered) current magnitude, updated per chunk.
   torque     T_em = 1.5 N_p (psi_p i_q + (L_d - L_q) i_d i_q) + d                (eq. 20 plus d)
-             d = D cos(h phi_e + phi_D) + D_2 cos(2 h phi_e + phi_D2), D = d_0 + d_2 (T*/T_rated)^2
+             d = D cos(h phi_e + phi_D) + r D cos(2 h phi_e + phi_D2); D, phi_D bilinear in the
+             disturbance map over (T*, speed), interpolated as the phasor (D cos phi_D, D sin phi_D).
   shaft      J dw_m/dt = T_em + T_lm - B w_m  (T_lm: load machine torque: ramped speed reference,
              PI speed loop plus acceleration feed-forward)
   sensor     alpha_meas = H(z) dw_m/dt + noise, H = J G_Salpha (zero z, poles p, H(0) = 1,
              section 2.3), bilinear with pre-warping at |p|; int16 counts of the full scale.
-Decoupling (paper section 3.1): the harmonic currents the injection causes are estimated with the
-nominal model driven by the delayed injection voltage u* - u and subtracted from the measured
-currents, so the nominal PI does not see them.
+  DAQ        12-byte frames (DESIGN 5) written straight into a byte buffer, CRC-16/CCITT-FALSE.
 """
 from __future__ import annotations
 
@@ -37,14 +54,15 @@ from numba import njit
 
 SQRT3 = math.sqrt(3.0)
 TWO_PI = 2.0 * math.pi
+FRAME_BYTES = 12
 
-# ---- parameter vector (truth, firmware nominal, sensor, load) ----
+# ---- parameter vector (truth, firmware nominal, sensor, load, inverter, table offsets) ----
 P_TS = 0            # s, control period
 P_NP = 1            # pole pairs
 P_R = 2             # Ohm, true stator resistance
-P_LD = 3            # H
+P_LD = 3            # H, true L_d at zero current (times the saturation table factor)
 P_LQ = 4            # H
-P_PSI = 5           # Wb, true PM flux linkage
+P_PSI = 5           # Wb, true PM flux linkage at zero current (times the table factor)
 P_R_NOM = 6         # firmware's nominal values
 P_LD_NOM = 7
 P_LQ_NOM = 8
@@ -63,9 +81,7 @@ P_H_A1 = 20
 P_H_A2 = 21
 P_ALPHA_FS = 22     # rad/s^2, sensor full scale (+-32767 counts)
 P_NOISE = 23        # rad/s^2, sensor noise standard deviation
-P_D0 = 24           # Nm
-P_D2 = 25           # Nm at rated torque (times (T*/T_rated)^2)
-P_PHI_D = 26        # rad
+P_DIST_SCALE = 24   # factor on the whole disturbance map (1; tests/calibration set 0)
 P_D2_RATIO = 27     # D_2 / D
 P_PHI_D2 = 28       # rad
 P_T_RATED = 29      # Nm
@@ -75,9 +91,23 @@ P_LOAD_KI = 32      # Nm/rad
 P_LOAD_RAMP = 33    # rad/s^2 (mechanical), ramp of the speed reference
 P_LOAD_TMAX = 34    # Nm
 P_OFF_DECAY = 35    # per-period factor of the currents with the inverter off
-N_PARAMS = 36
+P_T_DEAD = 36       # s, inverter dead time (0: off)
+P_F_PWM = 37        # Hz, PWM frequency
+P_I_ZC = 38         # A, dead-time sign(i) is linear within +-i_zc
+P_V_MARGIN = 39     # field weakening targets margin * U_dc/sqrt(3)
+P_ANGLE_COMP = 40   # 1: inverse Park with the angle advanced by 1.5 w_e T_s
+P_W_BW = 41         # rad/s, nominal current-loop bandwidth (G_cl of eq. 11)
+P_SAT_DECAY = 42    # per-period factor of the |i| low-pass that drives the saturation tables
+P_SAT_N = 43        # number of points of the saturation tables
+P_SAT_OFF = 44      # offset of [i_axis, ld_rel, lq_rel, psi_rel] in tab
+P_DMAP_NT = 45      # disturbance map: torque axis length
+P_DMAP_NN = 46      # speed axis length
+P_DMAP_OFF = 47     # offset of [torque axis, speed axis (rad/s mech), X (nn*nt), Y (nn*nt)] in tab
+P_FW_BW = 48        # rad/s, bandwidth of the closed-loop field weakening (0: feed-forward only)
+P_FW_TARGET = 49    # the voltage loop holds |u| <= target * U_dc/sqrt(3)
+N_PARAMS = 50
 
-# ---- setpoints, constant over one chunk (applied at its first sample) ----
+# ---- setpoints, constant over one call (applied at its first sample) ----
 S_POWER = 0         # 1: power stage on (OPERATION_ENABLED and DC link ok)
 S_TORQUE_NM = 1     # torque command T*
 S_THETA_COS = 2     # rad, already clamped and zero when injection is off
@@ -87,8 +117,9 @@ S_DECOUPLING = 5    # 0/1
 S_UDC_V = 6         # DC-link voltage
 S_LOAD_ON = 7       # 1: load machine speed loop active
 S_LOAD_SPEED = 8    # rad/s, mechanical target speed of the load machine
-S_SYNC = 9          # 0/1, level of the DAQ sync flag during this chunk
-N_SETPOINTS = 10
+S_SYNC = 9          # 0/1, level of the DAQ sync flag during this call
+S_VEST = 10         # 0/1, eq. 11: G_comp from the estimate u_hat_dq,0 instead of the PI output
+N_SETPOINTS = 11
 
 # ---- state ----
 X_ID = 0            # A, true currents
@@ -108,16 +139,22 @@ X_VQ_APP = 13
 X_IHAT_D = 14       # A, estimated injection-caused currents (decoupling)
 X_IHAT_Q = 15
 X_SAMPLES = 16      # samples simulated so far
-N_STATE = 17
+X_IMAG_F = 17       # A, low-pass filtered current magnitude (saturation)
+X_IF_D = 18         # A, eq. 11: i* through the nominal closed loop G_cl
+X_IF_Q = 19
+X_FW_DID = 20       # A, closed-loop field weakening: i_d correction (<= 0)
+N_STATE = 21
 
-# ---- per-chunk summary ----
+# ---- per-chunk summary (rows of summary[n_chunks, N_SUMMARY]) ----
 Y_UD_SUM = 0        # sum of nominal u_d over the chunk (V)
 Y_UQ_SUM = 1
 Y_TORQUE_EST_SUM = 2  # firmware torque estimate from measured currents, nominal params (Nm)
 Y_OMEGA_SUM = 3
 Y_LOAD_TORQUE_SUM = 4
 Y_OVER_RANGE = 5    # count of clipped samples
-N_SUMMARY = 6
+Y_ID_REF = 6        # current references of the chunk (A)
+Y_IQ_REF = 7
+N_SUMMARY = 8
 
 # ---- optional per-sample trace ----
 TR_ID = 0
@@ -134,24 +171,192 @@ TR_PHI_E = 10
 TR_OMEGA_M = 11
 TR_V_INJ = 12
 TR_T_LOAD = 13      # load machine torque T_lm
-N_TRACE = 14
+TR_UD_DT = 14       # dead-time voltage error in dq (applied with u*)
+TR_UQ_DT = 15
+N_TRACE = 16
 
-OMEGA_RECOMPUTE_RAD_S = 1e-3  # electrical rad/s change that triggers a new matrix exponential
+OMEGA_RECOMPUTE_RAD_S = 0.05  # electrical rad/s change that triggers a new matrix exponential
 SYNC_FLAG = 1 << 2
 OVER_RANGE_FLAG = 1 << 0
 
 
+def _crc_table() -> np.ndarray:
+    table = np.zeros(256, dtype=np.uint16)
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
+        table[byte] = crc & 0xFFFF
+    return table
+
+
+CRC_TABLE = _crc_table()
+
+
+# ------------------------------------------------------------------------------------------------
+# firmware: torque -> current references (nominal parameters)
+
+
+@njit(cache=True)
+def _torque_of(i_d, i_q, psi, ld, lq, n_p):
+    return 1.5 * n_p * (psi * i_q + (ld - lq) * i_d * i_q)
+
+
+@njit(cache=True)
+def mtpa_id(i_q, psi, ld, lq):
+    """MTPA d current for a q current: dT/dbeta = 0 at constant |i|. i_d = 0 for L_d = L_q, else
+    i_d = (psi - sqrt(psi^2 + 4 (L_q - L_d)^2 i_q^2)) / (2 (L_q - L_d))."""
+    dl = lq - ld
+    if abs(dl) < 1e-12 * (abs(ld) + abs(lq)):
+        return 0.0
+    return (psi - math.sqrt(psi * psi + 4.0 * dl * dl * i_q * i_q)) / (2.0 * dl)
+
+
+@njit(cache=True)
+def _u_mag(i_d, i_q, w_e, r, ld, lq, psi):
+    u_d = r * i_d - w_e * lq * i_q
+    u_q = r * i_q + w_e * (ld * i_d + psi)
+    return math.sqrt(u_d * u_d + u_q * u_q)
+
+
+@njit(cache=True)
+def _iq_for_torque(torque, i_d, psi, ld, lq, n_p):
+    den = 1.5 * n_p * (psi + (ld - lq) * i_d)
+    if den <= 1e-12:
+        return 0.0
+    return torque / den
+
+
+@njit(cache=True)
+def _iq_on_voltage_limit(i_d, aw, u_lim, r, ld, lq, psi, i_max):
+    """Largest i_q >= 0 with |u_ss(i_d, i_q)| <= u_lim and |i| <= I_max (0 if none):
+    |u|^2 = a i_q^2 + b i_q + c with a = w^2 L_q^2 + R^2, b = 2 R w (psi_d - L_q i_d),
+    c = (R i_d)^2 + w^2 psi_d^2 - u_lim^2, psi_d = L_d i_d + psi."""
+    psi_d = ld * i_d + psi
+    a = aw * aw * lq * lq + r * r
+    b = 2.0 * r * aw * (psi_d - lq * i_d)
+    c = (r * i_d) ** 2 + aw * aw * psi_d * psi_d - u_lim * u_lim
+    disc = b * b - 4.0 * a * c
+    if disc < 0.0:
+        return 0.0
+    iq = (-b + math.sqrt(disc)) / (2.0 * a)
+    rest = i_max * i_max - i_d * i_d
+    iq_i = math.sqrt(rest) if rest > 0.0 else 0.0
+    return max(0.0, min(iq, iq_i))
+
+
+@njit(cache=True)
+def _max_torque_point(aw, u_lim, r, ld, lq, psi, n_p, i_max, sgn):
+    """Maximum torque within the voltage and the current limit (MTPV / current limit corner): a scan
+    over i_d in [-I_max, 0] (the torque is 0 where the voltage ellipse leaves no i_q), then a
+    golden-section search around the best point."""
+    n_scan = 64
+    best = 0
+    t_best = -1.0
+    for j in range(n_scan + 1):
+        i_d = -i_max + i_max * j / n_scan
+        t = _torque_of(i_d, _iq_on_voltage_limit(i_d, aw, u_lim, r, ld, lq, psi, i_max), psi, ld, lq, n_p)
+        if t > t_best:
+            t_best = t
+            best = j
+    lo = -i_max + i_max * max(best - 1, 0) / n_scan
+    hi = -i_max + i_max * min(best + 1, n_scan) / n_scan
+    g = 0.6180339887498949
+    for _ in range(60):
+        m1 = hi - g * (hi - lo)
+        m2 = lo + g * (hi - lo)
+        t1 = _torque_of(m1, _iq_on_voltage_limit(m1, aw, u_lim, r, ld, lq, psi, i_max), psi, ld, lq, n_p)
+        t2 = _torque_of(m2, _iq_on_voltage_limit(m2, aw, u_lim, r, ld, lq, psi, i_max), psi, ld, lq, n_p)
+        if t1 > t2:
+            hi = m2
+        else:
+            lo = m1
+    i_d = 0.5 * (lo + hi)
+    return i_d, sgn * _iq_on_voltage_limit(i_d, aw, u_lim, r, ld, lq, psi, i_max)
+
+
+@njit(cache=True)
+def current_reference(torque_nm, w_e, udc_v, r, ld, lq, psi, n_p, i_max, margin):
+    """The firmware's open-loop torque control (paper Fig. 3, 'MTPA/MTPV' block) with its NOMINAL
+    parameters. Returns (i_d*, i_q*) in A.
+
+    1. MTPA: i_q from T* by bisection on T(i_d_mtpa(i_q), i_q) = T* (monotonic), i_d on the MTPA curve.
+    2. If the nominal steady-state |u_dq| exceeds margin * U_dc/sqrt(3): field weakening along the
+       constant-torque curve i_q = T*/(1.5 N_p (psi + (L_d - L_q) i_d)): find the i_d in [-I_max, i_d_mtpa]
+       of least |u| (golden section), then bisect between it and MTPA for |u| on the limit. If even the
+       least |u| is above it, the torque is out of reach at this speed and U_dc: the point of most
+       torque within the voltage and the current limit instead (MTPV / current-limit corner).
+    3. Current limit: beyond I_max in field weakening, the most-torque point within both limits again;
+       below base speed |i| <= I_max with priority to i_d (i_q, hence the torque, is reduced)."""
+    sgn = 1.0 if torque_nm >= 0.0 else -1.0
+    t = abs(torque_nm)
+    # 1. MTPA
+    lo = 0.0
+    hi = i_max
+    if _torque_of(mtpa_id(hi, psi, ld, lq), hi, psi, ld, lq, n_p) <= t:
+        i_q = hi
+    else:
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            if _torque_of(mtpa_id(mid, psi, ld, lq), mid, psi, ld, lq, n_p) < t:
+                lo = mid
+            else:
+                hi = mid
+        i_q = 0.5 * (lo + hi)
+    i_d = mtpa_id(i_q, psi, ld, lq)
+    # 2. field weakening
+    u_fw = margin * udc_v / SQRT3
+    aw = abs(w_e)
+    if udc_v > 0.0 and _u_mag(i_d, i_q, aw, r, ld, lq, psi) > u_fw:
+        # |u| along the constant-torque curve falls as i_d goes negative, down to a minimum (the R i_d
+        # drop makes it rise again near -I_max): golden-section search for that minimum first
+        lo = -i_max
+        hi = i_d
+        g = 0.6180339887498949
+        for _ in range(60):
+            m1 = hi - g * (hi - lo)
+            m2 = lo + g * (hi - lo)
+            if (_u_mag(m1, _iq_for_torque(t, m1, psi, ld, lq, n_p), aw, r, ld, lq, psi)
+                    < _u_mag(m2, _iq_for_torque(t, m2, psi, ld, lq, n_p), aw, r, ld, lq, psi)):
+                hi = m2
+            else:
+                lo = m1
+        id_min = 0.5 * (lo + hi)
+        if _u_mag(id_min, _iq_for_torque(t, id_min, psi, ld, lq, n_p), aw, r, ld, lq, psi) > u_fw:
+            # the torque is out of reach at this speed and U_dc: the most torque within both limits
+            return _max_torque_point(aw, u_fw, r, ld, lq, psi, n_p, i_max, sgn)
+        else:
+            lo = id_min
+            hi = i_d
+            for _ in range(50):
+                mid = 0.5 * (lo + hi)
+                if _u_mag(mid, _iq_for_torque(t, mid, psi, ld, lq, n_p), aw, r, ld, lq, psi) > u_fw:
+                    hi = mid
+                else:
+                    lo = mid
+            i_d = 0.5 * (lo + hi)
+        i_q = _iq_for_torque(t, i_d, psi, ld, lq, n_p)
+    # 3. current limit: beyond I_max the most torque within both limits
+    if i_d * i_d + i_q * i_q > i_max * i_max * (1.0 + 1e-12):
+        if udc_v > 0.0 and _u_mag(i_d, i_q, aw, r, ld, lq, psi) > 0.999 * u_fw:
+            return _max_torque_point(aw, u_fw, r, ld, lq, psi, n_p, i_max, sgn)
+    if i_d < -i_max:
+        i_d = -i_max
+    rest = i_max * i_max - i_d * i_d
+    iq_max = math.sqrt(rest) if rest > 0.0 else 0.0
+    if i_q > iq_max:
+        i_q = iq_max
+    return i_d, sgn * i_q
+
+
 @njit(cache=True)
 def torque_to_current_ref(torque_nm, psi_nom_wb, n_p, i_max_a):
-    """Open-loop torque control (paper Fig. 3, 'MTPA/MTPV' block), surface-magnet version:
-    i_d* = 0, i_q* = T*/(1.5 N_p psi_p), limited to I_max. Returns (i_d*, i_q*) in A.
-    Kept separate so MTPA / field weakening can replace it."""
-    iq = torque_nm / (1.5 * n_p * psi_nom_wb)
-    if iq > i_max_a:
-        iq = i_max_a
-    elif iq < -i_max_a:
-        iq = -i_max_a
-    return 0.0, iq
+    """Surface-magnet MTPA below base speed: i_d* = 0, i_q* = T*/(1.5 N_p psi_p) (kept for callers)."""
+    return current_reference(torque_nm, 0.0, 0.0, 0.0, 1.0, 1.0, psi_nom_wb, n_p, i_max_a, 1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# plant helpers
 
 
 @njit(cache=True)
@@ -192,47 +397,145 @@ def zoh_dq(r_ohm, ld_h, lq_h, omega_e, ts):
     return a00, a01, a10, a11, m00 / ld_h, m01 / lq_h, m10 / ld_h, m11 / lq_h
 
 
+@njit(cache=True, inline="always")
+def _cpow(c, s, n):
+    """(cos(n x), sin(n x)) from (cos x, sin x) for an integer n >= 0, by repeated squaring (a few
+    complex multiplications instead of two transcendental calls; error a few ulp)."""
+    rc = 1.0
+    rs = 0.0
+    bc = c
+    bs = s
+    while n > 0:
+        if n & 1:
+            t = rc * bc - rs * bs
+            rs = rc * bs + rs * bc
+            rc = t
+        n >>= 1
+        if n:
+            t = bc * bc - bs * bs
+            bs = 2.0 * bc * bs
+            bc = t
+    return rc, rs
+
+
+@njit(cache=True, inline="always")
+def _crc_byte(crc, byte):
+    return ((crc << 8) & 0xFFFF) ^ CRC_TABLE[((crc >> 8) ^ byte) & 0xFF]
+
+
+@njit(cache=True)
+def _interp_tab(tab, off, n, col, xq):
+    """Linear interpolation of column `col` (0: axis) of a table stored column-wise at tab[off:],
+    clamped at the ends."""
+    if n <= 1:
+        return tab[off + col * n]
+    if xq <= tab[off]:
+        return tab[off + col * n]
+    if xq >= tab[off + n - 1]:
+        return tab[off + col * n + n - 1]
+    j = 0
+    while tab[off + j + 1] < xq:
+        j += 1
+    x0 = tab[off + j]
+    x1 = tab[off + j + 1]
+    f = (xq - x0) / (x1 - x0)
+    return tab[off + col * n + j] * (1.0 - f) + tab[off + col * n + j + 1] * f
+
+
+@njit(cache=True)
+def _axis_pos(tab, off, n, xq):
+    """(index j, fraction f) of xq on a strictly increasing axis, clamped."""
+    if n <= 1 or xq <= tab[off]:
+        return 0, 0.0
+    if xq >= tab[off + n - 1]:
+        return n - 2, 1.0
+    j = 0
+    while tab[off + j + 1] < xq:
+        j += 1
+    return j, (xq - tab[off + j]) / (tab[off + j + 1] - tab[off + j])
+
+
+@njit(cache=True)
+def disturbance_phasor(p, tab, torque_nm, w_m):
+    """(X, Y) = (D cos phi_D, D sin phi_D) of the h-th torque harmonic at (T*, w_m), bilinear."""
+    nt = int(p[P_DMAP_NT])
+    nn = int(p[P_DMAP_NN])
+    if nt == 0 or nn == 0:
+        return 0.0, 0.0
+    off = int(p[P_DMAP_OFF])
+    jt, ft = _axis_pos(tab, off, nt, torque_nm)
+    jn, fn = _axis_pos(tab, off + nt, nn, w_m)
+    xo = off + nt + nn
+    yo = xo + nt * nn
+    jt1 = jt + 1 if nt > 1 else jt
+    jn1 = jn + 1 if nn > 1 else jn
+    w00 = (1.0 - ft) * (1.0 - fn)
+    w01 = ft * (1.0 - fn)
+    w10 = (1.0 - ft) * fn
+    w11 = ft * fn
+    x = (w00 * tab[xo + jn * nt + jt] + w01 * tab[xo + jn * nt + jt1]
+         + w10 * tab[xo + jn1 * nt + jt] + w11 * tab[xo + jn1 * nt + jt1])
+    y = (w00 * tab[yo + jn * nt + jt] + w01 * tab[yo + jn * nt + jt1]
+         + w10 * tab[yo + jn1 * nt + jt] + w11 * tab[yo + jn1 * nt + jt1])
+    s = p[P_DIST_SCALE]
+    return s * x, s * y
+
+
+@njit(cache=True)
+def saturated_params(p, tab, i_mag):
+    """True (L_d, L_q, psi_p) at a current magnitude: base values times the table factors."""
+    n = int(p[P_SAT_N])
+    if n == 0:
+        return p[P_LD], p[P_LQ], p[P_PSI]
+    off = int(p[P_SAT_OFF])
+    return (p[P_LD] * _interp_tab(tab, off, n, 1, i_mag), p[P_LQ] * _interp_tab(tab, off, n, 2, i_mag),
+            p[P_PSI] * _interp_tab(tab, off, n, 3, i_mag))
+
+
+# ------------------------------------------------------------------------------------------------
+# the control period loop
+
+
 @njit(cache=True, nogil=True)
-def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, trace):
+def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
     """Advance the bench by n = len(noise) control periods in place.
 
-    x: state (N_STATE), p: parameters (N_PARAMS), sp: setpoints (N_SETPOINTS), noise: n standard
-    normal samples for the sensor. Outputs per sample: angle_counts (uint16, phi_e*65536/2pi),
-    accel_counts (int16, round(alpha/fs*32767) clipped), flags (uint16: bit 0 over-range,
-    bit 2 sync level). summary (N_SUMMARY) receives sums over the chunk. trace: (n, N_TRACE) array
-    filled per sample, or shape (0, N_TRACE) to skip recording.
+    x: state (N_STATE), p: parameters (N_PARAMS), tab: tables, sp: setpoints (N_SETPOINTS), noise: n
+    standard normal samples for the sensor. frames: uint8 array of 12 n bytes receiving the DAQ frames
+    (sequence numbers from seq0), or an empty array to skip. summary: (ceil(n / chunk), N_SUMMARY) sums
+    per chunk. trace: (n, N_TRACE) array filled per sample, or shape (0, N_TRACE) to skip recording.
     """
     n = noise.shape[0]
     record = trace.shape[0] >= n
+    write_frames = frames.shape[0] >= n * FRAME_BYTES
     ts = p[P_TS]
     n_p = p[P_NP]
     r = p[P_R]
-    ld = p[P_LD]
-    lq = p[P_LQ]
-    psi = p[P_PSI]
+    r_nom = p[P_R_NOM]
     ld_nom = p[P_LD_NOM]
     lq_nom = p[P_LQ_NOM]
     psi_nom = p[P_PSI_NOM]
     k_t_nom = 1.5 * n_p * psi_nom
+    kp_d = p[P_KP_D]
+    kp_q = p[P_KP_Q]
+    ki_d = p[P_KI_D] * ts
+    ki_q = p[P_KI_Q] * ts
     power = sp[S_POWER] > 0.5
     torque_ref = sp[S_TORQUE_NM] if power else 0.0
-    id_ref, iq_ref = torque_to_current_ref(torque_ref, psi_nom, n_p, p[P_IMAX])
     th_c = sp[S_THETA_COS]
     th_s = sp[S_THETA_SIN]
     inject = th_c != 0.0 or th_s != 0.0
-    h = sp[S_H]
+    h_int = int(sp[S_H] + 0.5)
     decouple = sp[S_DECOUPLING] > 0.5
-    u_lim = sp[S_UDC_V] / SQRT3
+    vest = sp[S_VEST] > 0.5
+    udc = sp[S_UDC_V]
+    u_lim = udc / SQRT3
     load_on = sp[S_LOAD_ON] > 0.5
     load_target = sp[S_LOAD_SPEED]
     sync_bits = SYNC_FLAG if sp[S_SYNC] > 0.5 else 0
-    # disturbance amplitude from the operating point (issue 2 map: quadratic in T*/T_rated)
-    t_rel = torque_ref / p[P_T_RATED]
-    d_amp = p[P_D0] + p[P_D2] * t_rel * t_rel
-    d2_amp = p[P_D2_RATIO] * d_amp
-    h_dist = p[P_H_DIST]
-    cos_pd = math.cos(p[P_PHI_D])
-    sin_pd = math.sin(p[P_PHI_D])
+    d2_ratio = p[P_D2_RATIO]
+    h_dist_int = int(p[P_H_DIST] + 0.5)
+    same_h = h_dist_int == h_int
     cos_pd2 = math.cos(p[P_PHI_D2])
     sin_pd2 = math.sin(p[P_PHI_D2])
     b0 = p[P_H_B0]
@@ -245,6 +548,17 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
     counts_per_rad = 65536.0 / TWO_PI
     ramp = p[P_LOAD_RAMP] * ts
     tmax = p[P_LOAD_TMAX]
+    # dead time: amplitude of the per-phase voltage error, smoothing of sgn(i)
+    dt_amp = udc * p[P_T_DEAD] * p[P_F_PWM]
+    dead_time = dt_amp > 0.0 and power
+    inv_izc = 1.0 / p[P_I_ZC] if p[P_I_ZC] > 0.0 else 1e12
+    angle_comp = p[P_ANGLE_COMP] > 0.5
+    # eq. 11 filter: G_cl first order at w_bw, exact discretisation
+    w_bw = p[P_W_BW]
+    g_cl = 1.0 - math.exp(-w_bw * ts)
+    sat_decay = p[P_SAT_DECAY]
+    u_fw_target = p[P_FW_TARGET] * u_lim
+    i_max2 = p[P_IMAX] * p[P_IMAX]
 
     i_d = x[X_ID]
     i_q = x[X_IQ]
@@ -262,19 +576,82 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
     vq_app = x[X_VQ_APP]
     ihat_d = x[X_IHAT_D]
     ihat_q = x[X_IHAT_Q]
+    imag_f = x[X_IMAG_F]
+    if_d = x[X_IF_D]
+    if_q = x[X_IF_Q]
+    fw_did = x[X_FW_DID]
+    seq = seq0
+    id_ff = 0.0
+    iq_ff = 0.0
+    fw_gain = 0.0
+    fw_did_min = 0.0
 
-    # ZOH matrices of the true plant and of the nominal model (decoupling), cached per w_e
-    w_zoh = n_p * w_m
-    a00, a01, a10, a11, b00, b01, b10, b11 = zoh_dq(r, ld, lq, w_zoh, ts)
-    c00, c01, c10, c11, e00, e01, e10, e11 = zoh_dq(p[P_R_NOM], ld_nom, lq_nom, w_zoh, ts)
-    s_ud = 0.0
-    s_uq = 0.0
-    s_te = 0.0
-    s_w = 0.0
-    s_tl = 0.0
+    # chunk-rate quantities (set at k % chunk == 0)
+    id_ref = 0.0
+    iq_ref = 0.0
+    ld = p[P_LD]
+    lq = p[P_LQ]
+    psi = p[P_PSI]
+    d_x = 0.0
+    d_y = 0.0
+    d_on = False
+    w_zoh = 0.0
+    a00 = a01 = a10 = a11 = b00 = b01 = b10 = b11 = 0.0
+    c00 = c01 = c10 = c11 = e00 = e01 = e10 = e11 = 0.0
+    app_c = 1.0     # inverter: dq average of the applied voltage = u* (app_c + j app_s)
+    app_s = 0.0
+    rot_c = 1.0     # rotation by half a period (dead-time error at the middle of the period)
+    rot_s = 0.0
+    s_ud = s_uq = s_te = s_w = s_tl = 0.0
     n_over = 0
+    countdown = 0
     for k in range(n):
         w_e = n_p * w_m
+        if countdown == 0:
+            countdown = chunk
+            # ---------------- chunk-rate firmware task and slow plant parameters ----------------
+            if power:
+                id_ff, iq_ff = current_reference(torque_ref, w_e, udc, r_nom, ld_nom, lq_nom, psi_nom, n_p,
+                                                 p[P_IMAX], p[P_V_MARGIN])
+            else:
+                id_ff = 0.0
+                iq_ff = 0.0
+                fw_did = 0.0
+            id_ref = id_ff + fw_did
+            iq_ref = iq_ff
+            aw_l = abs(w_e) * ld_nom
+            fw_gain = p[P_FW_BW] * ts / aw_l if (aw_l > 0.0 and power) else 0.0
+            fw_did_min = -p[P_IMAX] - id_ff
+            ld, lq, psi = saturated_params(p, tab, imag_f)
+            d_x, d_y = disturbance_phasor(p, tab, torque_ref, w_m)
+            d_on = d_x != 0.0 or d_y != 0.0
+            a00, a01, a10, a11, b00, b01, b10, b11 = zoh_dq(r, ld, lq, w_e, ts)
+            c00, c01, c10, c11, e00, e01, e10, e11 = zoh_dq(r_nom, ld_nom, lq_nom, w_e, ts)
+            w_zoh = w_e
+            half = 0.5 * w_e * ts
+            sinc = math.sin(half) / half if abs(half) > 1e-9 else 1.0
+            rho = 0.0 if angle_comp else -3.0 * half
+            app_c = sinc * math.cos(rho)
+            app_s = sinc * math.sin(rho)
+            rot_c = math.cos(half)
+            rot_s = math.sin(half)
+            if k > 0:
+                row = k // chunk - 1
+                summary[row, Y_UD_SUM] = s_ud
+                summary[row, Y_UQ_SUM] = s_uq
+                summary[row, Y_TORQUE_EST_SUM] = s_te
+                summary[row, Y_OMEGA_SUM] = s_w
+                summary[row, Y_LOAD_TORQUE_SUM] = s_tl
+                summary[row, Y_OVER_RANGE] = n_over
+            summary[k // chunk, Y_ID_REF] = id_ref
+            summary[k // chunk, Y_IQ_REF] = iq_ref
+            s_ud = s_uq = s_te = s_w = s_tl = 0.0
+            n_over = 0
+        countdown -= 1
+        cphi = math.cos(phi)
+        sphi = math.sin(phi)
+        # cos/sin of h phi_e (injection) and of the disturbance order, from cos/sin phi_e
+        chp, shp = _cpow(cphi, sphi, h_int)
         # ---------------- firmware: current control at sample k ----------------
         if power:
             id_fb = i_d
@@ -284,23 +661,62 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
                 iq_fb -= ihat_q
             e_d = id_ref - id_fb
             e_q = iq_ref - iq_fb
-            u_d = p[P_KP_D] * e_d + int_d - w_e * lq_nom * iq_ref
-            u_q = p[P_KP_Q] * e_q + int_q + w_e * (ld_nom * id_ref + psi_nom)
+            # feed-forward of cross coupling and back-EMF from the references (see module doc)
+            u_d = kp_d * e_d + int_d - w_e * lq_nom * iq_ref
+            u_q = kp_q * e_q + int_q + w_e * (ld_nom * id_ref + psi_nom)
             mag = math.sqrt(u_d * u_d + u_q * u_q)
+            if fw_gain > 0.0:
+                # closed-loop field weakening on the PI output magnitude (integrator clamped to <= 0)
+                fw_did -= fw_gain * (mag - u_fw_target)
+                if fw_did > 0.0:
+                    fw_did = 0.0
+                elif fw_did < fw_did_min:
+                    fw_did = fw_did_min
+                id_ref = id_ff + fw_did
+                if fw_did < 0.0:
+                    rest = i_max2 - id_ref * id_ref
+                    iq_cap = math.sqrt(rest) if rest > 0.0 else 0.0
+                    iq_ref = min(abs(iq_ff), iq_cap) * (1.0 if iq_ff >= 0.0 else -1.0)
+                else:
+                    iq_ref = iq_ff
             if mag > u_lim:
                 scale = u_lim / mag if mag > 0.0 else 0.0
                 u_d *= scale
                 u_q *= scale
             else:
-                int_d += p[P_KI_D] * ts * e_d
-                int_q += p[P_KI_Q] * ts * e_q
+                int_d += ki_d * e_d
+                int_q += ki_q * e_q
+            if vest:
+                # eq. 11: u_hat0 = sat(G_EM^-1 G_cl i*), nominal model, G_cl first order at w_bw
+                did = w_bw * (id_ref - if_d)
+                diq = w_bw * (iq_ref - if_q)
+                uh_d = r_nom * if_d + ld_nom * did - w_e * lq_nom * if_q
+                uh_q = r_nom * if_q + lq_nom * diq + w_e * (ld_nom * if_d + psi_nom)
+                uh = math.sqrt(uh_d * uh_d + uh_q * uh_q)
+                if uh > u_lim:
+                    uh_d *= u_lim / uh
+                    uh_q *= u_lim / uh
+                if_d += g_cl * (id_ref - if_d)
+                if_q += g_cl * (iq_ref - if_q)
+            else:
+                uh_d = u_d
+                uh_q = u_q
+                if_d = id_ref
+                if_q = iq_ref
             if inject:
-                v_inj = th_c * math.cos(h * phi) + th_s * math.sin(h * phi)
-                # (numba fuses the cos/sin pair of one argument)
+                v_inj = th_c * chp + th_s * shp
                 cv = math.cos(v_inj)
                 sv = math.sin(v_inj)
-                u_ds = u_d * cv - u_q * sv
-                u_qs = u_d * sv + u_q * cv
+                if vest:
+                    u_ds = u_d + (cv - 1.0) * uh_d - sv * uh_q
+                    u_qs = u_q + sv * uh_d + (cv - 1.0) * uh_q
+                    m2 = math.sqrt(u_ds * u_ds + u_qs * u_qs)
+                    if m2 > u_lim:
+                        u_ds *= u_lim / m2
+                        u_qs *= u_lim / m2
+                else:
+                    u_ds = u_d * cv - u_q * sv
+                    u_qs = u_d * sv + u_q * cv
             else:
                 v_inj = 0.0
                 u_ds = u_d
@@ -313,19 +729,26 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
             v_inj = 0.0
             int_d = 0.0
             int_q = 0.0
+            if_d = 0.0
+            if_q = 0.0
         # firmware torque estimate (0x6077) from measured currents and nominal parameters
         te_est = k_t_nom * i_q + 1.5 * n_p * (ld_nom - lq_nom) * i_d * i_q
 
         # ---------------- plant: torque, shaft, sensor at sample k ----------------
         dist = 0.0
-        if d_amp != 0.0:
-            # cos(x + phi_D) and cos(2x + phi_D2) from one cos/sin pair of x = h phi_e
-            cx = math.cos(h_dist * phi)
-            sx = math.sin(h_dist * phi)
+        if d_on:
+            if same_h:
+                cx = chp
+                sx = shp
+            else:
+                cx, sx = _cpow(cphi, sphi, h_dist_int)
             c2x = 2.0 * cx * cx - 1.0
             s2x = 2.0 * sx * cx
-            dist = (d_amp * (cx * cos_pd - sx * sin_pd)
-                    + d2_amp * (c2x * cos_pd2 - s2x * sin_pd2))
+            # D cos(x + phi_D) = X cos x - Y sin x; 2h part with |D| r at phi_D2
+            dist = d_x * cx - d_y * sx
+            if d2_ratio != 0.0:
+                d2 = d2_ratio * math.sqrt(d_x * d_x + d_y * d_y)
+                dist += d2 * (c2x * cos_pd2 - s2x * sin_pd2)
         t_em = 1.5 * n_p * (psi * i_q + (ld - lq) * i_d * i_q) + dist
         # load machine: ramped reference, PI speed loop (bumpless when switched on)
         if load_on:
@@ -365,9 +788,59 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
             raw = -32767.0
             fl |= OVER_RANGE_FLAG
             n_over += 1
-        accel_counts[k] = np.int16(round(raw))
-        angle_counts[k] = np.uint16(int(phi * counts_per_rad + 0.5) & 0xFFFF)
-        flags[k] = np.uint16(fl)
+        if write_frames:
+            # round half away from zero (int16 counts), angle counts modulo 65536
+            acc = (int(raw + 0.5) if raw >= 0.0 else -int(-raw + 0.5)) & 0xFFFF
+            ang = int(phi * counts_per_rad + 0.5) & 0xFFFF
+            sq = seq & 0xFFFF
+            o = k * FRAME_BYTES
+            crc = _crc_byte(0xFFFF, sq & 0xFF)
+            crc = _crc_byte(crc, sq >> 8)
+            crc = _crc_byte(crc, ang & 0xFF)
+            crc = _crc_byte(crc, ang >> 8)
+            crc = _crc_byte(crc, acc & 0xFF)
+            crc = _crc_byte(crc, acc >> 8)
+            crc = _crc_byte(crc, fl & 0xFF)
+            crc = _crc_byte(crc, fl >> 8)
+            frames[o] = 0xA5
+            frames[o + 1] = 0x5A
+            frames[o + 2] = sq & 0xFF
+            frames[o + 3] = sq >> 8
+            frames[o + 4] = ang & 0xFF
+            frames[o + 5] = ang >> 8
+            frames[o + 6] = acc & 0xFF
+            frames[o + 7] = acc >> 8
+            frames[o + 8] = fl & 0xFF
+            frames[o + 9] = fl >> 8
+            frames[o + 10] = crc & 0xFF
+            frames[o + 11] = crc >> 8
+            seq += 1
+
+        # ---------------- inverter: dead-time error over the next period ----------------
+        ed = 0.0
+        eq = 0.0
+        if dead_time:
+            # period average of -dt_amp sgn(i_x(t)) for each phase: the phase currents at the middle of
+            # the period (dq current at the mid-period angle), sgn linear within the half change of
+            # the current over the period (exact average for a current crossing zero linearly) or
+            # the zero-current band, whichever is wider. Evaluating sgn only at the sample instants
+            # instead would tie the crossings to the sample grid (120 samples per period at 2000 rpm).
+            cm = cphi * rot_c - sphi * rot_s
+            sm = sphi * rot_c + cphi * rot_s
+            ia = i_d * cm - i_q * sm
+            ibeta = i_d * sm + i_q * cm
+            i_b = -0.5 * ia + 0.5 * SQRT3 * ibeta
+            i_c = -ia - i_b
+            band = 0.5 * math.sqrt(i_d * i_d + i_q * i_q) * abs(w_e) * ts
+            inv_band = inv_izc if band * inv_izc < 1.0 else 1.0 / band
+            sa = min(1.0, max(-1.0, ia * inv_band))
+            sb = min(1.0, max(-1.0, i_b * inv_band))
+            sc = min(1.0, max(-1.0, i_c * inv_band))
+            # phase errors -dt_amp s_x -> alpha-beta -> dq at the middle of the period
+            e_al = -dt_amp * (2.0 / 3.0) * (sa - 0.5 * sb - 0.5 * sc)
+            e_be = -dt_amp * (sb - sc) / SQRT3
+            ed = e_al * cm + e_be * sm
+            eq = -e_al * sm + e_be * cm
 
         if record:
             trace[k, TR_ID] = i_d
@@ -384,6 +857,8 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
             trace[k, TR_OMEGA_M] = w_m
             trace[k, TR_V_INJ] = v_inj
             trace[k, TR_T_LOAD] = t_lm
+            trace[k, TR_UD_DT] = ed
+            trace[k, TR_UQ_DT] = eq
         s_ud += u_d
         s_uq += u_q
         s_te += te_est
@@ -393,14 +868,14 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
         # ---------------- advance to k+1 ----------------
         if power:
             if abs(w_e - w_zoh) > OMEGA_RECOMPUTE_RAD_S:
-                # the exponential depends on w_e only; a 1e-3 rad/s step changes the cross-coupling
-                # voltage by ~1e-6 relative, so recomputing on change is as good as every period
+                # the exponential depends on w_e only; a 0.05 rad/s step changes the cross-coupling
+                # voltage by ~1e-4 V at I_max, so recomputing on change is as good as every period
                 a00, a01, a10, a11, b00, b01, b10, b11 = zoh_dq(r, ld, lq, w_e, ts)
                 if decouple:
-                    c00, c01, c10, c11, e00, e01, e10, e11 = zoh_dq(p[P_R_NOM], ld_nom, lq_nom, w_e, ts)
+                    c00, c01, c10, c11, e00, e01, e10, e11 = zoh_dq(r_nom, ld_nom, lq_nom, w_e, ts)
                 w_zoh = w_e
-            ue_d = ud_app
-            ue_q = uq_app - w_e * psi
+            ue_d = ud_app * app_c - uq_app * app_s + ed
+            ue_q = ud_app * app_s + uq_app * app_c + eq - w_e * psi
             i_d_new = a00 * i_d + a01 * i_q + b00 * ue_d + b01 * ue_q
             i_q_new = a10 * i_d + a11 * i_q + b10 * ue_d + b11 * ue_q
             i_d = i_d_new
@@ -428,18 +903,30 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
             vq_app = 0.0
             ihat_d = 0.0
             ihat_q = 0.0
+        imag_f = sat_decay * imag_f + (1.0 - sat_decay) * math.sqrt(i_d * i_d + i_q * i_q)
         w_new = w_m + ts * alpha
         phi += n_p * ts * 0.5 * (w_m + w_new)
-        phi = phi % TWO_PI
+        if phi >= TWO_PI:
+            phi -= TWO_PI
+        elif phi < 0.0:
+            phi += TWO_PI
         w_m = w_new
 
+    row = (n - 1) // chunk
+    if n > 0:
+        summary[row, Y_UD_SUM] = s_ud
+        summary[row, Y_UQ_SUM] = s_uq
+        summary[row, Y_TORQUE_EST_SUM] = s_te
+        summary[row, Y_OMEGA_SUM] = s_w
+        summary[row, Y_LOAD_TORQUE_SUM] = s_tl
+        summary[row, Y_OVER_RANGE] = n_over
     x[X_ID] = i_d
     x[X_IQ] = i_q
     x[X_UD_APP] = ud_app
     x[X_UQ_APP] = uq_app
     x[X_INT_D] = int_d
     x[X_INT_Q] = int_q
-    x[X_PHI_E] = phi
+    x[X_PHI_E] = phi % TWO_PI
     x[X_OMEGA_M] = w_m
     x[X_LOAD_INT] = load_int
     x[X_LOAD_REF] = load_ref
@@ -449,13 +936,11 @@ def simulate_chunk(x, p, sp, noise, angle_counts, accel_counts, flags, summary, 
     x[X_VQ_APP] = vq_app
     x[X_IHAT_D] = ihat_d
     x[X_IHAT_Q] = ihat_q
+    x[X_IMAG_F] = imag_f
+    x[X_IF_D] = if_d
+    x[X_IF_Q] = if_q
+    x[X_FW_DID] = fw_did
     x[X_SAMPLES] += n
-    summary[Y_UD_SUM] = s_ud
-    summary[Y_UQ_SUM] = s_uq
-    summary[Y_TORQUE_EST_SUM] = s_te
-    summary[Y_OMEGA_SUM] = s_w
-    summary[Y_LOAD_TORQUE_SUM] = s_tl
-    summary[Y_OVER_RANGE] = n_over
 
 
 # ------------------------------------------------------------------------------------------------
@@ -500,45 +985,74 @@ def new_setpoints(udc_v: float = 0.0) -> np.ndarray:
 
 
 def steady_state_init(x: np.ndarray, p: np.ndarray, torque_nm: float, speed_rpm: float,
-                      udc_v: float) -> None:
-    """Put the state at the analytic dq steady state of an operating point (no injection, no d):
-    i_d = 0, i_q = T*/(1.5 N_p psi_nom), integrators at the resistive drop, shaft at speed with the
-    load machine holding it. Saves simulated settling time in tests and calibration."""
+                      udc_v: float, tab: np.ndarray | None = None) -> None:
+    """Put the state near the steady state of an operating point (no injection, no d, no dead time):
+    the firmware's current references, integrators at what the true machine needs beyond the
+    feed-forward, shaft at speed with the load machine holding it. Saves settling time in tests and
+    calibration (the remaining transient, e.g. the dead-time voltage, settles within ~10 ms)."""
     w_m = speed_rpm * TWO_PI / 60.0
     w_e = p[P_NP] * w_m
-    _, iq = torque_to_current_ref(torque_nm, p[P_PSI_NOM], p[P_NP], p[P_IMAX])
+    i_d, i_q = current_reference(torque_nm, w_e, udc_v, p[P_R_NOM], p[P_LD_NOM], p[P_LQ_NOM], p[P_PSI_NOM],
+                                 p[P_NP], p[P_IMAX], p[P_V_MARGIN])
+    ld, lq, psi = p[P_LD], p[P_LQ], p[P_PSI]
+    if tab is not None:
+        ld, lq, psi = saturated_params(p, tab, math.hypot(i_d, i_q))
     x[:] = 0.0
-    x[X_IQ] = iq
+    x[X_ID] = i_d
+    x[X_IQ] = i_q
     x[X_OMEGA_M] = w_m
     x[X_LOAD_REF] = w_m
-    # true steady voltage: u_d = -w_e L_q i_q, u_q = R i_q + w_e psi; PI integrators hold the rest
-    ud = -w_e * p[P_LQ] * iq
-    uq = p[P_R] * iq + w_e * p[P_PSI]
+    x[X_IMAG_F] = math.hypot(i_d, i_q)
+    x[X_IF_D] = i_d
+    x[X_IF_Q] = i_q
+    ud = p[P_R] * i_d - w_e * lq * i_q
+    uq = p[P_R] * i_q + w_e * (ld * i_d + psi)
     x[X_UD_APP] = ud
     x[X_UQ_APP] = uq
-    x[X_INT_D] = ud - (-w_e * p[P_LQ_NOM] * iq)
-    x[X_INT_Q] = uq - w_e * p[P_PSI_NOM]
-    t_em = 1.5 * p[P_NP] * p[P_PSI] * iq
+    x[X_INT_D] = ud - (-w_e * p[P_LQ_NOM] * i_q)
+    x[X_INT_Q] = uq - w_e * (p[P_LD_NOM] * i_d + p[P_PSI_NOM])
+    t_em = 1.5 * p[P_NP] * (psi * i_q + (ld - lq) * i_d * i_q)
     x[X_LOAD_INT] = -t_em + p[P_B] * w_m
 
 
-class Plant:
-    """Stateful convenience wrapper around `simulate_chunk` (used by the process and by tests)."""
+FRAME_DTYPE = np.dtype([("sync0", "u1"), ("sync1", "u1"), ("seq", "<u2"), ("angle", "<u2"), ("accel", "<i2"),
+                        ("flags", "<u2"), ("crc", "<u2")])
 
-    def __init__(self, params: np.ndarray, noise_seed: int | None = 0):
+
+class Plant:
+    """Stateful convenience wrapper around `simulate` (used by tests, calibration and benchmarks)."""
+
+    def __init__(self, params: np.ndarray, tab: np.ndarray | None = None, noise_seed: int | None = 0,
+                 chunk: int = 256):
         self.p = np.asarray(params, dtype=np.float64).copy()
+        self.tab = np.zeros(1) if tab is None else np.asarray(tab, dtype=np.float64)
+        if tab is None:   # no tables: unsaturated machine, no disturbance map
+            self.p[P_SAT_N] = self.p[P_DMAP_NT] = self.p[P_DMAP_NN] = 0.0
         self.x = new_state()
         self.rng = np.random.default_rng(noise_seed)
-        self.summary = np.zeros(N_SUMMARY)
+        self.chunk = chunk
+        self.summary = np.zeros((1, N_SUMMARY))
         self._no_trace = np.zeros((0, N_TRACE))
+        self._no_frames = np.zeros(0, dtype=np.uint8)
+        self.samples = 0
 
-    def run(self, sp: np.ndarray, n: int, trace: bool = False):
-        """Simulate n samples with setpoints sp. Returns (angle_counts, accel_counts, flags, trace)."""
-        noise = self.rng.standard_normal(n) if self.p[P_NOISE] > 0.0 else np.zeros(n)
-        angle = np.empty(n, dtype=np.uint16)
-        accel = np.empty(n, dtype=np.int16)
-        flags = np.empty(n, dtype=np.uint16)
-        tr = np.zeros((n, N_TRACE)) if trace else self._no_trace
-        simulate_chunk(self.x, self.p, np.asarray(sp, dtype=np.float64), noise, angle, accel, flags,
-                       self.summary, tr)
+    def init_op(self, torque_nm: float, speed_rpm: float, udc_v: float) -> None:
+        steady_state_init(self.x, self.p, torque_nm, speed_rpm, udc_v, self.tab)
+
+    def run(self, sp: np.ndarray, n: int, trace: bool = False, frames: bool = True):
+        """Simulate n samples with setpoints sp (the chunk-rate task runs at samples 0, chunk, ...
+        of this call). Returns (angle_counts, accel_counts, flags, trace)."""
+        m = n
+        noise = self.rng.standard_normal(m) if self.p[P_NOISE] > 0.0 else np.zeros(m)
+        fr = np.empty(m * FRAME_BYTES, dtype=np.uint8) if frames else self._no_frames
+        tr = np.zeros((m, N_TRACE)) if trace else self._no_trace
+        self.summary = np.zeros((-(-m // self.chunk), N_SUMMARY))
+        simulate(self.x, self.p, self.tab, np.asarray(sp, dtype=np.float64), noise, self.chunk, self.samples,
+                 fr, self.summary, tr)
+        self.samples += m
+        if frames:
+            f = np.frombuffer(fr.tobytes(), dtype=FRAME_DTYPE)
+            angle, accel, flags = f["angle"].copy(), f["accel"].copy(), f["flags"].copy()
+        else:
+            angle = accel = flags = None
         return angle, accel, flags, (tr if trace else None)

@@ -1,12 +1,18 @@
 """The emulator process: wires physics, firmware, CAN, DAQ pty and supply together and runs them.
 
-Threads: the plant thread (chunks of physics -> frames -> pty, setpoints taken at chunk starts),
-the canopen notifier (SDO server, NMT, heartbeats of the two LocalNodes), the socketcand server
-(accept/read + virtual-bus pump), the SCPI server, and a heartbeat watchdog. The main thread waits
-for SIGTERM/SIGINT and then closes everything; the exit code is 0.
+Threads: the plant thread (blocks of physics + frame encoding in one numba call -> pty, setpoints
+taken at block starts), the DAQ writer (fast mode), the canopen notifier (SDO server, NMT, heartbeats
+of the two LocalNodes), the socketcand server (accept/read + virtual-bus pump), the SCPI server, the
+fault control socket, and a heartbeat watchdog. The main thread waits for SIGTERM/SIGINT and then
+closes everything; the exit code is 0.
 
 Plant time is the DAQ sample counter. `speedup` 0: the plant runs as fast as the DAQ reader
 consumes (blocking pty writes); X > 0: paced to X times real time on the wall clock.
+
+Blocks: a setpoint is applied at a chunk start (256 samples) and each one is its own chunk. While no
+setpoint event waits (and when not paced slowly), up to BLOCK_CHUNKS chunks run in one numba call;
+an SDO write that arrives meanwhile is applied at the next block start, i.e. still at a chunk start
+and still one toggle per write. This keeps the Python work per simulated second small.
 """
 from __future__ import annotations
 
@@ -25,12 +31,12 @@ import canopen
 import numpy as np
 
 from drivers import DRIVE_EDS, LOAD_EDS
-from drivers.daq_protocol import encode_frames
 
 from . import physics as ph
 from . import scenario as scn
 from .daq_stream import DaqPty
 from .drive_firmware import DriveFirmware
+from .faults import ControlServer, FaultState
 from .load_machine import LoadMachineFirmware
 from .scpi_supply import DcSupply, ScpiServer
 from .socketcand_server import SocketcandServer
@@ -40,7 +46,7 @@ log = logging.getLogger("plant_emulator")
 DRIVE_NODE = 5
 LOAD_NODE = 6
 CHUNK_SAMPLES = 256           # physics chunk: setpoints are taken at chunk starts (16 ms at 16 kHz)
-FRAME_BATCH_CHUNKS = 16       # chunks per encode+write when running fast (256 ms plant time)
+FRAME_BATCH_CHUNKS = 16       # chunks per numba call + write when running fast (256 ms plant time)
 FAST_SPEEDUP = 8.0            # below this (paced, > 0) every chunk is written at once
 U_REF_MEAN_SAMPLES = 1024     # 0x2010: mean over the last 1024 periods
 WATCHDOG_PERIOD_S = 0.02
@@ -49,13 +55,14 @@ RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
 
 class Emulator:
     def __init__(self, sc: scn.Scenario, speedup: float = 1.0, can_port: int = 0, supply_port: int = 0,
-                 chunk_samples: int = CHUNK_SAMPLES):
+                 chunk_samples: int = CHUNK_SAMPLES, control_port: int = 0):
         self.scenario = sc
         self.speedup = float(speedup)
         self.chunk = int(chunk_samples)
-        self.params = scn.build_params(sc)
+        self.params, self.tab = scn.build(sc)
         self.sample_rate_hz = sc.sample_rate_hz
-        self.plant = ph.Plant(self.params, noise_seed=sc.seed if sc.seed is not None else 0)
+        self.plant = ph.Plant(self.params, self.tab, noise_seed=sc.seed if sc.seed is not None else 0,
+                              chunk=self.chunk)
         self.sp = ph.new_setpoints(0.0)
         self.stop_event = threading.Event()
         self.samples = 0
@@ -70,6 +77,9 @@ class Emulator:
         self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
         self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS))
         self.daq = DaqPty()
+        self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)
+        self.control = ControlServer(self.faults, port=control_port)
+        self.can_server.delay_for = self.faults.sdo_delay_for
         self._threads: list[threading.Thread] = []
         self._closed = False
 
@@ -80,6 +90,7 @@ class Emulator:
                     "channel": self.can_server.channel},
             "daq": self.daq.name,
             "supply": self.scpi.url,
+            "control": self.control.url,
             "drive_node": DRIVE_NODE,
             "load_node": LOAD_NODE,
             "sample_rate_hz": int(round(self.sample_rate_hz)),
@@ -92,6 +103,7 @@ class Emulator:
         warm_up()
         self.can_server.start()
         self.scpi.start()
+        self.control.start()
         self.drive.boot()
         self.load.boot()
         self._threads = [threading.Thread(target=self._plant_loop, name="plant", daemon=True),
@@ -108,7 +120,7 @@ class Emulator:
         for t in self._threads:
             t.join(timeout=3.0)
         for closer in (self.drive.shutdown, self.load.shutdown, self.network.disconnect, self.can_server.close,
-                       self.scpi.close, self.daq.close):
+                       self.scpi.close, self.control.close, self.daq.close):
             try:
                 closer()
             except Exception:
@@ -132,56 +144,60 @@ class Emulator:
 
     def _run_plant(self) -> None:
         n = self.chunk
-        p, x, sp = self.params, self.plant.x, self.sp
-        # frames are encoded and written per batch of chunks: encode_frames costs ~70 us per call
-        # regardless of size, which would cap the plant near 200x real time with single chunks
-        batch = 1 if 0.0 < self.speedup < FAST_SPEEDUP else FRAME_BATCH_CHUNKS
-        angle_b = np.empty(n * batch, dtype=np.uint16)
-        accel_b = np.empty(n * batch, dtype=np.int16)
-        flags_b = np.empty(n * batch, dtype=np.uint16)
-        in_batch = 0
-        summary = np.zeros(ph.N_SUMMARY)
+        p, x, sp, tab = self.params, self.plant.x, self.sp, self.tab
+        fast = self.speedup <= 0.0 or self.speedup >= FAST_SPEEDUP
+        batch = FRAME_BATCH_CHUNKS if fast else 1
+        frames = np.empty(n * batch * ph.FRAME_BYTES, dtype=np.uint8)
+        summary = np.zeros((batch, ph.N_SUMMARY))
         no_trace = np.zeros((0, ph.N_TRACE))
-        ramp = np.arange(n * batch, dtype=np.int64)
         rng = self.plant.rng
         noise_on = p[ph.P_NOISE] > 0.0
-        zeros = np.zeros(n)
+        zeros = np.zeros(n * batch)
         n_mean = max(1, int(math.ceil(U_REF_MEAN_SAMPLES / n)))
         ud_hist = np.zeros(n_mean)
         uq_hist = np.zeros(n_mean)
+        chunks_done = 0
+        out = bytearray()
+        out_limit = n * batch * ph.FRAME_BYTES
         if self.speedup <= 0.0:
             self.daq.start_writer(self.stop_event)
         t0 = time.monotonic()
         plant_t0 = 0
+        faults = self.faults
         while not self.stop_event.is_set():
             udc = self.supply.actual_v()
+            faults.tick(self.samples / self.sample_rate_hz)
+            # one chunk while a setpoint event waits (it is applied at this chunk's start, the next one
+            # at the next chunk's start); a whole block otherwise
+            m = 1 if (batch == 1 or self.drive.has_pending()) else batch
             self.drive.chunk_setpoints(sp, udc)
             self.load.chunk_setpoints(sp)
-            noise = rng.standard_normal(n) if noise_on else zeros
-            lo = in_batch * n
-            ph.simulate_chunk(x, p, sp, noise, angle_b[lo:lo + n], accel_b[lo:lo + n], flags_b[lo:lo + n],
-                              summary, no_trace)
-            in_batch += 1
-            self.samples += n
+            k = m * n
+            noise = rng.standard_normal(k) if noise_on else zeros[:k]
+            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], no_trace)
+            self.samples += k
             # publish the firmware's measurements (read by SDO)
-            k = (self.samples // n) % n_mean
-            ud_hist[k] = summary[ph.Y_UD_SUM]
-            uq_hist[k] = summary[ph.Y_UQ_SUM]
-            filled = min(n_mean, self.samples // n) * n
-            speed_rpm = float(summary[ph.Y_OMEGA_SUM]) / n * RAD_S_TO_RPM
-            self.drive.publish(speed_rpm, float(summary[ph.Y_TORQUE_EST_SUM]) / n, udc,
+            for row in range(max(0, m - n_mean), m):
+                slot = chunks_done % n_mean
+                ud_hist[slot] = summary[row, ph.Y_UD_SUM]
+                uq_hist[slot] = summary[row, ph.Y_UQ_SUM]
+                chunks_done += 1
+            filled = min(n_mean, chunks_done) * n
+            last = summary[m - 1]
+            speed_rpm = float(last[ph.Y_OMEGA_SUM]) / n * RAD_S_TO_RPM
+            self.drive.publish(speed_rpm, float(last[ph.Y_TORQUE_EST_SUM]) / n, udc,
                                float(ud_hist.sum()) / filled, float(uq_hist.sum()) / filled)
-            self.load.publish(speed_rpm, float(summary[ph.Y_LOAD_TORQUE_SUM]) / n)
-            if in_batch < batch:
-                continue
-            seq = (self.samples - n * batch + ramp) & 0xFFFF
-            frames = encode_frames(seq, angle_b, accel_b, flags_b)
-            in_batch = 0
+            self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / n)
+            out += faults.apply_daq(frames[:k * ph.FRAME_BYTES].tobytes())
+            if len(out) < out_limit and self.drive.has_pending():
+                continue      # keep single event chunks together in one write
+            data = bytes(out)
+            out.clear()
             if self.speedup <= 0.0:
-                if not self.daq.submit(frames):
+                if not self.daq.submit(data):
                     break
             else:
-                self.daq.write_paced(frames)
+                self.daq.write_paced(data)
                 target = t0 + (self.samples - plant_t0) / self.sample_rate_hz / self.speedup
                 delay = target - time.monotonic()
                 if delay > 0:
@@ -194,7 +210,8 @@ class Emulator:
 def warm_up() -> None:
     """Compile (or load from numba's cache) the chunk function before the endpoints are announced."""
     sc = scn.load(scn.DEFAULT_SCENARIO)
-    plant = ph.Plant(scn.build_params(sc))
+    p, tab = scn.build(sc)
+    plant = ph.Plant(p, tab)
     plant.run(ph.new_setpoints(12.0), 4)
 
 
@@ -207,6 +224,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="X times real time; 0 = as fast as the DAQ reader consumes (default 1)")
     ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
+    ap.add_argument("--control-port", type=int, default=0,
+                    help="fault control socket (JSON lines) on 127.0.0.1 (0: free port)")
     ap.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
     args = ap.parse_args(argv)
     if args.speedup < 0:
@@ -226,7 +245,8 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     sc = scn.load(args.scenario, seed=args.seed)
-    emu = Emulator(sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port)
+    emu = Emulator(sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port,
+                   control_port=args.control_port)
     try:
         emu.start()
         sys.stdout.write(json.dumps(emu.endpoints()) + "\n")

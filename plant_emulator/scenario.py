@@ -1,11 +1,12 @@
 """Scenario files: the emulated bench's truth (TOML), the seeded perturbation, the parameter vector.
 
 A scenario is loaded by name (plant_emulator/scenarios/<name>.toml) or by path. Every field is
-documented with its unit in the TOML itself (see scenarios/paper-bench.toml). `--seed N` perturbs
-the truth (never the [firmware] nominal values) uniformly within the ranges of the [seed] section:
-R_s, L_d, L_q, psi_p by +-`r_s_rel`, `inductance_rel`, `psi_p_rel`; the sensor resonance (poles)
-by +-`resonance_rel`; the disturbance amplitudes by +-`disturbance_amplitude_rel` and its phases
-by +-`disturbance_phase_rad`.
+documented in docs/scenarios.md (units, ranges, how to write one from a datasheet). `--seed N`
+perturbs the truth (never the [firmware] nominal values) uniformly within the ranges of the [seed]
+section: R_s, L_d, L_q, psi_p by +-`r_s_rel`, `inductance_rel`, `psi_p_rel`; the sensor resonance
+(poles) by +-`resonance_rel`; the disturbance map by a common amplitude factor
++-`disturbance_amplitude_rel` and phase offset +-`disturbance_phase_rad`, plus per cell
++-`disturbance_cell_rel` / +-`disturbance_cell_phase_rad`.
 """
 from __future__ import annotations
 
@@ -72,7 +73,8 @@ def load(name_or_path: str | None = None, seed: int | None = None) -> Scenario:
 
 
 def perturb(sc: Scenario, seed: int) -> None:
-    """Randomise the truth within the [seed] ranges (deterministic for a given seed)."""
+    """Randomise the truth within the [seed] ranges (deterministic for a given seed). Never touches
+    [firmware] (what the drive believes) nor the saturation table shapes (only their base values)."""
     rng = np.random.default_rng(seed)
     ranges = sc.section("seed")
     data = copy.deepcopy(sc.data)
@@ -93,26 +95,91 @@ def perturb(sc: Scenario, seed: int) -> None:
     f_res = rel("resonance_rel", 0.1)
     sensor["pole_re_rad_s"] = float(sensor["pole_re_rad_s"]) * f_res
     sensor["pole_im_rad_s"] = float(sensor["pole_im_rad_s"]) * f_res
+    # disturbance map: one common amplitude factor and phase offset, plus a smaller one per cell
     f_amp = rel("disturbance_amplitude_rel", 0.2)
-    dist["d0_nm"] = float(dist["d0_nm"]) * f_amp
-    dist["d2_nm"] = float(dist["d2_nm"]) * f_amp
     span_phase = float(ranges.get("disturbance_phase_rad", 0.35))
-    dist["phase_rad"] = float(dist["phase_rad"]) + rng.uniform(-span_phase, span_phase)
+    d_phase = rng.uniform(-span_phase, span_phase)
+    cell_rel = float(ranges.get("disturbance_cell_rel", 0.1))
+    cell_phase = float(ranges.get("disturbance_cell_phase_rad", 0.1))
+    amp = np.asarray(dist["amplitude_nm"], dtype=float)
+    ph_deg = np.asarray(dist["phase_deg"], dtype=float)
+    amp = amp * f_amp * (1.0 + rng.uniform(-cell_rel, cell_rel, amp.shape))
+    ph_deg = ph_deg + math.degrees(d_phase) + np.degrees(rng.uniform(-cell_phase, cell_phase, ph_deg.shape))
+    dist["amplitude_nm"] = amp.tolist()
+    dist["phase_deg"] = ph_deg.tolist()
     dist["phase_2h_rad"] = float(dist.get("phase_2h_rad", 0.0)) + rng.uniform(-span_phase, span_phase)
-    sc.perturbation = {**{k: v for k, v in factors.items()}, "resonance": f_res, "disturbance_amplitude": f_amp}
+    sc.perturbation = {**{k: v for k, v in factors.items()}, "resonance": f_res, "disturbance_amplitude": f_amp,
+                       "disturbance_phase_rad": d_phase}
     sc.data = data
 
 
-def build_params(sc: Scenario) -> np.ndarray:
-    """Parameter vector of physics.simulate_chunk from a scenario (PI gains by pole-zero
+def validate(sc: Scenario) -> None:
+    """Refuse scenarios the physics cannot run (ValueError naming the field)."""
+    m = sc.section("machine")
+    for key in ("pole_pairs", "r_s_ohm", "l_d_h", "l_q_h", "psi_p_wb"):
+        if float(m.get(key, 0.0)) <= 0.0:
+            raise ValueError(f"[machine] {key} must be > 0")
+    sat = sc.section("saturation")
+    if sat:
+        axis = np.asarray(sat["current_a"], dtype=float)
+        if axis.ndim != 1 or len(axis) < 1 or np.any(np.diff(axis) <= 0):
+            raise ValueError("[saturation] current_a must be strictly increasing")
+        for key in ("l_d_factor", "l_q_factor", "psi_p_factor"):
+            col = np.asarray(sat[key], dtype=float)
+            if col.shape != axis.shape or np.any(col <= 0):
+                raise ValueError(f"[saturation] {key} needs one positive factor per current_a point")
+    dist = sc.section("disturbance")
+    t_axis = np.asarray(dist.get("torque_nm", [0.0]), dtype=float)
+    n_axis = np.asarray(dist.get("speed_rpm", [0.0]), dtype=float)
+    for name, axis in (("torque_nm", t_axis), ("speed_rpm", n_axis)):
+        if axis.ndim != 1 or np.any(np.diff(axis) <= 0):
+            raise ValueError(f"[disturbance] {name} must be strictly increasing")
+    for key in ("amplitude_nm", "phase_deg"):
+        arr = np.asarray(dist.get(key, [[0.0]]), dtype=float)
+        if arr.shape != (len(n_axis), len(t_axis)):
+            raise ValueError(f"[disturbance] {key} must have len(speed_rpm) rows of len(torque_nm) values")
+
+
+def tables(sc: Scenario) -> tuple[np.ndarray, dict]:
+    """The flat table array of physics.simulate and the offsets/lengths to put into the parameters."""
+    parts: list[np.ndarray] = []
+    meta = {}
+    off = 0
+    sat = sc.section("saturation")
+    if sat:
+        axis = np.asarray(sat["current_a"], dtype=float)
+        block = np.concatenate([axis, np.asarray(sat["l_d_factor"], float), np.asarray(sat["l_q_factor"], float),
+                                np.asarray(sat["psi_p_factor"], float)])
+        meta["sat"] = (len(axis), off)
+        parts.append(block)
+        off += len(block)
+    else:
+        meta["sat"] = (0, 0)
+    dist = sc.section("disturbance")
+    t_axis = np.asarray(dist.get("torque_nm", [0.0]), dtype=float)
+    n_axis = np.asarray(dist.get("speed_rpm", [0.0]), dtype=float) * 2.0 * math.pi / 60.0
+    amp = np.asarray(dist.get("amplitude_nm", [[0.0]]), dtype=float)
+    phase = np.radians(np.asarray(dist.get("phase_deg", [[0.0]]), dtype=float))
+    block = np.concatenate([t_axis, n_axis, (amp * np.cos(phase)).ravel(), (amp * np.sin(phase)).ravel()])
+    meta["dmap"] = (len(t_axis), len(n_axis), off)
+    parts.append(block)
+    tab = np.concatenate(parts) if parts else np.zeros(1)
+    return tab, meta
+
+
+def build(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """(parameter vector, table array) of physics.simulate from a scenario (PI gains by pole-zero
     cancellation: K_p = 2 pi f_bw L_nom, K_i = 2 pi f_bw R_nom, so the closed current loop is a
     first-order lag with bandwidth f_bw apart from the delay)."""
+    validate(sc)
     m = sc.section("machine")
     fw = sc.section("firmware")
     dist = sc.section("disturbance")
     mech = sc.section("mechanics")
     sensor = sc.section("sensor")
     load_ = sc.section("load")
+    inv = sc.section("inverter")
+    sat = sc.section("saturation")
     p = np.zeros(ph.N_PARAMS)
     ts = 1.0 / sc.sample_rate_hz
     p[ph.P_TS] = ts
@@ -126,11 +193,16 @@ def build_params(sc: Scenario) -> np.ndarray:
     p[ph.P_LQ_NOM] = float(fw["l_q_h"])
     p[ph.P_PSI_NOM] = float(fw["psi_p_wb"])
     w_bw = 2.0 * math.pi * float(fw["current_bandwidth_hz"])
+    p[ph.P_W_BW] = w_bw
     p[ph.P_KP_D] = w_bw * p[ph.P_LD_NOM]
     p[ph.P_KP_Q] = w_bw * p[ph.P_LQ_NOM]
     p[ph.P_KI_D] = w_bw * p[ph.P_R_NOM]
     p[ph.P_KI_Q] = w_bw * p[ph.P_R_NOM]
     p[ph.P_IMAX] = float(fw["i_max_a"])
+    p[ph.P_V_MARGIN] = float(fw.get("voltage_margin", 0.95))
+    p[ph.P_FW_BW] = 2.0 * math.pi * float(fw.get("fw_loop_bandwidth_hz", 10.0))
+    p[ph.P_FW_TARGET] = float(fw.get("fw_loop_target", 0.98))
+    p[ph.P_ANGLE_COMP] = 1.0 if bool(fw.get("angle_compensation", True)) else 0.0
     j = float(mech["inertia_kgm2"])
     p[ph.P_J] = j
     p[ph.P_B] = float(mech.get("viscous_nm_s_per_rad", 0.0))
@@ -140,9 +212,7 @@ def build_params(sc: Scenario) -> np.ndarray:
     fs = float(sensor["full_scale_rad_s2"])
     p[ph.P_ALPHA_FS] = fs
     p[ph.P_NOISE] = float(sensor.get("noise_rms_fraction", 0.0)) * fs
-    p[ph.P_D0] = float(dist.get("d0_nm", 0.0))
-    p[ph.P_D2] = float(dist.get("d2_nm", 0.0))
-    p[ph.P_PHI_D] = float(dist.get("phase_rad", 0.0))
+    p[ph.P_DIST_SCALE] = float(dist.get("scale", 1.0))
     p[ph.P_D2_RATIO] = float(dist.get("ratio_2h", 0.0))
     p[ph.P_PHI_D2] = float(dist.get("phase_2h_rad", 0.0))
     p[ph.P_T_RATED] = sc.rated_torque_nm
@@ -155,4 +225,16 @@ def build_params(sc: Scenario) -> np.ndarray:
     p[ph.P_LOAD_TMAX] = float(load_.get("max_torque_nm", 20.0))
     tau_off = float(fw.get("current_decay_off_s", 2e-4))
     p[ph.P_OFF_DECAY] = math.exp(-ts / tau_off)
-    return p
+    p[ph.P_T_DEAD] = float(inv.get("dead_time_s", 0.0))
+    p[ph.P_F_PWM] = float(inv.get("pwm_frequency_hz", sc.sample_rate_hz))
+    p[ph.P_I_ZC] = float(inv.get("zero_current_band_a", 0.5))
+    p[ph.P_SAT_DECAY] = math.exp(-ts / float(sat.get("filter_time_s", 1e-3))) if sat else 0.0
+    tab, meta = tables(sc)
+    p[ph.P_SAT_N], p[ph.P_SAT_OFF] = meta["sat"]
+    p[ph.P_DMAP_NT], p[ph.P_DMAP_NN], p[ph.P_DMAP_OFF] = meta["dmap"]
+    return p, tab
+
+
+def build_params(sc: Scenario) -> np.ndarray:
+    """Parameter vector alone (tables via `build`)."""
+    return build(sc)[0]

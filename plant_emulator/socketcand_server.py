@@ -18,6 +18,8 @@ stops reading is dropped, never the server.
 """
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
 import selectors
 import socket
@@ -116,6 +118,11 @@ class SocketcandServer:
         self._sel = selectors.DefaultSelector()
         self._sel.register(self._listen, selectors.EVENT_READ)
         self._stop = threading.Event()
+        # fault hook: can_id -> seconds to hold a frame the emulator sends (0: none); held frames keep
+        # their order among themselves
+        self.delay_for = None
+        self._held: list[tuple[float, int, can.Message]] = []
+        self._held_seq = itertools.count()
         self._threads = [threading.Thread(target=self._serve, name="socketcand-serve", daemon=True),
                          threading.Thread(target=self._pump, name="socketcand-pump", daemon=True)]
 
@@ -255,15 +262,23 @@ class SocketcandServer:
     def _pump(self) -> None:
         """Virtual bus -> all raw-mode clients; also releases frames queued during the grace period."""
         while not self._stop.is_set():
+            now = time.monotonic()
+            while self._held and self._held[0][0] <= now:
+                self._broadcast(format_frame(heapq.heappop(self._held)[2]))
+            timeout = 0.05 if not self._held else max(0.0, min(0.05, self._held[0][0] - now))
             try:
-                msg = self.bus.recv(timeout=0.05)
+                msg = self.bus.recv(timeout=timeout)
             except Exception:
                 if self._stop.is_set():
                     break
                 log.exception("socketcand: virtual bus receive failed")
                 continue
             if msg is not None and not msg.is_error_frame and not msg.is_remote_frame:
-                self._broadcast(format_frame(msg))
+                delay = self.delay_for(msg.arbitration_id) if self.delay_for is not None else 0.0
+                if delay > 0.0:
+                    heapq.heappush(self._held, (time.monotonic() + delay, next(self._held_seq), msg))
+                else:
+                    self._broadcast(format_frame(msg))
             else:
                 self._broadcast(None)
 

@@ -19,15 +19,26 @@ FS_HZ = 16000.0
 
 
 @pytest.fixture(scope="module")
-def params() -> np.ndarray:
-    return scn.build_params(scn.load("paper-bench"))
+def bench():
+    return scn.build(scn.load("paper-bench"))
+
+
+@pytest.fixture(scope="module")
+def params(bench) -> np.ndarray:
+    return bench[0]
+
+
+@pytest.fixture(scope="module")
+def tab(bench) -> np.ndarray:
+    return bench[1]
 
 
 def quiet(p: np.ndarray) -> np.ndarray:
-    """No disturbance, no sensor noise: the fundamental-wave machine alone."""
+    """No disturbance, no sensor noise, no dead time: the fundamental-wave machine alone."""
     q = p.copy()
-    q[ph.P_D0] = q[ph.P_D2] = 0.0
+    q[ph.P_DIST_SCALE] = 0.0
     q[ph.P_NOISE] = 0.0
+    q[ph.P_T_DEAD] = 0.0
     return q
 
 
@@ -136,7 +147,7 @@ def test_firmware_applies_one_setpoint_per_chunk_with_one_toggle(params):
     assert drive.chunk_setpoints(sp, 3.0) is False and sp[ph.S_POWER] == 0.0   # DC link too low
 
 
-def test_calibrated_theta_cancels_the_6th_alpha_harmonic(params):
+def test_calibrated_theta_cancels_the_6th_alpha_harmonic(params, tab):
     """paper-bench at OP1 {2.5 Nm, 2000 rpm, 12 V}: theta* from gamma = 3 deg, delta = 280 deg
     suppresses the 6th harmonic of the measured (noisy, quantised) acceleration by >= 40 dB."""
     p = params.copy()
@@ -144,8 +155,8 @@ def test_calibrated_theta_cancels_the_6th_alpha_harmonic(params):
     n = whole_periods(2000.0, p[ph.P_NP], FS_HZ, 400)
 
     def alpha_harmonic(theta) -> float:
-        plant = ph.Plant(p, noise_seed=1)
-        ph.steady_state_init(plant.x, p, 2.5, 2000.0, 12.0)
+        plant = ph.Plant(p, tab, noise_seed=1)
+        plant.init_op(2.5, 2000.0, 12.0)
         sp = op_setpoints(12.0, 2.5, 2000.0, theta)
         plant.run(sp, int(0.5 * FS_HZ))
         angle, accel, flags, _ = plant.run(sp, n)

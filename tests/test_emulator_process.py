@@ -158,7 +158,9 @@ def test_enable_torque_and_sync_toggle(bench):
     assert drive.sdo[0x606C].raw == pytest.approx(2000, abs=20)
     assert drive.sdo[0x6077].raw == pytest.approx(500, abs=10)
     assert drive.sdo[0x6079].raw == pytest.approx(12000, abs=10)
-    assert drive.sdo[0x2010][2].raw == pytest.approx(6.46, abs=0.1)    # R i_q + w_e psi at OP1
+    # R i_q + w_e psi(|i|) at OP1 (saturated psi: 6.43 V) plus the PI's answer to the dead-time voltage
+    # (fundamental 4/pi U_dc T_dead f_pwm = 0.24 V against the current)
+    assert drive.sdo[0x2010][2].raw == pytest.approx(6.67, abs=0.1)
 
 
 def test_injection_commit_is_one_toggle(bench):
@@ -186,6 +188,92 @@ def test_heartbeat_loss_faults_the_drive(bench):
     time.sleep(0.2)
     drive.sdo[0x6040].raw = CONTROLWORD[PATH_TO_OPERATION_ENABLED[State402.FAULT]]
     assert state_of(drive) == State402.SWITCH_ON_DISABLED
+
+
+def control(emulator, cmd: dict) -> dict:
+    import socket
+    _, ep = emulator
+    assert ep["control"].startswith("tcp://127.0.0.1:")
+    with socket.create_connection(("127.0.0.1", int(ep["control"].rsplit(":", 1)[1])), timeout=5) as sock:
+        sock.sendall((json.dumps(cmd) + "\n").encode())
+        reply = b""
+        while not reply.endswith(b"\n"):
+            chunk = sock.recv(4096)
+            assert chunk, "control socket closed"
+            reply += chunk
+    return json.loads(reply)
+
+
+def test_lut_download_over_sdo_segmented(bench):
+    import zlib
+
+    from plant_emulator import lut_image
+    drive = bench["drive"]
+    good = lut_image.build(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02))
+    drive.sdo.download(0x2001, 1, good, force_segment=True)
+    assert drive.sdo[0x2001][2].raw == zlib.crc32(good)
+    assert drive.sdo[0x2001][3].raw == 1
+    with pytest.raises(canopen.SdoAbortedError) as exc:
+        drive.sdo.download(0x2001, 1, good[:-1] + bytes([good[-1] ^ 0xFF]), force_segment=True)
+    assert exc.value.code == 0x08000020
+    assert drive.sdo[0x2001][2].raw == zlib.crc32(good)
+    assert drive.sdo[0x2001][3].raw == 2
+
+
+def test_control_socket_faults(emulator, bench):
+    drive = bench["drive"]
+    assert control(emulator, {"fault": "nonsense"})["ok"] is False
+    # frames already produced (queue + pty buffer, < 32k samples) pass unharmed
+    before = bench["decoder"].counters.crc_failures
+    assert control(emulator, {"fault": "daq_corrupt", "rate": 0.01}) == {"ok": True}
+    read_samples(bench, 48000)
+    assert bench["decoder"].counters.crc_failures > before
+    assert control(emulator, {"fault": "clear"}) == {"ok": True}
+    read_samples(bench, 40000)                                          # flush what was corrupted
+    before = bench["decoder"].counters.crc_failures
+    read_samples(bench, 8000)
+    assert bench["decoder"].counters.crc_failures == before
+    # delayed SDO responses: past the client's timeout
+    assert control(emulator, {"fault": "sdo_delay", "seconds": 0.6})["ok"]
+    drive.sdo.RESPONSE_TIMEOUT = 0.3
+    with pytest.raises(canopen.SdoCommunicationError):
+        drive.sdo[0x6041].raw
+    control(emulator, {"fault": "clear"})
+    time.sleep(0.8)                                                     # the held response passes by
+    drive.sdo.RESPONSE_TIMEOUT = 1.0
+    assert drive.sdo[0x1018][1].raw == 0x0EAC
+    # EMCY with FAULT
+    emcy = []
+    drive.emcy.add_callback(emcy.append)
+    assert control(emulator, {"fault": "emcy", "code": 12816})["ok"]
+    time.sleep(0.2)
+    assert any(e.code == 12816 for e in emcy)
+    assert state_of(drive) == State402.FAULT
+    drive.sdo[0x6040].raw = CONTROLWORD[PATH_TO_OPERATION_ENABLED[State402.FAULT]]
+    # drive heartbeat stopped, then produced again
+    seen = []
+    bench["net"].subscribe(0x705, lambda can_id, data, ts: seen.append(ts))
+    assert control(emulator, {"fault": "heartbeat_stop"})["ok"]
+    time.sleep(0.15)
+    seen.clear()
+    time.sleep(0.4)
+    assert not seen
+    control(emulator, {"fault": "clear"})
+    time.sleep(0.4)
+    assert seen
+    # DAQ unplugged and plugged in again as a new pty
+    assert control(emulator, {"fault": "daq_disconnect"})["ok"]
+    with pytest.raises(serial.SerialException):
+        for _ in range(100):
+            bench["daq"].read(4096)
+    reply = control(emulator, {"fault": "daq_reconnect"})
+    assert reply["ok"] and reply["daq"].startswith("/dev/")
+    bench["daq"].close()
+    bench["daq"] = serial.Serial(reply["daq"], timeout=0.5)
+    bench["decoder"] = FrameDecoder()
+    index = read_samples(bench, 4000)[0]
+    assert np.all(np.diff(index) == 1)
+    assert control(emulator, {"status": True})["faults"]["daq_disconnected"] is False
 
 
 def test_sigterm_exits_cleanly(emulator, bench):

@@ -1,7 +1,8 @@
 """Real-time factor of the emulated bench (run: python tests/benchmarks/bench_emulator.py).
 
-Two numbers, both at OP1 of paper-bench (2.5 Nm, 2000 rpm, 12 V) with injection and disturbance on:
-- physics only: simulate_chunk in chunks of 256 samples, no frames;
+Two numbers, both at OP1 of paper-bench (2.5 Nm, 2000 rpm, 12 V) with injection, disturbance map,
+saturation, dead time and sensor noise on:
+- physics + frames: physics.simulate in blocks of 16 x 256 samples, frames encoded, no pty;
 - emulator: the real Emulator plant thread at --speedup 0 (physics + setpoint hand-over + frame
   encoding + blocking pty writes) while a separate `cat` process drains the pty.
 Real-time factor = simulated plant time / wall time.
@@ -24,18 +25,25 @@ from plant_emulator.calibrate_paper_bench import op_setpoints, theta_from_gamma_
 from plant_emulator.process import Emulator, warm_up  # noqa: E402
 
 
-def physics_factor(seconds: float = 2.0, chunk: int = 256) -> float:
-    p = scn.build_params(scn.load("paper-bench"))
-    plant = ph.Plant(p)
-    ph.steady_state_init(plant.x, p, 2.5, 2000.0, 12.0)
+def physics_factor(seconds: float = 2.0, chunk: int = 256, block_chunks: int = 16) -> float:
+    """Full physics (saturation, MTPA/FW, dead time, disturbance map, injection) plus frame encoding,
+    in the process's blocks of 16 chunks, one numba call each."""
+    p, tab = scn.build(scn.load("paper-bench"))
+    plant = ph.Plant(p, tab, chunk=chunk)
+    plant.init_op(2.5, 2000.0, 12.0)
     sp = op_setpoints(12.0, 2.5, 2000.0, theta_from_gamma_delta(math.radians(3), math.radians(280)))
-    plant.run(sp, chunk)
+    k = chunk * block_chunks
+    frames = np.empty(k * ph.FRAME_BYTES, dtype=np.uint8)
+    summary = np.zeros((block_chunks, ph.N_SUMMARY))
+    no_trace = np.zeros((0, ph.N_TRACE))
+    ph.simulate(plant.x, p, tab, sp, plant.rng.standard_normal(k), chunk, 0, frames, summary, no_trace)
     n = 0
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        plant.run(sp, chunk)
-        n += chunk
-    return n / p[ph.P_TS] ** -1 / (time.perf_counter() - t0)
+        ph.simulate(plant.x, p, tab, sp, plant.rng.standard_normal(k), chunk, n, frames, summary, no_trace)
+        frames.tobytes()
+        n += k
+    return n * p[ph.P_TS] / (time.perf_counter() - t0)
 
 
 def emulator_factor(seconds: float = 3.0) -> float:
@@ -66,7 +74,7 @@ def emulator_factor(seconds: float = 3.0) -> float:
 
 def main() -> None:
     warm_up()
-    print(f"physics-only real-time factor: {physics_factor():.0f}")
+    print(f"physics + frame encoding real-time factor (no pty): {physics_factor():.0f}")
     print(f"emulator real-time factor (physics + DAQ encode + pty): {emulator_factor():.0f}")
 
 

@@ -1,0 +1,278 @@
+"""Fault hooks for reliability work: DAQ byte drops / corruption / disconnect, drive heartbeat stop,
+EMCY from the drive, delayed SDO responses. Switchable by the scenario ([faults]) or at run time on
+a loopback control socket (`"control": "tcp://127.0.0.1:P"` in the endpoints JSON).
+
+Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ...}` or
+`{"ok": false, "error": "..."}`. Commands:
+
+    {"fault": "daq_drop_bytes", "rate": 0.001}   each DAQ byte is dropped with this probability
+    {"fault": "daq_corrupt", "rate": 0.001}      each DAQ byte gets one random bit flipped with it
+    {"fault": "daq_disconnect"}                  the DAQ port hangs up (readers get EOF/EIO); frames
+                                                 produced meanwhile are lost
+    {"fault": "daq_reconnect"}                   a new DAQ pty; the reply names it: {"ok": true, "daq": "/dev/pts/N"}
+    {"fault": "heartbeat_stop"}                  the drive stops producing its heartbeat ("node": 6 for the load)
+    {"fault": "emcy", "code": 12816}             the drive sends this EMCY and goes to FAULT
+                                                 ("fault_state": false: EMCY only; "node": 6 for the load)
+    {"fault": "sdo_delay", "seconds": 1.0}       every SDO response of the emulator is held this long
+    {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again
+                                                 (a disconnected DAQ needs daq_reconnect)
+    {"status": true}                             the fault state: {"ok": true, "faults": {...}}
+
+The service never uses this socket; tests and reliability tools do. Only 127.0.0.1, ever.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import selectors
+import socket
+import threading
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MAX_LINE_BYTES = 4096
+
+
+class FaultState:
+    """Current fault switches and the actions behind them (bound to the emulator's parts)."""
+
+    def __init__(self, emulator, config: dict | None = None, seed: int | None = None):
+        self.emu = emulator
+        self.lock = threading.Lock()
+        self.rng = np.random.default_rng(seed)
+        self.drop_rate = 0.0
+        self.corrupt_rate = 0.0
+        self.sdo_delay_s = 0.0
+        self.heartbeat_stopped: set[int] = set()
+        self.daq_disconnected = False
+        self.bytes_dropped = 0
+        self.bytes_corrupted = 0
+        self.events: list[dict] = []
+        config = config or {}
+        self.drop_rate = float(config.get("daq_drop_bytes_rate", 0.0))
+        self.corrupt_rate = float(config.get("daq_corrupt_rate", 0.0))
+        self.sdo_delay_s = float(config.get("sdo_delay_s", 0.0))
+        for ev in config.get("events", []) or []:
+            if "at_s" not in ev or "fault" not in ev:
+                raise ValueError(f"[faults] events entries need at_s and fault: {ev!r}")
+            self.events.append(dict(ev))
+        self.events.sort(key=lambda e: float(e["at_s"]))
+
+    # -- plant thread ------------------------------------------------------------------------------
+    def tick(self, plant_time_s: float) -> None:
+        """Run the scenario's timed events that are due."""
+        while self.events and float(self.events[0]["at_s"]) <= plant_time_s:
+            ev = self.events.pop(0)
+            reply = self.command({k: v for k, v in ev.items() if k != "at_s"})
+            log.info("timed fault %r at %.3f s: %r", ev, plant_time_s, reply)
+
+    def apply_daq(self, data: bytes) -> bytes:
+        """The DAQ bytes as the wire delivers them under the current drop/corrupt rates."""
+        drop, corrupt = self.drop_rate, self.corrupt_rate
+        if drop <= 0.0 and corrupt <= 0.0:
+            return data
+        buf = np.frombuffer(data, dtype=np.uint8).copy()
+        n = len(buf)
+        if corrupt > 0.0:
+            k = int(self.rng.binomial(n, min(corrupt, 1.0)))
+            if k:
+                pos = self.rng.integers(0, n, size=k)
+                buf[pos] ^= (np.uint8(1) << self.rng.integers(0, 8, size=k).astype(np.uint8))
+                self.bytes_corrupted += k
+        if drop > 0.0:
+            k = int(self.rng.binomial(n, min(drop, 1.0)))
+            if k:
+                keep = np.ones(n, dtype=bool)
+                keep[self.rng.integers(0, n, size=k)] = False
+                self.bytes_dropped += int(n - keep.sum())
+                buf = buf[keep]
+        return buf.tobytes()
+
+    # -- commands ----------------------------------------------------------------------------------
+    def command(self, cmd: dict) -> dict:
+        try:
+            return self._command(cmd)
+        except (KeyError, TypeError, ValueError) as exc:
+            return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+
+    def _node(self, cmd: dict):
+        node = int(cmd.get("node", self.emu.drive.node.id))
+        for dev in (self.emu.drive, self.emu.load):
+            if dev.node.id == node:
+                return dev
+        raise ValueError(f"no node {node}")
+
+    def _command(self, cmd: dict) -> dict:
+        if not isinstance(cmd, dict):
+            raise TypeError("a command is a JSON object")
+        if cmd.get("status"):
+            return {"ok": True, "faults": self.snapshot()}
+        fault = cmd.get("fault")
+        if fault == "daq_drop_bytes":
+            self.drop_rate = _rate(cmd)
+        elif fault == "daq_corrupt":
+            self.corrupt_rate = _rate(cmd)
+        elif fault == "daq_disconnect":
+            self.daq_disconnected = True
+            self.emu.daq.hang_up()
+        elif fault == "daq_reconnect":
+            name = self.emu.daq.reopen()
+            self.daq_disconnected = False
+            return {"ok": True, "daq": name}
+        elif fault == "heartbeat_stop":
+            dev = self._node(cmd)
+            self.heartbeat_stopped.add(dev.node.id)
+            dev.node.nmt.stop_heartbeat()
+        elif fault == "emcy":
+            dev = self._node(cmd)
+            code = int(cmd["code"])
+            if not 0 <= code <= 0xFFFF:
+                raise ValueError("code must be 0..65535")
+            if cmd.get("fault_state", True):
+                dev.fault(code)
+            else:
+                dev.node.emcy.send(code, 0x01)
+        elif fault == "sdo_delay":
+            seconds = float(cmd["seconds"])
+            if not 0.0 <= seconds <= 60.0:
+                raise ValueError("seconds must be within 0..60")
+            self.sdo_delay_s = seconds
+        elif fault == "clear":
+            self.drop_rate = self.corrupt_rate = self.sdo_delay_s = 0.0
+            for dev in (self.emu.drive, self.emu.load):
+                if dev.node.id in self.heartbeat_stopped:
+                    dev.node.nmt.start_heartbeat(int(dev.stored(0x1017)))
+            self.heartbeat_stopped.clear()
+        else:
+            raise ValueError(f"unknown fault {fault!r}")
+        return {"ok": True}
+
+    def snapshot(self) -> dict:
+        return {"daq_drop_bytes_rate": self.drop_rate, "daq_corrupt_rate": self.corrupt_rate,
+                "sdo_delay_s": self.sdo_delay_s, "heartbeat_stopped": sorted(self.heartbeat_stopped),
+                "daq_disconnected": self.daq_disconnected, "bytes_dropped": self.bytes_dropped,
+                "bytes_corrupted": self.bytes_corrupted, "pending_events": len(self.events)}
+
+    def sdo_delay_for(self, can_id: int) -> float:
+        """Delay for a frame the emulator sends (SDO responses 0x580 + node of its nodes)."""
+        if self.sdo_delay_s <= 0.0:
+            return 0.0
+        if can_id - 0x580 in (self.emu.drive.node.id, self.emu.load.node.id):
+            return self.sdo_delay_s
+        return 0.0
+
+
+def _rate(cmd: dict) -> float:
+    rate = float(cmd["rate"])
+    if not 0.0 <= rate <= 1.0:
+        raise ValueError("rate must be within 0..1")
+    return rate
+
+
+class ControlServer:
+    """JSON-lines control socket on 127.0.0.1 (port 0: a free one)."""
+
+    def __init__(self, faults: FaultState, port: int = 0):
+        self.faults = faults
+        self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listen.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._listen.bind(("127.0.0.1", port))
+        self._listen.listen(4)
+        self._listen.setblocking(False)
+        self.port = self._listen.getsockname()[1]
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self._listen, selectors.EVENT_READ)
+        self._buffers: dict[socket.socket, bytes] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="control", daemon=True)
+
+    @property
+    def url(self) -> str:
+        return f"tcp://127.0.0.1:{self.port}"
+
+    def start(self) -> "ControlServer":
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        for sock in list(self._buffers):
+            _close(sock)
+        _close(self._listen)
+        self._sel.close()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                events = self._sel.select(timeout=0.1)
+            except OSError:
+                break
+            for key, _ in events:
+                sock = key.fileobj
+                if sock is self._listen:
+                    try:
+                        conn, _ = self._listen.accept()
+                    except OSError:
+                        continue
+                    conn.setblocking(True)
+                    conn.settimeout(2.0)
+                    self._buffers[conn] = b""
+                    self._sel.register(conn, selectors.EVENT_READ)
+                else:
+                    self._read(sock)
+
+    def _read(self, sock: socket.socket) -> None:
+        try:
+            data = sock.recv(4096)
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(sock)
+            return
+        buf = self._buffers.get(sock, b"") + data
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            if line.strip():
+                self._reply(sock, line)
+        if len(buf) > MAX_LINE_BYTES:
+            self._reply_obj(sock, {"ok": False, "error": "line too long"})
+            buf = b""
+        self._buffers[sock] = buf
+
+    def _reply(self, sock, line: bytes) -> None:
+        try:
+            cmd = json.loads(line)
+        except ValueError as exc:
+            self._reply_obj(sock, {"ok": False, "error": f"not JSON: {exc}"})
+            return
+        try:
+            reply = self.faults.command(cmd)
+        except Exception as exc:   # a broken command must not take the server down
+            log.exception("control command %r", cmd)
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        self._reply_obj(sock, reply)
+
+    def _reply_obj(self, sock, obj: dict) -> None:
+        try:
+            sock.sendall((json.dumps(obj) + "\n").encode())
+        except OSError:
+            self._drop(sock)
+
+    def _drop(self, sock) -> None:
+        self._buffers.pop(sock, None)
+        try:
+            self._sel.unregister(sock)
+        except (KeyError, ValueError, OSError):
+            pass
+        _close(sock)
+
+
+def _close(sock) -> None:
+    try:
+        sock.close()
+    except OSError:
+        pass
