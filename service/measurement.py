@@ -99,6 +99,15 @@ class OperatingPointSession:
             return take
         return self.cursor.read(n).samples
 
+    def _next_exact(self, n: int) -> DecodedSamples:
+        """Exactly the next n samples (pending leftovers first, then the stream)."""
+        parts, have = [], 0
+        while have < n:
+            part = self._next(n - have)
+            parts.append(part)
+            have += len(part)
+        return _concat(parts)
+
     def _push_back(self, s: DecodedSamples) -> None:
         self._pending = s if self._pending is None else _concat([s, self._pending])
 
@@ -176,24 +185,28 @@ class OperatingPointSession:
         self.skip(self.settle_after_theta_s)
 
     def measure(self, periods: int) -> Window:
+        reasons = {"DAQ gap or bad frame": 0, "sensor over-range": 0, "sensor fault": 0,
+                   "setpoint change inside the window": 0}
         for _ in range(self.MAX_WINDOW_ATTEMPTS):
             n = self._samples_for(periods)
-            s = self._next(n)
-            if len(s) < n:
-                s = _concat([s, self._next(n - len(s))])
+            s = self._next_exact(n)
             self._count_until(int(s.index[-1]))
             sync = (s.flags & FLAG_SYNC_INPUT) != 0
             setpoint_changed = (sync[1:] != sync[:-1]) if self.sync_input else np.zeros(len(s) - 1, bool)
             bad = np.flatnonzero(s.gap_before[1:] | ((s.flags & BAD_FLAGS) != 0)[1:] | setpoint_changed)
             if (s.flags[0] & BAD_FLAGS) or len(bad):
                 self.windows_discarded += 1
+                reasons["DAQ gap or bad frame"] += int(s.gap_before[1:].any())
+                reasons["sensor over-range"] += int(((s.flags & FLAG_OVER_RANGE) != 0).any())
+                reasons["sensor fault"] += int(((s.flags & FLAG_SENSOR_FAULT) != 0).any())
+                reasons["setpoint change inside the window"] += int(setpoint_changed.any())
                 continue
             p = phasor(s.accel_fs, s.angle_rad, self.harmonic_order, periods)
             used = _slice(s, 0, p.samples)
             self._push_back(_slice(s, p.samples))
             return Window(p, used.accel_fs, used.angle_rad, self.plant_time_s)
-        raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid "
-                               "(DAQ gaps, bad frames, sensor fault or over-range)")
+        why = ", ".join(f"{k} in {v}" for k, v in reasons.items() if v)
+        raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid: {why}")
 
     def _samples_for(self, periods: int) -> int:
         speed = self.speed_rpm_measured
@@ -223,7 +236,7 @@ class OperatingPointSession:
         block = int(0.02 * self.sample_rate_hz)
         steady, elapsed = 0, 0
         while steady < 3:
-            s = self._next(block)
+            s = self._next_exact(block)
             elapsed += len(s)
             speed = electrical_frequency_hz(s.angle_rad, self.sample_rate_hz) * 60.0 / self.pole_pairs
             steady = steady + 1 if abs(speed - target_speed_rpm) <= tolerance * abs(target_speed_rpm) else 0

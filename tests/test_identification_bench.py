@@ -123,9 +123,14 @@ def test_settling_on_the_data_without_sync_line(tmp_path, paper_results):
     assert abs(r.gamma_deg - ref.gamma_deg) <= 0.1 and abs(_angle_diff_deg(r.delta_deg, ref.delta_deg)) <= 2.0
 
 
+# operating points whose 6th harmonic (800, 600, 400 Hz) stays clear of the shaft resonance
+# (1074 Hz nominal, drawn within +-10 % by the seed): closer, the sensor goes over range
+SEEDED_OPS = [OP1, OperatingPoint(torque_nm=4.0, speed_rpm=1500, udc_v=12), OperatingPoint(torque_nm=1.5, speed_rpm=1000, udc_v=12)]
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 def test_seeded_scenarios(tmp_path, seed):
-    ops = [OP1, OperatingPoint(torque_nm=4.0, speed_rpm=1500, udc_v=12), OperatingPoint(torque_nm=1.5, speed_rpm=2500, udc_v=12)]
+    ops = SEEDED_OPS
     with _service(tmp_path, **{"emulator.seed": seed}) as svc:
         for op in ops:
             a = _run(svc, "adaptive", op)

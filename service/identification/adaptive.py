@@ -90,7 +90,9 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         history.append([window.end_time_s, *theta_parts(theta), amp])
         if amp < best_amp:
             best_theta, best_amp = theta, amp
-        growing = growing + 1 if amp > options.divergence_factor * best_amp else 0
+        # a plant whose 2x2 path has a conjugate part (dead time, L_d != L_q) can swell for a few blocks
+        # while it spirals in; growth past the uncompensated level is what divergence looks like
+        growing = growing + 1 if amp > max(options.divergence_factor * best_amp, before.phasor.amplitude) else 0
         at_limit = at_limit + 1 if (limited and amp >= best_amp) else 0
         if growing >= options.divergence_blocks or at_limit >= options.divergence_blocks:
             diverged = True

@@ -31,7 +31,7 @@ class ProbeOptions(BaseModel):
     probe_max_deg: float = Field(4.0, gt=0, description="largest probe amplitude, deg (kept <= gamma_max/2)")
     window_periods: int = Field(36, ge=2, le=10_000)
     settle_s: float = Field(0.04, ge=0, le=10, description="plant time after each theta before measuring")
-    max_newton_steps: int = Field(4, ge=1, le=50)
+    max_newton_steps: int = Field(6, ge=1, le=50)
     verify_periods: int = Field(144, ge=2)
     gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
@@ -89,6 +89,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
     # the probes go around theta: keep theta + p inside gamma_max
     theta = clamp(theta, gamma_max_rad - probe_rad)
     s_ss = measure_s_matrix(session, theta, a, probe_rad, options.window_periods, history)
+    s_probed = s_ss.copy()
     if abs(np.linalg.det(s_ss)) < 1e-30:
         raise ValueError("probe response is zero: the injection has no effect on the measured harmonic here")
     s_inv = np.linalg.inv(s_ss)
@@ -102,15 +103,23 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         session.apply_theta(*new_theta)
         w = session.measure(options.window_periods)
         history.append([w.end_time_s, *new_theta, w.phasor.amplitude])
-        improved = w.phasor.amplitude < 0.7 * best_amp
-        theta, a = new_theta, np.array([w.phasor.a_c, w.phasor.a_s])
+        improved = w.phasor.amplitude < 0.8 * best_amp
+        new_a = np.array([w.phasor.a_c, w.phasor.a_s])
+        d_theta, d_a = new_theta - theta, new_a - a
+        # only a step that moves the phasor well above the noise of one window says anything about S
+        noise = float(np.std(w.alpha_fs)) * math.sqrt(2.0 / len(w.alpha_fs))
+        if float(np.hypot(*(s_ss @ d_theta))) > 20.0 * noise:
+            broyden = s_ss + np.outer(d_a - s_ss @ d_theta, d_theta) / float(d_theta @ d_theta)
+            if abs(np.linalg.det(broyden)) > 1e-30:
+                s_ss, s_inv = broyden, np.linalg.inv(broyden)
+        theta, a = new_theta, new_a
         if w.phasor.amplitude < best_amp:
             best_theta, best_amp = theta.copy(), w.phasor.amplitude
         if not improved:
             break       # the residual stopped improving: noise floor (or non-linearity) reached
     after = verify(session, *best_theta, options.verify_periods)
     # S_ss in complex form (exact when S_ss has the rotation structure; else the least-squares scalar)
-    s_measured = complex((s_ss[0, 0] + s_ss[1, 1]) / 2, (s_ss[0, 1] - s_ss[1, 0]) / 2)
+    s_measured = complex((s_probed[0, 0] + s_probed[1, 1]) / 2, (s_probed[0, 1] - s_probed[1, 0]) / 2)
     status, message = "ok", f"{steps} Newton step(s) after 2 probes of {math.degrees(probe_rad):.2f} deg"
     if limited and best_amp > 0.1 * before.phasor.amplitude:
         status = "no_authority"
@@ -122,7 +131,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         uncompensated=before.phasor, plant_time_s=session.plant_time_s, windows_used=len(history) + 1,
         windows_discarded=session.windows_discarded, s_model=s_hat, s_measured=s_measured,
         details={**(details or {}), "probe_deg": math.degrees(probe_rad), "newton_steps": steps,
-                 "s_matrix": s_ss.tolist(),
+                 "s_matrix": s_probed.tolist(), "s_matrix_refined": s_ss.tolist(),
                  "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
                  "model_phase_error_deg": phase_error_deg(s_hat, s_measured),
                  "time_to_40db_s": time_to_suppression(history, before.phasor.amplitude, 40.0)},
