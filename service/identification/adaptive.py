@@ -43,6 +43,7 @@ class AdaptiveOptions(BaseModel):
     divergence_blocks: int = Field(3, ge=1, description="consecutive growing blocks that mean divergence")
     fallback: bool = Field(True, description="on divergence, fall back to the probe method")
     verify_periods: int = Field(144, ge=2, description="periods of the final residual measurement")
+    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
     s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
                                           description="deliberate phase error added to S_hat (robustness tests)")
@@ -62,7 +63,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     session.settle_after_theta_s = options.settle_s
     s_used = s_hat * complex(math.cos(math.radians(options.s_hat_phase_offset_deg)),
                              math.sin(math.radians(options.s_hat_phase_offset_deg)))
-    before = measure_uncompensated(session, options.verify_periods)
+    before = measure_uncompensated(session, options.reference_periods)
     history = [[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
 
     needed_gamma = abs(before.phasor.complex / s_hat)
@@ -110,7 +111,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         details["divergence"] = "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max"
         session.apply_theta(*theta_parts(best_theta))      # revert to the best theta seen
         if options.fallback:
-            probe_opts = ProbeOptions(window_periods=options.block_periods, verify_periods=options.verify_periods)
+            probe_opts = ProbeOptions(verify_periods=options.verify_periods)
             result = identify_probe(session, s_hat, probe_opts, gamma_max_rad, before=before,
                                     start_theta=theta_parts(best_theta), history=history, method="adaptive",
                                     details={**details, "fallback": "probe"})

@@ -11,6 +11,7 @@ SNIPPET_SAMPLES = 800
 
 
 def measure_uncompensated(session: MeasurementSession, periods: int) -> Window:
+    """The reference: the h-th phasor with theta = 0 (suppression_db is counted against it)."""
     session.apply_theta(0.0, 0.0)
     return session.measure(periods)
 

@@ -41,6 +41,7 @@ class GridOptions(BaseModel):
     settle_s: float = Field(0.12, ge=0, le=10, description="plant time after each grid point's theta before measuring: "
                             "a theta step rings the shaft resonance (tau = 1/19.6 s), which leaks into the phasor")
     verify_periods: int = Field(144, ge=2)
+    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
 
@@ -112,7 +113,7 @@ def identify_grid(session: MeasurementSession, s_hat: complex | None, options: G
                   gamma_max_rad: float) -> IdentificationResult:
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
-    before = measure_uncompensated(session, options.verify_periods)
+    before = measure_uncompensated(session, options.reference_periods)
     points = []
     for gamma_deg in options.gammas_deg():
         if math.radians(gamma_deg) > gamma_max_rad + 1e-12:

@@ -29,10 +29,11 @@ class ProbeOptions(BaseModel):
     probe_fraction: float = Field(0.5, gt=0, le=1.0, description="probe size as a fraction of the model's |theta*|")
     probe_min_deg: float = Field(0.3, gt=0, description="smallest probe amplitude, deg")
     probe_max_deg: float = Field(4.0, gt=0, description="largest probe amplitude, deg (kept <= gamma_max/2)")
-    window_periods: int = Field(36, ge=2, le=10_000)
+    window_periods: int = Field(24, ge=2, le=10_000)
     settle_s: float = Field(0.04, ge=0, le=10, description="plant time after each theta before measuring")
     max_newton_steps: int = Field(6, ge=1, le=50)
     verify_periods: int = Field(144, ge=2)
+    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
     gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
 
@@ -73,7 +74,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
     if before is None:
-        before = measure_uncompensated(session, options.verify_periods)
+        before = measure_uncompensated(session, options.reference_periods)
     history = history if history is not None else [[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
     theta = np.zeros(2)
     a = np.array([before.phasor.a_c, before.phasor.a_s])
