@@ -46,7 +46,13 @@ def physics_factor(seconds: float = 2.0, chunk: int = 256, block_chunks: int = 1
     return n * p[ph.P_TS] / (time.perf_counter() - t0)
 
 
-def emulator_factor(seconds: float = 3.0) -> float:
+def emulator_factor(seconds: float = 3.0, one_core: bool = False) -> float:
+    """one_core: the emulator process is pinned to CPU 0 and the reader (`cat`, standing in for the
+    service's DAQ reader, a separate process on a bench PC) to CPU 1."""
+    import os
+    previous = os.sched_getaffinity(0)
+    if one_core:
+        os.sched_setaffinity(0, {0})
     emu = Emulator(scn.load("paper-bench"), speedup=0.0)
     # put the plant at OP1 with injection, as the firmware would after the service's setpoints
     ph.steady_state_init(emu.plant.x, emu.params, 2.5, 2000.0, 12.0)
@@ -58,7 +64,8 @@ def emulator_factor(seconds: float = 3.0) -> float:
     emu.drive.torque_nm = 2.5
     emu.drive.inj_mode = 1
     emu.drive.theta = theta_from_gamma_delta(math.radians(3), math.radians(280))
-    reader = subprocess.Popen(["sh", "-c", f"exec cat {emu.daq.name} > /dev/null 2>&1"])
+    pin = "taskset -c 1 " if one_core and len(previous) > 1 else ""
+    reader = subprocess.Popen(["sh", "-c", f"exec {pin}cat {emu.daq.name} > /dev/null 2>&1"])
     try:
         emu.start()
         time.sleep(0.5)
@@ -69,6 +76,7 @@ def emulator_factor(seconds: float = 3.0) -> float:
         emu.close()
         reader.kill()
         reader.wait()
+        os.sched_setaffinity(0, previous)
     return (s1 - s0) / emu.sample_rate_hz / (t1 - t0)
 
 
@@ -76,6 +84,8 @@ def main() -> None:
     warm_up()
     print(f"physics + frame encoding real-time factor (no pty): {physics_factor():.0f}")
     print(f"emulator real-time factor (physics + DAQ encode + pty): {emulator_factor():.0f}")
+    print(f"emulator real-time factor, emulator pinned to one core (reader on the other): "
+          f"{emulator_factor(one_core=True):.0f}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,43 @@
+"""Settings: TOML + environment overrides; the README's bench example is valid; bad settings say what is wrong."""
+import re
+from pathlib import Path
+
+import pytest
+
+from service.settings import SettingsError, load_settings
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def test_readme_bench_example_is_valid(tmp_path):
+    block = re.search(r"```toml\n(.*?)```", README.read_text(), re.S).group(1)
+    (tmp_path / "bench.toml").write_text(block)
+    s = load_settings(tmp_path / "bench.toml", environ={})
+    assert s.can.interface == "socketcan" and s.daq.url == "/dev/ttyUSB0" and s.motor.pole_pairs == 4
+
+
+def test_environment_overrides_file(tmp_path):
+    (tmp_path / "s.toml").write_text('[can]\nchannel = "can0"\n')
+    s = load_settings(tmp_path / "s.toml", environ={"RIPPLECAL_CAN__CHANNEL": "can1", "RIPPLECAL_SERVER__PORT": "8001"})
+    assert s.can.channel == "can1" and s.server.port == 8001
+
+
+def test_defaults_bind_loopback_and_emulate():
+    s = load_settings(environ={})
+    assert s.server.host == "127.0.0.1" and s.bench_mode == "emulate" and s.can.host == "127.0.0.1"
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("[can]\nchanel = 'can0'\n", "can.chanel"),              # misspelt key
+    ("[motor]\npole_pairs = 0\n", "motor.pole_pairs"),      # out of range
+    ("[motor\n", "not valid TOML"),
+])
+def test_bad_settings_name_the_problem(tmp_path, text, needle):
+    (tmp_path / "s.toml").write_text(text)
+    with pytest.raises(SettingsError, match=re.escape(needle)):
+        load_settings(tmp_path / "s.toml", environ={})
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(SettingsError, match="does not exist"):
+        load_settings(tmp_path / "nope.toml", environ={})
