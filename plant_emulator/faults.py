@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import json
 import logging
-import selectors
-import socket
 import threading
 
 import numpy as np
+
+from .tcp_server import TcpServer
 
 log = logging.getLogger(__name__)
 
@@ -171,79 +171,23 @@ def _rate(cmd: dict) -> float:
     return rate
 
 
-class ControlServer:
+class ControlServer(TcpServer):
     """JSON-lines control socket on 127.0.0.1 (port 0: a free one)."""
 
+    max_line_bytes = MAX_LINE_BYTES
+    log = log
+
     def __init__(self, faults: FaultState, port: int = 0):
+        super().__init__("control", port=port)
         self.faults = faults
-        self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._listen.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._listen.bind(("127.0.0.1", port))
-        self._listen.listen(4)
-        self._listen.setblocking(False)
-        self.port = self._listen.getsockname()[1]
-        self._sel = selectors.DefaultSelector()
-        self._sel.register(self._listen, selectors.EVENT_READ)
-        self._buffers: dict[socket.socket, bytes] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="control", daemon=True)
 
     @property
     def url(self) -> str:
         return f"tcp://127.0.0.1:{self.port}"
 
-    def start(self) -> "ControlServer":
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
-        for sock in list(self._buffers):
-            _close(sock)
-        _close(self._listen)
-        self._sel.close()
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            try:
-                events = self._sel.select(timeout=0.1)
-            except OSError:
-                break
-            for key, _ in events:
-                sock = key.fileobj
-                if sock is self._listen:
-                    try:
-                        conn, _ = self._listen.accept()
-                    except OSError:
-                        continue
-                    conn.setblocking(True)
-                    conn.settimeout(2.0)
-                    self._buffers[conn] = b""
-                    self._sel.register(conn, selectors.EVENT_READ)
-                else:
-                    self._read(sock)
-
-    def _read(self, sock: socket.socket) -> None:
-        try:
-            data = sock.recv(4096)
-        except OSError:
-            data = b""
-        if not data:
-            self._drop(sock)
+    def handle_line(self, sock, line: bytes) -> None:
+        if not line.strip():
             return
-        buf = self._buffers.get(sock, b"") + data
-        while b"\n" in buf:
-            line, buf = buf.split(b"\n", 1)
-            if line.strip():
-                self._reply(sock, line)
-        if len(buf) > MAX_LINE_BYTES:
-            self._reply_obj(sock, {"ok": False, "error": "line too long"})
-            buf = b""
-        self._buffers[sock] = buf
-
-    def _reply(self, sock, line: bytes) -> None:
         try:
             cmd = json.loads(line)
         except ValueError as exc:
@@ -256,23 +200,8 @@ class ControlServer:
             reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         self._reply_obj(sock, reply)
 
+    def line_too_long(self, sock) -> None:
+        self._reply_obj(sock, {"ok": False, "error": "line too long"})
+
     def _reply_obj(self, sock, obj: dict) -> None:
-        try:
-            sock.sendall((json.dumps(obj) + "\n").encode())
-        except OSError:
-            self._drop(sock)
-
-    def _drop(self, sock) -> None:
-        self._buffers.pop(sock, None)
-        try:
-            self._sel.unregister(sock)
-        except (KeyError, ValueError, OSError):
-            pass
-        _close(sock)
-
-
-def _close(sock) -> None:
-    try:
-        sock.close()
-    except OSError:
-        pass
+        self.send(sock, json.dumps(obj) + "\n")

@@ -52,9 +52,10 @@ import math
 import numpy as np
 from numba import njit
 
+from drivers.daq_protocol import CRC_TABLE, FLAG_OVER_RANGE, FLAG_SYNC_INPUT, FRAME_BYTES, FRAME_DTYPE
+
 SQRT3 = math.sqrt(3.0)
 TWO_PI = 2.0 * math.pi
-FRAME_BYTES = 12
 
 # ---- parameter vector (truth, firmware nominal, sensor, load, inverter, table offsets) ----
 P_TS = 0            # s, control period
@@ -176,21 +177,8 @@ TR_UQ_DT = 15
 N_TRACE = 16
 
 OMEGA_RECOMPUTE_RAD_S = 0.05  # electrical rad/s change that triggers a new matrix exponential
-SYNC_FLAG = 1 << 2
-OVER_RANGE_FLAG = 1 << 0
-
-
-def _crc_table() -> np.ndarray:
-    table = np.zeros(256, dtype=np.uint16)
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-        table[byte] = crc & 0xFFFF
-    return table
-
-
-CRC_TABLE = _crc_table()
+SYNC_FLAG = FLAG_SYNC_INPUT
+OVER_RANGE_FLAG = FLAG_OVER_RANGE
 
 
 # ------------------------------------------------------------------------------------------------
@@ -423,6 +411,17 @@ def _crc_byte(crc, byte):
     return ((crc << 8) & 0xFFFF) ^ CRC_TABLE[((crc >> 8) ^ byte) & 0xFF]
 
 
+@njit(cache=True, inline="always")
+def _store_chunk_sums(summary, row, s_ud, s_uq, s_te, s_w, s_tl, n_over):
+    """The per-chunk sums of one finished chunk into its summary row."""
+    summary[row, Y_UD_SUM] = s_ud
+    summary[row, Y_UQ_SUM] = s_uq
+    summary[row, Y_TORQUE_EST_SUM] = s_te
+    summary[row, Y_OMEGA_SUM] = s_w
+    summary[row, Y_LOAD_TORQUE_SUM] = s_tl
+    summary[row, Y_OVER_RANGE] = n_over
+
+
 @njit(cache=True)
 def _interp_tab(tab, off, n, col, xq):
     """Linear interpolation of column `col` (0: axis) of a table stored column-wise at tab[off:],
@@ -636,13 +635,7 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
             rot_c = math.cos(half)
             rot_s = math.sin(half)
             if k > 0:
-                row = k // chunk - 1
-                summary[row, Y_UD_SUM] = s_ud
-                summary[row, Y_UQ_SUM] = s_uq
-                summary[row, Y_TORQUE_EST_SUM] = s_te
-                summary[row, Y_OMEGA_SUM] = s_w
-                summary[row, Y_LOAD_TORQUE_SUM] = s_tl
-                summary[row, Y_OVER_RANGE] = n_over
+                _store_chunk_sums(summary, k // chunk - 1, s_ud, s_uq, s_te, s_w, s_tl, n_over)
             summary[k // chunk, Y_ID_REF] = id_ref
             summary[k // chunk, Y_IQ_REF] = iq_ref
             s_ud = s_uq = s_te = s_w = s_tl = 0.0
@@ -912,14 +905,8 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
             phi += TWO_PI
         w_m = w_new
 
-    row = (n - 1) // chunk
     if n > 0:
-        summary[row, Y_UD_SUM] = s_ud
-        summary[row, Y_UQ_SUM] = s_uq
-        summary[row, Y_TORQUE_EST_SUM] = s_te
-        summary[row, Y_OMEGA_SUM] = s_w
-        summary[row, Y_LOAD_TORQUE_SUM] = s_tl
-        summary[row, Y_OVER_RANGE] = n_over
+        _store_chunk_sums(summary, (n - 1) // chunk, s_ud, s_uq, s_te, s_w, s_tl, n_over)
     x[X_ID] = i_d
     x[X_IQ] = i_q
     x[X_UD_APP] = ud_app
@@ -1013,10 +1000,6 @@ def steady_state_init(x: np.ndarray, p: np.ndarray, torque_nm: float, speed_rpm:
     x[X_INT_Q] = uq - w_e * (p[P_LD_NOM] * i_d + p[P_PSI_NOM])
     t_em = 1.5 * p[P_NP] * (psi * i_q + (ld - lq) * i_d * i_q)
     x[X_LOAD_INT] = -t_em + p[P_B] * w_m
-
-
-FRAME_DTYPE = np.dtype([("sync0", "u1"), ("sync1", "u1"), ("seq", "<u2"), ("angle", "<u2"), ("accel", "<i2"),
-                        ("flags", "<u2"), ("crc", "<u2")])
 
 
 class Plant:

@@ -22,10 +22,10 @@ from __future__ import annotations
 import logging
 import random
 import re
-import selectors
-import socket
 import threading
 from collections import deque
+
+from .tcp_server import TcpServer
 
 log = logging.getLogger(__name__)
 
@@ -138,93 +138,21 @@ def _match(header: str, pattern: str) -> bool:
     return re.fullmatch(pattern, header) is not None
 
 
-class ScpiServer:
+class ScpiServer(TcpServer):
     """Line-based SCPI over TCP for one DcSupply; any number of clients, one thread."""
 
+    max_line_bytes = MAX_LINE_BYTES
+    log = log
+
     def __init__(self, supply: DcSupply, host: str = "127.0.0.1", port: int = 0):
+        super().__init__("scpi-supply", host=host, port=port)
         self.supply = supply
-        self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._listen.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._listen.bind((host, port))
-        self._listen.listen(4)
-        self._listen.setblocking(False)
-        self.host, self.port = self._listen.getsockname()[:2]
-        self._sel = selectors.DefaultSelector()
-        self._sel.register(self._listen, selectors.EVENT_READ)
-        self._buffers: dict[socket.socket, bytearray] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="scpi-supply", daemon=True)
 
     @property
     def url(self) -> str:
         return f"socket://{self.host}:{self.port}"
 
-    def start(self) -> "ScpiServer":
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
-        for sock in list(self._buffers):
-            sock.close()
-        self._buffers.clear()
-        self._listen.close()
-        self._sel.close()
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            try:
-                events = self._sel.select(timeout=0.1)
-            except OSError:
-                break
-            for key, _ in events:
-                sock = key.fileobj
-                if sock is self._listen:
-                    try:
-                        conn, _ = self._listen.accept()
-                    except OSError:
-                        continue
-                    conn.settimeout(2.0)
-                    self._buffers[conn] = bytearray()
-                    self._sel.register(conn, selectors.EVENT_READ)
-                    continue
-                try:
-                    self._read(sock)
-                except Exception:
-                    log.exception("SCPI: client error")
-                    self._drop(sock)
-
-    def _read(self, sock: socket.socket) -> None:
-        try:
-            data = sock.recv(4096)
-        except (socket.timeout, BlockingIOError):
-            return
-        except OSError:
-            data = b""
-        if not data:
-            self._drop(sock)
-            return
-        buf = self._buffers[sock]
-        buf += data
-        while True:
-            nl = buf.find(b"\n")
-            if nl < 0:
-                if len(buf) > MAX_LINE_BYTES:
-                    log.warning("SCPI: over-long line dropped")
-                    buf.clear()
-                break
-            line = bytes(buf[:nl]).decode("ascii", errors="replace").strip("\r ")
-            del buf[:nl + 1]
-            replies = self.supply.handle_line(line)
-            if replies:
-                sock.sendall(("\n".join(replies) + "\n").encode("ascii"))
-
-    def _drop(self, sock) -> None:
-        self._buffers.pop(sock, None)
-        try:
-            self._sel.unregister(sock)
-        except (KeyError, ValueError):
-            pass
-        sock.close()
+    def handle_line(self, sock, line: bytes) -> None:
+        replies = self.supply.handle_line(line.decode("ascii", errors="replace").strip("\r "))
+        if replies:
+            self.send(sock, "\n".join(replies) + "\n")

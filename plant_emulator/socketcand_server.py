@@ -21,18 +21,18 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
-import selectors
 import socket
 import threading
 import time
 
 import can
 
+from .tcp_server import TcpServer
+
 log = logging.getLogger(__name__)
 
 MAX_LINE_CHARS = 512
 RAW_GRACE_S = 0.2
-SEND_TIMEOUT_S = 2.0
 
 
 class _Client:
@@ -101,49 +101,25 @@ def parse_send(body: str) -> can.Message:
     return can.Message(arbitration_id=can_id, is_extended_id=extended, data=data, dlc=dlc)
 
 
-class SocketcandServer:
+class SocketcandServer(TcpServer):
     """socketcand on host:port (port 0: pick a free one), bridged to virtual bus `bus_channel`."""
+
+    log = log
 
     def __init__(self, bus_channel: str, host: str = "127.0.0.1", port: int = 0, channel: str = "can0"):
         self.channel = channel
         self.bus = can.Bus(interface="virtual", channel=bus_channel, receive_own_messages=False)
-        self._listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._listen.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._listen.bind((host, port))
-        self._listen.listen(8)
-        self._listen.setblocking(False)
-        self.host, self.port = self._listen.getsockname()[:2]
-        self._clients: dict[socket.socket, _Client] = {}
-        self._clients_lock = threading.Lock()
-        self._sel = selectors.DefaultSelector()
-        self._sel.register(self._listen, selectors.EVENT_READ)
-        self._stop = threading.Event()
+        super().__init__("socketcand-serve", host=host, port=port, backlog=8)
         # fault hook: can_id -> seconds to hold a frame the emulator sends (0: none); held frames keep
         # their order among themselves
         self.delay_for = None
         self._held: list[tuple[float, int, can.Message]] = []
         self._held_seq = itertools.count()
-        self._threads = [threading.Thread(target=self._serve, name="socketcand-serve", daemon=True),
-                         threading.Thread(target=self._pump, name="socketcand-pump", daemon=True)]
+        self._threads.append(threading.Thread(target=self._pump, name="socketcand-pump", daemon=True))
 
     # -- lifecycle ---------------------------------------------------------------------------------
-    def start(self) -> "SocketcandServer":
-        for t in self._threads:
-            t.start()
-        return self
-
     def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            if t.is_alive():
-                t.join(timeout=2.0)
-        with self._clients_lock:
-            clients = list(self._clients.values())
-            self._clients.clear()
-        for c in clients:
-            _close_quietly(c.sock)
-        _close_quietly(self._listen)
-        self._sel.close()
+        super().close()
         self.bus.shutdown()
 
     @property
@@ -151,53 +127,20 @@ class SocketcandServer:
         with self._clients_lock:
             return len(self._clients)
 
-    # -- threads -----------------------------------------------------------------------------------
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            try:
-                events = self._sel.select(timeout=0.1)
-            except OSError:
-                break
-            for key, _ in events:
-                sock = key.fileobj
-                try:
-                    if sock is self._listen:
-                        self._accept()
-                    else:
-                        self._read(sock)
-                except Exception:  # never let one client take the server down
-                    log.exception("socketcand: error while serving a client")
-                    self._drop(sock)
-            self._reap()
-
-    def _accept(self) -> None:
-        try:
-            sock, addr = self._listen.accept()
-        except (BlockingIOError, OSError):
-            return
-        sock.setblocking(True)
-        sock.settimeout(SEND_TIMEOUT_S)
+    # -- selector thread (TcpServer hooks) ---------------------------------------------------------
+    def on_accept(self, sock: socket.socket, addr) -> _Client:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         client = _Client(sock, addr)
-        with self._clients_lock:
-            self._clients[sock] = client
-        self._sel.register(sock, selectors.EVENT_READ)
         log.info("socketcand: client %s connected", addr)
         client.send_text("< hi >")
+        return client
 
-    def _read(self, sock: socket.socket) -> None:
+    def on_readable(self, sock: socket.socket) -> None:
         client = self._clients.get(sock)
         if client is None:
             return
-        try:
-            data = sock.recv(4096)
-        except (socket.timeout, BlockingIOError):
-            return
-        except OSError:
-            data = b""
-        if not data:
-            log.info("socketcand: client %s disconnected", client.addr)
-            self._drop(sock)
+        data = self.recv(sock)
+        if data is None:
             return
         client.rx += data.decode("ascii", errors="replace")
         while True:
@@ -220,6 +163,19 @@ class SocketcandServer:
             body = client.rx[start + 1:end].strip()
             client.rx = client.rx[end + 1:]
             self._command(client, body)
+
+    def client_closed(self, sock: socket.socket) -> None:
+        client = self._clients.get(sock)
+        if client is not None:
+            log.info("socketcand: client %s disconnected", client.addr)
+        super().client_closed(sock)
+
+    def after_events(self) -> None:
+        self._reap()
+
+    def on_drop(self, sock: socket.socket, client: _Client | None) -> None:
+        if client is not None:
+            client.dead = True
 
     def _command(self, client: _Client, body: str) -> None:
         word = body.split(" ", 1)[0] if body else ""
@@ -293,22 +249,4 @@ class SocketcandServer:
         with self._clients_lock:
             dead = [s for s, c in self._clients.items() if c.dead]
         for s in dead:
-            self._drop(s)
-
-    def _drop(self, sock) -> None:
-        with self._clients_lock:
-            client = self._clients.pop(sock, None)
-        if client is not None:
-            client.dead = True
-        try:
-            self._sel.unregister(sock)
-        except (KeyError, ValueError, OSError):
-            pass
-        _close_quietly(sock)
-
-
-def _close_quietly(sock) -> None:
-    try:
-        sock.close()
-    except OSError:
-        pass
+            self.drop(s)
