@@ -96,6 +96,22 @@ class DecodedSamples:
     def __len__(self) -> int:
         return len(self.index)
 
+    FIELDS = ("index", "angle_rad", "accel_fs", "flags", "gap_before")
+
+    def slice(self, start: int, stop: int | None = None) -> "DecodedSamples":
+        return DecodedSamples(*(getattr(self, name)[start:stop] for name in self.FIELDS))
+
+    @classmethod
+    def concat(cls, blocks: list["DecodedSamples"]) -> "DecodedSamples":
+        """Blocks joined in order (one block is returned as is)."""
+        if len(blocks) == 1:
+            return blocks[0]
+        return cls(*(np.concatenate([getattr(b, name) for b in blocks]) for name in cls.FIELDS))
+
+    @classmethod
+    def empty(cls) -> "DecodedSamples":
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, bool))
+
 
 @dataclass
 class DecoderCounters:
@@ -122,7 +138,7 @@ class FrameDecoder:
         n = len(arr)
         if n < FRAME_BYTES:
             self._pending = buf
-            return _empty()
+            return DecodedSamples.empty()
         # candidate frame starts: every sync pattern with a whole frame after it
         cand = np.flatnonzero((arr[: n - FRAME_BYTES + 1] == 0xA5) & (arr[1 : n - FRAME_BYTES + 2] == 0x5A))
         rows = arr[cand[:, None] + np.arange(FRAME_BYTES)] if len(cand) else np.zeros((0, FRAME_BYTES), np.uint8)
@@ -149,7 +165,7 @@ class FrameDecoder:
             self.counters.resyncs += 1
         if not len(starts):
             self._bad_since_last = self._bad_since_last or skipped > 0
-            return _empty()
+            return DecodedSamples.empty()
         frames = np.frombuffer(buf, dtype=np.uint8)[starts[:, None] + np.arange(FRAME_BYTES)].copy().view(FRAME_DTYPE).ravel()
         seq = frames["seq"].astype(np.int64)
         prev = np.empty_like(seq)
@@ -190,7 +206,3 @@ def _non_overlapping(starts: np.ndarray) -> np.ndarray:
         if s >= kept[-1] + FRAME_BYTES:
             kept.append(int(s))
     return np.asarray(kept, dtype=starts.dtype)
-
-
-def _empty() -> DecodedSamples:
-    return DecodedSamples(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, bool))

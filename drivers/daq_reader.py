@@ -16,7 +16,6 @@ import dataclasses
 import threading
 import time
 
-import numpy as np
 import serial
 
 from drivers.daq_protocol import FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
@@ -32,23 +31,6 @@ COALESCE_MAX_BYTES = 1 << 18
 
 DEFAULT_BAUDRATE = 2_000_000
 """16 kHz x 12 bytes x 10 bit = 1.92 Mbit/s; ignored by ptys, sockets and USB CDC devices."""
-
-_FIELDS = ("index", "angle_rad", "accel_fs", "flags", "gap_before")
-
-
-def concat_samples(blocks: list[DecodedSamples]) -> DecodedSamples:
-    """Concatenate blocks in order (one block is returned as is)."""
-    if len(blocks) == 1:
-        return blocks[0]
-    return DecodedSamples(*(np.concatenate([getattr(b, name) for b in blocks]) for name in _FIELDS))
-
-
-def empty_samples() -> DecodedSamples:
-    return DecodedSamples(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, bool))
-
-
-def slice_samples(block: DecodedSamples, start: int, stop: int | None = None) -> DecodedSamples:
-    return DecodedSamples(*(getattr(block, name)[start:stop] for name in _FIELDS))
 
 
 class DaqReader:
@@ -234,7 +216,7 @@ class DaqReader:
     def _take(self, n: int) -> DecodedSamples:
         """Pop exactly n samples (caller holds the lock and has checked that n are buffered)."""
         if n == 0:
-            return empty_samples()
+            return DecodedSamples.empty()
         parts: list[DecodedSamples] = []
         needed = n
         while needed:
@@ -243,12 +225,12 @@ class DaqReader:
                 parts.append(self._blocks.popleft())
                 needed -= len(head)
             else:
-                parts.append(slice_samples(head, 0, needed))
-                self._blocks[0] = slice_samples(head, needed)
+                parts.append(head.slice(0, needed))
+                self._blocks[0] = head.slice(needed)
                 needed = 0
         self._buffered -= n
         self._samples_delivered += n
-        return concat_samples(parts)
+        return DecodedSamples.concat(parts)
 
     def discard_buffered(self, flush_port: bool = False) -> int:
         """Drop every queued sample (e.g. stale data from before a setpoint); returns how many.

@@ -158,7 +158,7 @@ class Bench:
                 session = OperatingPointSession(self, self.cursor, harmonic_order, s.daq.sample_rate_hz,
                                                 s.motor.pole_pairs, sync_input=s.daq.sync_input,
                                                 no_sync_settle_s=s.daq.no_sync_settle_s)
-                self._go_to(op, harmonic_order, session)
+                self._go_to(op, harmonic_order)
                 session.op_settle_plant_s = session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
                 yield session
@@ -169,8 +169,7 @@ class Bench:
                     self.busy = False
                     self._gamma_max_rad = None
 
-    def _go_to(self, op: OperatingPoint, harmonic_order: int, session: OperatingPointSession) -> None:
-        s = self.settings
+    def _go_to(self, op: OperatingPoint, harmonic_order: int) -> None:
         self.supply.set_voltage(op.udc_v)
         self.supply.output(True)
         self._wait_supply(op.udc_v)

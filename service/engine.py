@@ -8,6 +8,7 @@ bench is left safe (torque off, injection off) in every case.
 """
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -15,9 +16,10 @@ import traceback
 from dataclasses import dataclass, field
 from enum import Enum
 
-from service.bench import LimitError
 from service.events import EventBroker
-from service.identify import identify_at, public_result, result_row
+from service import __version__
+from service.bench import check_limits
+from service.identify import identify_at, parse_options, public_result, result_row
 from service.maps import build_map_from_sweep
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
@@ -105,7 +107,6 @@ class Engine:
 
     # --- submitting --------------------------------------------------------------------------------------
     def submit_identification(self, op: OperatingPoint, method: str, options) -> int:
-        from service.bench import check_limits
         check_limits(op, self.settings)                     # refuse before anything is queued
         job_id = self.storage.create_job("identification", {"operating_point": op.model_dump(), "method": method,
                                                              "options": options.model_dump()})
@@ -117,7 +118,6 @@ class Engine:
     def submit_sweep(self, grid: Grid, method: str, options) -> int:
         plan = SweepPlan.from_grid(grid)
         plan.dry_run(self.settings)                         # every setpoint checked before the first frame
-        from service import __version__
         sweep_id = self.storage.create_sweep(method, self.settings.identification.harmonic_order, grid.model_dump(),
                                              options.model_dump(), len(plan.points), self.bench.identity, __version__)
         job_id = self.storage.create_job("sweep", {"sweep_id": sweep_id}, sweep_id=sweep_id)
@@ -214,8 +214,6 @@ class Engine:
             self._publish_job(job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
-        import json
-        from service.identify import parse_options
         req = json.loads(job["request_json"])
         op = OperatingPoint.model_validate(req["operating_point"])
         options = parse_options(req["method"], req["options"])
@@ -238,8 +236,6 @@ class Engine:
         self.storage.update_job(job_id, result_id=rid)
 
     def _run_sweep(self, job_id: int, sweep_id: int) -> None:
-        import json
-        from service.identify import parse_options
         sweep = self.storage.get_sweep(sweep_id)
         ctl = self._controls[sweep_id]
         grid = Grid.model_validate(json.loads(sweep["grid_json"]))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 import re
 import struct
 import zlib
@@ -124,7 +123,7 @@ def export_dcm(m: dict) -> str:
             plane = _grid_values(m, key)[k]
             out += [f"KENNFELD RIPPLECAL_H{m['harmonic_order']}_{name}_U{udc:g}V".replace(".", "P") + f" {nt} {nn}",
                     f'   LANGNAME "{name.lower()} at U_dc = {udc:g} V"',
-                    f'   EINHEIT_X "Nm"', f'   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"-" if key == "valid" else "rad"}"',
+                    '   EINHEIT_X "Nm"', '   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"-" if key == "valid" else "rad"}"',
                     "   ST/X   " + "   ".join(f"{t:g}" for t in axes["torque_nm"])]
             for j, speed in enumerate(axes["speed_rpm"]):
                 out += [f"   ST/Y   {speed:g}", "   WERT   " + "   ".join(f"{v:.9g}" for v in plane[j])]

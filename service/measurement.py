@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
-from drivers.daq_reader import concat_samples as _concat, slice_samples as _slice
 from service.harmonic import electrical_frequency_hz, phasor
 from service.identification.session import Window
 
@@ -93,8 +92,8 @@ class OperatingPointSession:
         if cancel is not None and cancel.is_set():
             raise RunCancelled("run cancelled")
         if self._pending is not None and len(self._pending):
-            take = _slice(self._pending, 0, n)
-            rest = _slice(self._pending, n)
+            take = self._pending.slice(0, n)
+            rest = self._pending.slice(n)
             self._pending = rest if len(rest) else None
             return take
         return self.cursor.read(n).samples
@@ -106,10 +105,10 @@ class OperatingPointSession:
             part = self._next(n - have)
             parts.append(part)
             have += len(part)
-        return _concat(parts)
+        return DecodedSamples.concat(parts)
 
     def _push_back(self, s: DecodedSamples) -> None:
-        self._pending = s if self._pending is None else _concat([s, self._pending])
+        self._pending = s if self._pending is None else DecodedSamples.concat([s, self._pending])
 
     def wait_for_effect(self, max_plant_s: float = 10.0) -> int:
         """Consume the stream up to the sample at which the last expected setpoint took effect.
@@ -133,7 +132,7 @@ class OperatingPointSession:
             if len(chunk.toggle_offsets) >= missing > 0:
                 offset = int(chunk.toggle_offsets[missing - 1])
                 self.stale_samples += offset
-                self._push_back(_slice(chunk.samples, offset))
+                self._push_back(chunk.samples.slice(offset))
                 self._segment_start = int(chunk.samples.index[offset])
                 return self._segment_start
             if missing <= 0:
@@ -202,8 +201,8 @@ class OperatingPointSession:
                 reasons["setpoint change inside the window"] += int(setpoint_changed.any())
                 continue
             p = phasor(s.accel_fs, s.angle_rad, self.harmonic_order, periods)
-            used = _slice(s, 0, p.samples)
-            self._push_back(_slice(s, p.samples))
+            used = s.slice(0, p.samples)
+            self._push_back(s.slice(p.samples))
             return Window(p, used.accel_fs, used.angle_rad, self.plant_time_s)
         why = ", ".join(f"{k} in {v}" for k, v in reasons.items() if v)
         raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid: {why}")

@@ -4,8 +4,6 @@ Issue 2's acceptance: adaptive identification at OP1 {2.5 Nm, 2000 rpm} suppress
 harmonic by >= 30 dB; a grid search agrees within half a grid step; a 3 x 3 sweep completes and its
 map exports as CSV and as a C header that gcc compiles; tokens and validation on the API.
 """
-import json
-import math
 import shutil
 import subprocess
 import time

@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from service.identification.common import measure_uncompensated, spectrum_traces, verify
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
-from service.secondary_path import theta_from_gamma_delta, theta_complex, theta_parts
+from service.secondary_path import theta_from_gamma_delta, theta_parts
 
 
 class GridOptions(BaseModel):
