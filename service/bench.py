@@ -178,6 +178,7 @@ class Bench:
         self.drive.enable()
         self.drive.set_gamma_max_rad(self._gamma_max_rad)
         self.drive.set_harmonic_order(harmonic_order)
+        self.drive.set_decoupling(self.settings.identification.decoupling)
         self.drive.set_injection(0.0, 0.0)
         self.drive.set_injection_mode("manual")
         self.drive.set_torque_nm(op.torque_nm)

@@ -27,7 +27,9 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
     h = settings.identification.harmonic_order
     gamma_max_rad = math.radians(getattr(options, "gamma_max_deg", None) or settings.identification.gamma_max_deg)
     gamma_max_rad = min(gamma_max_rad, math.radians(settings.identification.gamma_max_deg))
-    s_hat = model_secondary_path(settings, op, h)
+    ident = settings.identification
+    closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
+    s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop)
     with bench.operating_point(op, h, gamma_max_rad) as session:
         if method == "adaptive":
             result = identify_adaptive(session, s_hat, options, gamma_max_rad)

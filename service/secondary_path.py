@@ -12,6 +12,15 @@ Model (paper eq. 14-20, DESIGN section 3), evaluated at w = h*omega_e:
 
 S is returned in units of sensor full scale per rad (the DAQ reports alpha / full scale).
 
+Two extensions of the paper's model (both reduce to eq. 14-20 where the paper's assumptions hold):
+- G_EM,m is the small-signal torque gain [1.5 N_p (L_d - L_q) i_q, 1.5 N_p (psi_p + (L_d - L_q) i_d)],
+  which is eq. 20's [0, k_T] for L_d = L_q;
+- current_loop=True closes the nominal PI current control (K_p = w_bw L, K_i = w_bw R_s, the same
+  delay) around the machine, G_EM,e -> (I + G_EM,e e^{-sT_d} C(s))^-1 G_EM,e: what the injected harmonic
+  sees on a drive WITHOUT decoupling (paper sec. 2.4: the nominal control counteracts the injection).
+  Without it the model is 20-60 deg off such a drive at 400-800 Hz; with decoupling (sec. 3.1) the
+  nominal control does not see the injected currents and eq. 14-20 holds as written.
+
 Complex form used throughout the service: with Theta = theta_cos - j*theta_sin = gamma*exp(j*delta)
 and A = a_c - j*a_s (the harmonic phasor, DESIGN section 3), the steady state (eq. 15) is
     A = S * (Theta_d + Theta),
@@ -38,7 +47,7 @@ def g_salpha(s: complex, inertia_kg_m2: float, zero_rad_s: float, pole_re_rad_s:
 
 
 def model_secondary_path(settings: Settings, op: OperatingPoint, harmonic_order: int,
-                         steady: SteadyState | None = None) -> complex:
+                         steady: SteadyState | None = None, current_loop: bool = False) -> complex:
     """S(j h omega_e) of eq. 14 in full-scale units per rad, from the nominal parameters."""
     motor, ctrl, mech = settings.motor, settings.control, settings.mechanics
     steady = steady or nominal_steady_state(op, motor)
@@ -48,9 +57,14 @@ def model_secondary_path(settings: Settings, op: OperatingPoint, harmonic_order:
                   [-steady.omega_e_rad_s * motor.l_d_h / motor.l_q_h, -motor.r_s_ohm / motor.l_q_h]])
     b = np.diag([1.0 / motor.l_d_h, 1.0 / motor.l_q_h])
     g_em_e = np.linalg.solve(s * np.eye(2) - a, b)                       # eq. 19
-    k_t = 1.5 * motor.pole_pairs * motor.psi_p_vs                         # eq. 20
-    g_em_m = np.array([0.0, k_t])
     t_d = ctrl.delay_periods / ctrl.control_rate_hz                      # eq. 17
+    if current_loop:
+        w_bw = 2.0 * math.pi * ctrl.bandwidth_hz
+        c = np.diag([w_bw * motor.l_d_h + w_bw * motor.r_s_ohm / s, w_bw * motor.l_q_h + w_bw * motor.r_s_ohm / s])
+        g_em_e = np.linalg.solve(np.eye(2) + g_em_e @ c * cmath.exp(-s * t_d), g_em_e)
+    reluctance = motor.l_d_h - motor.l_q_h
+    g_em_m = 1.5 * motor.pole_pairs * np.array([reluctance * steady.i_q_a,
+                                                motor.psi_p_vs + reluctance * steady.i_d_a])   # eq. 20 for L_d = L_q
     g_comp = np.array([-steady.u_q_v, steady.u_d_v])                      # eq. 10
     torque_per_rad = g_em_m @ g_em_e @ g_comp * cmath.exp(-s * t_d)
     alpha_per_rad = g_salpha(s, mech.inertia_kg_m2, mech.zero_rad_s, mech.pole_re_rad_s, mech.pole_im_rad_s) * torque_per_rad

@@ -76,6 +76,10 @@ class MechanicsSettings(_Section):
 class IdentificationSettings(_Section):
     harmonic_order: int = Field(6, ge=1, le=60)
     gamma_max_deg: float = Field(15.0, gt=0, le=45)
+    decoupling: bool = Field(False, description="run the drive with decoupling of nominal control and injection (sec. 3.1)")
+    s_model: Literal["auto", "paper", "closed_loop"] = Field(
+        "auto", description="S_hat: eq. 14-20 as written (paper), with the nominal current loop closed around the "
+                            "machine (closed_loop), or auto: closed_loop unless the drive decouples")
 
 
 class SafetySettings(_Section):

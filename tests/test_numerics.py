@@ -100,3 +100,24 @@ def test_phasor_refuses_short_record():
     phi = np.linspace(0, 1, 100)
     with pytest.raises(ValueError, match="fewer than"):
         phasor(np.zeros(100), phi, 6, 10)
+
+
+def test_secondary_path_with_current_loop_closed_form(settings):
+    """Closed current loop for L_d = L_q = L, derived by hand: with D = L (s + R/L) + e^{-sT_d} (K_p + K_i/s),
+    K_p = w_bw L, K_i = w_bw R, the q current per rad of injection is (L w_e u_q + D u_d) / (D^2 + L^2 w_e^2)."""
+    m, c, mech = settings.motor, settings.control, settings.mechanics
+    op = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+    ss = nominal_steady_state(op, m)
+    h, w_e, L, R = 6, ss.omega_e_rad_s, m.l_d_h, m.r_s_ohm
+    s = 1j * h * w_e
+    delay = cmath.exp(-s * c.delay_periods / c.control_rate_hz)
+    w_bw = 2 * math.pi * c.bandwidth_hz
+    d = L * (s + R / L) + delay * (w_bw * L + w_bw * R / s)
+    iq_per_rad = (L * w_e * ss.u_q_v + d * ss.u_d_v) / (d ** 2 + (L * w_e) ** 2)
+    z, p = mech.zero_rad_s, complex(mech.pole_re_rad_s, mech.pole_im_rad_s)
+    gsa = (1 / mech.inertia_kg_m2) * (abs(p) ** 2 / -z) * (s - z) / ((s - p) * (s - p.conjugate()))
+    expected = gsa * 1.5 * m.pole_pairs * m.psi_p_vs * iq_per_rad * delay / settings.daq.accel_full_scale_rad_s2
+    assert model_secondary_path(settings, op, h, current_loop=True) == pytest.approx(expected, rel=1e-9)
+    # the loop turns S by tens of degrees at 800 Hz: what a drive without decoupling shows (issue 3)
+    turn = math.degrees(cmath.phase(expected / model_secondary_path(settings, op, h)))
+    assert 10 < abs(turn) < 60
