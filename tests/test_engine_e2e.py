@@ -1,0 +1,117 @@
+"""The run engine on the emulated bench: cancel leaves the bench safe, pause/resume, a failing
+point is stored as failed and the sweep goes on, corrupted DAQ bytes are discarded and re-measured.
+The service layer runs in this process; plant_emulator is its own process."""
+import json
+import socket
+import time
+
+import pytest
+
+from service.calibration_service import CalibrationService
+from service.identify import parse_options
+from service.measurement import MeasurementError
+from service.operating_point import OperatingPoint
+from service.plans import Grid
+from service.settings import load_settings
+
+pytestmark = pytest.mark.e2e
+OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+
+
+@pytest.fixture(scope="module")
+def svc(tmp_path_factory):
+    settings = load_settings(environ={}, overrides={"server.db_path": str(tmp_path_factory.mktemp("engine") / "e.db")})
+    with CalibrationService(settings) as service:
+        yield service
+
+
+def wait_for(predicate, timeout_s=120.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise TimeoutError("condition not reached")
+
+
+def control(svc, command: dict) -> dict:
+    """A command to the emulator's fault-injection socket (test-only; the service never uses it)."""
+    host, port = svc.emulator.endpoints["control"].removeprefix("tcp://").split(":")
+    with socket.create_connection((host, int(port)), timeout=5) as s:
+        s.sendall((json.dumps(command) + "\n").encode())
+        return json.loads(s.makefile().readline())
+
+
+def bench_is_safe(svc) -> bool:
+    d = svc.bench.drive.read_status()
+    l = svc.bench.load.read_status()
+    return d.state.value != "operation_enabled" and l.state.value != "operation_enabled" and not svc.bench.busy
+
+
+def test_cancel_during_a_grid_search_leaves_the_bench_safe(svc):
+    job_id = svc.engine.submit_identification(OP1, "grid", parse_options("grid", {}))
+    wait_for(lambda: svc.storage.get_job(job_id)["state"] == "running")
+    time.sleep(1.0)                                  # well inside the 360 points
+    svc.engine.cancel_job(job_id)
+    job = wait_for(lambda: (j := svc.storage.get_job(job_id))["state"] in ("cancelled", "done", "failed") and j, 30)
+    assert job["state"] == "cancelled"
+    assert wait_for(lambda: bench_is_safe(svc), 10)
+    # the bench works on after a cancel
+    job_id = svc.engine.submit_identification(OP1, "probe", parse_options("probe", {}))
+    job = wait_for(lambda: (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") and j)
+    assert job["state"] == "done"
+
+
+def test_pause_resume_and_a_failing_point(svc):
+    # 2685 rpm puts the 6th harmonic on the shaft resonance (1074 Hz): the sensor goes over range there
+    grid = Grid(torque_nm=[2.5], speed_rpm=[1500, 2000, 2685], udc_v=[12])
+    sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
+    svc.engine.pause_sweep(sweep_id)
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused")
+    held = svc.storage.get_sweep(sweep_id)["done_points"]
+    time.sleep(1.0)
+    assert svc.storage.get_sweep(sweep_id)["done_points"] == held     # nothing runs while paused
+    assert bench_is_safe(svc)
+    svc.engine.resume_sweep(sweep_id)
+    sweep = wait_for(lambda: (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed") and s)
+    assert sweep["state"] == "done" and sweep["done_points"] == 3 and sweep["failed_points"] == 1
+    rows = {r["speed_rpm"]: r for r in svc.storage.sweep_results(sweep_id)}
+    assert rows[2685.0]["status"] == "failed" and "over-range" in rows[2685.0]["error"]
+    assert rows[1500.0]["status"] == "ok" and rows[2000.0]["status"] == "ok"
+    assert rows[2000.0]["suppression_db"] >= 40
+    assert sweep["map_id"] is not None
+    assert bench_is_safe(svc)
+
+
+def test_corrupted_windows_are_refused_then_measured_again(svc):
+    """DESIGN 5: a window that holds a bad frame or a gap is discarded and measured again."""
+    before = svc.bench.daq.counters
+    with svc.bench.operating_point(OP1, 6) as session:
+        session.apply_theta(0.0, 0.0)
+        clean = session.measure(36).phasor
+        assert control(svc, {"fault": "daq_corrupt", "rate": 1e-3})["ok"]     # every window gets bad frames
+        try:
+            session.apply_theta(0.001, 0.0)
+            with pytest.raises(MeasurementError, match="DAQ gap or bad frame"):
+                session.measure(36)
+        finally:
+            assert control(svc, {"fault": "clear"})["ok"]
+        session.apply_theta(0.0, 0.0)        # its sync toggle lies beyond the corrupted data
+        again = session.measure(36).phasor
+        assert session.windows_discarded >= 5
+    assert abs(again.complex - clean.complex) < 0.02 * abs(clean.complex)
+    assert svc.bench.daq.counters.crc_failures > before.crc_failures
+    assert bench_is_safe(svc)
+
+
+def test_identification_succeeds_through_occasional_bad_frames(svc):
+    assert control(svc, {"fault": "daq_corrupt", "rate": 5e-6})["ok"]      # about 1 bad frame in 17000
+    try:
+        job_id = svc.engine.submit_identification(OP1, "probe", parse_options("probe", {}))
+        job = wait_for(lambda: (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") and j)
+    finally:
+        assert control(svc, {"fault": "clear"})["ok"]
+    assert job["state"] == "done", job
+    assert svc.storage.get_result(job["result_id"])["suppression_db"] >= 40
