@@ -91,7 +91,7 @@ def cmd_identify(args) -> int:
         print(f"identification {job['state']}: {job['error']}", file=sys.stderr)
     else:
         print(f"operating point   {op.label()}")
-        print(f"method            {result['method']} ({result['status']}: {result['details'] and result['details'].get('blocks', '')})")
+        print(f"method            {result['method']} ({result['status']}: {result['message']})")
         print(f"gamma             {result['gamma_deg']:.3f} deg")
         print(f"delta             {result['delta_deg']:.2f} deg")
         print(f"theta             cos {result['theta_cos']:.6f} rad, sin {result['theta_sin']:.6f} rad")
