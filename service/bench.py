@@ -20,7 +20,7 @@ from drivers.daq_reader import DaqReader
 from drivers.dc_supply import ScpiSupply
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
-from service.harmonic import electrical_frequency_hz
+from service.harmonic import mechanical_speed_rpm
 from service.measurement import DaqCursor, OperatingPointSession
 from service.operating_point import OperatingPoint
 from service.settings import Settings
@@ -221,7 +221,7 @@ class Bench:
         block = int(0.02 * self.settings.daq.sample_rate_hz)
         for _ in range(int(timeout_plant_s / 0.02)):
             chunk = self.cursor.read(block).samples
-            f_e = electrical_frequency_hz(chunk.angle_rad, self.settings.daq.sample_rate_hz)
-            if abs(f_e * 60.0 / self.settings.motor.pole_pairs) < below_rpm:
+            speed_rpm = mechanical_speed_rpm(chunk.angle_rad, self.settings.daq.sample_rate_hz, self.settings.motor.pole_pairs)
+            if abs(speed_rpm) < below_rpm:
                 return
         raise BenchError(f"shaft still turning {timeout_plant_s} s (plant time) after the stop command")

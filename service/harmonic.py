@@ -28,6 +28,11 @@ class Phasor:
         return math.hypot(self.a_c, self.a_s)
 
     @property
+    def vector(self) -> np.ndarray:
+        """[a_c, a_s], the real form that S_ss acts on (DESIGN 3)."""
+        return np.array([self.a_c, self.a_s])
+
+    @property
     def complex(self) -> complex:
         """A = a_c - j a_s (so that A = S (Theta_d + Theta), see secondary_path)."""
         return complex(self.a_c, -self.a_s)
@@ -79,6 +84,11 @@ def amplitude_spectrum(alpha_fs: np.ndarray, angle_rad: np.ndarray, max_order: i
     for order in range(1, max_order + 1):
         out.append(phasor(alpha_fs, angle_rad, order, turns * order).amplitude)
     return out
+
+
+def mechanical_speed_rpm(angle_rad: np.ndarray, sample_rate_hz: float, pole_pairs: int) -> float:
+    """Mechanical speed (rpm) seen by the encoder over a record of electrical angles."""
+    return electrical_frequency_hz(angle_rad, sample_rate_hz) * 60.0 / pole_pairs
 
 
 def electrical_frequency_hz(angle_rad: np.ndarray, sample_rate_hz: float) -> float:

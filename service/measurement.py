@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
-from service.harmonic import electrical_frequency_hz, phasor
+from service.harmonic import mechanical_speed_rpm, phasor
 from service.identification.session import Window
 
 BAD_FLAGS = FLAG_OVER_RANGE | FLAG_SENSOR_FAULT
@@ -144,12 +144,17 @@ class OperatingPointSession:
                     f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
                     f"({self.bench.setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
 
+    def _discard_stale(self) -> None:
+        """Without the sync line nothing marks a setpoint's sample: drop what the reader and the port hold."""
+        self._pending = None
+        self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+
     def _settle_on_data(self, max_plant_s: float) -> int:
         """A bench without the sync line: drop what is buffered, let `no_sync_settle_s` of plant time
         pass (it must exceed what the DAQ path can still hold, and the plant's settling), then wait
         until two consecutive one-turn phasors agree. Returns the first sample counted as the
         setpoint's time (the first sample read after the write: honest, if pessimistic)."""
-        self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+        self._discard_stale()
         first = self.cursor.read(1).samples
         self._segment_start = int(first.index[0])
         self.skip(self.no_sync_settle_s)
@@ -230,14 +235,14 @@ class OperatingPointSession:
         if self.sync_input:
             self.wait_for_effect(max_plant_s)
         else:
-            self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+            self._discard_stale()
             self.skip(self.no_sync_settle_s)
         block = int(0.02 * self.sample_rate_hz)
         steady, elapsed = 0, 0
         while steady < 3:
             s = self._next_exact(block)
             elapsed += len(s)
-            speed = electrical_frequency_hz(s.angle_rad, self.sample_rate_hz) * 60.0 / self.pole_pairs
+            speed = mechanical_speed_rpm(s.angle_rad, self.sample_rate_hz, self.pole_pairs)
             steady = steady + 1 if abs(speed - target_speed_rpm) <= tolerance * abs(target_speed_rpm) else 0
             if elapsed > max_plant_s * self.sample_rate_hz:
                 raise MeasurementError(f"speed did not settle at {target_speed_rpm:g} rpm within {max_plant_s} s "

@@ -76,6 +76,12 @@ def s_matrix(s: complex) -> np.ndarray:
     return np.array([[s.real, s.imag], [-s.imag, s.real]])
 
 
+def rotation_part(s_ss: np.ndarray) -> complex:
+    """The complex gain S nearest (least squares) to a measured 2x2 S_ss; inverse of s_matrix where
+    S_ss has the rotation form: S = (S11 + S22)/2 + j (S12 - S21)/2."""
+    return complex((s_ss[0, 0] + s_ss[1, 1]) / 2, (s_ss[0, 1] - s_ss[1, 0]) / 2)
+
+
 def theta_complex(theta_cos: float, theta_sin: float) -> complex:
     """Theta = theta_cos - j theta_sin = gamma * exp(j delta) (eq. 21-22)."""
     return complex(theta_cos, -theta_sin)

@@ -11,8 +11,8 @@ S_hat = S this is a contraction by (1 - g) per block; with a phase error phi it 
 |1 - g*(|S|/|S_hat|)*exp(j phi)|, which is < 1 for small g iff |phi| < 90 deg.
 
 Limits (sec. 2.4): |theta| <= gamma_max with the state itself clamped (anti-windup); adaptation is
-held off where the model says the injection lacks the authority to cancel the harmonic (needed
-gamma above gamma_max, or a secondary path too weak to move the harmonic above the noise).
+held off where the model says the injection lacks the authority to cancel the harmonic (the gamma
+it needs, |A_0 / S_hat|, is more than 1.5 gamma_max; a weak secondary path shows up there too).
 Stopping: converged when theta has settled and the residual no longer falls; diverged when the
 residual grows well above the best seen or theta runs into gamma_max without the residual
 falling -- then the best theta seen is restored and the probe method takes over from there.
@@ -47,7 +47,6 @@ class AdaptiveOptions(BaseModel):
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
     s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
                                           description="deliberate phase error added to S_hat (robustness tests)")
-    min_authority_snr: float = Field(3.0, gt=0, description="hold off if gamma_max cannot move the harmonic this many noise levels")
 
 
 def clamp_gamma(theta: complex, gamma_max_rad: float) -> tuple[complex, bool]:
@@ -106,7 +105,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     details = {"blocks": blocks, "mu_per_s": options.mu_per_s, "block_periods": options.block_periods,
                "converged": settled >= options.settled_blocks, "diverged": diverged,
                "s_hat_phase_offset_deg": options.s_hat_phase_offset_deg,
-               "time_to_40db_adaptive_s": time_to_suppression(history, before.phasor.amplitude, 40.0)}
+               "time_to_40db_s": time_to_suppression(history, before.phasor.amplitude, 40.0)}
     if diverged:
         details["divergence"] = "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max"
         session.apply_theta(*theta_parts(best_theta))      # revert to the best theta seen
@@ -115,8 +114,8 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
             result = identify_probe(session, s_hat, probe_opts, gamma_max_rad, before=before,
                                     start_theta=theta_parts(best_theta), history=history, method="adaptive",
                                     details={**details, "fallback": "probe"})
+            # the probe continued the same history, so its time_to_40db_s counts from the adaptive start
             result.message = f"adaptation diverged ({details['divergence']}); probe fallback: {result.message}"
-            result.details["time_to_40db_s"] = time_to_suppression(history, before.phasor.amplitude, 40.0)
             return result
         after = verify(session, *theta_parts(best_theta), options.verify_periods)
         return _result(session, "failed", "adaptation diverged; best theta restored", best_theta, before, after,
@@ -127,7 +126,6 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     message = f"converged after {blocks} blocks" if details["converged"] else f"stopped after {blocks} blocks without settling"
     if limited and after.phasor.amplitude > 0.1 * before.phasor.amplitude:
         status, message = "no_authority", "gamma_max reached: the injection cannot cancel the harmonic here (sec. 2.4)"
-    details["time_to_40db_s"] = time_to_suppression(history, before.phasor.amplitude, 40.0)
     return _result(session, status, message, theta, before, after, history, s_hat, details)
 
 

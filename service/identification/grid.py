@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from service.identification.common import measure_uncompensated, spectrum_traces, verify
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
-from service.secondary_path import theta_from_gamma_delta, theta_parts
+from service.secondary_path import rotation_part, theta_from_gamma_delta, theta_parts
 
 
 class GridOptions(BaseModel):
@@ -94,8 +94,7 @@ def affine_fit(thetas: np.ndarray, phasors: np.ndarray) -> tuple[complex, comple
     theta_eff = -np.linalg.solve(m, b)
     theta_eff_c = complex(theta_eff[0], -theta_eff[1])
     theta = np.exp(1j * np.angle(theta_eff_c)) * gamma_from_effective(abs(theta_eff_c))
-    s = complex((m[0, 0] + m[1, 1]) / 2, (m[0, 1] - m[1, 0]) / 2)
-    return s, complex(theta), rms, m
+    return rotation_part(m), complex(theta), rms, m
 
 
 def local_affine_fit(thetas: np.ndarray, phasors: np.ndarray, around: complex, radius_rad: float,

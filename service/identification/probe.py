@@ -6,9 +6,11 @@ column (no assumption that it has the rotation structure of a scalar complex gai
 
     S_ss[:, k] = (a(theta + p_k) - a(theta)) / P
 
-and one Newton step lands on theta* = theta - S_ss^-1 a(theta) = -theta_d. Further Newton steps
-(re-using the measured S_ss) remove what noise and the small non-linearity left, until the residual
-stops improving. The probe size P is chosen from the model so the probe's response stands well
+and one Newton step lands on theta* = theta - S_ss^-1 a(theta) = -theta_d. The plant is only nearly
+affine (inverter dead time and saturation bend it), so each further step also refines S_ss from what
+that step measured (Broyden's update S <- S + (da - S dtheta) dtheta^T / |dtheta|^2, exact for an
+affine plant; skipped when the step moved the phasor by less than 20 noise levels), until the
+residual stops improving. The probe-measured S_ss is what the result reports. The probe size P is chosen from the model so the probe's response stands well
 above the noise but the injection stays small (linear) and below gamma_max.
 """
 from __future__ import annotations
@@ -21,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.identification.common import measure_uncompensated, spectrum_traces, time_to_suppression, verify
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession, Window
-from service.secondary_path import phase_error_deg
+from service.secondary_path import phase_error_deg, rotation_part
 
 
 class ProbeOptions(BaseModel):
@@ -37,15 +39,6 @@ class ProbeOptions(BaseModel):
     gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
 
-def _vec(a: complex) -> np.ndarray:
-    """[a_c, a_s] of the complex phasor A = a_c - j a_s."""
-    return np.array([a.real, -a.imag])
-
-
-def _theta_complex(v: np.ndarray) -> complex:
-    return complex(v[0], -v[1])
-
-
 def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta: np.ndarray, probe_rad: float,
                      window_periods: int, history: list) -> np.ndarray:
     """S_ss measured by two probes around theta (one column each)."""
@@ -56,7 +49,7 @@ def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta:
         session.apply_theta(*(theta + p))
         w = session.measure(window_periods)
         history.append([w.end_time_s, *(theta + p), w.phasor.amplitude])
-        columns.append((np.array([w.phasor.a_c, w.phasor.a_s]) - a_at_theta) / probe_rad)
+        columns.append((w.phasor.vector - a_at_theta) / probe_rad)
     return np.column_stack(columns)
 
 
@@ -77,12 +70,12 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         before = measure_uncompensated(session, options.reference_periods)
     history = history if history is not None else [[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
     theta = np.zeros(2)
-    a = np.array([before.phasor.a_c, before.phasor.a_s])
+    a = before.phasor.vector
     if start_theta is not None and any(start_theta):
         theta = np.array(start_theta, dtype=float)
         session.apply_theta(*theta)
         w = session.measure(options.window_periods)
-        a = np.array([w.phasor.a_c, w.phasor.a_s])
+        a = w.phasor.vector
         history.append([w.end_time_s, *theta, w.phasor.amplitude])
     model_theta_rad = abs(before.phasor.complex / s_hat)
     probe_rad = min(max(options.probe_fraction * model_theta_rad, math.radians(options.probe_min_deg)),
@@ -105,7 +98,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         w = session.measure(options.window_periods)
         history.append([w.end_time_s, *new_theta, w.phasor.amplitude])
         improved = w.phasor.amplitude < 0.8 * best_amp
-        new_a = np.array([w.phasor.a_c, w.phasor.a_s])
+        new_a = w.phasor.vector
         d_theta, d_a = new_theta - theta, new_a - a
         # only a step that moves the phasor well above the noise of one window says anything about S
         noise = float(np.std(w.alpha_fs)) * math.sqrt(2.0 / len(w.alpha_fs))
@@ -119,8 +112,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         if not improved:
             break       # the residual stopped improving: noise floor (or non-linearity) reached
     after = verify(session, *best_theta, options.verify_periods)
-    # S_ss in complex form (exact when S_ss has the rotation structure; else the least-squares scalar)
-    s_measured = complex((s_probed[0, 0] + s_probed[1, 1]) / 2, (s_probed[0, 1] - s_probed[1, 0]) / 2)
+    s_measured = rotation_part(s_probed)
     status, message = "ok", f"{steps} Newton step(s) after 2 probes of {math.degrees(probe_rad):.2f} deg"
     if limited and best_amp > 0.1 * before.phasor.amplitude:
         status = "no_authority"
