@@ -21,7 +21,7 @@ from drivers.dc_supply import ScpiSupply
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
 from service.harmonic import mechanical_speed_rpm
-from service.measurement import DaqCursor, OperatingPointSession
+from service.measurement import DaqCursor, OperatingPointSession, RunCancelled
 from service.operating_point import OperatingPoint
 from service.settings import Settings
 
@@ -157,7 +157,7 @@ class Bench:
             try:
                 session = OperatingPointSession(self, self.cursor, harmonic_order, s.daq.sample_rate_hz,
                                                 s.motor.pole_pairs, sync_input=s.daq.sync_input,
-                                                no_sync_settle_s=s.daq.no_sync_settle_s)
+                                                no_sync_settle_s=s.daq.no_sync_settle_s, guard=self._guard)
                 self._go_to(op, harmonic_order)
                 session.op_settle_plant_s = session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
@@ -168,6 +168,11 @@ class Bench:
                 finally:
                     self.busy = False
                     self._gamma_max_rad = None
+
+    def _guard(self) -> None:
+        """Checked before every DAQ read of a run: raises to stop it (operator cancel)."""
+        if self.cancel_event is not None and self.cancel_event.is_set():
+            raise RunCancelled("run cancelled")
 
     def _go_to(self, op: OperatingPoint, harmonic_order: int) -> None:
         self.supply.set_voltage(op.udc_v)

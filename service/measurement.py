@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -70,8 +71,9 @@ class OperatingPointSession:
 
     def __init__(self, bench, cursor: DaqCursor, harmonic_order: int, sample_rate_hz: float,
                  pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
-                 no_sync_settle_s: float = 0.4):
+                 no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None):
         self.bench = bench
+        self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
         self.cursor = cursor
         self.harmonic_order = harmonic_order
         self.sample_rate_hz = sample_rate_hz
@@ -88,9 +90,8 @@ class OperatingPointSession:
 
     # --- the DAQ stream, in order --------------------------------------------------------------
     def _next(self, n: int) -> DecodedSamples:
-        cancel = getattr(self.bench, "cancel_event", None)
-        if cancel is not None and cancel.is_set():
-            raise RunCancelled("run cancelled")
+        if self.guard is not None:
+            self.guard()
         if self._pending is not None and len(self._pending):
             take = self._pending.slice(0, n)
             rest = self._pending.slice(n)

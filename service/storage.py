@@ -74,16 +74,25 @@ class Storage:
             available = migrations()
             if current > len(available):
                 raise StorageError(f"database {self.path} is at schema {current}, newer than this software ({len(available)})")
-            for number, path in available[current:]:
-                conn.execute("BEGIN IMMEDIATE")
-                try:
-                    for statement in _split_sql(path.read_text()):
-                        conn.execute(statement)
-                    conn.execute(f"PRAGMA user_version = {number}")
-                    conn.execute("COMMIT")
-                except Exception as exc:
-                    conn.execute("ROLLBACK")
-                    raise StorageError(f"migration {path.name} failed: {exc}") from exc
+            # SQLite's procedure for a table rebuild (a changed CHECK): foreign keys off outside the
+            # transaction, checked inside it before the commit
+            conn.execute("PRAGMA foreign_keys = OFF")
+            try:
+                for number, path in available[current:]:
+                    conn.execute("BEGIN IMMEDIATE")
+                    try:
+                        for statement in _split_sql(path.read_text()):
+                            conn.execute(statement)
+                        broken = conn.execute("PRAGMA foreign_key_check").fetchall()
+                        if broken:
+                            raise StorageError(f"{len(broken)} foreign key violation(s), first in table {broken[0][0]}")
+                        conn.execute(f"PRAGMA user_version = {number}")
+                        conn.execute("COMMIT")
+                    except Exception as exc:
+                        conn.execute("ROLLBACK")
+                        raise StorageError(f"migration {path.name} failed: {exc}") from exc
+            finally:
+                conn.execute("PRAGMA foreign_keys = ON")
             return conn.execute("PRAGMA user_version").fetchone()[0]
 
     # --- tokens ------------------------------------------------------------------------------------
