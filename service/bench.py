@@ -20,6 +20,7 @@ from drivers.daq_reader import DaqReader
 from drivers.dc_supply import ScpiSupply
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
+from service.demodulation import ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm
 from service.measurement import DaqCursor, OperatingPointSession, RunCancelled
 from service.operating_point import OperatingPoint
@@ -63,6 +64,8 @@ class Bench:
         self.busy = False
         self.cancel_event = None                # set by the engine; checked at every DAQ read
         self._gamma_max_rad: float | None = None  # of the run in progress
+        # the shaft mode of G_Salpha: the settings' pole, learned from the windows of every run (sec. 2.3)
+        self.resonance = ResonanceTracker(ResonanceMode(settings.mechanics.pole_re_rad_s, settings.mechanics.pole_im_rad_s))
         self._status: dict[str, Any] = {"connected": False, "bench": identity, "busy": False,
                                         "drive": None, "load": None, "daq": None, "updated_at": None, "error": None}
 
@@ -157,9 +160,10 @@ class Bench:
             try:
                 session = OperatingPointSession(self, self.cursor, harmonic_order, s.daq.sample_rate_hz,
                                                 s.motor.pole_pairs, sync_input=s.daq.sync_input,
-                                                no_sync_settle_s=s.daq.no_sync_settle_s, guard=self._guard)
+                                                no_sync_settle_s=s.daq.no_sync_settle_s, guard=self._guard,
+                                                resonance=self.resonance)
                 self._go_to(op, harmonic_order)
-                session.op_settle_plant_s = session.settle_operating_point(op.speed_rpm, settle_s)
+                session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
                 yield session
             finally:

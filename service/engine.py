@@ -21,6 +21,7 @@ from service import __version__
 from service.bench import check_limits
 from service.identify import identify_at, parse_options, public_result, result_row
 from service.maps import build_map_from_sweep
+from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
 from service.settings import Settings
@@ -254,7 +255,8 @@ class Engine:
                     break
                 started = now_iso()
                 try:
-                    result = identify_at(self.bench, self.settings, op, sweep["method"], options)
+                    prior = prior_from_neighbours(op, self.storage.sweep_results(sweep_id), grid.model_dump())
+                    result = identify_at(self.bench, self.settings, op, sweep["method"], options, prior=prior)
                     row = result_row(op, sweep["method"], options, self.bench.identity, started, result,
                                      sweep_id=sweep_id, harmonic_order=result.harmonic_order)
                 except Exception as exc:

@@ -8,12 +8,14 @@ from typing import Any
 from service import __version__
 from service.identification import (AdaptiveOptions, GridOptions, IdentificationResult, ProbeOptions, identify_adaptive,
                                     identify_grid, identify_probe)
+from service.identification.common import Conditions, Prior
 from service.operating_point import OperatingPoint
 from service.secondary_path import model_secondary_path
 from service.settings import Settings
 from service.storage import now_iso
 
 OPTION_MODELS = {"adaptive": AdaptiveOptions, "grid": GridOptions, "probe": ProbeOptions}
+METHOD_FUNCTIONS = {"adaptive": identify_adaptive, "grid": identify_grid, "probe": identify_probe}
 
 
 def parse_options(method: str, options: dict[str, Any] | None):
@@ -23,25 +25,27 @@ def parse_options(method: str, options: dict[str, Any] | None):
     return OPTION_MODELS[method].model_validate(options or {})
 
 
-def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options) -> IdentificationResult:
+def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
+                prior: Prior | None = None) -> IdentificationResult:
+    """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe."""
     h = settings.identification.harmonic_order
     gamma_max_rad = math.radians(getattr(options, "gamma_max_deg", None) or settings.identification.gamma_max_deg)
     gamma_max_rad = min(gamma_max_rad, math.radians(settings.identification.gamma_max_deg))
     ident = settings.identification
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
-    s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop)
     with bench.operating_point(op, h, gamma_max_rad) as session:
-        if method == "adaptive":
-            result = identify_adaptive(session, s_hat, options, gamma_max_rad)
-        elif method == "grid":
-            result = identify_grid(session, s_hat, options, gamma_max_rad)
-        elif method == "probe":
-            result = identify_probe(session, s_hat, options, gamma_max_rad)
-        else:
-            raise ValueError(f"unknown method {method!r}")
-        result.details["op_settle_plant_s"] = getattr(session, "op_settle_plant_s", None)
+        # the model with the shaft mode as learned on this bench so far (sec. 2.3)
+        mode = bench.resonance.mode
+        s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,
+                                     resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
+        conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
+                                current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=ident.decoupling)
+        result = METHOD_FUNCTIONS[method](session, s_hat, options, gamma_max_rad, prior=prior, conditions=conditions)
+        result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
+        result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
+        result.details["resonance"] = bench.resonance.snapshot()
     return result
 
 
@@ -68,7 +72,7 @@ def result_row(op: OperatingPoint, method: str, options, bench_identity: str, st
         "residual_a_c": result.residual.a_c, "residual_a_s": result.residual.a_s,
         "uncompensated_a_c": result.uncompensated.a_c, "uncompensated_a_s": result.uncompensated.a_s,
         "suppression_db": result.suppression_db, "plant_time_s": result.plant_time_s,
-        "windows_used": result.windows_used,
+        "windows_used": result.windows_used, "target_db": result.target_db, "noise_floor_db": result.noise_floor_db,
         "detail_json": json.dumps({k: pub[k] for k in ("message", "residual", "uncompensated", "s_model", "s_measured",
                                                        "details", "windows_discarded")}),
         "traces_json": json.dumps(result.traces),
@@ -87,7 +91,8 @@ def public_result(row: dict) -> dict:
         "gamma_deg": row.get("gamma_deg"), "delta_deg": row.get("delta_deg"),
         "theta_cos": row.get("theta_cos"), "theta_sin": row.get("theta_sin"),
         "residual": detail.get("residual"), "uncompensated": detail.get("uncompensated"),
-        "suppression_db": row.get("suppression_db"), "plant_time_s": row.get("plant_time_s"),
+        "suppression_db": row.get("suppression_db"), "target_db": row.get("target_db"),
+        "noise_floor_db": row.get("noise_floor_db"), "plant_time_s": row.get("plant_time_s"),
         "windows_used": row.get("windows_used"), "windows_discarded": detail.get("windows_discarded"),
         "s_model": detail.get("s_model"), "s_measured": detail.get("s_measured"), "details": detail.get("details"),
         "options": json.loads(row["options_json"]), "bench_identity": row["bench_identity"],

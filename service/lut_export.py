@@ -36,12 +36,18 @@ def _grid_values(m: dict, key: str) -> list[list[list[float]]]:
     return out
 
 
+def _counts_text(m: dict) -> str:
+    counts = m.get("status_counts") or {}
+    return ", ".join(f"{n} {status}" for status, n in counts.items() if n) or "none"
+
+
 def export_csv(m: dict) -> str:
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
     buf.write(f"# software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}\n")
     buf.write(f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n")
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
+    buf.write(f"# cells: {_counts_text(m)}; only ok cells carry theta (valid), the others are 0\n")
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
                 "suppression_db", "status"])
@@ -62,7 +68,7 @@ def export_json(m: dict) -> str:
         "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
         "axes": m["axes"], "index_order": ["udc_v", "speed_rpm", "torque_nm"],
         "theta_cos_rad": _grid_values(m, "theta_cos"), "theta_sin_rad": _grid_values(m, "theta_sin"),
-        "valid": _grid_values(m, "valid"), "cells": m["cells"],
+        "valid": _grid_values(m, "valid"), "status_counts": m.get("status_counts"), "cells": m["cells"],
     }, indent=1)
 
 
@@ -90,6 +96,7 @@ def export_c(m: dict) -> str:
         " * v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e)  [rad], applied as a voltage-angle",
         " * rotation (|u_dq*| = |u_dq|). Interpolate theta_cos and theta_sin (never gamma/delta across",
         " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
+        f" * Cells: {_counts_text(m)}.",
         " */",
         f"#ifndef {guard}", f"#define {guard}", "",
         "#include <stdint.h>", "",
@@ -117,6 +124,7 @@ def export_dcm(m: dict) -> str:
     nt, nn = len(axes["torque_nm"]), len(axes["speed_rpm"])
     out = [f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
            f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
+           f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok)",
            "KONSERVIERUNG_FORMAT 2.0", ""]
     for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid")):
         for k, udc in enumerate(axes["udc_v"]):

@@ -10,6 +10,9 @@ import json
 from service import __version__
 from service.storage import Storage
 
+# every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
+STATUSES = ("ok", "below_target", "no_authority", "failed", "missing")
+
 
 def build_map_from_sweep(storage: Storage, sweep_id: int) -> int:
     sweep = storage.get_sweep(sweep_id)
@@ -39,9 +42,14 @@ def public_map(storage: Storage, map_id: int) -> dict | None:
             "result_id": c["result_id"],
             "gamma_deg": c["gamma_deg"] if ok else None, "delta_deg": c["delta_deg"] if ok else None,
             "theta_cos": c["theta_cos"] if ok else None, "theta_sin": c["theta_sin"] if ok else None,
-            "suppression_db": c["suppression_db"], "error": c["error"],
+            "suppression_db": c["suppression_db"], "target_db": c.get("target_db"),
+            "noise_floor_db": c.get("noise_floor_db"), "error": c["error"],
         })
+    counts = {status: 0 for status in STATUSES}
+    for c in cells:
+        counts[c["status"]] = counts.get(c["status"], 0) + 1
     return {"id": row["id"], "sweep_id": row["sweep_id"], "harmonic_order": row["harmonic_order"],
+            "status_counts": counts,
             "method": row["method"], "bench_identity": row["bench_identity"],
             "software_version": row["software_version"], "created_at": row["created_at"],
             "axes": json.loads(row["axes_json"]), "cells": cells}

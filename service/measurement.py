@@ -20,14 +20,11 @@ from typing import Callable
 import numpy as np
 
 from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
-from service.harmonic import mechanical_speed_rpm, phasor
-from service.identification.session import Window
+from service.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
+from service.harmonic import mechanical_speed_rpm, whole_period_samples
+from service.identification.session import MeasurementError, Window
 
 BAD_FLAGS = FLAG_OVER_RANGE | FLAG_SENSOR_FAULT
-
-
-class MeasurementError(RuntimeError):
-    """The bench did not deliver what a measurement needs (settling, valid windows, sync)."""
 
 
 class RunCancelled(RuntimeError):
@@ -71,8 +68,14 @@ class OperatingPointSession:
 
     def __init__(self, bench, cursor: DaqCursor, harmonic_order: int, sample_rate_hz: float,
                  pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
-                 no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None):
+                 no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
+                 resonance: ResonanceTracker | None = None):
         self.bench = bench
+        # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
+        self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
+        self.noise_rms_fs: float | None = None      # rms of alpha around the fitted model, last window
+        self.op_settle_plant_s: float | None = None # plant time the move to the operating point took
+        self.over_range_windows = 0
         self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
         self.cursor = cursor
         self.harmonic_order = harmonic_order
@@ -189,7 +192,39 @@ class OperatingPointSession:
         self.wait_for_effect()
         self.skip(self.settle_after_theta_s)
 
-    def measure(self, periods: int) -> Window:
+    def measure(self, periods: int, max_noise_std_fs: float | None = None, max_periods: int | None = None) -> Window:
+        """The next valid window of `periods` whole harmonic periods, demodulated with the shaft mode as
+        a nuisance (service.demodulation). With `max_noise_std_fs`, the window is extended (same theta,
+        contiguous samples) until its phasor's noise is at most that, or it spans `max_periods`."""
+        samples = self._valid_window(periods)
+        fit = self._fit(samples, periods)
+        limit = max(max_periods or periods, periods)
+        while max_noise_std_fs is not None and fit.noise_std_fs > max_noise_std_fs and periods < limit:
+            # noise std falls as 1/sqrt(N): ask for what that predicts, in whole turns, 20 % to spare
+            want = periods * (fit.noise_std_fs / max_noise_std_fs) ** 2 * 1.2
+            more = min(limit, self.harmonic_order * math.ceil(want / self.harmonic_order)) - periods
+            if more <= 0:
+                break
+            extension = self._valid_window(more, contiguous=True)
+            if extension is None:
+                break
+            samples = DecodedSamples.concat([samples, extension])
+            periods += more
+            fit = self._fit(samples, periods)
+        return Window(fit.phasor, samples.accel_fs[:fit.phasor.samples], samples.angle_rad[:fit.phasor.samples],
+                      self.plant_time_s, fit.noise_std_fs, fit.ring_fs)
+
+    def _fit(self, samples: DecodedSamples, periods: int) -> HarmonicFit:
+        n = whole_period_samples(samples.angle_rad, self.harmonic_order, periods)
+        fit = self.resonance.fit(samples.accel_fs[:n], samples.angle_rad[:n], self.sample_rate_hz,
+                                 self.harmonic_order, periods)
+        self.noise_rms_fs = fit.residual_rms_fs
+        return fit
+
+    def _valid_window(self, periods: int, contiguous: bool = False) -> DecodedSamples | None:
+        """Samples spanning `periods` harmonic periods (a little more, cut by the fit) with no gap, bad
+        frame, fault flag or setpoint change; a bad one is discarded and measured again. With
+        `contiguous`, a bad continuation returns None (the caller keeps what it has)."""
         reasons = {"DAQ gap or bad frame": 0, "sensor over-range": 0, "sensor fault": 0,
                    "setpoint change inside the window": 0}
         for _ in range(self.MAX_WINDOW_ATTEMPTS):
@@ -199,26 +234,31 @@ class OperatingPointSession:
             sync = (s.flags & FLAG_SYNC_INPUT) != 0
             setpoint_changed = (sync[1:] != sync[:-1]) if self.sync_input else np.zeros(len(s) - 1, bool)
             bad = np.flatnonzero(s.gap_before[1:] | ((s.flags & BAD_FLAGS) != 0)[1:] | setpoint_changed)
-            if (s.flags[0] & BAD_FLAGS) or len(bad):
+            if (s.flags[0] & BAD_FLAGS) or len(bad) or (contiguous and s.gap_before[0]):
                 self.windows_discarded += 1
                 reasons["DAQ gap or bad frame"] += int(s.gap_before[1:].any())
-                reasons["sensor over-range"] += int(((s.flags & FLAG_OVER_RANGE) != 0).any())
+                over = int(((s.flags & FLAG_OVER_RANGE) != 0).any())
+                reasons["sensor over-range"] += over
+                self.over_range_windows += over
                 reasons["sensor fault"] += int(((s.flags & FLAG_SENSOR_FAULT) != 0).any())
                 reasons["setpoint change inside the window"] += int(setpoint_changed.any())
+                if contiguous:
+                    return None
                 continue
-            p = phasor(s.accel_fs, s.angle_rad, self.harmonic_order, periods)
-            used = s.slice(0, p.samples)
-            self._push_back(s.slice(p.samples))
-            return Window(p, used.accel_fs, used.angle_rad, self.plant_time_s)
+            return s
         why = ", ".join(f"{k} in {v}" for k, v in reasons.items() if v)
         raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid: {why}")
 
     def _samples_for(self, periods: int) -> int:
+        return int(math.ceil(periods * self.sample_rate_hz / self.harmonic_frequency_hz * 1.02)) + 8
+
+    @property
+    def harmonic_frequency_hz(self) -> float:
+        """f_h = h * f_e at the measured speed."""
         speed = self.speed_rpm_measured
         if not speed:
             raise MeasurementError("speed unknown: settle the operating point first")
-        f_h = abs(speed) / 60.0 * self.pole_pairs * self.harmonic_order
-        return int(math.ceil(periods * self.sample_rate_hz / f_h * 1.02)) + 8
+        return abs(speed) / 60.0 * self.pole_pairs * self.harmonic_order
 
     @property
     def plant_time_s(self) -> float:
@@ -255,4 +295,5 @@ class OperatingPointSession:
             got = self._next(min(skip_n, 4096))
             skip_n -= len(got)
             elapsed += len(got)
-        return elapsed / self.sample_rate_hz
+        self.op_settle_plant_s = elapsed / self.sample_rate_hz
+        return self.op_settle_plant_s

@@ -47,9 +47,13 @@ def g_salpha(s: complex, inertia_kg_m2: float, zero_rad_s: float, pole_re_rad_s:
 
 
 def model_secondary_path(settings: Settings, op: OperatingPoint, harmonic_order: int,
-                         steady: SteadyState | None = None, current_loop: bool = False) -> complex:
-    """S(j h omega_e) of eq. 14 in full-scale units per rad, from the nominal parameters."""
+                         steady: SteadyState | None = None, current_loop: bool = False,
+                         resonance_pole: complex | None = None) -> complex:
+    """S(j h omega_e) of eq. 14 in full-scale units per rad, from the nominal parameters; the shaft
+    pole of G_Salpha from `resonance_pole` (rad/s, as learned on the bench) instead of the settings'."""
     motor, ctrl, mech = settings.motor, settings.control, settings.mechanics
+    pole_re, pole_im = ((mech.pole_re_rad_s, mech.pole_im_rad_s) if resonance_pole is None
+                        else (resonance_pole.real, resonance_pole.imag))
     steady = steady or nominal_steady_state(op, motor)
     w = harmonic_order * steady.omega_e_rad_s
     s = 1j * w
@@ -67,7 +71,7 @@ def model_secondary_path(settings: Settings, op: OperatingPoint, harmonic_order:
                                                 motor.psi_p_vs + reluctance * steady.i_d_a])   # eq. 20 for L_d = L_q
     g_comp = np.array([-steady.u_q_v, steady.u_d_v])                      # eq. 10
     torque_per_rad = g_em_m @ g_em_e @ g_comp * cmath.exp(-s * t_d)
-    alpha_per_rad = g_salpha(s, mech.inertia_kg_m2, mech.zero_rad_s, mech.pole_re_rad_s, mech.pole_im_rad_s) * torque_per_rad
+    alpha_per_rad = g_salpha(s, mech.inertia_kg_m2, mech.zero_rad_s, pole_re, pole_im) * torque_per_rad
     return complex(alpha_per_rad) / settings.daq.accel_full_scale_rad_s2
 
 

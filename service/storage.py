@@ -208,7 +208,7 @@ class Storage:
                 return None
             cells = conn.execute(
                 "SELECT c.torque_nm, c.speed_rpm, c.udc_v, r.id AS result_id, r.status, r.theta_cos, r.theta_sin, "
-                "r.gamma_deg, r.delta_deg, r.suppression_db, r.error FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
+                "r.gamma_deg, r.delta_deg, r.suppression_db, r.target_db, r.noise_floor_db, r.error FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
                 "WHERE c.map_id = ? ORDER BY c.udc_v, c.speed_rpm, c.torque_nm", (map_id,)).fetchall()
             return {**dict(row), "cells": [dict(c) for c in cells]}
 

@@ -38,7 +38,16 @@ class AffinePlantSession:
         self.sample += self.settle_samples
         self._plant_samples += self.settle_samples
 
-    def measure(self, periods: int) -> Window:
+    @property
+    def harmonic_frequency_hz(self) -> float:
+        return self.harmonic_order * self.omega_e / (2 * math.pi)
+
+    def measure(self, periods: int, max_noise_std_fs: float | None = None, max_periods: int | None = None) -> Window:
+        if max_noise_std_fs is not None and self.noise_fs > 0:
+            # the phasor of N white-noise samples has std noise * sqrt(2 / N) per component
+            samples_needed = 2 * (self.noise_fs / max_noise_std_fs) ** 2
+            periods_needed = math.ceil(samples_needed * self.harmonic_frequency_hz / self.sample_rate_hz)
+            periods = max(periods, min(periods_needed, max_periods or periods))
         n = int(math.ceil(periods * 2 * math.pi / (self.harmonic_order * self.omega_e) * self.sample_rate_hz)) + 4
         k = self.sample + np.arange(n)
         angle = (self.omega_e * k / self.sample_rate_hz) % (2 * math.pi)
@@ -48,7 +57,8 @@ class AffinePlantSession:
         p = phasor(alpha, angle, self.harmonic_order, periods)
         self.sample += p.samples
         self._plant_samples += p.samples
-        return Window(p, alpha[: p.samples], angle[: p.samples], self._plant_samples / self.sample_rate_hz)
+        return Window(p, alpha[: p.samples], angle[: p.samples], self._plant_samples / self.sample_rate_hz,
+                      self.noise_fs * math.sqrt(2.0 / p.samples))
 
     @property
     def plant_time_s(self) -> float:

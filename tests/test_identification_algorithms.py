@@ -79,8 +79,10 @@ def test_grid_fit_handles_a_conjugate_part():
 
 @pytest.mark.parametrize("offset_deg", [85.0, 120.0, -150.0])
 def test_divergence_is_detected_and_probe_takes_over(offset_deg):
+    # without the online S (DESIGN 3 (c)) the law itself must notice that it diverges
     session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
-    r = identify_adaptive(session, S_TRUE, AdaptiveOptions(s_hat_phase_offset_deg=offset_deg), GAMMA_MAX)
+    options = AdaptiveOptions(s_hat_phase_offset_deg=offset_deg, s_refine=False)
+    r = identify_adaptive(session, S_TRUE, options, GAMMA_MAX)
     assert r.details["diverged"] and r.details["fallback"] == "probe"
     assert max(abs(t) for t in session.sent) <= GAMMA_MAX * (1 + 1e-12)
     assert r.status == "ok" and r.suppression_db > 40
@@ -103,3 +105,39 @@ def test_effective_injection_is_2_j1_closed_form():
         first = 2 * np.mean(np.sin(gamma * np.cos(x)) * np.cos(x))
         assert abs(effective_injection(np.array([gamma + 0j]))[0]) == pytest.approx(first, rel=1e-9)
         assert gamma_from_effective(first) == pytest.approx(gamma, rel=1e-9)
+
+
+@pytest.mark.parametrize("offset_deg", [85.0, 120.0, -150.0])
+def test_online_s_rescues_a_wrong_model(offset_deg):
+    # with the S fitted over its own blocks, the adaptation replaces a model more than 90 deg off
+    # (where eq. 16 alone diverges) or falls back to the probe; either way it lands on -theta_d
+    session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
+    r = identify_adaptive(session, S_TRUE, AdaptiveOptions(s_hat_phase_offset_deg=offset_deg), GAMMA_MAX)
+    assert r.details["s_replaced_after_blocks"] is not None or r.details.get("fallback") == "probe"
+    assert max(abs(t) for t in session.sent) <= GAMMA_MAX * (1 + 1e-12)
+    assert r.status == "ok" and r.suppression_db > 40
+    assert r.gamma_deg == pytest.approx(3.0, abs=0.02)
+    # the reported model error is the deliberate offset, measured against the fitted S
+    if r.details["s_replaced_after_blocks"] is not None:
+        assert r.details["model_phase_error_deg"] == pytest.approx(0.0, abs=10.0)
+
+
+def test_a_result_below_its_target_is_not_ok():
+    # a residual that the windows cannot resolve below the target: honest below_target, with the floor
+    session = AffinePlantSession(S_TRUE, -THETA_OPT * 0.01, noise_fs=1e-3)     # harmonic near the noise
+    r = identify_probe(session, S_TRUE, ProbeOptions(max_window_s=0.02), GAMMA_MAX)
+    assert r.status == "below_target"
+    assert "noise floor" in r.message and r.noise_floor_db is not None
+    assert r.suppression_db < 40
+
+
+def test_probe_starts_from_a_prior_without_probing():
+    from service.identification.common import Prior
+    s_ss = np.array([[S_TRUE.real, S_TRUE.imag], [-S_TRUE.imag, S_TRUE.real]])
+    near = THETA_OPT * 1.1 * cmath.exp(1j * math.radians(5))      # a neighbour's theta, 10 % / 5 deg off
+    prior = Prior(near.real, -near.imag, tuple(map(tuple, s_ss)), source="neighbour")
+    session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
+    r = identify_probe(session, S_TRUE, ProbeOptions(), GAMMA_MAX, prior=prior)
+    assert r.status == "ok" and r.details["probe_deg"] == 0.0
+    assert r.gamma_deg == pytest.approx(3.0, abs=0.02) and r.delta_deg == pytest.approx(280.0, abs=0.5)
+    assert len(session.sent) <= 4       # reference, prior theta, one or two Newton steps

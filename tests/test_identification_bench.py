@@ -59,6 +59,29 @@ def test_every_method_suppresses_40_db(paper_results):
     for method, r in paper_results.items():
         assert r.status == "ok", (method, r.message)
         assert r.suppression_db >= 40.0, (method, r.suppression_db)
+        assert r.target_db == 40.0 and r.noise_floor_db is not None and r.noise_floor_db < -40.0
+
+
+OP2 = OperatingPoint(torque_nm=1.3, speed_rpm=3000, udc_v=12)
+
+
+def test_op2_next_to_the_resonance_reaches_40_db(paper):
+    # the paper's OP2: its 6th harmonic (1200 Hz) sits ~125 Hz above the 1074 Hz shaft resonance;
+    # the shaft mode each step rings is fitted as a nuisance instead of biasing the phasor
+    for method in ("probe", "adaptive"):
+        r = _run(paper, method, OP2)
+        assert r.status == "ok" and r.suppression_db >= 40.0, (method, r.message)
+        assert r.details["resonance"]["learned_from_windows"] >= 1
+
+
+def test_a_harmonic_at_the_noise_floor_is_not_ok(paper):
+    # 0 Nm: the harmonic is tiny and the injection has little authority; whatever the method
+    # reaches, it is never stored ok below its target (it was: gamma 0, -0.0 dB, ok)
+    r = _run(paper, "adaptive", OperatingPoint(torque_nm=0.0, speed_rpm=2000, udc_v=12))
+    if r.status == "ok":
+        assert r.suppression_db >= r.target_db
+    else:
+        assert r.message and r.status in ("below_target", "no_authority", "failed")
 
 
 def test_adaptive_and_grid_fit_agree(paper_results):
@@ -99,7 +122,8 @@ def test_adaptive_converges_with_60_deg_phase_error(paper, offset_deg):
 def test_120_deg_phase_error_diverges_safely_and_probe_rescues(paper):
     true_phase_error = _run(paper, "probe").details["model_phase_error_deg"]
     recorder = GammaRecorder(paper.bench)
-    r = _run(paper, "adaptive", s_hat_phase_offset_deg=120.0 - true_phase_error)
+    # without the online S (which would replace the wrong model first), the law must notice itself
+    r = _run(paper, "adaptive", s_hat_phase_offset_deg=120.0 - true_phase_error, s_refine=False)
     assert r.details["diverged"] and r.details["fallback"] == "probe", r.message
     gamma_max = math.radians(paper.settings.identification.gamma_max_deg)
     assert max(recorder.sent_gamma_rad) <= gamma_max * (1 + 1e-6)
@@ -136,11 +160,11 @@ def test_seeded_scenarios(tmp_path, seed):
             a = _run(svc, "adaptive", op)
             p = _run(svc, "probe", op)
             for r in (a, p):
-                if r.status == "no_authority":
-                    assert r.message
+                # honest: ok means the target was met; anything else says why
+                if r.status != "ok":
+                    assert r.status in ("no_authority", "below_target") and r.message, (seed, op, r.method)
                     continue
-                assert r.status == "ok", (seed, op, r.method, r.message)
-                assert r.suppression_db >= 40.0, (seed, op, r.method, r.suppression_db)
+                assert r.suppression_db >= r.target_db, (seed, op, r.method, r.suppression_db)
             if a.status == p.status == "ok":
                 assert abs(a.gamma_deg - p.gamma_deg) <= 0.1 and abs(_angle_diff_deg(a.delta_deg, p.delta_deg)) <= 2.0
         g = _run(svc, "grid")

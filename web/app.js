@@ -632,7 +632,7 @@
   const JOB_POLL_MS = 1000;        // job poll period while SSE is down
   const JOB_POLL_LIVE_MS = 2500;   // safety-net poll while SSE is live (job.state triggers a fetch)
   const OPTION_EXAMPLES = {
-    adaptive: '{"mu_per_s": 12.5, "max_blocks": 80}',
+    adaptive: '{"mu_per_s": 25, "max_blocks": 40}',
     probe: '{"probe_max_deg": 4.0, "max_newton_steps": 4}',
     grid: '{"gamma_step_deg": 0.5, "delta_step_deg": 20}',
   };
@@ -863,7 +863,7 @@
 
   function resultLevel(status) {
     if (status === "ok") return "ok";
-    if (status === "no_authority") return "warn";
+    if (status === "no_authority" || status === "below_target") return "warn";
     return "bad";
   }
 

@@ -6,136 +6,206 @@ T_block the update is
 
     theta <- theta - mu * T_block * S_hat^+ a                                  (DESIGN 3)
 
-In complex form (secondary_path): Theta <- Theta - g * A / S_hat with g = mu*T_block. With
-S_hat = S this is a contraction by (1 - g) per block; with a phase error phi it is
-|1 - g*(|S|/|S_hat|)*exp(j phi)|, which is < 1 for small g iff |phi| < 90 deg.
+With S_hat = S this is a contraction by (1 - g), g = mu T_block, per block; with a phase error phi it
+is |1 - g (|S|/|S_hat|) e^{j phi}|, which is < 1 for small g iff |phi| < 90 deg. Blocks last
+`block_s` of plant time (whole electrical turns), so g does not depend on the speed.
+
+S_hat (DESIGN 3 (c)): it starts as the model of eq. 14-20 (or as the S measured at the neighbouring
+cells of a sweep) and is replaced by the S_ss fitted over the run's own blocks (the affine model
+a = S_ss theta + b by least squares, common.affine_s_from_history) once the thetas span both
+directions and the two disagree by more than `s_refine_tolerance`; the result reports the model
+against the measured S.
 
 Limits (sec. 2.4): |theta| <= gamma_max with the state itself clamped (anti-windup); adaptation is
 held off where the model says the injection lacks the authority to cancel the harmonic (the gamma
-it needs, |A_0 / S_hat|, is more than 1.5 gamma_max; a weak secondary path shows up there too).
-Stopping: converged when theta has settled and the residual no longer falls; diverged when the
-residual grows well above the best seen or theta runs into gamma_max without the residual
-falling -- then the best theta seen is restored and the probe method takes over from there.
+it needs, |A_0 / S_hat|, is more than 1.5 gamma_max).
+Stopping: done when a block shows the residual below the target with confidence (common.meets);
+stopped when it no longer falls (noise floor) or after `max_blocks`; diverged when the residual grows
+well above the best seen or theta runs into gamma_max without the residual falling -- then the best
+theta seen is restored and the probe method takes over from there.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.harmonic import electrical_frequency_hz
-from service.identification.common import measure_uncompensated, spectrum_traces, time_to_suppression, verify
-from service.identification.probe import ProbeOptions, identify_probe
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, Prior, affine_s_from_history, clamp,
+                                           measure_reference, meets, noise_floor_db, periods_for, spectrum_traces,
+                                           target_amplitude, time_to_suppression, verdict)
+from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
 from service.identification.result import IdentificationResult
-from service.identification.session import MeasurementSession
-from service.secondary_path import theta_parts
+from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 
 class AdaptiveOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    mu_per_s: float = Field(12.5, gt=0, description="adaptation gain mu of eq. 16, 1/s")
-    block_periods: int = Field(36, ge=2, le=10_000, description="harmonic periods per adaptation block")
-    settle_s: float = Field(0.02, ge=0, le=10, description="plant time after each theta update before its block is measured")
-    max_blocks: int = Field(80, ge=1, le=10_000)
-    theta_tolerance_deg: float = Field(0.005, gt=0, description="|delta theta| below which a block counts as settled")
-    settled_blocks: int = Field(2, ge=1, description="consecutive settled blocks that end the adaptation")
-    divergence_factor: float = Field(2.0, gt=1, description="residual above this times the best seen counts as growing")
-    divergence_blocks: int = Field(3, ge=1, description="consecutive growing blocks that mean divergence")
+    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
+    mu_per_s: float = Field(25.0, gt=0, le=1000, description="adaptation gain mu of eq. 16, 1/s")
+    block_s: float = Field(0.03, gt=0, le=1.0, description="plant time per adaptation block (whole electrical turns)")
+    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest block a precision need may extend to, plant s")
+    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta update before its block is measured")
+    max_blocks: int = Field(40, ge=1, le=1000)
+    stall_blocks: int = Field(6, ge=2, le=1000, description="blocks without a 10 % better residual that end the run")
+    max_plant_s: float = Field(5.0, gt=0, le=60, description="plant time after which the run ends with what it has")
+    divergence_factor: float = Field(2.0, gt=1, le=100, description="residual above this times the best seen counts as growing")
+    divergence_blocks: int = Field(3, ge=1, le=100, description="consecutive growing blocks that mean divergence")
     fallback: bool = Field(True, description="on divergence, fall back to the probe method")
-    verify_periods: int = Field(144, ge=2, description="periods of the final residual measurement")
-    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
+    s_refine: bool = Field(True, description="replace S_hat by the S fitted over the run's own blocks (DESIGN 3 (c))")
+    s_refine_tolerance: float = Field(0.15, gt=0, le=10, description="relative |S_fit - S_hat| that triggers the replacement")
+    use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
     s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
                                           description="deliberate phase error added to S_hat (robustness tests)")
 
 
-def clamp_gamma(theta: complex, gamma_max_rad: float) -> tuple[complex, bool]:
-    """Scale Theta back onto |Theta| = gamma_max (anti-windup of sec. 2.4)."""
-    if abs(theta) > gamma_max_rad:
-        return theta * (gamma_max_rad / abs(theta)), True
-    return theta, False
+def _row(w: Window, theta: np.ndarray) -> list:
+    return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
 
 
-def identify_adaptive(session: MeasurementSession, s_hat: complex, options: AdaptiveOptions,
-                      gamma_max_rad: float) -> IdentificationResult:
+def identify_adaptive(session: MeasurementSession, s_hat: complex, options: AdaptiveOptions, gamma_max_rad: float, *,
+                      prior: Prior | None = None, conditions: Conditions | None = None) -> IdentificationResult:
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
-    s_used = s_hat * complex(math.cos(math.radians(options.s_hat_phase_offset_deg)),
-                             math.sin(math.radians(options.s_hat_phase_offset_deg)))
-    before = measure_uncompensated(session, options.reference_periods)
-    history = [[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
+    prior = prior if options.use_prior else None
+    block_periods = periods_for(session, options.block_s)
+    max_periods = max(block_periods, periods_for(session, options.max_window_s))
+    gain = min(options.mu_per_s * block_periods / session.harmonic_frequency_hz, 1.0)    # g = mu T_block
+    offset = complex(math.cos(math.radians(options.s_hat_phase_offset_deg)),
+                     math.sin(math.radians(options.s_hat_phase_offset_deg)))
+    s_model = s_matrix(s_hat * offset)
+    s_used = prior.s() if prior is not None and prior.s_matrix is not None else s_model
+    s_source = prior.source if s_used is not s_model else "model (eq. 14-20)"
+    try:
+        before = measure_reference(session, block_periods, max_periods)
+    except MeasurementError as exc:
+        if "over-range" not in str(exc) or prior is None:
+            raise
+        # next to the resonance: the probe method starts from the neighbours and estimates A_0 (its doc)
+        result = identify_probe(session, s_hat, ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s),
+                                gamma_max_rad, prior=prior, conditions=conditions, method="adaptive",
+                                details={"fallback": "probe", "fallback_reason": "sensor over range at theta = 0"})
+        result.message = f"sensor over range at theta = 0, probe from the neighbours: {result.message}"
+        return result
+    history = [_row(before, np.zeros(2))]
+    uncompensated = before.phasor.amplitude
+    limit = target_amplitude(uncompensated, options.target_db)
 
     needed_gamma = abs(before.phasor.complex / s_hat)
     if needed_gamma > 1.5 * gamma_max_rad:
         # sec. 2.4: hold the adaptation off; nothing above 0 is sent
-        return _result(session, "no_authority", f"model needs gamma = {math.degrees(needed_gamma):.1f} deg > "
-                       f"gamma_max = {math.degrees(gamma_max_rad):.1f} deg: adaptation held off (sec. 2.4)",
-                       0j, before, before, history, s_hat, {"blocks": 0, "needed_gamma_deg": math.degrees(needed_gamma)})
+        message = (f"model needs gamma = {math.degrees(needed_gamma):.1f} deg > gamma_max = "
+                   f"{math.degrees(gamma_max_rad):.1f} deg: adaptation held off (sec. 2.4)")
+        return _result(session, "no_authority", message, np.zeros(2), before, before, history, s_hat, None,
+                       options, {"blocks": 0, "needed_gamma_deg": math.degrees(needed_gamma)})
 
-    theta = 0j
-    best_theta, best_amp = 0j, before.phasor.amplitude
-    window = before
-    settled = growing = at_limit = 0
+    theta, window = np.zeros(2), before
+    thetas, phasors = [theta.copy()], [before.phasor.vector]
+    if prior is not None and np.any(prior.theta):
+        theta, _ = clamp(prior.theta, gamma_max_rad)
+        session.apply_theta(*theta)
+        window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, uncompensated / 200),
+                                 max_periods=max_periods)
+        history.append(_row(window, theta))
+        thetas.append(theta.copy())
+        phasors.append(window.phasor.vector)
+    best_theta, best_amp = theta.copy(), window.phasor.amplitude
+    growing = at_limit = 0
     limited = diverged = False
-    blocks = 0
+    final: Window | None = window if meets(window, limit) and len(history) > 1 else None
+    s_replaced_after = None
+    blocks = best_block = 0
     for blocks in range(1, options.max_blocks + 1):
-        block_s = options.block_periods / (h * abs(electrical_frequency_hz(window.angle_rad, session.sample_rate_hz)))
-        step = options.mu_per_s * block_s * window.phasor.complex / s_used       # eq. 16, block form
-        new_theta, limited = clamp_gamma(theta - step, gamma_max_rad)
-        change = abs(new_theta - theta)
-        theta = new_theta
-        session.apply_theta(*theta_parts(theta))
-        window = session.measure(options.block_periods)
+        if final is not None:
+            break
+        a = window.phasor.vector
+        step = gain * (np.linalg.pinv(s_used) @ a)                      # eq. 16, block form
+        theta, limited = clamp(theta - step, gamma_max_rad)
+        session.apply_theta(*theta)
+        expected = max((1.0 - 0.7 * gain) * window.phasor.amplitude, limit)
+        window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
+                                 max_periods=max_periods)
         amp = window.phasor.amplitude
-        history.append([window.end_time_s, *theta_parts(theta), amp])
+        history.append(_row(window, theta))
+        thetas.append(theta.copy())
+        phasors.append(window.phasor.vector)
+        if amp < 0.9 * best_amp:
+            best_block = blocks
         if amp < best_amp:
-            best_theta, best_amp = theta, amp
+            best_theta, best_amp = theta.copy(), amp
+        if meets(window, limit):
+            final = window
+            break
+        if options.s_refine:
+            fitted = affine_s_from_history(np.array(thetas), np.array(phasors),
+                                           min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4))
+            if fitted is not None and abs(np.linalg.det(fitted)) > 1e-30:
+                difference = np.linalg.norm(fitted - s_used) / np.linalg.norm(s_used)
+                if difference > options.s_refine_tolerance:
+                    s_used, s_source = fitted, f"fitted over {len(thetas)} blocks"
+                    s_replaced_after = s_replaced_after or blocks
         # a plant whose 2x2 path has a conjugate part (dead time, L_d != L_q) can swell for a few blocks
         # while it spirals in; growth past the uncompensated level is what divergence looks like
-        growing = growing + 1 if amp > max(options.divergence_factor * best_amp, before.phasor.amplitude) else 0
+        growing = growing + 1 if amp > max(options.divergence_factor * best_amp, uncompensated) else 0
         at_limit = at_limit + 1 if (limited and amp >= best_amp) else 0
         if growing >= options.divergence_blocks or at_limit >= options.divergence_blocks:
             diverged = True
             break
-        falling = len(history) >= 3 and amp < 0.9 * history[-2][3]
-        settled = settled + 1 if (change < math.radians(options.theta_tolerance_deg) and not falling) else 0
-        if settled >= options.settled_blocks:
+        if blocks - best_block >= options.stall_blocks or session.plant_time_s > options.max_plant_s:
+            break
+        # at the noise floor: the block cannot resolve further progress
+        if amp <= 3.0 * math.sqrt(2.0) * window.noise_std_fs and window.noise_std_fs <= limit / PRECISION_FOR_TARGET:
             break
 
-    details = {"blocks": blocks, "mu_per_s": options.mu_per_s, "block_periods": options.block_periods,
-               "converged": settled >= options.settled_blocks, "diverged": diverged,
-               "s_hat_phase_offset_deg": options.s_hat_phase_offset_deg,
-               "time_to_40db_s": time_to_suppression(history, before.phasor.amplitude, 40.0)}
+    details = {"blocks": blocks, "mu_per_s": options.mu_per_s, "block_periods": block_periods, "gain_per_block": gain,
+               "converged": final is not None, "diverged": diverged, "s_used": s_source,
+               "s_replaced_after_blocks": s_replaced_after, "s_hat_phase_offset_deg": options.s_hat_phase_offset_deg,
+               "prior": None if prior is None else prior.source,
+               "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0)}
     if diverged:
         details["divergence"] = "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max"
-        session.apply_theta(*theta_parts(best_theta))      # revert to the best theta seen
+        session.apply_theta(*best_theta)      # revert to the best theta seen
         if options.fallback:
-            probe_opts = ProbeOptions(verify_periods=options.verify_periods)
-            result = identify_probe(session, s_hat, probe_opts, gamma_max_rad, before=before,
-                                    start_theta=theta_parts(best_theta), history=history, method="adaptive",
+            probe_opts = ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s)
+            result = identify_probe(session, s_hat, probe_opts, gamma_max_rad, before=before, conditions=conditions,
+                                    start_theta=tuple(best_theta), history=history, method="adaptive",
                                     details={**details, "fallback": "probe"})
             # the probe continued the same history, so its time_to_40db_s counts from the adaptive start
             result.message = f"adaptation diverged ({details['divergence']}); probe fallback: {result.message}"
             return result
-        after = verify(session, *theta_parts(best_theta), options.verify_periods)
-        return _result(session, "failed", "adaptation diverged; best theta restored", best_theta, before, after,
-                       history, s_hat, details)
+    if final is None:
+        session.apply_theta(*best_theta)
+        final = session.measure(block_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods)
+        history.append(_row(final, best_theta))
+        theta = best_theta
+    else:
+        theta = thetas[-1]
+    suppression = 20.0 * math.log10(max(uncompensated, 1e-300) / max(final.phasor.amplitude, 1e-300))
+    status, message = verdict(suppression, options.target_db, final, uncompensated, conditions, limited)
+    if diverged:
+        status, message = "failed", f"adaptation diverged ({details['divergence']}); best theta restored: {message}"
+    how = f"{blocks} block(s)" + (f", S_hat replaced by the fitted S after {s_replaced_after}" if s_replaced_after else "")
+    # report the model against what the run measured: the S it switched to, or its own fit
+    s_fitted = s_used if s_used is not s_model else affine_s_from_history(
+        np.array(thetas), np.array(phasors), min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4))
+    return _result(session, status, f"{message} ({how})", theta, before, final, history, s_hat, s_fitted, options,
+                   details)
 
-    after = verify(session, *theta_parts(theta), options.verify_periods)
-    status = "ok"
-    message = f"converged after {blocks} blocks" if details["converged"] else f"stopped after {blocks} blocks without settling"
-    if limited and after.phasor.amplitude > 0.1 * before.phasor.amplitude:
-        status, message = "no_authority", "gamma_max reached: the injection cannot cancel the harmonic here (sec. 2.4)"
-    return _result(session, status, message, theta, before, after, history, s_hat, details)
 
-
-def _result(session, status, message, theta, before, after, history, s_hat, details) -> IdentificationResult:
-    tc, ts = theta_parts(theta)
+def _result(session, status, message, theta, before, after, history, s_hat, s_fitted, options, details) -> IdentificationResult:
+    s_measured = None if s_fitted is None else rotation_part(s_fitted)
+    if s_measured is not None:
+        details = {**details, "s_matrix": s_fitted.tolist(),
+                   "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
+                   "model_phase_error_deg": phase_error_deg(s_hat, s_measured)}
     return IdentificationResult(
         method="adaptive", harmonic_order=session.harmonic_order, status=status, message=message,
-        theta_cos=tc, theta_sin=ts, residual=after.phasor, uncompensated=before.phasor,
-        plant_time_s=session.plant_time_s, windows_used=len(history) + 1,
-        windows_discarded=session.windows_discarded, s_model=s_hat, details=details,
-        traces={"theta_history": history, "theta_history_columns": ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"],
-                **spectrum_traces(before, after)},
+        theta_cos=float(theta[0]), theta_sin=float(theta[1]), residual=after.phasor, uncompensated=before.phasor,
+        plant_time_s=session.plant_time_s, windows_used=len(history), windows_discarded=session.windows_discarded,
+        s_model=s_hat, s_measured=s_measured, target_db=options.target_db,
+        noise_floor_db=noise_floor_db(after, before.phasor.amplitude), details=details,
+        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS, **spectrum_traces(before, after)},
     )
+

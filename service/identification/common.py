@@ -1,5 +1,18 @@
-"""Pieces every method shares: the uncompensated reference, the final verification, trace snippets."""
+"""Pieces every method shares: the uncompensated reference, window precision, the target and the
+verdict (status and a reason a test engineer can act on), the prior a sweep hands to a point, and
+the trace snippets.
+
+Target and noise (all amplitudes in sensor full scale, fs): the target amplitude is
+A_target = |A_0| 10^(-target_db/20) with A_0 the uncompensated phasor. A window's phasor carries
+white-ish noise of standard deviation sigma per component (service.demodulation); a residual counts
+as meeting the target only when |a| + 2 sigma <= A_target, so a lucky noise draw never makes a
+result `ok`. The noise floor of a result is the rms amplitude of a noise phasor, sqrt(2) sigma of
+its final window, in dB against |A_0|.
+"""
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -8,32 +21,114 @@ from service.identification.session import MeasurementSession, Window
 
 SPECTRUM_MAX_ORDER = 24
 SNIPPET_SAMPLES = 800
+CONFIDENCE_SIGMAS = 2.0         # |a| + 2 sigma <= A_target counts as met
+PRECISION_FOR_TARGET = 5.0      # a window meant to confirm the target has sigma <= A_target / 5
+MIN_PERIODS = 12                # two electrical turns at h = 6: every integer order but h averages out
 
 
-def measure_uncompensated(session: MeasurementSession, periods: int) -> Window:
-    """The reference: the h-th phasor with theta = 0 (suppression_db is counted against it)."""
+@dataclass(frozen=True)
+class Prior:
+    """What a point starts from: theta (rad) and, if measured, the 2x2 S_ss (fs/rad), e.g. from the
+    neighbouring cells of a sweep (DESIGN 3 (c))."""
+    theta_cos: float
+    theta_sin: float
+    s_matrix: tuple[tuple[float, float], tuple[float, float]] | None = None
+    source: str = ""
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.array([self.theta_cos, self.theta_sin])
+
+    def s(self) -> np.ndarray | None:
+        return None if self.s_matrix is None else np.array(self.s_matrix, dtype=float)
+
+
+def target_amplitude(uncompensated_fs: float, target_db: float) -> float:
+    return uncompensated_fs * 10.0 ** (-target_db / 20.0)
+
+
+def meets(window: Window, amplitude_limit_fs: float) -> bool:
+    """The residual is below the limit with confidence (module doc)."""
+    return window.phasor.amplitude + CONFIDENCE_SIGMAS * window.noise_std_fs <= amplitude_limit_fs
+
+
+def periods_for(session: MeasurementSession, seconds: float) -> int:
+    """Whole electrical turns (multiples of h periods) spanning at least `seconds` of plant time, >= MIN_PERIODS."""
+    h = session.harmonic_order
+    periods = math.ceil(seconds * session.harmonic_frequency_hz / h) * h
+    return max(MIN_PERIODS, periods)
+
+
+def measure_reference(session: MeasurementSession, min_periods: int, max_periods: int,
+                      relative_precision: float = 0.01) -> Window:
+    """The uncompensated reference (theta = 0), its phasor known to `relative_precision` of itself
+    (1 % = +-0.1 dB on every suppression figure) unless that needs more than `max_periods`."""
     session.apply_theta(0.0, 0.0)
-    return session.measure(periods)
+    first = session.measure(min_periods)
+    if first.noise_std_fs <= relative_precision * first.phasor.amplitude:
+        return first
+    return session.measure(min_periods, max_noise_std_fs=relative_precision * first.phasor.amplitude,
+                           max_periods=max_periods)
 
 
-def verify(session: MeasurementSession, theta_cos: float, theta_sin: float, periods: int) -> Window:
-    """Apply the final theta and measure the residual over a longer window."""
-    session.apply_theta(theta_cos, theta_sin)
-    return session.measure(periods)
+def noise_floor_db(window: Window, uncompensated_fs: float) -> float | None:
+    if window.noise_std_fs <= 0 or uncompensated_fs <= 0:
+        return None
+    return 20.0 * math.log10(math.sqrt(2.0) * window.noise_std_fs / uncompensated_fs)
 
 
-def spectrum_traces(before: Window, after: Window) -> dict:
+@dataclass(frozen=True)
+class Conditions:
+    """What the verdict needs to know about the operating point (all from the service's own knowledge)."""
+    harmonic_frequency_hz: float
+    resonance_hz: float | None = None
+    current_bandwidth_hz: float | None = None
+    decoupling: bool = False
+
+
+RESONANCE_NEAR_HZ = 150.0       # closer than this, the shaft mode dominates every window after a step
+CURRENT_LOOP_NEAR = 2.0         # f_h below this times the current-loop bandwidth: the loop counteracts (sec. 2.4)
+
+
+def verdict(suppression_db: float, target_db: float, final: Window, uncompensated_fs: float,
+            conditions: Conditions | None, limited: bool) -> tuple[str, str]:
+    """(status, reason). `ok` only when the final window met the target with confidence."""
+    limit = target_amplitude(uncompensated_fs, target_db)
+    if meets(final, limit):
+        return "ok", f"{suppression_db:.1f} dB, target {target_db:g} dB met"
+    if limited:
+        return "no_authority", (f"gamma_max reached at {suppression_db:.1f} dB: the injection cannot cancel the "
+                                "harmonic here (sec. 2.4)")
+    reasons = []
+    floor = noise_floor_db(final, uncompensated_fs)
+    if floor is not None and final.phasor.amplitude <= 3.0 * math.sqrt(2.0) * final.noise_std_fs:
+        reasons.append(f"residual at the sensor noise floor, {floor:.0f} dB")
+    if conditions is not None:
+        if conditions.resonance_hz is not None:
+            distance = abs(conditions.harmonic_frequency_hz - conditions.resonance_hz)
+            if distance < RESONANCE_NEAR_HZ:
+                reasons.append(f"harmonic {distance:.0f} Hz from the shaft resonance ({conditions.resonance_hz:.0f} Hz)")
+        if (conditions.current_bandwidth_hz and not conditions.decoupling
+                and conditions.harmonic_frequency_hz < CURRENT_LOOP_NEAR * conditions.current_bandwidth_hz):
+            reasons.append(f"the nominal current loop ({conditions.current_bandwidth_hz:.0f} Hz) counteracts at "
+                           f"{conditions.harmonic_frequency_hz:.0f} Hz: enable decoupling")
+    if not reasons:
+        reasons.append("the residual stopped falling")
+    return "below_target", f"{suppression_db:.1f} dB, below the {target_db:g} dB target: " + "; ".join(reasons)
+
+
+def spectrum_traces(before: Window | None, after: Window) -> dict:
     """Data for the paper's Fig. 10: alpha over a few periods and its order spectrum, before/after."""
     def snippet(w: Window) -> dict:
         n = min(SNIPPET_SAMPLES, len(w.alpha_fs))
         return {"angle_rad": np.round(np.unwrap(w.angle_rad[:n]), 5).tolist(),
                 "alpha_fs": np.round(w.alpha_fs[:n], 6).tolist()}
-    return {
-        "spectrum_before": amplitude_spectrum(before.alpha_fs, before.angle_rad, SPECTRUM_MAX_ORDER),
-        "spectrum_after": amplitude_spectrum(after.alpha_fs, after.angle_rad, SPECTRUM_MAX_ORDER),
-        "alpha_before": snippet(before),
-        "alpha_after": snippet(after),
-    }
+    traces = {"spectrum_after": amplitude_spectrum(after.alpha_fs, after.angle_rad, SPECTRUM_MAX_ORDER),
+              "alpha_after": snippet(after)}
+    if before is not None:
+        traces.update({"spectrum_before": amplitude_spectrum(before.alpha_fs, before.angle_rad, SPECTRUM_MAX_ORDER),
+                       "alpha_before": snippet(before)})
+    return traces
 
 
 def time_to_suppression(history: list, uncompensated_amplitude: float, target_db: float) -> float | None:
@@ -44,3 +139,25 @@ def time_to_suppression(history: list, uncompensated_amplitude: float, target_db
         if amp <= limit:
             return t
     return None
+
+
+def clamp(theta: np.ndarray, gamma_max_rad: float) -> tuple[np.ndarray, bool]:
+    """theta scaled back onto |theta| = gamma_max (anti-windup of sec. 2.4); (theta, limited)."""
+    gamma = float(np.hypot(*theta))
+    if gamma > gamma_max_rad:
+        return theta * (gamma_max_rad / gamma), True
+    return theta, False
+
+
+def affine_s_from_history(thetas: np.ndarray, phasors: np.ndarray, min_spread_rad: float) -> np.ndarray | None:
+    """S_ss (2x2) of the affine model a = S_ss theta + b fitted over a run's own windows (least
+    squares, DESIGN 3 (c)); None while the thetas do not span both directions by `min_spread_rad`."""
+    if len(thetas) < 3:
+        return None
+    centred = thetas - thetas.mean(axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    if singular[-1] / math.sqrt(len(thetas)) < min_spread_rad:
+        return None
+    design = np.column_stack([thetas, np.ones(len(thetas))])
+    coef, *_ = np.linalg.lstsq(design, phasors, rcond=None)
+    return coef[:2].T

@@ -22,10 +22,14 @@ import numpy as np
 from scipy import optimize, special
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.identification.common import measure_uncompensated, spectrum_traces, verify
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, measure_reference, noise_floor_db, periods_for,
+                                           spectrum_traces, target_amplitude, verdict)
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
 from service.secondary_path import rotation_part, theta_from_gamma_delta, theta_parts
+
+
+MAX_GRID_POINTS = 2_000        # x about 30 ms of plant time each: about a minute per operating point
 
 
 class GridOptions(BaseModel):
@@ -37,11 +41,11 @@ class GridOptions(BaseModel):
     delta_start_deg: float = Field(0.0, ge=0, lt=360)
     delta_stop_deg: float = Field(340.0, ge=0, lt=360)
     delta_step_deg: float = Field(20.0, gt=0)
-    window_periods: int = Field(18, ge=2, le=10_000)
-    settle_s: float = Field(0.12, ge=0, le=10, description="plant time after each grid point's theta before measuring: "
-                            "a theta step rings the shaft resonance (tau = 1/19.6 s), which leaks into the phasor")
-    verify_periods: int = Field(144, ge=2)
-    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
+    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
+    window_periods: int = Field(18, ge=2, le=2_000, description="harmonic periods per grid point")
+    settle_s: float = Field(0.01, ge=0, le=2.0, description="plant time after each grid point's theta before measuring "
+                            "(the shaft mode a theta step rings is fitted as a nuisance, not waited out)")
+    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest reference/verification window, plant s")
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
 
@@ -51,8 +55,12 @@ class GridOptions(BaseModel):
             raise ValueError("gamma_stop_deg must be >= gamma_start_deg")
         if self.delta_stop_deg < self.delta_start_deg:
             raise ValueError("delta_stop_deg must be >= delta_start_deg")
-        if len(self.gammas_deg()) * len(self.deltas_deg()) > 20_000:
-            raise ValueError("grid has more than 20000 points")
+        # counted before anything is allocated (a tiny step must not ask numpy for terabytes)
+        n_gamma = math.floor((self.gamma_stop_deg - self.gamma_start_deg) / self.gamma_step_deg + 1e-9) + 1
+        n_delta = math.floor((self.delta_stop_deg - self.delta_start_deg) / self.delta_step_deg + 1e-9) + 1
+        if n_gamma * n_delta > MAX_GRID_POINTS:
+            raise ValueError(f"the grid has {n_gamma} x {n_delta} points, more than {MAX_GRID_POINTS}: "
+                             "choose larger gamma_step_deg / delta_step_deg")
         return self
 
     def gammas_deg(self) -> np.ndarray:
@@ -109,10 +117,13 @@ def local_affine_fit(thetas: np.ndarray, phasors: np.ndarray, around: complex, r
 
 
 def identify_grid(session: MeasurementSession, s_hat: complex | None, options: GridOptions,
-                  gamma_max_rad: float) -> IdentificationResult:
+                  gamma_max_rad: float, *, prior=None, conditions: Conditions | None = None) -> IdentificationResult:
+    """The paper's grid; `prior` is accepted for a common signature and not used (the grid is a cross-check)."""
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
-    before = measure_uncompensated(session, options.reference_periods)
+    max_periods = max(options.window_periods, periods_for(session, options.max_window_s))
+    before = measure_reference(session, options.window_periods, max_periods)
+    limit = target_amplitude(before.phasor.amplitude, options.target_db)
     points = []
     for gamma_deg in options.gammas_deg():
         if math.radians(gamma_deg) > gamma_max_rad + 1e-12:
@@ -135,9 +146,13 @@ def identify_grid(session: MeasurementSession, s_hat: complex | None, options: G
     min_tc, min_ts = float(grid[best, 2]), float(grid[best, 3])
     fit_tc, fit_ts = theta_parts(theta_fit)
     tc, ts = (fit_tc, fit_ts) if options.result == "fit" else (min_tc, min_ts)
-    after = verify(session, tc, ts, options.verify_periods)
+    session.apply_theta(tc, ts)
+    after = session.measure(options.window_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods)
+    suppression = 20.0 * math.log10(max(before.phasor.amplitude, 1e-300) / max(after.phasor.amplitude, 1e-300))
+    status, message = verdict(suppression, options.target_db, after, before.phasor.amplitude, conditions, False)
     return IdentificationResult(
-        method="grid", harmonic_order=h, status="ok", message=f"{len(points)} grid points",
+        method="grid", harmonic_order=h, status=status, message=f"{message} ({len(points)} grid points, {options.result})",
+        target_db=options.target_db, noise_floor_db=noise_floor_db(after, before.phasor.amplitude),
         theta_cos=tc, theta_sin=ts, residual=after.phasor, uncompensated=before.phasor,
         plant_time_s=session.plant_time_s, windows_used=len(points) + 2,
         windows_discarded=session.windows_discarded, s_model=s_hat, s_measured=s_fit,

@@ -9,9 +9,17 @@ column (no assumption that it has the rotation structure of a scalar complex gai
 and one Newton step lands on theta* = theta - S_ss^-1 a(theta) = -theta_d. The plant is only nearly
 affine (inverter dead time and saturation bend it), so each further step also refines S_ss from what
 that step measured (Broyden's update S <- S + (da - S dtheta) dtheta^T / |dtheta|^2, exact for an
-affine plant; skipped when the step moved the phasor by less than 20 noise levels), until the
-residual stops improving. The probe-measured S_ss is what the result reports. The probe size P is chosen from the model so the probe's response stands well
-above the noise but the injection stays small (linear) and below gamma_max.
+affine plant; skipped when the step moved the phasor by less than 20 noise levels).
+
+When it stops: as soon as a window shows the residual below the target with confidence
+(common.meets), or when a step no longer improves it (noise floor or non-linearity), or after
+`max_newton_steps`. Each window is as long as its purpose needs (common module doc): a step's window
+resolves the residual it expects to one twentieth, the last ones resolve the target to one fifth.
+
+A sweep's neighbours (common.Prior) give a starting theta and a measured S_ss: then no probe is
+needed, the first Newton step starts from theta_prior. Where the sensor is over range at theta = 0
+(a harmonic next to the shaft resonance), the run starts from the prior theta and the uncompensated
+phasor is computed from the affine model, A_0 = a(theta) - S_ss theta, and reported as estimated.
 """
 from __future__ import annotations
 
@@ -20,114 +28,202 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.identification.common import measure_uncompensated, spectrum_traces, time_to_suppression, verify
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, Prior, clamp, measure_reference, meets,
+                                           noise_floor_db, periods_for, spectrum_traces, target_amplitude,
+                                           time_to_suppression, verdict)
 from service.identification.result import IdentificationResult
-from service.identification.session import MeasurementSession, Window
-from service.secondary_path import phase_error_deg, rotation_part
+from service.harmonic import Phasor
+from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.secondary_path import phase_error_deg, rotation_part, s_matrix
+
+HISTORY_COLUMNS = ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"]
 
 
 class ProbeOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
+    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     probe_fraction: float = Field(0.5, gt=0, le=1.0, description="probe size as a fraction of the model's |theta*|")
-    probe_min_deg: float = Field(0.3, gt=0, description="smallest probe amplitude, deg")
-    probe_max_deg: float = Field(4.0, gt=0, description="largest probe amplitude, deg (kept <= gamma_max/2)")
-    window_periods: int = Field(24, ge=2, le=10_000)
-    settle_s: float = Field(0.04, ge=0, le=10, description="plant time after each theta before measuring")
+    probe_min_deg: float = Field(0.3, gt=0, le=10, description="smallest probe amplitude, deg")
+    probe_max_deg: float = Field(4.0, gt=0, le=20, description="largest probe amplitude, deg (kept <= gamma_max/2)")
+    window_s: float = Field(0.01, gt=0, le=1.0, description="shortest window, plant s (whole electrical turns, >= 12 periods)")
+    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
+    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
+                            "(the shaft mode a step excites is fitted, not waited out)")
     max_newton_steps: int = Field(6, ge=1, le=50)
-    verify_periods: int = Field(144, ge=2)
-    reference_periods: int = Field(72, ge=2, description="periods of the uncompensated reference measurement")
+    use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
     gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
 
+def _row(w: Window, theta: np.ndarray) -> list:
+    return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
+
+
+PROBE_MAX_RESPONSE_FS = 0.2     # a probe moves alpha by at most this (model): it stays in the sensor's range
+
+
+def _probe_size(amplitude_fs: float, s_hat: complex, gamma_max_rad: float, options: ProbeOptions) -> float:
+    """Probe amplitude (rad): a fraction of the model's |theta*|, within the options' bounds, half of
+    gamma_max, and small enough that the model's response stays well inside the sensor's range."""
+    model_theta_rad = amplitude_fs / abs(s_hat)
+    return min(max(options.probe_fraction * model_theta_rad, math.radians(options.probe_min_deg)),
+               math.radians(options.probe_max_deg), gamma_max_rad / 2, PROBE_MAX_RESPONSE_FS / abs(s_hat))
+
+
 def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta: np.ndarray, probe_rad: float,
-                     window_periods: int, history: list) -> np.ndarray:
+                     periods: int, max_periods: int, noise_limit_fs: float, history: list) -> np.ndarray:
     """S_ss measured by two probes around theta (one column each)."""
     columns = []
     for k in range(2):
         p = np.zeros(2)
         p[k] = probe_rad
         session.apply_theta(*(theta + p))
-        w = session.measure(window_periods)
-        history.append([w.end_time_s, *(theta + p), w.phasor.amplitude])
+        w = session.measure(periods, max_noise_std_fs=noise_limit_fs, max_periods=max_periods)
+        history.append(_row(w, theta + p))
         columns.append((w.phasor.vector - a_at_theta) / probe_rad)
     return np.column_stack(columns)
 
 
-def clamp(v: np.ndarray, gamma_max_rad: float) -> np.ndarray:
-    g = float(np.hypot(*v))
-    return v * (gamma_max_rad / g) if g > gamma_max_rad else v
-
-
 def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOptions, gamma_max_rad: float, *,
-                   before: Window | None = None, start_theta: tuple[float, float] | None = None,
-                   history: list | None = None, method: str = "probe",
-                   details: dict | None = None) -> IdentificationResult:
+                   prior: Prior | None = None, conditions: Conditions | None = None, before: Window | None = None,
+                   start_theta: tuple[float, float] | None = None, history: list | None = None,
+                   method: str = "probe", details: dict | None = None) -> IdentificationResult:
     """Probe + Newton. The adaptive method's fallback passes what it has already measured (the
-    uncompensated window, its history) and the best theta it saw, to start the probes from there."""
+    uncompensated window, its history) and the best theta it saw, to start from there."""
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
+    min_periods = periods_for(session, options.window_s)
+    max_periods = max(min_periods, periods_for(session, options.max_window_s))
+    prior = prior if options.use_prior else None
+    notes: list[str] = []
     if before is None:
-        before = measure_uncompensated(session, options.reference_periods)
-    history = history if history is not None else [[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
+        try:
+            before = measure_reference(session, min_periods, max_periods)
+        except MeasurementError as exc:
+            if "over-range" not in str(exc):
+                raise
+            if prior is None:
+                raise MeasurementError("sensor over range without compensation and no neighbouring result to start "
+                                       "from: measure this point in a sweep with its neighbours, or at lower torque") from None
+            notes.append("sensor over range at theta = 0: started from the neighbours' theta, uncompensated "
+                         "phasor estimated from the affine model")
+    history = history if history is not None else ([[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
+                                                   if before is not None else [])
     theta = np.zeros(2)
-    a = before.phasor.vector
-    if start_theta is not None and any(start_theta):
-        theta = np.array(start_theta, dtype=float)
+    a = before.phasor.vector if before is not None else None
+    s_model = s_matrix(s_hat)
+    start = np.array(start_theta, dtype=float) if start_theta is not None and any(start_theta) else None
+    if start is None and prior is not None and np.any(prior.theta):
+        start = prior.theta
+    if start is not None:
+        theta, _ = clamp(start, gamma_max_rad)
         session.apply_theta(*theta)
-        w = session.measure(options.window_periods)
+        expected = abs(before.phasor.complex) if before is not None else None
+        w = session.measure(min_periods, max_noise_std_fs=None if expected is None else expected / 50,
+                            max_periods=max_periods)
         a = w.phasor.vector
-        history.append([w.end_time_s, *theta, w.phasor.amplitude])
-    model_theta_rad = abs(before.phasor.complex / s_hat)
-    probe_rad = min(max(options.probe_fraction * model_theta_rad, math.radians(options.probe_min_deg)),
-                    math.radians(options.probe_max_deg), gamma_max_rad / 2)
-    # the probes go around theta: keep theta + p inside gamma_max
-    theta = clamp(theta, gamma_max_rad - probe_rad)
-    s_ss = measure_s_matrix(session, theta, a, probe_rad, options.window_periods, history)
-    s_probed = s_ss.copy()
+        history.append(_row(w, theta))
+    s_ss = prior.s() if prior is not None and prior.s_matrix is not None else None
+    probe_rad = 0.0
+    if s_ss is None:
+        probe_rad = _probe_size(float(np.hypot(*a)), s_hat, gamma_max_rad, options)
+        theta, _ = clamp(theta, gamma_max_rad - probe_rad)     # the probes go around theta: stay inside gamma_max
+        response = abs(s_hat) * probe_rad
+        s_ss = measure_s_matrix(session, theta, a, probe_rad, min_periods, max_periods, response / 50, history)
+        s_probed = s_ss.copy()
+    else:
+        s_probed = None
+        notes.append(f"started from {prior.source or 'a prior'} (theta and measured S)")
     if abs(np.linalg.det(s_ss)) < 1e-30:
-        raise ValueError("probe response is zero: the injection has no effect on the measured harmonic here")
-    s_inv = np.linalg.inv(s_ss)
-    best_theta, best_amp = theta.copy(), float(np.hypot(*a))
+        raise MeasurementError("the probe response is zero: the injection has no effect on the measured harmonic here")
+
+    uncompensated = before.phasor.amplitude if before is not None else float(np.hypot(*(a - s_ss @ theta)))
+    limit = target_amplitude(uncompensated, options.target_db)
+    best_theta, best_amp, best_a = theta.copy(), float(np.hypot(*a)), a
+    failures = 0
+    final: Window | None = None
     limited = False
+    damping = 1.0
     steps = 0
     for steps in range(1, options.max_newton_steps + 1):
-        target = theta - s_inv @ a
-        new_theta = clamp(target, gamma_max_rad)
-        limited = not np.allclose(new_theta, target)
+        target = theta - damping * np.linalg.solve(s_ss, a)
+        new_theta, limited = clamp(target, gamma_max_rad)
         session.apply_theta(*new_theta)
-        w = session.measure(options.window_periods)
-        history.append([w.end_time_s, *new_theta, w.phasor.amplitude])
-        improved = w.phasor.amplitude < 0.8 * best_amp
-        new_a = w.phasor.vector
-        d_theta, d_a = new_theta - theta, new_a - a
-        # only a step that moves the phasor well above the noise of one window says anything about S
-        noise = float(np.std(w.alpha_fs)) * math.sqrt(2.0 / len(w.alpha_fs))
-        if float(np.hypot(*(s_ss @ d_theta))) > 20.0 * noise:
-            broyden = s_ss + np.outer(d_a - s_ss @ d_theta, d_theta) / float(d_theta @ d_theta)
-            if abs(np.linalg.det(broyden)) > 1e-30:
-                s_ss, s_inv = broyden, np.linalg.inv(broyden)
-        theta, a = new_theta, new_a
-        if w.phasor.amplitude < best_amp:
-            best_theta, best_amp = theta.copy(), w.phasor.amplitude
-        if not improved:
-            break       # the residual stopped improving: noise floor (or non-linearity) reached
-    after = verify(session, *best_theta, options.verify_periods)
-    s_measured = rotation_part(s_probed)
-    status, message = "ok", f"{steps} Newton step(s) after 2 probes of {math.degrees(probe_rad):.2f} deg"
-    if limited and best_amp > 0.1 * before.phasor.amplitude:
-        status = "no_authority"
-        message = (f"theta* needs more than gamma_max = {math.degrees(gamma_max_rad):.1f} deg "
-                   "(the injection cannot cancel the harmonic here, sec. 2.4)")
+        # resolve what this step is expected to leave (a tenth of now) to 1/20, and never coarser
+        # than the target needs once the target is near
+        expected = max(0.1 * float(np.hypot(*a)), limit)
+        try:
+            w = session.measure(min_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
+                                max_periods=max_periods)
+        except MeasurementError as exc:
+            if "over-range" not in str(exc):
+                raise
+            w = None            # the step overshot into the resonance: a failed step, half as long next time
+        if w is not None:
+            history.append(_row(w, new_theta))
+            new_a = w.phasor.vector
+            d_theta, d_a = new_theta - theta, new_a - a
+            if float(np.hypot(*(s_ss @ d_theta))) > 20.0 * max(w.noise_std_fs, 1e-12) * math.sqrt(2):
+                broyden = s_ss + np.outer(d_a - s_ss @ d_theta, d_theta) / float(d_theta @ d_theta)
+                if abs(np.linalg.det(broyden)) > 1e-30:
+                    s_ss = broyden
+            if meets(w, limit):
+                final = w
+                best_theta = new_theta.copy()
+                break
+        improved = w is not None and w.phasor.amplitude < 0.8 * best_amp
+        if w is not None and w.phasor.amplitude < best_amp:
+            best_theta, best_amp, best_a = new_theta.copy(), w.phasor.amplitude, new_a
+        failures = 0 if improved else failures + 1
+        damping = 1.0 if improved else 0.5 * damping
+        if failures >= 2:
+            if s_probed is not None:
+                break       # the residual stopped improving: noise floor (or non-linearity) reached
+            # the neighbours' S does not hold here: measure it with the probes, around the best point
+            probe_rad = _probe_size(float(np.hypot(*best_a)), s_hat, gamma_max_rad, options)
+            theta, _ = clamp(best_theta, gamma_max_rad - probe_rad)
+            if not np.allclose(theta, best_theta):
+                session.apply_theta(*theta)
+                w = session.measure(min_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, best_amp / 50),
+                                    max_periods=max_periods)
+                history.append(_row(w, theta))
+                best_a = w.phasor.vector
+            s_ss = measure_s_matrix(session, theta, best_a, probe_rad, min_periods, max_periods,
+                                    abs(s_hat) * probe_rad / 50, history)
+            s_probed = s_ss.copy()
+            notes.append("the neighbours' S did not hold here: measured by probes")
+            failures, damping, a = 0, 1.0, best_a
+            continue
+        # the next step starts from the best point, with the S that this step refined
+        theta, a = (new_theta, new_a) if improved else (best_theta.copy(), best_a)
+    if final is None:
+        # confirm the best theta with the precision the target needs (or the longest window allowed)
+        session.apply_theta(*best_theta)
+        final = session.measure(min_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods)
+        history.append(_row(final, best_theta))
+    if before is None:
+        uncompensated = float(np.hypot(*(a - s_ss @ theta)))      # the affine model with the refined S_ss
+        limit = target_amplitude(uncompensated, options.target_db)
+    suppression = 20.0 * math.log10(max(uncompensated, 1e-300) / max(final.phasor.amplitude, 1e-300))
+    status, message = verdict(suppression, options.target_db, final, uncompensated, conditions, limited)
+    how = f"{steps} Newton step(s)" + (f" after 2 probes of {math.degrees(probe_rad):.2f} deg" if probe_rad else "")
+    message = f"{message} ({how})" + "".join(f"; {n}" for n in notes)
+    s_reported = s_probed if s_probed is not None else s_ss
+    s_measured = rotation_part(s_reported)
+    uncompensated_phasor = before.phasor if before is not None else Phasor(*map(float, a - s_ss @ theta), 0, 0)
     return IdentificationResult(
         method=method, harmonic_order=h, status=status, message=message,
-        theta_cos=float(best_theta[0]), theta_sin=float(best_theta[1]), residual=after.phasor,
-        uncompensated=before.phasor, plant_time_s=session.plant_time_s, windows_used=len(history) + 1,
+        theta_cos=float(best_theta[0]), theta_sin=float(best_theta[1]), residual=final.phasor,
+        uncompensated=uncompensated_phasor, plant_time_s=session.plant_time_s, windows_used=len(history),
         windows_discarded=session.windows_discarded, s_model=s_hat, s_measured=s_measured,
+        target_db=options.target_db, noise_floor_db=noise_floor_db(final, uncompensated),
         details={**(details or {}), "probe_deg": math.degrees(probe_rad), "newton_steps": steps,
-                 "s_matrix": s_probed.tolist(), "s_matrix_refined": s_ss.tolist(),
+                 "s_matrix": s_reported.tolist(), "s_matrix_refined": s_ss.tolist(),
+                 "s_model_matrix": s_model.tolist(),
                  "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
                  "model_phase_error_deg": phase_error_deg(s_hat, s_measured),
-                 "time_to_40db_s": time_to_suppression(history, before.phasor.amplitude, 40.0)},
-        traces={"theta_history": history, "theta_history_columns": ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"],
-                **spectrum_traces(before, after)},
+                 "uncompensated_estimated": before is None, "prior": None if prior is None else prior.source,
+                 "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0)},
+        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS,
+                **spectrum_traces(before, final)},
     )
+

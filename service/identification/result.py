@@ -20,7 +20,7 @@ def suppression_db(uncompensated: Phasor, residual: Phasor) -> float:
 class IdentificationResult:
     method: str
     harmonic_order: int
-    status: str                       # ok | no_authority | failed
+    status: str                       # ok | below_target | no_authority | failed
     theta_cos: float                  # rad
     theta_sin: float                  # rad
     residual: Phasor                  # h-th phasor with theta applied, full scale
@@ -31,6 +31,8 @@ class IdentificationResult:
     message: str = ""
     s_model: complex | None = None    # S_hat of eq. 14-20, full scale per rad
     s_measured: complex | None = None
+    target_db: float = 40.0           # the suppression `ok` requires
+    noise_floor_db: float | None = None   # rms noise phasor of the final window against |uncompensated|
     details: dict[str, Any] = field(default_factory=dict)
     traces: dict[str, Any] = field(default_factory=dict)
 
@@ -63,6 +65,8 @@ class IdentificationResult:
             "uncompensated": {"a_c": self.uncompensated.a_c, "a_s": self.uncompensated.a_s,
                               "amplitude": self.uncompensated.amplitude},
             "suppression_db": self.suppression_db,
+            "target_db": self.target_db,
+            "noise_floor_db": self.noise_floor_db,
             "plant_time_s": self.plant_time_s,
             "windows_used": self.windows_used,
             "windows_discarded": self.windows_discarded,

@@ -9,6 +9,10 @@ import numpy as np
 from service.harmonic import Phasor
 
 
+class MeasurementError(RuntimeError):
+    """The bench did not deliver what a measurement needs (settling, valid windows, sync)."""
+
+
 @dataclass
 class Window:
     """One accepted measurement window: its phasor and the raw samples (to redraw plots)."""
@@ -16,6 +20,8 @@ class Window:
     alpha_fs: np.ndarray
     angle_rad: np.ndarray
     end_time_s: float          # plant time at the window's last sample, from the session start
+    noise_std_fs: float = 0.0  # standard deviation of each phasor component (noise), full scale
+    ring_fs: float = 0.0       # amplitude of the shaft mode fitted as a nuisance, full scale
 
 
 class MeasurementSession(Protocol):
@@ -26,8 +32,11 @@ class MeasurementSession(Protocol):
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         """Send theta to the drive and return once it is in effect and the plant has settled."""
 
-    def measure(self, periods: int) -> Window:
-        """Next valid window of `periods` whole harmonic periods (bad windows are re-measured)."""
+    harmonic_frequency_hz: float     # f_h at the operating point, Hz
+
+    def measure(self, periods: int, max_noise_std_fs: float | None = None, max_periods: int | None = None) -> Window:
+        """Next valid window of `periods` whole harmonic periods (bad windows are re-measured); with
+        `max_noise_std_fs`, extended up to `max_periods` until the phasor's noise std is at most that."""
 
     @property
     def plant_time_s(self) -> float:

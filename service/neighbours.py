@@ -1,0 +1,45 @@
+"""Sweeps learn as they go (issue 7): each point starts from what its neighbours measured.
+
+theta* = -theta_d is the disturbance in injection units: the shaft's G_Salpha cancels out of it, so
+it varies smoothly with the operating point even across the shaft resonance, and a neighbour's
+theta* puts a new point some 20 dB down before its first step (and brings the sensor into range
+next to the resonance). The secondary path S does not share that smoothness in speed (its phase
+turns by 180 deg across the resonance), so a measured S is taken only from a cell at the same speed
+and DC-link voltage (the plan's innermost axis is torque: usually the point just measured).
+"""
+from __future__ import annotations
+
+import json
+import math
+
+from service.identification.common import Prior
+from service.operating_point import OperatingPoint
+
+
+def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, list[float]]) -> Prior | None:
+    """The prior for `op` from the `ok` result rows of the same sweep (None if there is none)."""
+    ok = [r for r in rows if r["status"] == "ok" and r.get("theta_cos") is not None]
+    if not ok:
+        return None
+
+    def span(name: str) -> float:
+        values = axes.get(name) or [0.0]
+        return max(max(values) - min(values), 1e-9)
+
+    def distance(r: dict) -> float:
+        return math.sqrt(((r["torque_nm"] - op.torque_nm) / span("torque_nm")) ** 2
+                         + ((r["speed_rpm"] - op.speed_rpm) / span("speed_rpm")) ** 2
+                         + ((r["udc_v"] - op.udc_v) / span("udc_v")) ** 2)
+
+    nearest = min(ok, key=distance)
+    same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
+    s_matrix = None
+    source = f"neighbour {nearest['torque_nm']:g} Nm / {nearest['speed_rpm']:g} rpm / {nearest['udc_v']:g} V"
+    if same_line:
+        s_row = min(same_line, key=distance)
+        details = json.loads(s_row.get("detail_json") or "{}").get("details") or {}
+        matrix = details.get("s_matrix_refined") or details.get("s_matrix")
+        if matrix is not None:
+            s_matrix = tuple(tuple(float(v) for v in row) for row in matrix)
+            source += f", S from {s_row['torque_nm']:g} Nm"
+    return Prior(float(nearest["theta_cos"]), float(nearest["theta_sin"]), s_matrix, source)

@@ -1,0 +1,78 @@
+"""10 x 10 sweeps on the emulated bench (issue 7): what share of the map meets its target, and what it costs.
+
+Run: python tests/benchmarks/bench_sweep_quality.py [--seeds None,1,2,3,4,5] [--methods probe,adaptive]
+
+For each scenario (paper-bench, and seeded truths it has never seen) and method: a sweep over torque
+0.5..5 Nm x speed 500..3200 rpm at 12 V through the engine (neighbour priors included). Prints a table:
+cells >= 40 dB, ok, below target, no authority, failed; median and p95 plant time per point (the
+method, without the move to the point); the sweep's total plant and wall time; and the stored
+statuses that claim ok below their target (must be 0).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from service.calibration_service import CalibrationService  # noqa: E402
+from service.identify import parse_options  # noqa: E402
+from service.plans import Grid  # noqa: E402
+from service.settings import load_settings  # noqa: E402
+
+TORQUES = [round(0.5 + 0.5 * i, 2) for i in range(10)]
+SPEEDS = [500 + 300 * i for i in range(10)]
+
+
+def run_sweep(svc, method: str) -> dict:
+    t0 = time.perf_counter()
+    sweep_id = svc.engine.submit_sweep(Grid(torque_nm=TORQUES, speed_rpm=SPEEDS, udc_v=[12]), method,
+                                       parse_options(method, {}))
+    deadline = time.monotonic() + 3600
+    while svc.storage.get_sweep(sweep_id)["state"] not in ("done", "failed", "cancelled"):
+        if time.monotonic() > deadline:
+            raise TimeoutError("sweep did not finish in an hour")
+        time.sleep(0.2)
+    wall = time.perf_counter() - t0
+    rows = svc.storage.sweep_results(sweep_id)
+    statuses = Counter(r["status"] for r in rows)
+    plant = np.array([r["plant_time_s"] for r in rows if r["plant_time_s"] is not None])
+    reached = sum(1 for r in rows if (r["suppression_db"] or -1e9) >= 40.0)
+    dishonest = sum(1 for r in rows if r["status"] == "ok" and (r["suppression_db"] or -1e9) < (r["target_db"] or 40.0))
+    reasons = Counter((r["error"] or "").split(":")[-1].split("(")[0].strip()[:70] for r in rows if r["status"] != "ok")
+    return {"n": len(rows), "reached": reached, "statuses": statuses, "median": float(np.median(plant)),
+            "p95": float(np.percentile(plant, 95)), "plant_total": float(plant.sum()), "wall": wall,
+            "dishonest": dishonest, "reasons": reasons}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", default="None,1,2,3,4,5")
+    parser.add_argument("--methods", default="probe,adaptive")
+    args = parser.parse_args()
+    seeds = [None if s == "None" else int(s) for s in args.seeds.split(",")]
+    print(f"{'scenario':18s} {'method':9s} {'>=40dB':>7s} {'ok':>4s} {'below':>6s} {'no_auth':>8s} {'failed':>7s} "
+          f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}")
+    for seed in seeds:
+        db = Path(tempfile.mkdtemp()) / "sweeps.db"
+        settings = load_settings(environ={}, overrides={"server.db_path": str(db), "emulator.seed": seed})
+        with CalibrationService(settings) as svc:
+            for method in args.methods.split(","):
+                r = run_sweep(svc, method)
+                st = r["statuses"]
+                name = "paper-bench" if seed is None else f"paper-bench seed {seed}"
+                print(f"{name:18s} {method:9s} {r['reached']:>4d}/{r['n']:<3d} {st['ok']:>3d} {st['below_target']:>6d} "
+                      f"{st['no_authority']:>8d} {st['failed']:>7d} {r['median']:>9.3f} {r['p95']:>7.3f} "
+                      f"{r['plant_total']:>8.1f} {r['wall']:>7.1f} {r['dishonest']:>9d}", flush=True)
+                for reason, count in r["reasons"].most_common(4):
+                    print(f"{'':28s}{count:3d} x {reason}")
+
+
+if __name__ == "__main__":
+    main()
