@@ -21,6 +21,13 @@ class SweepCreate(BaseModel):
     grid: Grid
     method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
+    confirm_large: bool = Field(False, description="required for a grid above safety.max_sweep_points_unconfirmed "
+                                                   "points (a run of hours is started on purpose)")
+
+
+class ErrorPublic(BaseModel):
+    """Every refusal except 422 (which lists one item per field, see HTTPValidationError)."""
+    detail: str = Field(..., description="what was refused and why")
 
 
 class JobPublic(BaseModel):
