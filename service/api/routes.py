@@ -208,7 +208,12 @@ def get_map(map_id: ResourceId, service: ServiceDep) -> dict:
     return m
 
 
-@router.get("/maps/{map_id}/export", responses=error_responses(404))
+_EXPORT_CONTENT = {media: {"schema": {"type": "object" if media == "application/json" else "string"}}
+                   for media in FORMATS.values()}
+
+
+@router.get("/maps/{map_id}/export",
+            responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)})
 def export(map_id: ResourceId, service: ServiceDep,
            format: Literal["csv", "json", "c", "dcm"] = Query("csv", description="csv | json | c | dcm")) -> PlainTextResponse:
     m = public_map(service.storage, map_id)

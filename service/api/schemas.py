@@ -10,14 +10,16 @@ from service.plans import Grid
 
 
 class IdentificationCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "adaptive", "options": {}}]})
     operating_point: OperatingPoint
     method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
 
 
 class SweepCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}, "method": "adaptive"}]})
     grid: Grid
     method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
