@@ -34,20 +34,36 @@ class BenchError(RuntimeError):
 
 
 class LimitError(ValueError):
-    """A setpoint outside the bench's safety limits (checked before anything is sent)."""
+    """A setpoint outside the bench's safety limits (checked before anything is sent).
+    `problems` pairs each operating-point field at fault with what is wrong (the API's 422 names them)."""
+
+    def __init__(self, message: str, problems: tuple[tuple[str, str], ...] = ()):
+        super().__init__(message)
+        self.problems = problems
 
 
 def check_limits(op: OperatingPoint, settings: Settings) -> None:
     lim = settings.safety
     problems = []
-    if abs(op.torque_nm) > lim.max_torque_nm:
-        problems.append(f"torque_nm {op.torque_nm:g} exceeds the limit of {lim.max_torque_nm:g} Nm")
-    if abs(op.speed_rpm) > lim.max_speed_rpm:
-        problems.append(f"speed_rpm {op.speed_rpm:g} exceeds the limit of {lim.max_speed_rpm:g} rpm")
-    if not lim.min_udc_v <= op.udc_v <= lim.max_udc_v:
-        problems.append(f"udc_v {op.udc_v:g} outside {lim.min_udc_v:g}..{lim.max_udc_v:g} V")
+    for field in ("torque_nm", "speed_rpm", "udc_v"):
+        if not math.isfinite(getattr(op, field)):      # NaN compares False with every limit below
+            problems.append((field, f"{field} must be a finite number, got {getattr(op, field)}"))
     if problems:
-        raise LimitError("; ".join(problems))
+        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
+    if abs(op.torque_nm) > lim.max_torque_nm:
+        problems.append(("torque_nm", f"torque_nm {op.torque_nm:g} exceeds the limit of {lim.max_torque_nm:g} Nm"))
+    if lim.torque_sign == "positive" and op.torque_nm < 0 or lim.torque_sign == "negative" and op.torque_nm > 0:
+        problems.append(("torque_nm", f"torque_nm {op.torque_nm:g}: this bench allows {lim.torque_sign} torque only "
+                                      f"(safety.torque_sign)"))
+    if abs(op.speed_rpm) > lim.max_speed_rpm:
+        problems.append(("speed_rpm", f"speed_rpm {op.speed_rpm:g} exceeds the limit of {lim.max_speed_rpm:g} rpm"))
+    if abs(op.speed_rpm) < lim.min_speed_rpm:
+        problems.append(("speed_rpm", f"speed_rpm {op.speed_rpm:g} is below the minimum of {lim.min_speed_rpm:g} rpm "
+                                      f"(safety.min_speed_rpm)"))
+    if not lim.min_udc_v <= op.udc_v <= lim.max_udc_v:
+        problems.append(("udc_v", f"udc_v {op.udc_v:g} outside {lim.min_udc_v:g}..{lim.max_udc_v:g} V"))
+    if problems:
+        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
 
 
 class Bench:

@@ -21,7 +21,8 @@ from service.settings import MotorSettings
 
 class OperatingPoint(BaseModel):
     """{T*, n, U_dc}: torque command in Nm, mechanical speed in rpm, DC-link voltage in V."""
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN / inf never reach a limit check or the drive: NaN compares False with every limit
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     torque_nm: float = Field(..., ge=-50, le=50, description="torque command T* in Nm")
     speed_rpm: float = Field(..., gt=0, le=30000, description="mechanical speed in rpm (> 0)")
     udc_v: float = Field(12.0, gt=0, le=1000, description="DC-link voltage in V")

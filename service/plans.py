@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
 from service.bench import LimitError, check_limits
 from service.operating_point import OperatingPoint
-from service.settings import Settings
+from service.settings import SafetySettings, Settings
 
 MAX_GRID_POINTS = 10_000
 
@@ -19,9 +19,10 @@ MAX_GRID_POINTS = 10_000
 class Grid(BaseModel):
     """Operating-point grid: torque x speed x DC-link voltage."""
     model_config = ConfigDict(extra="forbid")
-    torque_nm: list[float] = Field(..., min_length=1, max_length=200)
-    speed_rpm: list[float] = Field(..., min_length=1, max_length=200)
-    udc_v: list[float] = Field(default_factory=lambda: [12.0], min_length=1, max_length=50)
+    torque_nm: list[FiniteFloat] = Field(..., min_length=1, max_length=200, description="torque commands T* in Nm")
+    speed_rpm: list[FiniteFloat] = Field(..., min_length=1, max_length=200, description="mechanical speeds in rpm")
+    udc_v: list[FiniteFloat] = Field(default_factory=lambda: [12.0], min_length=1, max_length=50,
+                                     description="DC-link voltages in V")
 
     @field_validator("torque_nm", "speed_rpm", "udc_v")
     @classmethod
@@ -32,6 +33,20 @@ class Grid(BaseModel):
 
     def size(self) -> int:
         return len(self.torque_nm) * len(self.speed_rpm) * len(self.udc_v)
+
+
+class SweepTooLarge(ValueError):
+    """A grid above `safety.max_sweep_points_unconfirmed` sent without `confirm_large`."""
+
+
+def check_sweep_size(grid: Grid, confirm_large: bool, safety: SafetySettings) -> None:
+    """A sweep that runs for hours is started on purpose: above the configured size it needs the flag."""
+    if grid.size() > MAX_GRID_POINTS:
+        raise ValueError(f"grid has {grid.size()} points, more than the maximum of {MAX_GRID_POINTS}")
+    if grid.size() > safety.max_sweep_points_unconfirmed and not confirm_large:
+        raise SweepTooLarge(
+            f"grid has {grid.size()} points, more than {safety.max_sweep_points_unconfirmed} "
+            f"(safety.max_sweep_points_unconfirmed): send \"confirm_large\": true to run it")
 
 
 @dataclass(frozen=True)
@@ -53,11 +68,16 @@ class SweepPlan:
 
     def dry_run(self, settings: Settings) -> None:
         """Raise LimitError naming every point that violates the bench limits; sends nothing."""
-        problems = []
+        problems, fields = [], {}
         for op in self.points:
             try:
                 check_limits(op, settings)
             except LimitError as exc:
                 problems.append(f"{op.label()}: {exc}")
+                for field, msg in exc.problems:
+                    fields.setdefault(field, []).append(f"{op.label()}: {msg}")
         if problems:
-            raise LimitError(f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]))
+            # one entry per grid field, the first few points named (a 400-point grid would flood the answer)
+            per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5])) for f, m in fields.items())
+            raise LimitError(f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]),
+                             per_field)

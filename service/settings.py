@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 class _Section(BaseModel):
@@ -83,10 +83,25 @@ class IdentificationSettings(_Section):
 
 
 class SafetySettings(_Section):
+    """Limits every setpoint is checked against before anything is sent (also in a sweep's dry run)."""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     max_torque_nm: float = Field(5.0, gt=0)
+    torque_sign: Literal["both", "positive", "negative"] = Field(
+        "both", description="torque directions the bench may command; zero torque is always allowed")
+    min_speed_rpm: float = Field(100.0, gt=0, description="slowest speed a run may ask for: below it a harmonic "
+                                                           "period has no useful number of samples")
     max_speed_rpm: float = Field(6000.0, gt=0)
     min_udc_v: float = Field(6.0, ge=0)
     max_udc_v: float = Field(60.0, gt=0)
+    max_sweep_points_unconfirmed: int = Field(400, ge=1, description="a bigger sweep needs confirm_large = true")
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.min_speed_rpm >= self.max_speed_rpm:
+            raise ValueError(f"min_speed_rpm {self.min_speed_rpm:g} must be below max_speed_rpm {self.max_speed_rpm:g}")
+        if self.min_udc_v > self.max_udc_v:
+            raise ValueError(f"min_udc_v {self.min_udc_v:g} must not exceed max_udc_v {self.max_udc_v:g}")
+        return self
 
 
 class EmulatorSettings(_Section):
@@ -100,6 +115,8 @@ class ServerSettings(_Section):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     db_path: str = "data/ripplecal.db"
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="larger request bodies get 413 before they are "
+                                                                "parsed or authenticated")
 
 
 class Settings(_Section):

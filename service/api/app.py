@@ -6,10 +6,13 @@ from pathlib import Path
 
 import plotly
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service import __version__
+from service.api.body_limit import BodySizeLimit
+from service.api.errors import request_validation_error
 from service.api.routes import router
 from service.calibration_service import CalibrationService
 
@@ -32,6 +35,8 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
                   description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.")
     app.state.service = service
     app.include_router(router)
+    app.add_exception_handler(RequestValidationError, request_validation_error)
+    app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.calibration_service import CalibrationService
@@ -17,6 +17,9 @@ def get_service(request: Request) -> CalibrationService:
 
 
 ServiceDep = Annotated[CalibrationService, Depends(get_service)]
+
+# Ids are SQLite INTEGER rowids: a larger path id would overflow SQLite's 64-bit integer (a 500)
+ResourceId = Annotated[int, Path(ge=1, le=2**63 - 1, description="id (a positive 64-bit integer)")]
 
 
 def require_role(minimum: str):

@@ -3,13 +3,15 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Literal
+import math
+from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
 from fastapi.responses import PlainTextResponse, StreamingResponse
 from pydantic import ValidationError
 
-from service.api.deps import OperatorDep, ServiceDep
+from service.api.deps import OperatorDep, ResourceId, ServiceDep
+from service.api.errors import error_responses, validation_error
 from service.api.schemas import IdentificationCreate, JobPublic, SweepCreate, SweepPublic
 from service.bench import BenchError, LimitError
 from service.engine import TransitionError
@@ -17,22 +19,52 @@ from service.events import format_sse
 from service.identify import parse_options, public_result
 from service.lut_export import FORMATS, export_map, lut_image
 from service.maps import public_map
+from service.plans import SweepTooLarge, check_sweep_size
 
 router = APIRouter(prefix="/api/v1")
 
 
-def _options(method: str, options: dict):
+def _unprocessable(*errors: dict[str, Any]) -> HTTPException:
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, list(errors))
+
+
+def _non_finite(options: dict[str, Any]) -> list[tuple[list, float]]:
+    """(path, value) of every NaN / inf anywhere in the options (Python's json parser accepts them)."""
+    found, stack = [], [([], options)]
+    while stack:                        # iterative: nesting depth is the client's choice
+        path, node = stack.pop()
+        if isinstance(node, float) and not math.isfinite(node):
+            found.append((path, node))
+        elif isinstance(node, dict):
+            stack += [([*path, k], v) for k, v in node.items()]
+        elif isinstance(node, list):
+            stack += [([*path, i], v) for i, v in enumerate(node)]
+    return found
+
+
+def _options(method: str, options: dict[str, Any]):
+    """The method's option model, or a 422 naming options.<field>. The option models bound their
+    fields; whatever else validating them raises (a bound missed) is still the request's fault."""
+    if bad := _non_finite(options):
+        raise _unprocessable(*(validation_error(["body", "options", *path], f"must be a finite number, got {value}",
+                                                "finite_number") for path, value in bad))
     try:
         return parse_options(method, options)
     except ValidationError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            [{"loc": ["body", "options", *e["loc"]], "msg": e["msg"], "type": e["type"]}
-                             for e in exc.errors()]) from None
+        raise _unprocessable(*(validation_error(["body", "options", *e["loc"]], e["msg"], e["type"])
+                               for e in exc.errors())) from None
+    except (ValueError, TypeError, OverflowError, MemoryError, RecursionError) as exc:
+        loc = ["body", "options", *list(options)[:1]] if len(options) == 1 else ["body", "options"]
+        raise _unprocessable(validation_error(
+            loc, f"{method} options {sorted(options)} cannot be used: {type(exc).__name__}: {exc}")) from None
 
 
-def _limit_error(exc: Exception) -> HTTPException:
-    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                         [{"loc": ["body"], "msg": str(exc), "type": "value_error.bench_limits"}])
+def _limit_error(exc: LimitError, where: list[str]) -> HTTPException:
+    """The bench's safety limits refused a setpoint: one 422 item per operating-point field at fault."""
+    if not exc.problems:
+        return _unprocessable(validation_error(where, str(exc), "value_error.bench_limits"))
+    return _unprocessable(*(validation_error([*where, field], msg, "value_error.bench_limits")
+                            for field, msg in exc.problems))
 
 
 def _job_public(service, job: dict) -> JobPublic:
@@ -72,13 +104,14 @@ def version(service: ServiceDep) -> dict:
 
 
 # --- identifications and jobs ----------------------------------------------------------------------------
-@router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic)
+@router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
+             responses=error_responses(400, 401, 403, 413))
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
     options = _options(body.method, body.options)
     try:
         job_id = service.engine.submit_identification(body.operating_point, body.method, options)
     except LimitError as exc:
-        raise _limit_error(exc) from None
+        raise _limit_error(exc, ["body", "operating_point"]) from None
     return _job_public(service, service.storage.get_job(job_id))
 
 
@@ -87,16 +120,16 @@ def list_jobs(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> lis
     return [_job_public(service, j) for j in service.storage.list_jobs(limit)]
 
 
-@router.get("/jobs/{job_id}", response_model=JobPublic)
-def get_job(job_id: int, service: ServiceDep) -> JobPublic:
+@router.get("/jobs/{job_id}", response_model=JobPublic, responses=error_responses(404))
+def get_job(job_id: ResourceId, service: ServiceDep) -> JobPublic:
     job = service.storage.get_job(job_id)
     if job is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist")
     return _job_public(service, job)
 
 
-@router.post("/jobs/{job_id}/cancel", response_model=JobPublic)
-def cancel_job(job_id: int, service: ServiceDep, _: OperatorDep) -> JobPublic:
+@router.post("/jobs/{job_id}/cancel", response_model=JobPublic, responses=error_responses(401, 403, 404, 409))
+def cancel_job(job_id: ResourceId, service: ServiceDep, _: OperatorDep) -> JobPublic:
     try:
         service.engine.cancel_job(job_id)
     except KeyError:
@@ -106,8 +139,8 @@ def cancel_job(job_id: int, service: ServiceDep, _: OperatorDep) -> JobPublic:
     return _job_public(service, service.storage.get_job(job_id))
 
 
-@router.get("/results/{result_id}")
-def get_result(result_id: int, service: ServiceDep) -> dict:
+@router.get("/results/{result_id}", responses=error_responses(404))
+def get_result(result_id: ResourceId, service: ServiceDep) -> dict:
     row = service.storage.get_result(result_id)
     if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"result {result_id} does not exist")
@@ -115,16 +148,22 @@ def get_result(result_id: int, service: ServiceDep) -> dict:
 
 
 # --- sweeps -------------------------------------------------------------------------------------------------
-@router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic)
+@router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic,
+             responses=error_responses(400, 401, 403, 413))
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
+    try:
+        check_sweep_size(body.grid, body.confirm_large, service.settings.safety)
+    except SweepTooLarge as exc:
+        raise _unprocessable(validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")) from None
+    except ValueError as exc:
+        raise _unprocessable(validation_error(["body", "grid"], str(exc))) from None
     options = _options(body.method, body.options)
     try:
         sweep_id = service.engine.submit_sweep(body.grid, body.method, options)
     except LimitError as exc:
-        raise _limit_error(exc) from None
+        raise _limit_error(exc, ["body", "grid"]) from None
     except ValueError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            [{"loc": ["body", "grid"], "msg": str(exc), "type": "value_error"}]) from None
+        raise _unprocessable(validation_error(["body", "grid"], str(exc))) from None
     return _sweep_public(service, service.storage.get_sweep(sweep_id))
 
 
@@ -133,16 +172,16 @@ def list_sweeps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> l
     return [_sweep_public(service, s) for s in service.storage.list_sweeps(limit)]
 
 
-@router.get("/sweeps/{sweep_id}", response_model=SweepPublic)
-def get_sweep(sweep_id: int, service: ServiceDep) -> SweepPublic:
+@router.get("/sweeps/{sweep_id}", response_model=SweepPublic, responses=error_responses(404))
+def get_sweep(sweep_id: ResourceId, service: ServiceDep) -> SweepPublic:
     sweep = service.storage.get_sweep(sweep_id)
     if sweep is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist")
     return _sweep_public(service, sweep, with_points=True)
 
 
-@router.post("/sweeps/{sweep_id}/{action}", response_model=SweepPublic)
-def control_sweep(sweep_id: int, action: Literal["pause", "resume", "cancel"], service: ServiceDep,
+@router.post("/sweeps/{sweep_id}/{action}", response_model=SweepPublic, responses=error_responses(401, 403, 404, 409))
+def control_sweep(sweep_id: ResourceId, action: Literal["pause", "resume", "cancel"], service: ServiceDep,
                   _: OperatorDep) -> SweepPublic:
     handler = {"pause": service.engine.pause_sweep, "resume": service.engine.resume_sweep,
                "cancel": service.engine.cancel_sweep}[action]
@@ -161,16 +200,21 @@ def list_maps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> lis
     return service.storage.list_maps(limit)
 
 
-@router.get("/maps/{map_id}")
-def get_map(map_id: int, service: ServiceDep) -> dict:
+@router.get("/maps/{map_id}", responses=error_responses(404))
+def get_map(map_id: ResourceId, service: ServiceDep) -> dict:
     m = public_map(service.storage, map_id)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m
 
 
-@router.get("/maps/{map_id}/export")
-def export(map_id: int, service: ServiceDep,
+_EXPORT_CONTENT = {media: {"schema": {"type": "object" if media == "application/json" else "string"}}
+                   for media in FORMATS.values()}
+
+
+@router.get("/maps/{map_id}/export",
+            responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)})
+def export(map_id: ResourceId, service: ServiceDep,
            format: Literal["csv", "json", "c", "dcm"] = Query("csv", description="csv | json | c | dcm")) -> PlainTextResponse:
     m = public_map(service.storage, map_id)
     if m is None:
@@ -180,8 +224,8 @@ def export(map_id: int, service: ServiceDep,
                              headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{ext}"'})
 
 
-@router.post("/maps/{map_id}/download")
-def download_map(map_id: int, service: ServiceDep, _: OperatorDep) -> dict:
+@router.post("/maps/{map_id}/download", responses=error_responses(401, 403, 404, 409, 502))
+def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep) -> dict:
     """Build the map's LUT image and download it into the drive (0x2001), CRC read back."""
     m = public_map(service.storage, map_id)
     if m is None:
@@ -189,7 +233,7 @@ def download_map(map_id: int, service: ServiceDep, _: OperatorDep) -> dict:
     try:
         image = lut_image(m)
     except ValueError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+        raise _unprocessable(validation_error(["path", "map_id"], f"map {map_id} cannot become a LUT: {exc}")) from None
     try:
         crc = service.bench.download_lut(image)
     except BenchError as exc:

@@ -10,17 +10,26 @@ from service.plans import Grid
 
 
 class IdentificationCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "adaptive", "options": {}}]})
     operating_point: OperatingPoint
     method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
 
 
 class SweepCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}, "method": "adaptive"}]})
     grid: Grid
     method: Literal["adaptive", "grid", "probe"] = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
+    confirm_large: bool = Field(False, description="required for a grid above safety.max_sweep_points_unconfirmed "
+                                                   "points (a run of hours is started on purpose)")
+
+
+class ErrorPublic(BaseModel):
+    """Every refusal except 422 (which lists one item per field, see HTTPValidationError)."""
+    detail: str = Field(..., description="what was refused and why")
 
 
 class JobPublic(BaseModel):
