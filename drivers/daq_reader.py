@@ -21,9 +21,10 @@ import dataclasses
 import threading
 import time
 
+import numpy as np
 import serial
 
-from drivers.daq_protocol import FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
+from drivers.daq_protocol import FLAG_SENSOR_FAULT, FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
 from drivers.errors import DaqDisconnected, DaqTimeout
 
 __all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DecodedSamples", "DecoderCounters"]
@@ -75,6 +76,7 @@ class DaqReader:
         self._disconnects = 0           # a read that saw this change while waiting has a hole in it
         self._reconnects = 0
         self._last_data_monotonic: float | None = None
+        self._sensor_fault_samples = 0
         self._counters = DecoderCounters()
         self._bytes_read = 0
         self._samples_delivered = 0
@@ -210,7 +212,9 @@ class DaqReader:
                 chunk = self._coalesce(port, chunk, min(room_bytes, COALESCE_MAX_BYTES))
             samples = decoder.feed(chunk)
             counters = dataclasses.replace(decoder.counters)
+            sensor_faults = int(np.count_nonzero(samples.flags & FLAG_SENSOR_FAULT)) if len(samples) else 0
             with cond:
+                self._sensor_fault_samples += sensor_faults
                 if len(samples):
                     if self._mark_gap:
                         # the stream has a hole where the DAQ was away
@@ -362,5 +366,5 @@ class DaqReader:
                     # stale: room to read, yet nothing came for a second (a full buffer is backpressure, not staleness)
                     "stale": bool(self._connected and (age is None or age > 1.0)
                                   and self._buffered < max(self.max_buffered_samples, self._demand)),
-                    "reconnects": self._reconnects,
+                    "reconnects": self._reconnects, "sensor_fault_samples": self._sensor_fault_samples,
                     "disconnects": self._disconnects, "buffered_samples": self._buffered}

@@ -10,6 +10,7 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service import __version__
+from service.api.bench_routes import router as bench_router
 from service.api.routes import router
 from service.calibration_service import CalibrationService
 
@@ -32,6 +33,7 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
                   description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.")
     app.state.service = service
     app.include_router(router)
+    app.include_router(bench_router)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:
