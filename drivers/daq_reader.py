@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
+import select
 import threading
 import time
 
@@ -188,6 +190,8 @@ class DaqReader:
                 while (not self._stop and not self._flush_requested
                        and self._buffered >= max(self.max_buffered_samples, self._demand)):
                     cond.wait(SERIAL_READ_TIMEOUT_S)
+                    # paused by backpressure we read nothing, so look for an unplugged port directly
+                    self._check_port(port)
                 if self._stop:
                     return
                 flush_now = self._flush_requested
@@ -226,6 +230,23 @@ class DaqReader:
                 self._bytes_read += len(chunk)
                 self._last_data_monotonic = time.monotonic()
                 cond.notify_all()
+
+    def _check_port(self, port: serial.SerialBase) -> None:
+        """Raise if the port has hung up (poll: POLLHUP/POLLERR) or its device path has gone."""
+        if "://" not in self.url and not os.path.exists(self.url):
+            raise serial.SerialException(f"{self.url} has disappeared (device unplugged)")
+        fileno = getattr(port, "fileno", None)
+        if fileno is None:
+            return
+        try:
+            fd = fileno()
+            poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            events = poller.poll(0)
+        except (OSError, ValueError, serial.SerialException):
+            return
+        if any(ev & (select.POLLHUP | select.POLLERR | select.POLLNVAL) for _, ev in events):
+            raise serial.SerialException(f"{self.url} hung up")
 
     def _coalesce(self, port: serial.SerialBase, first: bytes, cap_bytes: int) -> bytes:
         """While the port has a backlog, read more chunks and decode them as one: decoding has a fixed

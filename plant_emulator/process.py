@@ -195,6 +195,10 @@ class Emulator:
             data = bytes(out)
             out.clear()
             if self.speedup <= 0.0:
+                if faults.daq_disconnected:
+                    # nobody can read: no backpressure, so run in real time (frames are lost anyway)
+                    self.stop_event.wait(len(data) / ph.FRAME_BYTES / self.sample_rate_hz)
+                    continue
                 if not self.daq.submit(data):
                     break
             else:

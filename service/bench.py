@@ -66,8 +66,11 @@ def check_limits(op: OperatingPoint, settings: Settings) -> None:
 
 
 class Bench:
-    SYNC_QUIET_SAMPLES = 2048      # no toggle for this long (8 DAQ chunks): the drive has no setpoint pending
-    SYNC_MAX_SAMPLES = 65536       # give up re-establishing the count after this much plant time (4 s)
+    # Re-establishing the setpoint count: no toggle for this many samples means the drive has no setpoint
+    # pending. It must exceed what the DAQ path can still deliver from before the flush (data made
+    # before pending setpoints were applied): the emulator's writer holds up to 4 batches of 4096.
+    SYNC_QUIET_SAMPLES = 20480     # 1.28 s of plant time at 16 kHz
+    SYNC_MAX_SAMPLES = 131072      # give up after this much plant time (8 s)
 
     def __init__(self, settings: Settings, identity: str, on_trip: Callable[[Trip], None] | None = None):
         self.settings = settings

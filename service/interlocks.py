@@ -258,6 +258,7 @@ class InterlockMonitor:
         self._armed = False
         self._run_trip: Trip | None = None
         self._last_trip: Trip | None = None
+        self._reported: dict[str, str] = {}     # interlock -> reason already reported (no repeats while it holds)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_round: float | None = None
@@ -320,6 +321,9 @@ class InterlockMonitor:
             reason = lock.evaluate()
             if reason is not None:
                 self._tripped(lock.name, reason, lock.latched)
+            else:
+                with self._lock:
+                    self._reported.pop(lock.name, None)
         return self.run_trip
 
     def emcy(self, interlock: DeviceFault, code: int) -> None:
@@ -335,8 +339,9 @@ class InterlockMonitor:
             new_for_run = self._armed and self._run_trip is None
             if new_for_run:
                 self._run_trip = trip
-            same = self._last_trip is not None and (self._last_trip.interlock, self._last_trip.reason) == (name, reason)
+            same = self._reported.get(name) == reason
             if not same:
+                self._reported[name] = reason
                 self._last_trip = trip
         if new_for_run or not same:
             log.warning("interlock %s tripped: %s", name, reason)
@@ -367,6 +372,7 @@ class InterlockMonitor:
                 lock.reset()
         with self._lock:
             self._last_trip = None
+            self._reported.clear()
         return self.refusal()
 
     def snapshot(self) -> dict[str, Any]:
