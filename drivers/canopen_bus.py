@@ -122,6 +122,18 @@ class CanBus:
                 f"CAN bus {self.interface}:{self.channel} is not connected (call CanBus.connect() first)")
         return network
 
+    def heartbeat_producing(self) -> bool:
+        """True while the service heartbeat task is running (its send thread alive, where the
+        transport uses one): the drive falls to FAULT (EMCY 0x8130) 0.5 s after it stops."""
+        task = self._heartbeat_task
+        if task is None or self._network is None:
+            return False
+        inner = getattr(task, "_task", task)          # canopen wraps python-can's cyclic task
+        thread = getattr(inner, "thread", None)
+        if thread is not None and not thread.is_alive():
+            return False
+        return not getattr(inner, "stopped", False)
+
     @property
     def heartbeat_cob_id(self) -> int:
         return HEARTBEAT_COB_BASE + self.service_node_id

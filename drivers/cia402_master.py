@@ -31,7 +31,9 @@ from drivers.cia402 import (
     State402,
     decode_statusword,
 )
+from drivers.emcy_codes import describe_emcy
 from drivers.errors import (
+    DriveFaultError,
     NotConnectedError,
     SdoAbortError,
     SdoError,
@@ -241,37 +243,68 @@ class Cia402Master:
     def _fault_hint(self, state: State402) -> str:
         if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
             return ""
+        code = self.error_code()
+        return "" if code is None else f"; {describe_emcy(code)}"
+
+    def error_code(self) -> int | None:
+        """The device's error code (0x603F); None if it cannot be read."""
         try:
-            code = int(self.read(OD_ERROR_CODE))
+            return int(self.read(OD_ERROR_CODE))
         except SdoError:
-            return ""
-        desc = EmcyError(code, 0, b"", 0.0).get_desc()
-        return f"; error code 0x{code:04X} ({desc})"
+            return None
+
+    def fault_description(self) -> str:
+        """'drive node 5 in FAULT: EMCY 0x3210 DC link over-voltage' (error code 0x603F)."""
+        code = self.error_code()
+        cause = describe_emcy(code) if code else "error code unknown"
+        return f"{self.device_kind} node {self.node_id} in FAULT: {cause}"
 
     def enable(self, timeout_s: float = 2.0) -> None:
         """Set the mode of operation, then walk the CiA 402 state machine to OPERATION_ENABLED.
 
         One command per step, taken from PATH_TO_OPERATION_ENABLED for the state the device reports;
-        after each command we wait for the state to change. A fault is reset with a rising edge on
-        controlword bit 7. Raises StateTransitionError when timeout_s (for the whole walk) runs out.
+        after each command we wait for the state to change. A device in FAULT is never reset here:
+        a fault is acknowledged by a person (fault_reset), so enable() raises DriveFaultError naming
+        the error code. Raises StateTransitionError when timeout_s (for the whole walk) runs out.
         """
         self._require_connected()
+        state = self.state()
+        if state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+            raise DriveFaultError(self.fault_description() + "; acknowledge it with a fault reset first")
         self.write(OD_MODE_OF_OPERATION, 0, self.mode_of_operation)
         deadline = time.monotonic() + timeout_s
-        state = self.state()
         while state is not State402.OPERATION_ENABLED:
             command = PATH_TO_OPERATION_ENABLED.get(state)
+            if command is Command402.FAULT_RESET:
+                raise DriveFaultError(self.fault_description() + " while enabling; acknowledge it with a fault reset")
             if command is None:
                 # transient states (NOT_READY_TO_SWITCH_ON, FAULT_REACTION_ACTIVE) advance by themselves
                 state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
                                             f"leaving {state.name} on its own")
                 continue
-            if command is Command402.FAULT_RESET:
-                # fault reset acts on the 0 -> 1 edge of bit 7
-                self.send_command(Command402.DISABLE_VOLTAGE)
             self.send_command(command)
             state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
                                         f"transition out of {state.name} towards OPERATION_ENABLED", command)
+
+    def fault_reset(self, timeout_s: float = 2.0) -> bool:
+        """Acknowledge a FAULT: rising edge on controlword bit 7, wait for SWITCH_ON_DISABLED.
+        Returns False if the device was not in FAULT (nothing sent). Only on a person's request
+        (or an explicit auto-reset setting): the service never calls this on its own."""
+        state = self.state()
+        if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+            return False
+        deadline = time.monotonic() + timeout_s
+        if state is State402.FAULT_REACTION_ACTIVE:
+            self.wait_for_state(lambda s: s is State402.FAULT, deadline, "fault reaction to end")
+        # fault reset acts on the 0 -> 1 edge of bit 7
+        self.send_command(Command402.DISABLE_VOLTAGE)
+        self.send_command(Command402.FAULT_RESET)
+        self.wait_for_state(lambda s: s is not State402.FAULT, deadline, "fault reset", Command402.FAULT_RESET)
+        return True
+
+    def add_emcy_callback(self, callback: Callable[[EmcyError], None]) -> None:
+        """Call `callback(EmcyError)` from the CAN receive thread for every EMCY of this node."""
+        self.node.emcy.add_callback(callback)
 
     def _safe_steps(self) -> list[tuple[str, Callable[[], None]]]:
         """Steps that make the device harmless before its power stage goes off (subclasses add)."""

@@ -8,17 +8,25 @@ measures, and memory stays bounded on a real DAQ too (the OS buffer then overflo
 sequence gaps instead of an ever-growing queue).
 
 Decoding is vectorised in drivers.daq_protocol.FrameDecoder; the thread does per-chunk work only.
+
+Reconnect: when the port fails (EOF, EIO: the DAQ was unplugged) the thread closes it and reopens
+the same URL with backoff (as /dev/serial/by-id/... reappears when a USB DAQ comes back). While it
+is away, read() raises DaqDisconnected at once, and so does a read that was waiting when it went; the
+first samples after a reconnect are marked gap_before, so no window spans the hole.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+import os
+import select
 import threading
 import time
 
+import numpy as np
 import serial
 
-from drivers.daq_protocol import FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
+from drivers.daq_protocol import FLAG_SENSOR_FAULT, FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
 from drivers.errors import DaqDisconnected, DaqTimeout
 
 __all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DecodedSamples", "DecoderCounters"]
@@ -32,6 +40,9 @@ COALESCE_MAX_BYTES = 1 << 18
 DEFAULT_BAUDRATE = 2_000_000
 """16 kHz x 12 bytes x 10 bit = 1.92 Mbit/s; ignored by ptys, sockets and USB CDC devices."""
 
+RECONNECT_BACKOFF_S = (0.05, 0.5)
+"""First and longest pause between attempts to reopen a lost port (doubling in between)."""
+
 
 class DaqReader:
     """Reads DAQ frames from any pyserial URL (/dev/ttyACM0, /dev/pts/N, socket://host:port, loop://).
@@ -42,7 +53,7 @@ class DaqReader:
     """
 
     def __init__(self, url: str, max_buffered_samples: int = 16384, read_chunk_bytes: int = 8192,
-                 baudrate: int = DEFAULT_BAUDRATE):
+                 baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True):
         if max_buffered_samples < 1:
             raise ValueError(f"max_buffered_samples must be >= 1, got {max_buffered_samples}")
         if read_chunk_bytes < FRAME_BYTES:
@@ -51,6 +62,7 @@ class DaqReader:
         self.max_buffered_samples = max_buffered_samples
         self.read_chunk_bytes = read_chunk_bytes
         self.baudrate = baudrate
+        self.reconnect = reconnect
         self._port: serial.SerialBase | None = None
         self._thread: threading.Thread | None = None
         self._cond = threading.Condition()
@@ -61,6 +73,12 @@ class DaqReader:
         self._stop = False
         self._running = False
         self._error: BaseException | None = None
+        self._connected = False
+        self._mark_gap = False
+        self._disconnects = 0           # a read that saw this change while waiting has a hole in it
+        self._reconnects = 0
+        self._last_data_monotonic: float | None = None
+        self._sensor_fault_samples = 0
         self._counters = DecoderCounters()
         self._bytes_read = 0
         self._samples_delivered = 0
@@ -70,9 +88,10 @@ class DaqReader:
         """Open the port and start the reader thread."""
         if self._thread is not None:
             raise RuntimeError(f"DAQ reader for {self.url} already started")
-        self._port = serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate)
+        self._port = self._open()
         self._stop = False
         self._running = True
+        self._connected = True
         self._thread = threading.Thread(target=self._run, name=f"daq-reader {self.url}", daemon=True)
         self._thread.start()
         return self
@@ -91,12 +110,7 @@ class DaqReader:
         thread = self._thread
         if thread is not None:
             thread.join(join_timeout_s)
-        if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001 - the port may already be gone (EIO)
-                pass
-        self._port = None
+        self._close_port()
 
     def __enter__(self) -> "DaqReader":
         if self._thread is None:
@@ -107,56 +121,132 @@ class DaqReader:
         self.close()
 
     # -- reader thread ------------------------------------------------------------------------------
+    def _open(self) -> serial.SerialBase:
+        return serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate)
+
     def _run(self) -> None:
         decoder = FrameDecoder()
+        try:
+            while True:
+                try:
+                    self._read_port(decoder)
+                    return                                   # close() asked
+                except BaseException as exc:  # noqa: BLE001 - reported to the consumer as DaqDisconnected
+                    with self._cond:
+                        if self._stop:
+                            return
+                        self._error = exc
+                        self._connected = False
+                        self._disconnects += 1
+                        self._cond.notify_all()
+                    self._close_port()
+                    if not self.reconnect or not self._reopen_with_backoff():
+                        return
+        finally:
+            with self._cond:
+                self._running = False
+                self._connected = False
+                self._cond.notify_all()
+
+    def _close_port(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # noqa: BLE001 - the port is already gone (EIO)
+                pass
+
+    def _reopen_with_backoff(self) -> bool:
+        """Reopen the same URL until it works or close() is called. True once reopened."""
+        pause = RECONNECT_BACKOFF_S[0]
+        while True:
+            with self._cond:
+                if self._cond.wait_for(lambda: self._stop, timeout=pause):
+                    return False
+            try:
+                port = self._open()
+            except Exception as exc:  # noqa: BLE001 - not back yet: keep the cause for the status
+                with self._cond:
+                    self._error = exc
+                pause = min(pause * 2, RECONNECT_BACKOFF_S[1])
+                continue
+            with self._cond:
+                if self._stop:
+                    port.close()
+                    return False
+                self._port = port
+                self._connected = True
+                self._reconnects += 1
+                self._mark_gap = True
+                self._cond.notify_all()
+            return True
+
+    def _read_port(self, decoder: FrameDecoder) -> None:
         port = self._port
         assert port is not None
         cond = self._cond
-        try:
-            while True:
+        while True:
+            with cond:
+                while (not self._stop and not self._flush_requested
+                       and self._buffered >= max(self.max_buffered_samples, self._demand)):
+                    cond.wait(SERIAL_READ_TIMEOUT_S)
+                    # paused by backpressure we read nothing, so look for an unplugged port directly
+                    self._check_port(port)
+                if self._stop:
+                    return
+                flush_now = self._flush_requested
+                room = max(self.max_buffered_samples, self._demand) - self._buffered
+            if flush_now:
+                # done here, by the thread that reads: flushing under a blocked read breaks pyserial
+                try:
+                    port.reset_input_buffer()
+                except (OSError, serial.SerialException, AttributeError):
+                    pass    # not every pyserial URL type can flush
                 with cond:
-                    while (not self._stop and not self._flush_requested
-                           and self._buffered >= max(self.max_buffered_samples, self._demand)):
-                        cond.wait(SERIAL_READ_TIMEOUT_S)
-                    if self._stop:
-                        return
-                    flush_now = self._flush_requested
-                    room = max(self.max_buffered_samples, self._demand) - self._buffered
-                if flush_now:
-                    # done here, by the thread that reads: flushing under a blocked read breaks pyserial
-                    try:
-                        port.reset_input_buffer()
-                    except (OSError, serial.SerialException, AttributeError):
-                        pass    # not every pyserial URL type can flush
-                    with cond:
-                        self._flush_requested = False
-                        cond.notify_all()
-                    continue
-                # never read more than fits: that is what lets the writer block (backpressure)
-                room_bytes = room * FRAME_BYTES
-                nbytes = min(self.read_chunk_bytes, room_bytes)
-                chunk = port.read(nbytes)
-                if not chunk:
-                    continue
-                if len(chunk) == nbytes and nbytes < room_bytes:
-                    chunk = self._coalesce(port, chunk, min(room_bytes, COALESCE_MAX_BYTES))
-                samples = decoder.feed(chunk)
-                counters = dataclasses.replace(decoder.counters)
-                with cond:
-                    if len(samples):
-                        self._blocks.append(samples)
-                        self._buffered += len(samples)
-                    self._counters = counters
-                    self._bytes_read += len(chunk)
+                    self._flush_requested = False
                     cond.notify_all()
-        except BaseException as exc:  # noqa: BLE001 - reported to the consumer as DaqDisconnected
+                continue
+            # never read more than fits: that is what lets the writer block (backpressure)
+            room_bytes = room * FRAME_BYTES
+            nbytes = min(self.read_chunk_bytes, room_bytes)
+            chunk = port.read(nbytes)
+            if not chunk:
+                continue
+            if len(chunk) == nbytes and nbytes < room_bytes:
+                chunk = self._coalesce(port, chunk, min(room_bytes, COALESCE_MAX_BYTES))
+            samples = decoder.feed(chunk)
+            counters = dataclasses.replace(decoder.counters)
+            sensor_faults = int(np.count_nonzero(samples.flags & FLAG_SENSOR_FAULT)) if len(samples) else 0
             with cond:
-                if not self._stop:
-                    self._error = exc
-        finally:
-            with cond:
-                self._running = False
+                self._sensor_fault_samples += sensor_faults
+                if len(samples):
+                    if self._mark_gap:
+                        # the stream has a hole where the DAQ was away
+                        samples.gap_before[0] = True
+                        self._mark_gap = False
+                    self._blocks.append(samples)
+                    self._buffered += len(samples)
+                self._counters = counters
+                self._bytes_read += len(chunk)
+                self._last_data_monotonic = time.monotonic()
                 cond.notify_all()
+
+    def _check_port(self, port: serial.SerialBase) -> None:
+        """Raise if the port has hung up (poll: POLLHUP/POLLERR) or its device path has gone."""
+        if "://" not in self.url and not os.path.exists(self.url):
+            raise serial.SerialException(f"{self.url} has disappeared (device unplugged)")
+        fileno = getattr(port, "fileno", None)
+        if fileno is None:
+            return
+        try:
+            fd = fileno()
+            poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            events = poller.poll(0)
+        except (OSError, ValueError, serial.SerialException):
+            return
+        if any(ev & (select.POLLHUP | select.POLLERR | select.POLLNVAL) for _, ev in events):
+            raise serial.SerialException(f"{self.url} hung up")
 
     def _coalesce(self, port: serial.SerialBase, first: bytes, cap_bytes: int) -> bytes:
         """While the port has a backlog, read more chunks and decode them as one: decoding has a fixed
@@ -188,9 +278,10 @@ class DaqReader:
                 raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
             self._demand = n
             self._cond.notify_all()
+            disconnects = self._disconnects
             try:
                 while self._buffered < n:
-                    if not self._running:
+                    if not self._running or not self._connected or self._disconnects != disconnects:
                         raise DaqDisconnected(self._disconnected_message(n))
                     remaining_s = deadline - time.monotonic()
                     if remaining_s <= 0:
@@ -208,10 +299,13 @@ class DaqReader:
             cause = f"{type(self._error).__name__}: {self._error}"
         elif self._stop:
             cause = "reader closed"
+        elif self._running and self.reconnect:
+            cause = "port lost; reopening"
         else:
             cause = "reader thread ended"
-        return (f"DAQ {self.url} disconnected ({cause}); {self._buffered} of {n} requested samples were left "
-                f"after {self._samples_delivered} delivered")
+        again = "; reopening it with backoff" if self._running and self.reconnect and not self._stop else ""
+        return (f"DAQ {self.url} disconnected ({cause}){again}; {self._buffered} of {n} requested samples were "
+                f"left after {self._samples_delivered} delivered")
 
     def _take(self, n: int) -> DecodedSamples:
         """Pop exactly n samples (caller holds the lock and has checked that n are buffered)."""
@@ -272,6 +366,26 @@ class DaqReader:
 
     @property
     def error(self) -> BaseException | None:
-        """Why the reader thread stopped, if it stopped on its own."""
+        """The last port error (why it was lost, or why reopening it failed); kept after a reconnect."""
         with self._cond:
             return self._error
+
+    @property
+    def connected(self) -> bool:
+        """The port is open and being read (False while it is lost and being reopened)."""
+        with self._cond:
+            return self._running and self._connected
+
+    def health(self) -> dict:
+        """Per-device truth for the bench status: connected, last error, data age, reconnects."""
+        with self._cond:
+            age = None if self._last_data_monotonic is None else time.monotonic() - self._last_data_monotonic
+            err = self._error
+            return {"url": self.url, "connected": self._running and self._connected,
+                    "last_error": None if err is None else f"{type(err).__name__}: {err}",
+                    "data_age_s": None if age is None else round(age, 3),
+                    # stale: room to read, yet nothing came for a second (a full buffer is backpressure, not staleness)
+                    "stale": bool(self._connected and (age is None or age > 1.0)
+                                  and self._buffered < max(self.max_buffered_samples, self._demand)),
+                    "reconnects": self._reconnects, "sensor_fault_samples": self._sensor_fault_samples,
+                    "disconnects": self._disconnects, "buffered_samples": self._buffered}

@@ -15,7 +15,7 @@ from drivers import DRIVE_EDS
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import State402
 from drivers.cia402_master import Cia402Master
-from drivers.errors import ConfigurationError, SdoError
+from drivers.errors import ConfigurationError, SdoError, SdoTimeoutError
 
 MODE_PROFILE_TORQUE = 4
 
@@ -78,11 +78,45 @@ class DriveClient(Cia402Master):
         super().__init__(bus, node_id, DRIVE_EDS, MODE_PROFILE_TORQUE, sdo_timeout_s)
         self.rated_torque_nm: float | None = None
         self.setpoints_written = 0
+        self.commits_expected: int | None = None   # the drive's commit counter as we expect it (mod 256)
 
     def write(self, index: int, subindex: int, value) -> None:
-        super().write(index, subindex, value)
+        try:
+            super().write(index, subindex, value)
+        except SdoTimeoutError:
+            # the request may have reached the drive and only the answer be late: for a commit the
+            # counter tells (0x2000:7 read-back), so the sync-toggle count stays exact
+            if (index, subindex) == (OD_INJECTION, SUB_COMMIT) and self._commit_went_through():
+                self.setpoints_written += 1
+            raise
         if (index, subindex) in SETPOINT_OBJECTS:
             self.setpoints_written += 1
+        if (index, subindex) == (OD_INJECTION, SUB_COMMIT) and self.commits_expected is not None:
+            self.commits_expected = (self.commits_expected + 1) & 0xFF
+
+    def _commit_went_through(self) -> bool:
+        if self.commits_expected is None:
+            return False
+        try:
+            reported = self.commit_count()
+        except SdoError:
+            return False
+        went = reported == (self.commits_expected + 1) & 0xFF
+        self.commits_expected = reported
+        return went
+
+    def resync_setpoint_count(self, toggles_seen: int) -> dict:
+        """Re-establish the setpoint/sync-toggle accounting after any error: read back the drive's
+        commit counter (0x2000:7, commits mod 256) as the base for the next commits, and set
+        `setpoints_written` to the toggles the caller has seen on the DAQ once the drive has no
+        setpoint pending (the caller's job: the drive applies one per DAQ chunk). Returns what was
+        corrected, for the log: {"commits_reported", "commits_expected", "setpoints_written_before"}."""
+        reported = self.commit_count()
+        report = {"commits_reported": reported, "commits_expected": self.commits_expected,
+                  "setpoints_written_before": self.setpoints_written, "toggles_seen": toggles_seen}
+        self.commits_expected = reported
+        self.setpoints_written = toggles_seen
+        return report
 
     def _after_connect(self) -> None:
         rated_mnm = int(self.read(OD_RATED_TORQUE))

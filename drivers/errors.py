@@ -51,6 +51,10 @@ class StateTransitionError(DriverError, TimeoutError):
     """A CiA 402 state change did not happen within its timeout."""
 
 
+class DriveFaultError(DriverError):
+    """The device is in FAULT; the message names its error code. Only a fault reset clears it."""
+
+
 class ConfigurationError(DriverError):
     """The device reports a configuration the driver cannot work with (e.g. rated torque 0)."""
 

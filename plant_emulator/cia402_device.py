@@ -44,6 +44,7 @@ class Cia402Device:
         self.lock = threading.RLock()
         self.state = State402.SWITCH_ON_DISABLED   # transitions 0 and 1 happen at power-up
         self.error_code = 0
+        self.power_off_at: float | None = None      # time.monotonic() when the power stage last went off
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         network.add_node(self.node)
@@ -87,6 +88,8 @@ class Cia402Device:
             old = self.state
             if new != old:
                 self.state = new
+                if old == State402.OPERATION_ENABLED:
+                    self.power_off_at = time.monotonic()     # fault -> safe timing (faults.py status)
                 log.info("node %d: %s -> %s", self.node.id, old.value, new.value)
                 self.state_changed(old, new)
 

@@ -1,7 +1,10 @@
 """The DAQ's serial port, emulated by a pty: frames go into the master, readers open the slave.
 
 The slave is put in raw mode and kept open by the emulator, so the device node stays valid before
-(and between) readers. Two write disciplines:
+(and between) readers. Readers are told a stable path, `link`: a symlink in a temporary directory the
+emulator owns, pointing at the current pty, removed while the DAQ is unplugged and re-pointed when it
+comes back (as udev does with /dev/serial/by-id/...), so a bench file naming it stays valid across
+reconnects. Two write disciplines:
 
 - blocking (`--speedup 0`): a chunk is written completely before the plant goes on; a reader that
   does not read fills the pty buffer, the write waits, and plant time stops (backpressure);
@@ -15,6 +18,8 @@ import logging
 import os
 import queue
 import select
+import shutil
+import tempfile
 import threading
 import tty
 
@@ -36,6 +41,25 @@ class DaqPty:
         self._closed = False
         self._hung = False
         self._fd_lock = threading.Lock()
+        self.link_dir = tempfile.mkdtemp(prefix="ripplecal-daq-")
+        self.link = os.path.join(self.link_dir, "usb-ripplecal_emulated_DAQ-if00")
+        self._point_link()
+
+    def _point_link(self) -> None:
+        """Re-point the stable path at the current pty, atomically (a reader never sees it half made)."""
+        tmp = self.link + ".new"
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        os.symlink(self.name, tmp)
+        os.replace(tmp, self.link)
+
+    def _remove_link(self) -> None:
+        try:
+            os.unlink(self.link)
+        except FileNotFoundError:
+            pass
 
     def hang_up(self) -> None:
         """Fault hook: the DAQ is unplugged. Readers of the slave get EOF/EIO; frames are discarded."""
@@ -44,6 +68,7 @@ class DaqPty:
                 return
             self._hung = True
             self._pending.clear()
+            self._remove_link()              # unplugged: the by-id path disappears too
             for fd in (self.master_fd, self.slave_fd):
                 try:
                     os.close(fd)
@@ -62,6 +87,7 @@ class DaqPty:
             self._pending.clear()
             self.bytes_written = 0
             self._hung = False
+            self._point_link()
             return self.name
 
     def write_blocking(self, data: bytes, stop: threading.Event) -> bool:
@@ -150,3 +176,4 @@ class DaqPty:
                 os.close(fd)
             except OSError:
                 pass
+        shutil.rmtree(self.link_dir, ignore_errors=True)

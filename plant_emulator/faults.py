@@ -9,14 +9,20 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
     {"fault": "daq_corrupt", "rate": 0.001}      each DAQ byte gets one random bit flipped with it
     {"fault": "daq_disconnect"}                  the DAQ port hangs up (readers get EOF/EIO); frames
                                                  produced meanwhile are lost
-    {"fault": "daq_reconnect"}                   a new DAQ pty; the reply names it: {"ok": true, "daq": "/dev/pts/N"}
+    {"fault": "daq_reconnect"}                   a new DAQ pty behind the same stable path; the reply names
+                                                 both: {"ok": true, "daq": "<link>", "device": "/dev/pts/N"}
     {"fault": "heartbeat_stop"}                  the drive stops producing its heartbeat ("node": 6 for the load)
     {"fault": "emcy", "code": 12816}             the drive sends this EMCY and goes to FAULT
                                                  ("fault_state": false: EMCY only; "node": 6 for the load)
     {"fault": "sdo_delay", "seconds": 1.0}       every SDO response of the emulator is held this long
     {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again
                                                  (a disconnected DAQ needs daq_reconnect)
-    {"status": true}                             the fault state: {"ok": true, "faults": {...}}
+    {"status": true}                             the fault state: {"ok": true, "faults": {...}}, with the
+                                                 drive's state and `drive_power_off_at` (time.monotonic()
+                                                 when its power stage last went off)
+
+Every reply carries `"at"`: time.monotonic() when the command was carried out (CLOCK_MONOTONIC is
+system-wide, so a tool in another process can time fault -> safe against `drive_power_off_at`).
 
 The service never uses this socket; tests and reliability tools do. Only 127.0.0.1, ever.
 """
@@ -25,6 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 
 import numpy as np
 
@@ -93,9 +100,11 @@ class FaultState:
     # -- commands ----------------------------------------------------------------------------------
     def command(self, cmd: dict) -> dict:
         try:
-            return self._command(cmd)
+            reply = self._command(cmd)
         except (KeyError, TypeError, ValueError) as exc:
-            return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        reply["at"] = time.monotonic()
+        return reply
 
     def _node(self, cmd: dict):
         node = int(cmd.get("node", self.emu.drive.node.id))
@@ -120,7 +129,7 @@ class FaultState:
         elif fault == "daq_reconnect":
             name = self.emu.daq.reopen()
             self.daq_disconnected = False
-            return {"ok": True, "daq": name}
+            return {"ok": True, "daq": self.emu.daq.link, "device": name}
         elif fault == "heartbeat_stop":
             dev = self._node(cmd)
             self.heartbeat_stopped.add(dev.node.id)
@@ -153,7 +162,9 @@ class FaultState:
         return {"daq_drop_bytes_rate": self.drop_rate, "daq_corrupt_rate": self.corrupt_rate,
                 "sdo_delay_s": self.sdo_delay_s, "heartbeat_stopped": sorted(self.heartbeat_stopped),
                 "daq_disconnected": self.daq_disconnected, "bytes_dropped": self.bytes_dropped,
-                "bytes_corrupted": self.bytes_corrupted, "pending_events": len(self.events)}
+                "bytes_corrupted": self.bytes_corrupted, "pending_events": len(self.events),
+                "drive_state": self.emu.drive.state.value, "drive_power_off_at": self.emu.drive.power_off_at,
+                "load_state": self.emu.load.state.value}
 
     def sdo_delay_for(self, can_id: int) -> float:
         """Delay for a frame the emulator sends (SDO responses 0x580 + node of its nodes)."""

@@ -88,7 +88,8 @@ class Emulator:
         return {
             "can": {"interface": "socketcand", "host": self.can_server.host, "port": self.can_server.port,
                     "channel": self.can_server.channel},
-            "daq": self.daq.name,
+            "daq": self.daq.link,            # stable path (symlink) that survives reconnects
+            "daq_device": self.daq.name,
             "supply": self.scpi.url,
             "control": self.control.url,
             "drive_node": DRIVE_NODE,
@@ -194,6 +195,10 @@ class Emulator:
             data = bytes(out)
             out.clear()
             if self.speedup <= 0.0:
+                if faults.daq_disconnected:
+                    # nobody can read: no backpressure, so run in real time (frames are lost anyway)
+                    self.stop_event.wait(len(data) / ph.FRAME_BYTES / self.sample_rate_hz)
+                    continue
                 if not self.daq.submit(data):
                     break
             else:
@@ -227,10 +232,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--control-port", type=int, default=0,
                     help="fault control socket (JSON lines) on 127.0.0.1 (0: free port)")
     ap.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
+    ap.add_argument("--exit-on-stdin-eof", action="store_true",
+                    help="stop when stdin reaches EOF: a parent holding the pipe's other end takes the emulator "
+                         "with it when it dies, also by kill -9 (the kernel closes the pipe)")
     args = ap.parse_args(argv)
     if args.speedup < 0:
         ap.error("--speedup must be >= 0")
     return args
+
+
+def _watch_parent_pipe(stop: threading.Event) -> None:
+    """Block on stdin; EOF (or an error) means the parent is gone: stop like on SIGTERM."""
+    try:
+        while sys.stdin.buffer.read1(4096):
+            pass
+    except (OSError, ValueError):
+        pass
+    log.warning("stdin closed: the parent is gone; stopping")
+    stop.set()
 
 
 def main(argv=None) -> int:
@@ -244,6 +263,8 @@ def main(argv=None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    if args.exit_on_stdin_eof:
+        threading.Thread(target=_watch_parent_pipe, args=(stop,), name="parent-pipe", daemon=True).start()
     sc = scn.load(args.scenario, seed=args.seed)
     emu = Emulator(sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port,
                    control_port=args.control_port)

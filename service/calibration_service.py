@@ -45,9 +45,9 @@ class CalibrationService:
         self.version = __version__
         self._status_stop = threading.Event()
         self._status_thread: threading.Thread | None = None
+        self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
     def start(self, status_period_s: float | None = 1.0) -> None:
-        self.storage.fail_unfinished_jobs("the service stopped while this was running")
         settings = self.settings
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
@@ -58,7 +58,7 @@ class CalibrationService:
             identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (f":seed={em.seed}" if em.seed is not None else "")
         self.settings = settings
         try:
-            self.bench = Bench(settings, identity)
+            self.bench = Bench(settings, identity, on_trip=self._on_trip)
             self.bench.connect()
             self.engine = Engine(self.storage, self.bench, settings, self.broker)
             self.engine.start()
@@ -73,11 +73,22 @@ class CalibrationService:
     def stop(self) -> None:
         self._status_stop.set()
         if self.engine is not None:
-            self.engine.stop()
+            self.engine.stop(self.shutdown_reason)
         if self.bench is not None:
             self.bench.close()          # leaves the bench safe (torque off, injection off)
         if self.emulator is not None:
             self.emulator.stop()
+
+    def _on_trip(self, trip) -> None:
+        """An interlock tripped (monitor/CAN thread): tell the dashboard at once."""
+        self.broker.publish("bench.interlock", trip.public())
+
+    def fault_reset(self) -> dict:
+        """A person acknowledges a drive/load fault (POST /bench/fault-reset)."""
+        result = self.bench.fault_reset()
+        self.broker.publish("bench.fault_reset", result)
+        self.broker.publish("bench.status", self.bench.status())
+        return result
 
     def _poll_status(self, period_s: float) -> None:
         while not self._status_stop.wait(period_s):

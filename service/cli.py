@@ -51,14 +51,25 @@ def _settings(args) -> Settings:
 
 
 def cmd_serve(args) -> int:
+    import signal
+
     import uvicorn
 
     from service.api.app import create_app
     from service.calibration_service import CalibrationService
     settings = _settings(args)
-    app = create_app(CalibrationService(settings))
+    service = CalibrationService(settings)
+    app = create_app(service)
+
+    class Server(uvicorn.Server):
+        """uvicorn's own signal handling, plus the signal's name for the sweeps it interrupts."""
+
+        def handle_exit(self, sig: int, frame) -> None:
+            service.shutdown_reason = f"service shut down ({signal.Signals(sig).name})"
+            super().handle_exit(sig, frame)
+
     print(f"ripplecal {__version__}: dashboard at http://{settings.server.host}:{settings.server.port}/", flush=True)
-    uvicorn.run(app, host=settings.server.host, port=settings.server.port, log_level="info")
+    Server(uvicorn.Config(app, host=settings.server.host, port=settings.server.port, log_level="info")).run()
     return 0
 
 

@@ -1,4 +1,9 @@
-"""Start `plant_emulator` as a child process and learn its endpoints from its first stdout line."""
+"""Start `plant_emulator` as a child process and learn its endpoints from its first stdout line.
+
+The child dies with the service, also when the service is killed with SIGKILL: it runs with
+`--exit-on-stdin-eof` and its stdin is a pipe only this process holds, so the kernel closing that
+pipe at our death (any death) stops it. It runs in its own session so that a terminal's Ctrl-C goes
+to the service, which then stops it in order (bench safe first)."""
 from __future__ import annotations
 
 import json
@@ -26,11 +31,12 @@ class EmulatorProcess:
     endpoints: dict[str, Any] | None = None
 
     def start(self) -> dict[str, Any]:
-        cmd = [sys.executable, "-m", "plant_emulator", "--scenario", self.scenario, "--speedup", str(self.speedup)]
+        cmd = [sys.executable, "-m", "plant_emulator", "--scenario", self.scenario, "--speedup", str(self.speedup),
+               "--exit-on-stdin-eof"]
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
-        self.process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=None, text=True,
-                                        start_new_session=True)
+        self.process = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None, text=True,
+                                        start_new_session=True, close_fds=True)
         sel = selectors.DefaultSelector()
         sel.register(self.process.stdout, selectors.EVENT_READ)
         deadline = time.monotonic() + self.start_timeout_s
@@ -54,7 +60,14 @@ class EmulatorProcess:
 
     def stop(self, timeout_s: float = 10.0) -> None:
         proc, self.process = self.process, None
-        if proc is None or proc.poll() is not None:
+        if proc is None:
+            return
+        if proc.stdin is not None:
+            try:
+                proc.stdin.close()          # the child's cue as well, should the signal not reach it
+            except OSError:
+                pass
+        if proc.poll() is not None:
             return
         try:
             os.killpg(proc.pid, signal.SIGTERM)

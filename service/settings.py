@@ -104,6 +104,20 @@ class SafetySettings(_Section):
         return self
 
 
+class InterlockSettings(_Section):
+    """Interlocks (issue 8): how they are watched, and whether a drive fault may ever be reset without a person."""
+    monitor_period_s: float = Field(0.05, gt=0, le=1.0, description="period of the interlock monitor thread")
+    stall_s: float = Field(0.5, gt=0, description="a monitor gap this long trips the run (the drive missed our heartbeat)")
+    supply_tolerance_fraction: float = Field(0.1, gt=0, le=1.0, description="supply trips outside +-this fraction of its setpoint")
+    supply_tolerance_v: float = Field(0.5, gt=0, description="... or outside +-this many volts, whichever is wider")
+    auto_fault_reset: bool = Field(False, description="reset a drive/load FAULT without a person (off: POST /bench/fault-reset)")
+    auto_fault_reset_per_hour: int = Field(2, ge=0, le=60, description="at most this many automatic resets per hour")
+
+
+class EngineSettings(_Section):
+    auto_resume: bool = Field(False, description="on start, resume sweeps a previous service run left interrupted")
+
+
 class EmulatorSettings(_Section):
     scenario: str = "paper-bench"
     seed: int | None = None
@@ -130,6 +144,8 @@ class Settings(_Section):
     mechanics: MechanicsSettings = MechanicsSettings()
     identification: IdentificationSettings = IdentificationSettings()
     safety: SafetySettings = SafetySettings()
+    interlocks: InterlockSettings = InterlockSettings()
+    engine: EngineSettings = EngineSettings()
     emulator: EmulatorSettings = EmulatorSettings()
     server: ServerSettings = ServerSettings()
 

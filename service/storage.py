@@ -136,13 +136,10 @@ class Storage:
         with self.connect() as conn:
             return [dict(r) for r in conn.execute("SELECT * FROM jobs ORDER BY id DESC LIMIT ?", (limit,))]
 
-    def fail_unfinished_jobs(self, reason: str) -> None:
-        """On start-up: jobs and sweeps a previous process left running cannot still be running."""
-        with self.transaction() as conn:
-            conn.execute("UPDATE jobs SET state = 'failed', error = ?, finished_at = ? WHERE state IN ('queued', 'running')",
-                         (reason, now_iso()))
-            conn.execute("UPDATE sweeps SET state = 'failed', error = ?, finished_at = ? WHERE state IN ('queued', 'running', 'paused')",
-                         (reason, now_iso()))
+    def unfinished_jobs(self) -> list[dict]:
+        """Jobs left queued or running (on start-up: by a previous process)."""
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT * FROM jobs WHERE state IN ('queued', 'running') ORDER BY id")]
 
     # --- sweeps ------------------------------------------------------------------------------------
     def create_sweep(self, method: str, harmonic_order: int, grid: dict, options: dict, total: int,
@@ -162,20 +159,32 @@ class Storage:
             row = conn.execute("SELECT * FROM sweeps WHERE id = ?", (sweep_id,)).fetchone()
             return dict(row) if row else None
 
+    def unfinished_sweeps(self) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute(
+                "SELECT * FROM sweeps WHERE state IN ('queued', 'running', 'paused', 'interrupted') ORDER BY id")]
+
     def list_sweeps(self, limit: int = 100) -> list[dict]:
         with self.connect() as conn:
             return [dict(r) for r in conn.execute("SELECT * FROM sweeps ORDER BY id DESC LIMIT ?", (limit,))]
 
     # --- results -----------------------------------------------------------------------------------
-    def insert_result(self, row: dict, sweep_progress: dict | None = None) -> int:
-        """One result in its own transaction (with the sweep's progress counters, if any)."""
+    def insert_result(self, row: dict) -> int:
+        """One result in its own transaction. A sweep's result supersedes the earlier attempts at the
+        same operating point (kept as history, results.superseded_by) and the sweep's progress
+        counters are recounted from its current results, in the same transaction, so a crash between
+        two statements cannot leave a point counted twice or a point with two current results."""
         cols = ", ".join(row)
         marks = ", ".join("?" for _ in row)
         with self.transaction() as conn:
             rid = conn.execute(f"INSERT INTO results ({cols}) VALUES ({marks})", tuple(row.values())).lastrowid
-            if sweep_progress:
-                sets = ", ".join(f"{k} = {k} + ?" for k in sweep_progress)
-                conn.execute(f"UPDATE sweeps SET {sets} WHERE id = ?", (*sweep_progress.values(), row["sweep_id"]))
+            if row.get("sweep_id") is not None:
+                conn.execute("UPDATE results SET superseded_by = ? WHERE sweep_id = ? AND torque_nm = ? AND speed_rpm = ? "
+                             "AND udc_v = ? AND superseded_by IS NULL AND id != ?",
+                             (rid, row["sweep_id"], row["torque_nm"], row["speed_rpm"], row["udc_v"], rid))
+                conn.execute(f"UPDATE sweeps SET done_points = (SELECT COUNT(*) FROM results WHERE {_COMMITTED}), "
+                             f"failed_points = (SELECT COUNT(*) FROM results WHERE {_COMMITTED} AND status = 'failed') "
+                             "WHERE id = ?", (row["sweep_id"], row["sweep_id"], row["sweep_id"]))
             return rid
 
     def get_result(self, result_id: int) -> dict | None:
@@ -184,8 +193,22 @@ class Storage:
             return dict(row) if row else None
 
     def sweep_results(self, sweep_id: int) -> list[dict]:
+        """The sweep's current results: one per operating point measured (earlier attempts left out)."""
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute(
+                "SELECT * FROM results WHERE sweep_id = ? AND superseded_by IS NULL ORDER BY id", (sweep_id,))]
+
+    def sweep_result_history(self, sweep_id: int) -> list[dict]:
+        """Every attempt of the sweep, superseded ones included, oldest first."""
         with self.connect() as conn:
             return [dict(r) for r in conn.execute("SELECT * FROM results WHERE sweep_id = ? ORDER BY id", (sweep_id,))]
+
+    def committed_points(self, sweep_id: int) -> set[tuple[float, float, float]]:
+        """Operating points whose current result counts (a run an interlock discarded does not):
+        a resumed sweep measures only the others."""
+        with self.connect() as conn:
+            return {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in conn.execute(
+                f"SELECT torque_nm, speed_rpm, udc_v FROM results WHERE {_COMMITTED}", (sweep_id,))}
 
     # --- maps --------------------------------------------------------------------------------------
     def create_map(self, sweep_id: int | None, harmonic_order: int, method: str, axes: dict,
@@ -219,6 +242,10 @@ class Storage:
 
 
 _IDENT = re.compile(r"^[a-z_]+$")
+
+# a sweep's committed results: current (not superseded) and not discarded by an interlock
+# (detail_json "discarded" names why; the attempt stays as history and the point is measured again)
+_COMMITTED = "sweep_id = ? AND superseded_by IS NULL AND json_extract(detail_json, '$.discarded') IS NULL"
 
 
 def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -> None:

@@ -18,7 +18,7 @@ from drivers import DRIVE_EDS, LOAD_EDS
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus
-from drivers.errors import NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
+from drivers.errors import DriveFaultError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
 from drivers_peers import Cia402Peer, unique_channel
 
@@ -92,11 +92,18 @@ def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer
     assert drive_peer.value(0x2000, 2) == 0
 
 
-def test_enable_resets_a_fault_with_a_rising_edge(drive, drive_peer):
+def test_enable_refuses_a_fault_and_only_fault_reset_clears_it(drive, drive_peer):
+    """Issue 8: a drive fault is acknowledged by a person; enable() never resets it by itself."""
     drive_peer.set_statusword(State402.FAULT)
+    with pytest.raises(DriveFaultError, match=r"drive node 5 in FAULT.*fault reset"):
+        drive.enable(timeout_s=2.0)
+    assert CONTROLWORD[Command402.FAULT_RESET] not in drive_peer.writes_to(0x6040)
+    assert drive_peer.state is State402.FAULT
+    assert drive.fault_reset(timeout_s=2.0) is True
+    assert drive_peer.writes_to(0x6040)[-2:] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
     drive.enable(timeout_s=2.0)
     assert drive_peer.state is State402.OPERATION_ENABLED
-    assert drive_peer.writes_to(0x6040)[:2] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
+    assert drive.fault_reset() is False          # not in FAULT: nothing sent
 
 
 def test_enable_times_out_with_a_clear_error_when_the_device_does_not_follow(drive, drive_peer):

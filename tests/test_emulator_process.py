@@ -3,6 +3,7 @@ SCPI over TCP. Tests run in file order on one emulator; the last one stops it wi
 from __future__ import annotations
 
 import json
+import os
 import select
 import signal
 import subprocess
@@ -103,7 +104,9 @@ def test_first_line_names_the_endpoints(emulator):
     _, ep = emulator
     assert ep["can"]["interface"] == "socketcand" and ep["can"]["host"] == "127.0.0.1"
     assert ep["can"]["channel"] == "can0" and ep["can"]["port"] > 0
-    assert ep["daq"].startswith("/dev/")
+    # a stable path (symlink, like /dev/serial/by-id/...) to the pty the DAQ is
+    assert os.path.islink(ep["daq"]) and os.path.realpath(ep["daq"]) == ep["daq_device"]
+    assert ep["daq_device"].startswith("/dev/")
     assert ep["supply"].startswith("socket://127.0.0.1:")
     assert (ep["drive_node"], ep["load_node"], ep["sample_rate_hz"]) == (5, 6, 16000)
     assert ep["scenario"] == "paper-bench" and ep["seed"] is None
@@ -225,10 +228,10 @@ def test_control_socket_faults(emulator, bench):
     assert control(emulator, {"fault": "nonsense"})["ok"] is False
     # frames already produced (queue + pty buffer, < 32k samples) pass unharmed
     before = bench["decoder"].counters.crc_failures
-    assert control(emulator, {"fault": "daq_corrupt", "rate": 0.01}) == {"ok": True}
+    assert control(emulator, {"fault": "daq_corrupt", "rate": 0.01})["ok"] is True
     read_samples(bench, 48000)
     assert bench["decoder"].counters.crc_failures > before
-    assert control(emulator, {"fault": "clear"}) == {"ok": True}
+    assert control(emulator, {"fault": "clear"})["ok"] is True
     read_samples(bench, 40000)                                          # flush what was corrupted
     before = bench["decoder"].counters.crc_failures
     read_samples(bench, 8000)
@@ -261,13 +264,15 @@ def test_control_socket_faults(emulator, bench):
     control(emulator, {"fault": "clear"})
     time.sleep(0.4)
     assert seen
-    # DAQ unplugged and plugged in again as a new pty
+    # DAQ unplugged (its stable path disappears) and plugged in again as a new pty behind the same path
+    link = emulator[1]["daq"]
     assert control(emulator, {"fault": "daq_disconnect"})["ok"]
+    assert not os.path.exists(link)
     with pytest.raises(serial.SerialException):
         for _ in range(100):
             bench["daq"].read(4096)
     reply = control(emulator, {"fault": "daq_reconnect"})
-    assert reply["ok"] and reply["daq"].startswith("/dev/")
+    assert reply["ok"] and reply["daq"] == link and os.path.realpath(link) == reply["device"]
     bench["daq"].close()
     bench["daq"] = serial.Serial(reply["daq"], timeout=0.5)
     bench["decoder"] = FrameDecoder()

@@ -63,7 +63,7 @@ def _sweep_with_results(storage, failing=()):
             row = result_row(op, "adaptive", AdaptiveOptions(), "test-bench", "t0", error="MeasurementError: boom", sweep_id=sweep_id)
         else:
             row = result_row(op, "adaptive", AdaptiveOptions(), "test-bench", "t0", _result(1 + i, 250 + 10 * i), sweep_id=sweep_id)
-        storage.insert_result(row, sweep_progress={"done_points": 1})
+        storage.insert_result(row)
     return sweep_id
 
 

@@ -13,6 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from service import __version__
 from service.api.body_limit import BodySizeLimit
 from service.api.errors import request_validation_error
+from service.api.bench_routes import router as bench_router
 from service.api.routes import router
 from service.calibration_service import CalibrationService
 
@@ -37,6 +38,7 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
     app.include_router(router)
     app.add_exception_handler(RequestValidationError, request_validation_error)
     app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
+    app.include_router(bench_router)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

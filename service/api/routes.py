@@ -87,7 +87,7 @@ def _sweep_public(service, sweep: dict, with_points: bool = False) -> SweepPubli
         id=sweep["id"], state=sweep["state"], method=sweep["method"], harmonic_order=sweep["harmonic_order"],
         grid=json.loads(sweep["grid_json"]), options=json.loads(sweep["options_json"]),
         progress={"done": sweep["done_points"], "failed": sweep["failed_points"], "total": sweep["total_points"]},
-        map_id=sweep["map_id"], error=sweep["error"], bench_identity=sweep["bench_identity"],
+        map_id=sweep["map_id"], error=sweep["error"], pause_reason=sweep.get("pause_reason"), bench_identity=sweep["bench_identity"],
         software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
         finished_at=sweep["finished_at"], points=points)
 

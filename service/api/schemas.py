@@ -55,6 +55,7 @@ class SweepPublic(BaseModel):
     progress: dict[str, int]
     map_id: int | None = None
     error: str | None = None
+    pause_reason: str | None = None
     bench_identity: str
     software_version: str
     created_at: str

@@ -1,0 +1,384 @@
+"""Interlocks: conditions under which no torque may flow, watched during every run (and between runs).
+
+Modelled on bluesky's suspenders (bluesky/suspenders.py: SuspenderBase with `_should_suspend`,
+`_should_resume`, `_get_justification`): each `Interlock` reads one signal of the bench, says whether
+that value trips it and whether it has cleared, and justifies a trip in words an operator can act on
+("EMCY 0x3210 DC link over-voltage", "heartbeat of drive node 5 lost", "DAQ ... disconnected").
+Unlike a suspender, a trip never resumes a run by itself: the measurement in flight is discarded and a
+sweep pauses; a *latched* interlock (drive FAULT/EMCY) also stays tripped until a person acknowledges
+it (POST /bench/fault-reset), the others clear when their condition does.
+
+`InterlockMonitor` polls the interlocks from its own thread (EMCY arrives pushed, from the CAN receive
+thread), keeps the first trip of the run in flight (`run_trip`, read by the bench's guard before every
+DAQ read) and calls `on_trip` at once, so the bench goes safe without waiting for the run to notice.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from typing import Any, Callable
+
+from drivers.cia402 import State402
+from drivers.emcy_codes import describe_emcy
+
+log = logging.getLogger(__name__)
+
+_NO_READING = object()
+
+
+@dataclass(frozen=True)
+class Trip:
+    """One interlock trip: which interlock, why (the first cause), whether a person must acknowledge it."""
+    interlock: str
+    reason: str
+    latched: bool
+    at: str                     # ISO 8601 UTC
+    monotonic: float
+
+    def public(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.pop("monotonic")
+        return d
+
+
+class InterlockTripped(RuntimeError):
+    """A run stopped (or was refused) because an interlock tripped; str() is the first cause."""
+
+    def __init__(self, trip: Trip, refused: bool = False, outcome: str | None = None):
+        self.trip = trip
+        self.refused = refused
+        self.outcome = outcome      # make_safe's outcome, added to (never substituted for) the cause
+        prefix = "refused: interlock tripped: " if refused else "interlock tripped: "
+        super().__init__(prefix + trip.reason + (f"; {outcome}" if outcome else ""))
+
+
+class Interlock(ABC):
+    """One watched condition (a suspender). `period_s`: how often the monitor reads it (reads that
+    cost a bus round trip are spaced out); `armed_only`: watched only while a run holds the bench."""
+
+    name = "interlock"
+    latched = False
+    period_s = 0.0
+    armed_only = False
+
+    def __init__(self) -> None:
+        self.reason: str | None = None      # set while tripped
+        self._next_read = 0.0
+
+    @abstractmethod
+    def read(self) -> Any:
+        """The watched value; raise to say it could not be read (no decision this time)."""
+
+    @abstractmethod
+    def should_trip(self, value: Any) -> bool: ...
+
+    def should_clear(self, value: Any) -> bool:
+        return not self.should_trip(value)
+
+    @abstractmethod
+    def justification(self, value: Any) -> str: ...
+
+    def due(self, now: float) -> bool:
+        if now < self._next_read:
+            return False
+        self._next_read = now + self.period_s
+        return True
+
+    def evaluate(self) -> str | None:
+        """Read and decide; returns the reason while tripped. A latched trip is kept until reset()."""
+        try:
+            value = self.read()
+        except Exception as exc:  # noqa: BLE001 - an unreadable signal decides nothing (its own interlock covers the link)
+            log.debug("%s: cannot read: %s", self.name, exc)
+            return self.reason
+        if self.should_trip(value):
+            if self.reason is None:
+                self.reason = self.justification(value)
+        elif self.reason is not None and not self.latched and self.should_clear(value):
+            self.reason = None
+        return self.reason
+
+    def reset(self) -> str | None:
+        """A person's acknowledgement: clears a latched trip if the condition has gone; returns the
+        reason if it is still there."""
+        self.reason = None
+        return self.evaluate()
+
+
+class DeviceFault(Interlock):
+    """A CiA 402 device in FAULT, or an EMCY from it (pushed): latched until fault reset."""
+
+    latched = True
+    period_s = 0.25
+
+    def __init__(self, device):
+        super().__init__()
+        self.device = device
+        self.name = f"{device.device_kind}_fault"
+
+    def read(self) -> State402:
+        return self.device.state()
+
+    def should_trip(self, value: State402) -> bool:
+        return value in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)
+
+    def justification(self, value: State402) -> str:
+        return self.device.fault_description()
+
+    def on_emcy(self, code: int) -> str | None:
+        """An EMCY frame: trips (latched) unless it is an error reset (high byte 0)."""
+        if code & 0xFF00 == 0:
+            return None
+        reason = f"{describe_emcy(code)} from {self.device.device_kind} node {self.device.node_id}"
+        if self.reason is None:
+            self.reason = reason
+        return reason
+
+
+class HeartbeatLost(Interlock):
+    """The device's heartbeat has not been seen for 3 of its periods (the device or the bus is gone)."""
+
+    def __init__(self, device):
+        super().__init__()
+        self.device = device
+        self.name = f"{device.device_kind}_heartbeat"
+
+    def read(self) -> tuple[bool, float | None]:
+        return self.device.heartbeat_alive(), self.device.heartbeat_age_s()
+
+    def should_trip(self, value) -> bool:
+        return not value[0]
+
+    def justification(self, value) -> str:
+        age = value[1]
+        seen = "never seen" if age is None else f"last seen {age:.1f} s ago"
+        return f"heartbeat lost: {self.device.device_kind} node {self.device.node_id} ({seen})"
+
+
+class ServiceHeartbeatStopped(Interlock):
+    """Our own heartbeat is not being produced: the drive will fall to FAULT within its consumer time."""
+
+    name = "service_heartbeat"
+
+    def __init__(self, bus):
+        super().__init__()
+        self.bus = bus
+
+    def read(self) -> bool:
+        return self.bus.heartbeat_producing()
+
+    def should_trip(self, value: bool) -> bool:
+        return not value
+
+    def justification(self, value) -> str:
+        return f"heartbeat lost: the service's own heartbeat (node {self.bus.service_node_id}) is not being produced"
+
+
+class DaqLost(Interlock):
+    """The DAQ port is gone (unplugged, EOF/EIO), or a sample carries the sensor-fault flag."""
+
+    name = "daq"
+
+    def __init__(self, reader):
+        super().__init__()
+        self.reader = reader
+        self._faults_seen: int | None = None
+
+    def read(self) -> tuple[bool, int, str | None]:
+        h = self.reader.health()
+        return h["connected"], h.get("sensor_fault_samples", 0), h["last_error"]
+
+    def should_trip(self, value) -> bool:
+        connected, faults, _ = value
+        new_faults = self._faults_seen is not None and faults > self._faults_seen
+        self._faults_seen = faults
+        self._new_faults = new_faults
+        return not connected or new_faults
+
+    def justification(self, value) -> str:
+        connected, _, error = value
+        if not connected:
+            return f"DAQ {self.reader.url} disconnected ({error})"
+        return f"DAQ {self.reader.url}: sensor fault flag set"
+
+
+class SupplyOutOfRange(Interlock):
+    """The DC supply measures outside a band around the voltage the run set (only during a run)."""
+
+    name = "supply"
+    period_s = 0.5
+    armed_only = True
+
+    def __init__(self, supply, tolerance_fraction: float = 0.1, tolerance_v: float = 0.5):
+        super().__init__()
+        self.supply = supply
+        self.tolerance_fraction = tolerance_fraction
+        self.tolerance_v = tolerance_v
+        self.expected_v: float | None = None      # set by the bench once the supply has reached it
+
+    def band(self) -> float:
+        return max(self.tolerance_fraction * abs(self.expected_v or 0.0), self.tolerance_v)
+
+    def read(self) -> float | None:
+        if self.expected_v is None:
+            return None
+        return self.supply.measure_voltage()
+
+    def should_trip(self, value) -> bool:
+        return value is not None and abs(value - self.expected_v) > self.band()
+
+    def should_clear(self, value) -> bool:
+        return value is None or abs(value - self.expected_v) <= 0.5 * self.band()   # hysteresis
+
+    def justification(self, value) -> str:
+        return (f"DC supply out of range: measures {value:.2f} V, set {self.expected_v:.2f} V "
+                f"(band +-{self.band():.2f} V)")
+
+
+class InterlockMonitor:
+    """Watches the interlocks from a thread of its own; keeps the first trip of the run in flight.
+
+    on_trip(trip) is called (from the monitor or CAN thread) for every new trip while a run is armed,
+    and for latched trips at any time; it must be quick and must not take the bench's run lock.
+    stall_s: a gap this long between two monitor rounds means the process stalled: the drive has then
+    missed our heartbeat for about that long, which trips the run in flight.
+    """
+
+    def __init__(self, interlocks: list[Interlock], on_trip: Callable[[Trip], None],
+                 period_s: float = 0.05, stall_s: float = 0.5):
+        self.interlocks = interlocks
+        self.on_trip = on_trip
+        self.period_s = period_s
+        self.stall_s = stall_s
+        self._lock = threading.Lock()
+        self._armed = False
+        self._run_trip: Trip | None = None
+        self._last_trip: Trip | None = None
+        self._reported: dict[str, str] = {}     # interlock -> reason already reported (no repeats while it holds)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_round: float | None = None
+
+    # --- lifecycle --------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._loop, name="ripplecal-interlocks", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                self.check_now()
+            except Exception:  # noqa: BLE001 - the watchdog must outlive any one bad reading
+                log.exception("interlock monitor round failed")
+
+    # --- runs ---------------------------------------------------------------------------------------
+    def arm(self) -> None:
+        with self._lock:
+            self._armed = True
+            self._run_trip = None
+            self._last_round = time.monotonic()
+
+    def disarm(self) -> Trip | None:
+        """End of a run: returns its first trip (None if it ran clean)."""
+        with self._lock:
+            self._armed = False
+            trip, self._run_trip = self._run_trip, None
+            return trip
+
+    @property
+    def run_trip(self) -> Trip | None:
+        with self._lock:
+            return self._run_trip
+
+    # --- evaluation -----------------------------------------------------------------------------------
+    def check_now(self, force: bool = False) -> Trip | None:
+        """One round over every interlock that is due (all of them with force; callable from any
+        thread, e.g. on a run's error path to learn whether an interlock is the first cause). Returns
+        the run's first trip."""
+        now = time.monotonic()
+        with self._lock:
+            armed = self._armed
+            last, self._last_round = self._last_round, now
+        if armed and last is not None and now - last > self.stall_s:
+            self._tripped("service_stall", f"heartbeat lost: the service stalled for {now - last:.1f} s "
+                                           "(its heartbeat to the drive lapsed)", latched=False)
+        for lock in self.interlocks:
+            if lock.armed_only and not armed:
+                continue
+            if not lock.due(now) and not force:
+                if lock.reason is not None:
+                    self._tripped(lock.name, lock.reason, lock.latched)
+                continue
+            reason = lock.evaluate()
+            if reason is not None:
+                self._tripped(lock.name, reason, lock.latched)
+            else:
+                with self._lock:
+                    self._reported.pop(lock.name, None)
+        return self.run_trip
+
+    def emcy(self, interlock: DeviceFault, code: int) -> None:
+        """EMCY callback path (CAN receive thread)."""
+        reason = interlock.on_emcy(code)
+        if reason is not None:
+            self._tripped(interlock.name, interlock.reason or reason, latched=True)
+
+    def _tripped(self, name: str, reason: str, latched: bool) -> None:
+        trip = Trip(name, reason, latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+                    time.monotonic())
+        with self._lock:
+            new_for_run = self._armed and self._run_trip is None
+            if new_for_run:
+                self._run_trip = trip
+            same = self._reported.get(name) == reason
+            if not same:
+                self._reported[name] = reason
+                self._last_trip = trip
+        if new_for_run or not same:
+            log.warning("interlock %s tripped: %s", name, reason)
+            try:
+                self.on_trip(trip)
+            except Exception:  # noqa: BLE001 - reporting must not stop the watch
+                log.exception("on_trip failed")
+
+    # --- refusal and acknowledgement --------------------------------------------------------------------
+    def refusal(self) -> Trip | None:
+        """The interlock that forbids starting a run or commanding torque now (None: clear to go).
+        Decided from a fresh reading of every interlock that is not armed-only."""
+        now = time.monotonic()
+        for lock in self.interlocks:
+            if lock.armed_only:
+                continue
+            reason = lock.evaluate()
+            if reason is not None:
+                return Trip(lock.name, reason, lock.latched,
+                            datetime.now(timezone.utc).isoformat(timespec="milliseconds"), now)
+        return None
+
+    def reset_latched(self) -> Trip | None:
+        """After a person's fault reset: clear latched trips whose condition has gone; returns what
+        still forbids a run (None: clear)."""
+        for lock in self.interlocks:
+            if lock.latched:
+                lock.reset()
+        with self._lock:
+            self._last_trip = None
+            self._reported.clear()
+        return self.refusal()
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            run_trip, last = self._run_trip, self._last_trip
+        return {"tripped": [{"interlock": lock.name, "reason": lock.reason, "latched": lock.latched}
+                            for lock in self.interlocks if lock.reason is not None],
+                "run_trip": run_trip.public() if run_trip else None,
+                "last_trip": last.public() if last else None}

@@ -1,0 +1,122 @@
+"""An emulated bench in its own process, and the service pointed at it with `--bench` as at a real
+bench (issue 8 end-to-end tests and tests/benchmarks/bench_faults.py). Faults go through the
+emulator's control socket; the service never uses that socket."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from service_process import REPO, ServiceProcess, create_token
+
+
+class EmulatorRig:
+    """`python -m plant_emulator` as its own process (stdin pipe held here: it dies with the test)."""
+
+    def __init__(self, speedup: float = 0.0, timeout_s: float = 120.0):
+        self.proc = subprocess.Popen([sys.executable, "-m", "plant_emulator", "--speedup", str(speedup),
+                                      "--exit-on-stdin-eof"], cwd=REPO, stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + timeout_s
+        line = ""
+        while time.monotonic() < deadline and not line:
+            line = self.proc.stdout.readline()
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"plant_emulator exited with {self.proc.returncode}")
+        self.endpoints = json.loads(line)
+
+    def control(self, command: dict, timeout_s: float = 10.0) -> dict:
+        host, port = self.endpoints["control"].removeprefix("tcp://").split(":")
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as s:
+            s.sendall((json.dumps(command) + "\n").encode())
+            return json.loads(s.makefile().readline())
+
+    def bench_file(self, directory: Path, name: str = "emulated-bench") -> Path:
+        ep, can = self.endpoints, self.endpoints["can"]
+        path = directory / f"{name}.toml"
+        path.write_text(
+            f'bench_name = "{name}"\n'
+            f'[can]\ninterface = "{can["interface"]}"\nchannel = "{can["channel"]}"\nhost = "{can["host"]}"\n'
+            f'port = {can["port"]}\ndrive_node = {ep["drive_node"]}\nload_node = {ep["load_node"]}\n'
+            f'[daq]\nurl = "{ep["daq"]}"\nsample_rate_hz = {ep["sample_rate_hz"]}\n'
+            f'[supply]\nurl = "{ep["supply"]}"\n')
+        return path
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+
+class Api:
+    """HTTP client of a running service with an operator token."""
+
+    def __init__(self, service: ServiceProcess, db: Path):
+        self.service = service
+        self.token = create_token(db)
+        self.http = httpx.Client(base_url=service.base + "/api/v1", timeout=30,
+                                 headers={"Authorization": f"Bearer {self.token}"})
+
+    def get(self, path: str) -> dict:
+        r = self.http.get(path)
+        r.raise_for_status()
+        return r.json()
+
+    def post(self, path: str, body: dict | None = None) -> httpx.Response:
+        return self.http.post(path, json=body)
+
+    def wait(self, predicate, timeout_s: float = 180.0, what: str = "condition"):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            value = predicate()
+            if value:
+                return value
+            time.sleep(0.1)
+        raise TimeoutError(f"{what} not reached within {timeout_s} s")
+
+    def job_finished(self, job_id: int, timeout_s: float = 180.0) -> dict:
+        return self.wait(lambda: (j := self.get(f"/jobs/{job_id}"))["state"] in ("done", "failed", "cancelled") and j,
+                         timeout_s, f"job {job_id}")
+
+    def identify(self, op: dict, method: str = "probe", timeout_s: float = 180.0) -> dict:
+        r = self.post("/identifications", {"operating_point": op, "method": method})
+        assert r.status_code == 202, r.text
+        return self.job_finished(r.json()["id"], timeout_s)
+
+    def close(self) -> None:
+        self.http.close()
+
+
+def children_of(pid: int) -> list[int]:
+    """Pids whose parent is `pid` (from /proc)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(entry))
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

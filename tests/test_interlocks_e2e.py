@@ -1,0 +1,136 @@
+"""Issue 8 end to end: interlocks, fault reset by a person, recovery without a restart.
+
+The emulator runs in its own process; the service runs as `ripplecal serve --bench FILE` pointed at
+it as at a real bench; faults go through the emulator's control socket. Assertions are on states,
+reasons and counts (never on timings or dB figures)."""
+from __future__ import annotations
+
+import sqlite3
+import time
+
+import pytest
+
+from bench_rig import Api, EmulatorRig
+from service_process import ServiceProcess
+
+pytestmark = pytest.mark.e2e
+OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    d = tmp_path_factory.mktemp("interlocks")
+    emu = EmulatorRig()
+    db = d / "i.db"
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(d)))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        yield emu, svc, api, db
+        api.close()
+    finally:
+        svc.stop()
+        emu.stop()
+
+
+def busy(api) -> bool:
+    return api.get("/bench/status")["busy"]
+
+
+def test_emcy_mid_sweep_pauses_until_fault_reset_then_resume_completes(rig):
+    emu, svc, api, db = rig
+    r = api.post("/sweeps", {"grid": {"torque_nm": [1.5, 2.5], "speed_rpm": [1500, 2000], "udc_v": [12]},
+                             "method": "probe"})
+    assert r.status_code == 202, r.text
+    sweep_id = r.json()["id"]
+    api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 1 and busy(api), what="second point running")
+    assert emu.control({"fault": "emcy", "code": 0x3210})["ok"]
+
+    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] == "paused" and s, 60, "sweep paused")
+    assert "EMCY 0x3210 DC link over-voltage" in sweep["pause_reason"]
+    assert "fault-reset" in sweep["pause_reason"]
+    # the faulted attempt (if torque was commanded for it) is stored failed, never ok
+    faulted = [p for p in sweep["points"] if "EMCY 0x3210" in (p["error"] or "")]
+    assert all(p["state"] == "failed" for p in faulted)
+    assert sweep["progress"]["done"] == len([p for p in sweep["points"] if p not in faulted])
+
+    # the drive stays in FAULT: nothing resets it by itself, no run starts, resume is refused
+    time.sleep(1.5)
+    status = api.get("/bench/status")
+    assert status["drive"]["state"] == "fault" and "EMCY 0x3210" in status["error"]
+    assert not status["busy"]
+    refused = api.post(f"/sweeps/{sweep_id}/resume")
+    assert refused.status_code == 409 and "EMCY 0x3210" in refused.text
+    assert api.get("/bench/status")["drive"]["state"] == "fault"
+
+    # a viewer may not acknowledge; an operator does
+    assert api.http.post("/bench/fault-reset", headers={"Authorization": ""}).status_code == 401
+    r = api.post("/bench/fault-reset")
+    assert r.status_code == 200, r.text
+    assert r.json()["reset"]["drive"] is True and r.json()["still_tripped"] is None
+    assert r.json()["status"]["drive"]["state"] == "switch_on_disabled"
+
+    assert api.post(f"/sweeps/{sweep_id}/resume").status_code == 200
+    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed") and s, 240, "sweep done")
+    assert sweep["state"] == "done" and sweep["map_id"] is not None
+    assert sweep["progress"]["done"] == 4 and len(sweep["points"]) == 4
+    assert all("EMCY" not in (p["error"] or "") for p in sweep["points"])
+    # history: the discarded attempt points at the attempt that replaced it
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute("SELECT status, superseded_by, error FROM results WHERE sweep_id = ?", (sweep_id,)).fetchall()
+    discarded = [r for r in rows if r[2] and "EMCY 0x3210" in r[2]]
+    assert all(r[0] != "ok" and r[1] is not None for r in discarded)
+    assert len(rows) == 4 + len(discarded)
+
+
+def test_daq_disconnect_and_reconnect_at_the_same_path(rig):
+    emu, svc, api, _ = rig
+    assert emu.control({"fault": "daq_disconnect"})["ok"]
+    status = api.wait(lambda: (s := api.get("/bench/status"))["daq"]["connected"] is False and s, 10, "DAQ shown lost")
+    assert "DAQ" in status["error"] and "disconnected" in status["error"]
+    job = api.identify(OP1, timeout_s=60)
+    assert job["state"] == "failed" and "refused: interlock tripped: DAQ" in job["error"]
+    assert api.get("/bench/status")["drive"]["state"] != "operation_enabled"   # nothing was commanded
+    reply = emu.control({"fault": "daq_reconnect"})
+    assert reply["ok"] and reply["daq"] == emu.endpoints["daq"]               # same stable path
+    status = api.wait(lambda: (s := api.get("/bench/status"))["daq"]["connected"] and s, 10, "DAQ shown back")
+    assert status["daq"]["reconnects"] >= 1
+    job = api.identify(OP1)
+    assert job["state"] == "done", job
+
+
+def test_a_burst_of_sdo_delays_fails_at_most_the_job_it_hit(rig):
+    emu, svc, api, _ = rig
+    r = api.post("/identifications", {"operating_point": OP1, "method": "probe"})
+    job_id = r.json()["id"]
+    api.wait(lambda: busy(api) or api.get(f"/jobs/{job_id}")["state"] != "queued", 60, "job running")
+    assert emu.control({"fault": "sdo_delay", "seconds": 0.8})["ok"]
+    time.sleep(2.0)
+    assert emu.control({"fault": "clear"})["ok"]
+    api.job_finished(job_id)
+    for _ in range(3):
+        job = api.identify(OP1)
+        assert job["state"] == "done", job
+
+
+def test_heartbeat_lost_by_a_stalled_service_names_the_cause(rig):
+    """The service process stops (SIGSTOP) long enough for the drive's consumer heartbeat to lapse:
+    the drive goes safe by itself; the job's error names the heartbeat as the first cause."""
+    import os
+    import signal
+    emu, svc, api, _ = rig
+    r = api.post("/identifications", {"operating_point": OP1, "method": "grid"})
+    job_id = r.json()["id"]
+    api.wait(lambda: busy(api), 60, "job running")
+    time.sleep(0.5)
+    os.kill(svc.proc.pid, signal.SIGSTOP)
+    try:
+        time.sleep(1.5)
+        assert emu.control({"status": True})["faults"]["drive_state"] == "fault"
+    finally:
+        os.kill(svc.proc.pid, signal.SIGCONT)
+    job = api.job_finished(job_id, 60)
+    assert job["state"] == "failed" and "heartbeat lost" in job["error"], job["error"]
+    assert "bench made safe" in job["error"] or "make_safe failed" in job["error"]
+    assert api.post("/bench/fault-reset").status_code == 200
+    assert api.identify(OP1)["state"] == "done"
