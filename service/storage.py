@@ -198,6 +198,15 @@ class Storage:
             return [dict(r) for r in conn.execute(
                 "SELECT * FROM results WHERE sweep_id = ? AND superseded_by IS NULL ORDER BY id", (sweep_id,))]
 
+    def sweep_outcome(self, sweep_id: int) -> dict:
+        """Counts of the sweep's current results per status, and their total plant time (s)."""
+        with self.connect() as conn:
+            rows = conn.execute("SELECT status, COUNT(*) AS n, SUM(plant_time_s) AS plant FROM results "
+                                "WHERE sweep_id = ? AND superseded_by IS NULL GROUP BY status", (sweep_id,)).fetchall()
+        counts = {status: 0 for status in ("ok", "below_target", "no_authority", "failed")}
+        counts.update({r["status"]: r["n"] for r in rows})
+        return {"counts": counts, "plant_time_s": float(sum(r["plant"] or 0.0 for r in rows))}
+
     def sweep_result_history(self, sweep_id: int) -> list[dict]:
         """Every attempt of the sweep, superseded ones included, oldest first."""
         with self.connect() as conn:

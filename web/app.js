@@ -340,6 +340,10 @@
     bar.appendChild(fill);
     bar.appendChild(el("span", { class: "bar-text" }, `${done} / ${total}`));
     td.appendChild(bar);
+    // outcomes apart: only ok cells go into a LUT
+    const outcome = ["ok", "below_target", "no_authority", "failed"]
+      .filter((k) => Number(prog[k]) > 0).map((k) => `${prog[k]} ${k.replace("_", " ")}`);
+    if (outcome.length) td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-outcome" }, outcome.join(" · ")));
     if (s.error) td.appendChild(el("div", { class: "row-error", "data-testid": "sweep-row-error" }, detailText(s.error)));
     else if (lastPoint.has(s.id) && (s.state === "running" || s.state === "paused")) {
       td.appendChild(el("div", { class: "row-note" }, lastPoint.get(s.id)));

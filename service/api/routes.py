@@ -83,10 +83,13 @@ def _sweep_public(service, sweep: dict, with_points: bool = False) -> SweepPubli
         points = [{"operating_point": {"torque_nm": r["torque_nm"], "speed_rpm": r["speed_rpm"], "udc_v": r["udc_v"]},
                    "state": r["status"], "error": r["error"], "result": public_result({**r, "traces_json": "{}"})}
                   for r in service.storage.sweep_results(sweep["id"])]
+    outcome = service.storage.sweep_outcome(sweep["id"])
     return SweepPublic(
         id=sweep["id"], state=sweep["state"], method=sweep["method"], harmonic_order=sweep["harmonic_order"],
         grid=json.loads(sweep["grid_json"]), options=json.loads(sweep["options_json"]),
-        progress={"done": sweep["done_points"], "failed": sweep["failed_points"], "total": sweep["total_points"]},
+        progress={"done": sweep["done_points"], "failed": sweep["failed_points"], "total": sweep["total_points"],
+                  **outcome["counts"]},
+        plant_time_s=outcome["plant_time_s"],
         map_id=sweep["map_id"], error=sweep["error"], pause_reason=sweep.get("pause_reason"), bench_identity=sweep["bench_identity"],
         software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
         finished_at=sweep["finished_at"], points=points)

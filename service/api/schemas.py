@@ -52,7 +52,9 @@ class SweepPublic(BaseModel):
     harmonic_order: int
     grid: dict[str, Any]
     options: dict[str, Any]
-    progress: dict[str, int]
+    progress: dict[str, int] = Field(description="done, failed, total, and the current results per status: "
+                                     "ok, below_target, no_authority, failed")
+    plant_time_s: float = Field(0.0, description="plant time of the current results, summed (s)")
     map_id: int | None = None
     error: str | None = None
     pause_reason: str | None = None
