@@ -21,7 +21,7 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
                                                  drive's state and `drive_power_off_at` (time.monotonic()
                                                  when its power stage last went off)
 
-Every reply carries `"at"`: time.monotonic() when the command was carried out (CLOCK_MONOTONIC is
+Every reply carries `"at"`: time.monotonic() just before the command was carried out (CLOCK_MONOTONIC is
 system-wide, so a tool in another process can time fault -> safe against `drive_power_off_at`).
 
 The service never uses this socket; tests and reliability tools do. Only 127.0.0.1, ever.
@@ -99,11 +99,12 @@ class FaultState:
 
     # -- commands ----------------------------------------------------------------------------------
     def command(self, cmd: dict) -> dict:
+        at = time.monotonic()           # before the fault acts: fault -> safe is timed from here
         try:
             reply = self._command(cmd)
         except (KeyError, TypeError, ValueError) as exc:
             reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-        reply["at"] = time.monotonic()
+        reply["at"] = at
         return reply
 
     def _node(self, cmd: dict):

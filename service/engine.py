@@ -113,7 +113,12 @@ class Engine:
             for sweep in self.storage.unfinished_sweeps():
                 if sweep["state"] == SweepState.INTERRUPTED.value:
                     log.warning("engine.auto_resume: resuming sweep %s (%s)", sweep["id"], sweep["pause_reason"])
-                    self.resume_sweep(sweep["id"])
+                    try:
+                        self.resume_sweep(sweep["id"])
+                    except TransitionError as exc:      # e.g. the drive faulted when we died: a person decides
+                        log.warning("engine.auto_resume: sweep %s stays interrupted: %s", sweep["id"], exc)
+                        self._set_sweep(sweep["id"], SweepState.INTERRUPTED,
+                                        pause_reason=f"{sweep['pause_reason']}; not resumed automatically: {exc}")
 
     def recover(self) -> None:
         """On start-up: what a previous process left unfinished. Jobs cannot still be running (failed,

@@ -261,7 +261,6 @@ class InterlockMonitor:
         self._reported: dict[str, str] = {}     # interlock -> reason already reported (no repeats while it holds)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._last_round: float | None = None
 
     # --- lifecycle --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -274,7 +273,17 @@ class InterlockMonitor:
             self._thread.join(timeout_s)
 
     def _loop(self) -> None:
-        while not self._stop.wait(self.period_s):
+        while True:
+            slept_from = time.monotonic()
+            if self._stop.wait(self.period_s):
+                return
+            # only the sleep is timed: a round's own slow reads (an SDO timeout) are not a stall
+            overslept = time.monotonic() - slept_from - self.period_s
+            with self._lock:
+                armed = self._armed
+            if armed and overslept > self.stall_s:
+                self._tripped("service_stall", f"heartbeat lost: the service stalled for {overslept:.1f} s "
+                                               "(its heartbeat to the drive lapsed)", latched=False)
             try:
                 self.check_now()
             except Exception:  # noqa: BLE001 - the watchdog must outlive any one bad reading
@@ -285,7 +294,6 @@ class InterlockMonitor:
         with self._lock:
             self._armed = True
             self._run_trip = None
-            self._last_round = time.monotonic()
 
     def disarm(self) -> Trip | None:
         """End of a run: returns its first trip (None if it ran clean)."""
@@ -307,10 +315,6 @@ class InterlockMonitor:
         now = time.monotonic()
         with self._lock:
             armed = self._armed
-            last, self._last_round = self._last_round, now
-        if armed and last is not None and now - last > self.stall_s:
-            self._tripped("service_stall", f"heartbeat lost: the service stalled for {now - last:.1f} s "
-                                           "(its heartbeat to the drive lapsed)", latched=False)
         for lock in self.interlocks:
             if lock.armed_only and not armed:
                 continue

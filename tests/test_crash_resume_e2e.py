@@ -1,0 +1,114 @@
+"""Issue 8 end to end: a sweep survives kill -9 and SIGTERM of the service; the emulator child of
+`serve --emulate` never outlives the service. The emulator runs in its own process and the service
+is pointed at it with `--bench`, as at a real bench; a real SQLite file is shared by the restarts."""
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import time
+
+import pytest
+
+from bench_rig import Api, EmulatorRig, alive, children_of
+from service_process import ServiceProcess
+
+pytestmark = pytest.mark.e2e
+GRID16 = {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 1750, 2000, 2250], "udc_v": [12]}
+
+
+@pytest.fixture(scope="module")
+def emu():
+    rig = EmulatorRig()
+    yield rig
+    rig.stop()
+
+
+def kill9(svc: ServiceProcess) -> None:
+    os.killpg(svc.proc.pid, signal.SIGKILL)
+    svc.proc.wait(20)
+    svc.log.close()
+
+
+def attempts_per_point(db, sweep_id) -> dict:
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute("SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
+                            "GROUP BY torque_nm, speed_rpm, udc_v", (sweep_id,)).fetchall()
+    return {r[:3]: r[3] for r in rows}
+
+
+def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_path):
+    db, bench = tmp_path / "crash.db", emu.bench_file(tmp_path)
+    svc = ServiceProcess(db, "--bench", str(bench))
+    svc.wait_ready()
+    api = Api(svc, db)
+    assert api.post("/bench/fault-reset").status_code == 200     # whatever an earlier test left on the shared drive
+    r = api.post("/sweeps", {"grid": GRID16, "method": "probe"})
+    assert r.status_code == 202, r.text
+    sweep_id = r.json()["id"]
+    api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 5, 300, "5 points")
+    kill9(svc)
+    api.close()
+    before = attempts_per_point(db, sweep_id)
+    assert len(before) >= 5
+
+    svc = ServiceProcess(db, "--bench", str(bench))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        sweep = api.get(f"/sweeps/{sweep_id}")
+        assert sweep["state"] == "interrupted" and "stopped" in sweep["pause_reason"]
+        assert sweep["progress"]["done"] == len(before)
+        # the drive lost the dead service's heartbeat and went to FAULT: a person acknowledges first
+        refused = api.post(f"/sweeps/{sweep_id}/resume")
+        assert refused.status_code == 409 and "heartbeat lost" in refused.text and "fault-reset" in refused.text
+        assert api.post("/bench/fault-reset").status_code == 200
+        assert api.post(f"/sweeps/{sweep_id}/resume").status_code == 200
+        sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed") and s, 400,
+                         "sweep done")
+        assert sweep["state"] == "done" and sweep["map_id"] is not None
+        assert sweep["progress"] == {"done": 16, "failed": sweep["progress"]["failed"], "total": 16}
+        assert len(sweep["points"]) == 16
+        after = attempts_per_point(db, sweep_id)
+        assert len(after) == 16 and set(after.values()) == {1}          # none lost, none measured twice
+        assert len(api.get(f"/maps/{sweep['map_id']}")["cells"]) == 16
+        api.close()
+    finally:
+        svc.stop()
+
+
+def test_sigterm_leaves_the_sweep_interrupted_with_the_reason(emu, tmp_path):
+    db, bench = tmp_path / "term.db", emu.bench_file(tmp_path)
+    svc = ServiceProcess(db, "--bench", str(bench))
+    svc.wait_ready()
+    api = Api(svc, db)
+    # the previous service's exit stopped its heartbeat, so the shared drive may be in FAULT
+    assert api.post("/bench/fault-reset").status_code == 200
+    sweep_id = api.post("/sweeps", {"grid": GRID16, "method": "probe"}).json()["id"]
+    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["progress"]["done"] >= 1 or s["state"] != "running"
+                     and s["state"] != "queued" and s, 300, "1 point")
+    assert api.get(f"/sweeps/{sweep_id}")["state"] == "running", sweep
+    api.close()
+    svc.stop()                                                          # SIGTERM to the process group
+    with sqlite3.connect(db) as conn:
+        state, reason = conn.execute("SELECT state, pause_reason FROM sweeps WHERE id = ?", (sweep_id,)).fetchone()
+    assert state == "interrupted" and "SIGTERM" in reason
+    # the emulator (another process) was left safe: drive not enabled
+    assert emu.control({"status": True})["faults"]["drive_state"] != "operation_enabled"
+
+
+def test_serve_emulate_leaves_no_emulator_after_kill9(tmp_path):
+    svc = ServiceProcess(tmp_path / "e.db", "--emulate")
+    svc.wait_ready()
+    emulators = children_of(svc.proc.pid)
+    assert emulators, "serve --emulate started no child"
+    os.kill(svc.proc.pid, signal.SIGKILL)         # the service alone (its own process group would hide a leak)
+    svc.proc.wait(20)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and any(alive(pid) for pid in emulators):
+        time.sleep(0.1)
+    left = [pid for pid in emulators if alive(pid)]
+    for pid in left:                              # do not leak into the next test, then fail
+        os.kill(pid, signal.SIGKILL)
+    svc.log.close()
+    assert not left, f"emulator(s) {left} outlived the service"
