@@ -27,7 +27,7 @@ from service.events import EventBroker
 from service import __version__
 from service.bench import check_limits
 from service.interlocks import InterlockTripped
-from service.identify import identify_at, parse_options, public_result, result_row
+from service.identify import check_plant_time, identify_at, parse_options, public_result, result_row
 from service.maps import build_map_from_sweep
 from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
@@ -177,6 +177,7 @@ class Engine:
     # --- submitting --------------------------------------------------------------------------------------
     def submit_identification(self, op: OperatingPoint, method: str, options) -> int:
         check_limits(op, self.settings)                     # refuse before anything is queued
+        check_plant_time([op.speed_rpm], method, options, self.settings)
         job_id = self.storage.create_job("identification", {"operating_point": op.model_dump(), "method": method,
                                                              "options": options.model_dump()})
         self._job_cancel[job_id] = threading.Event()
@@ -186,6 +187,7 @@ class Engine:
 
     def submit_sweep(self, grid: Grid, method: str, options) -> int:
         plan = SweepPlan.from_grid(grid)
+        check_plant_time(grid.speed_rpm, method, options, self.settings)
         plan.dry_run(self.settings)                         # every setpoint checked before the first frame
         sweep_id = self.storage.create_sweep(method, self.settings.identification.harmonic_order, grid.model_dump(),
                                              options.model_dump(), len(plan.points), self.bench.identity, __version__)

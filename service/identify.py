@@ -25,6 +25,23 @@ def parse_options(method: str, options: dict[str, Any] | None):
     return OPTION_MODELS[method].model_validate(options or {})
 
 
+class PlantTimeError(ValueError):
+    """A method's options would ask for more plant time at one point than the bench allows."""
+
+
+def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Settings) -> None:
+    """Refuse (before queueing) options whose worst case exceeds safety.max_plant_s_per_point at the
+    slowest speed asked for (a harmonic period is longest there)."""
+    h, pole_pairs = settings.identification.harmonic_order, settings.motor.pole_pairs
+    slowest_hz = min(abs(n) for n in speeds_rpm) / 60.0 * pole_pairs * h
+    bound_s = options.plant_time_bound_s(slowest_hz)
+    limit_s = settings.safety.max_plant_s_per_point
+    if bound_s > limit_s:
+        raise PlantTimeError(f"{method} options may take up to {bound_s:.0f} s of plant time per operating point "
+                             f"(at {min(speeds_rpm):g} rpm), more than safety.max_plant_s_per_point = {limit_s:g} s: "
+                             "choose fewer grid points, shorter windows or fewer steps")
+
+
 def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
                 prior: Prior | None = None) -> IdentificationResult:
     """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe."""

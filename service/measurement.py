@@ -196,6 +196,7 @@ class OperatingPointSession:
         """The next valid window of `periods` whole harmonic periods, demodulated with the shaft mode as
         a nuisance (service.demodulation). With `max_noise_std_fs`, the window is extended (same theta,
         contiguous samples) until its phasor's noise is at most that, or it spans `max_periods`."""
+        periods = max(periods, min(self._periods_to_resolve_the_shaft(), max_periods or periods))
         samples = self._valid_window(periods)
         fit = self._fit(samples, periods)
         limit = max(max_periods or periods, periods)
@@ -213,6 +214,15 @@ class OperatingPointSession:
             fit = self._fit(samples, periods)
         return Window(fit.phasor, samples.accel_fs[:fit.phasor.samples], samples.angle_rad[:fit.phasor.samples],
                       self.plant_time_s, fit.noise_std_fs, fit.ring_fs)
+
+    def _periods_to_resolve_the_shaft(self, beats: float = 2.0) -> int:
+        """Whole turns of a window long enough to tell the shaft mode from the harmonic: `beats`
+        cycles of their difference frequency, T >= beats / |f_h - f_r| (closer to the resonance,
+        longer windows)."""
+        f_h = self.harmonic_frequency_hz
+        distance_hz = max(abs(f_h - self.resonance.mode.frequency_hz), 1.0)
+        h = self.harmonic_order
+        return h * math.ceil(beats * f_h / distance_hz / h)
 
     def _fit(self, samples: DecodedSamples, periods: int) -> HarmonicFit:
         n = whole_period_samples(samples.angle_rad, self.harmonic_order, periods)

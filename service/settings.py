@@ -94,6 +94,8 @@ class SafetySettings(_Section):
     min_udc_v: float = Field(6.0, ge=0)
     max_udc_v: float = Field(60.0, gt=0)
     max_sweep_points_unconfirmed: int = Field(400, ge=1, description="a bigger sweep needs confirm_large = true")
+    max_plant_s_per_point: float = Field(600.0, gt=0, le=86_400, description="most plant time a method's options may "
+                                         "ask for at one operating point (their worst case, checked before queueing)")
 
     @model_validator(mode="after")
     def _ordered(self):
@@ -107,7 +109,9 @@ class SafetySettings(_Section):
 class InterlockSettings(_Section):
     """Interlocks (issue 8): how they are watched, and whether a drive fault may ever be reset without a person."""
     monitor_period_s: float = Field(0.05, gt=0, le=1.0, description="period of the interlock monitor thread")
-    stall_s: float = Field(0.5, gt=0, description="a monitor gap this long trips the run (the drive missed our heartbeat)")
+    stall_s: float = Field(1.0, gt=0, description="a monitor gap this long trips the run: twice the drive's 500 ms "
+                           "heartbeat consumer time, so the drive has surely lost our heartbeat (a shorter gap that "
+                           "the drive noticed trips through its EMCY; one it did not notice harms no measurement)")
     supply_tolerance_fraction: float = Field(0.1, gt=0, le=1.0, description="supply trips outside +-this fraction of its setpoint")
     supply_tolerance_v: float = Field(0.5, gt=0, description="... or outside +-this many volts, whichever is wider")
     auto_fault_reset: bool = Field(False, description="reset a drive/load FAULT without a person (off: POST /bench/fault-reset)")

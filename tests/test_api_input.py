@@ -187,7 +187,9 @@ def test_largest_id_is_a_plain_404(live, method, template):
 @pytest.mark.parametrize("method,options,field", [
     ("grid", {"gamma_step_deg": 1e-12}, "gamma_step_deg"),           # numpy was asked for 69 TiB: a 500
     ("adaptive", {"mu_per_s": -1}, "mu_per_s"),
-    ("probe", {"window_periods": 10**30}, "window_periods"),
+    ("probe", {"window_s": 10**30}, "window_s"),
+    ("grid", {"delta_step_deg": 1e-6}, "delta_step_deg"),            # counted before anything is allocated
+    ("adaptive", {"reference_periods": 10**9}, "reference_periods"),  # gone: windows follow precision needs
     ("probe", {"bogus": 1}, "bogus"),
     ("grid", {"result": ["fit"]}, "result"),
 ])
@@ -198,6 +200,17 @@ def test_option_problems_are_422_naming_the_option(live, method, options, field)
 
 
 # --- what json and pydantic make of odd bodies ------------------------------------------------------------
+@pytest.mark.parametrize("method,options", [
+    ("grid", {"window_periods": 2000}),                      # 360 points x 2000 periods: hours of plant time
+    ("probe", {"max_newton_steps": 50, "max_window_s": 5, "settle_s": 2}),
+])
+def test_options_asking_for_too_much_plant_time_are_422(live, method, options):
+    slow = {**OP1, "speed_rpm": 100}
+    r = _post(live, "/api/v1/identifications", json.dumps({"operating_point": slow, "method": method, "options": options}))
+    assert r.status_code == 422, r.text
+    assert ["body", "options"] in _locs(r) and "max_plant_s_per_point" in r.text
+
+
 @pytest.mark.parametrize("raw", [
     '{"operating_point": {"torque_nm": 1, "speed_rpm": 1' + "0" * 5000 + "}}",        # int above Python's 4300 digits
     '{"operating_point": {"torque_nm": 1, "speed_rpm": ' + "[" * 20000 + "]" * 20000 + "}}",   # json recursion

@@ -166,7 +166,11 @@ def test_seeded_scenarios(tmp_path, seed):
                     continue
                 assert r.suppression_db >= r.target_db, (seed, op, r.method, r.suppression_db)
             if a.status == p.status == "ok":
-                assert abs(a.gamma_deg - p.gamma_deg) <= 0.1 and abs(_angle_diff_deg(a.delta_deg, p.delta_deg)) <= 2.0
+                # both stop once the residual is 40 dB down, i.e. within about 1 % of |theta*| of it:
+                # they agree within what their two residuals allow (through the measured |S|), x 3
+                apart_rad = abs(complex(a.theta_cos - p.theta_cos, a.theta_sin - p.theta_sin))
+                allowed_rad = 3.0 * (a.residual.amplitude + p.residual.amplitude) / abs(p.s_measured)
+                assert apart_rad <= allowed_rad, (seed, op, math.degrees(apart_rad), math.degrees(allowed_rad))
         g = _run(svc, "grid")
         a = _run(svc, "adaptive")
         assert abs(a.gamma_deg - g.gamma_deg) <= 0.1 and abs(_angle_diff_deg(a.delta_deg, g.delta_deg)) <= 2.0

@@ -16,7 +16,7 @@ from service.api.schemas import IdentificationCreate, JobPublic, SweepCreate, Sw
 from service.bench import BenchError, LimitError
 from service.engine import TransitionError
 from service.events import format_sse
-from service.identify import parse_options, public_result
+from service.identify import PlantTimeError, parse_options, public_result
 from service.lut_export import FORMATS, export_map, lut_image
 from service.maps import public_map
 from service.plans import SweepTooLarge, check_sweep_size
@@ -115,6 +115,8 @@ def create_identification(body: IdentificationCreate, service: ServiceDep, _: Op
         job_id = service.engine.submit_identification(body.operating_point, body.method, options)
     except LimitError as exc:
         raise _limit_error(exc, ["body", "operating_point"]) from None
+    except PlantTimeError as exc:
+        raise _unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
     return _job_public(service, service.storage.get_job(job_id))
 
 
@@ -165,6 +167,8 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
         sweep_id = service.engine.submit_sweep(body.grid, body.method, options)
     except LimitError as exc:
         raise _limit_error(exc, ["body", "grid"]) from None
+    except PlantTimeError as exc:
+        raise _unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
     except ValueError as exc:
         raise _unprocessable(validation_error(["body", "grid"], str(exc))) from None
     return _sweep_public(service, service.storage.get_sweep(sweep_id))

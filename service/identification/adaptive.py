@@ -60,6 +60,13 @@ class AdaptiveOptions(BaseModel):
     s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
                                           description="deliberate phase error added to S_hat (robustness tests)")
 
+    def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
+        """Worst-case plant time (s): the blocks stop once max_plant_s is passed (one block late at
+        most), plus reference, confirmation and the probe fallback with its defaults."""
+        window_s = self.max_window_s + self.settle_s
+        probe = ProbeOptions(max_window_s=self.max_window_s, settle_s=self.settle_s)
+        return self.max_plant_s + 4 * window_s + probe.plant_time_bound_s(harmonic_frequency_hz)
+
 
 def _row(w: Window, theta: np.ndarray) -> list:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 from scipy import optimize, special
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from service.identification.common import (PRECISION_FOR_TARGET, Conditions, measure_reference, noise_floor_db, periods_for,
                                            spectrum_traces, target_amplitude, verdict)
@@ -32,15 +32,20 @@ from service.secondary_path import rotation_part, theta_from_gamma_delta, theta_
 MAX_GRID_POINTS = 2_000        # x about 30 ms of plant time each: about a minute per operating point
 
 
+def _count(start_deg: float, stop_deg: float, step_deg: float) -> int:
+    """Values of start..stop (inclusive) by step, counted without building them."""
+    return math.floor((stop_deg - start_deg) / step_deg + 1e-9) + 1
+
+
 class GridOptions(BaseModel):
     """The paper's grid by default: gamma 0.5..10 deg step 0.5, delta 0..340 deg step 20 (360 points)."""
     model_config = ConfigDict(extra="forbid")
     gamma_start_deg: float = Field(0.5, ge=0, le=45)
     gamma_stop_deg: float = Field(10.0, ge=0, le=45)
-    gamma_step_deg: float = Field(0.5, gt=0)
+    gamma_step_deg: float = Field(0.5, gt=0, validate_default=True)
     delta_start_deg: float = Field(0.0, ge=0, lt=360)
     delta_stop_deg: float = Field(340.0, ge=0, lt=360)
-    delta_step_deg: float = Field(20.0, gt=0)
+    delta_step_deg: float = Field(20.0, gt=0, validate_default=True)
     target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     window_periods: int = Field(18, ge=2, le=2_000, description="harmonic periods per grid point")
     settle_s: float = Field(0.01, ge=0, le=2.0, description="plant time after each grid point's theta before measuring "
@@ -49,19 +54,39 @@ class GridOptions(BaseModel):
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
 
-    @model_validator(mode="after")
-    def _ranges(self):
-        if self.gamma_stop_deg < self.gamma_start_deg:
-            raise ValueError("gamma_stop_deg must be >= gamma_start_deg")
-        if self.delta_stop_deg < self.delta_start_deg:
+    # counted before anything is allocated (a tiny step must not ask numpy for terabytes); field
+    # validators, so that a refusal names the step at fault
+    @field_validator("gamma_step_deg")
+    @classmethod
+    def _gamma_count(cls, step: float, info: ValidationInfo) -> float:
+        start, stop = info.data.get("gamma_start_deg"), info.data.get("gamma_stop_deg")
+        if start is not None and stop is not None:
+            if stop < start:
+                raise ValueError("gamma_stop_deg must be >= gamma_start_deg")
+            if _count(start, stop, step) > MAX_GRID_POINTS:
+                raise ValueError(f"{_count(start, stop, step)} gamma values, more than {MAX_GRID_POINTS} grid points")
+        return step
+
+    @field_validator("delta_step_deg")
+    @classmethod
+    def _point_count(cls, step: float, info: ValidationInfo) -> float:
+        start, stop = info.data.get("delta_start_deg"), info.data.get("delta_stop_deg")
+        if start is None or stop is None:
+            return step
+        if stop < start:
             raise ValueError("delta_stop_deg must be >= delta_start_deg")
-        # counted before anything is allocated (a tiny step must not ask numpy for terabytes)
-        n_gamma = math.floor((self.gamma_stop_deg - self.gamma_start_deg) / self.gamma_step_deg + 1e-9) + 1
-        n_delta = math.floor((self.delta_stop_deg - self.delta_start_deg) / self.delta_step_deg + 1e-9) + 1
-        if n_gamma * n_delta > MAX_GRID_POINTS:
-            raise ValueError(f"the grid has {n_gamma} x {n_delta} points, more than {MAX_GRID_POINTS}: "
-                             "choose larger gamma_step_deg / delta_step_deg")
-        return self
+        g = [info.data.get(k) for k in ("gamma_start_deg", "gamma_stop_deg", "gamma_step_deg")]
+        n_gamma = _count(*g) if None not in g else 1
+        if n_gamma * _count(start, stop, step) > MAX_GRID_POINTS:
+            raise ValueError(f"the grid has {n_gamma} x {_count(start, stop, step)} points, more than "
+                             f"{MAX_GRID_POINTS}: choose larger steps")
+        return step
+
+    def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
+        """Worst-case plant time (s): every grid point's settle and window, plus reference and verification."""
+        n_points = len(self.gammas_deg()) * len(self.deltas_deg())
+        point_s = self.settle_s + 1.05 * self.window_periods / harmonic_frequency_hz
+        return n_points * point_s + 2 * (self.max_window_s + self.settle_s)
 
     def gammas_deg(self) -> np.ndarray:
         return np.round(np.arange(self.gamma_start_deg, self.gamma_stop_deg + 1e-9, self.gamma_step_deg), 9)

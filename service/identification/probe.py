@@ -53,6 +53,11 @@ class ProbeOptions(BaseModel):
     use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
     gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
+    def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
+        """Worst-case plant time (s): reference (2 windows), prior start, 2 probes, the Newton steps,
+        a second pair of probes, the confirmation; every window at most max_window_s after settle_s."""
+        return (2 * self.max_newton_steps + 8) * (self.max_window_s + self.settle_s)
+
 
 def _row(w: Window, theta: np.ndarray) -> list:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
