@@ -34,6 +34,8 @@ from service.demodulation import ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm
 from service.interlocks import (DaqLost, DeviceFault, HeartbeatLost, InterlockMonitor, InterlockTripped,
                                 ServiceHeartbeatStopped, SupplyOutOfRange, Trip)
+from service import limits
+from service.limits import LimitError, check_limits
 from service.measurement import DaqCursor, OperatingPointSession, RunCancelled
 from service.operating_point import OperatingPoint
 from service.settings import Settings
@@ -47,39 +49,6 @@ class BenchError(RuntimeError):
 
 class RunError(BenchError):
     """A run failed and make_safe failed too: the message names the first cause, then make_safe's error."""
-
-
-class LimitError(ValueError):
-    """A setpoint outside the bench's safety limits (checked before anything is sent).
-    `problems` pairs each operating-point field at fault with what is wrong (the API's 422 names them)."""
-
-    def __init__(self, message: str, problems: tuple[tuple[str, str], ...] = ()):
-        super().__init__(message)
-        self.problems = problems
-
-
-def check_limits(op: OperatingPoint, settings: Settings) -> None:
-    lim = settings.safety
-    problems = []
-    for field in ("torque_nm", "speed_rpm", "udc_v"):
-        if not math.isfinite(getattr(op, field)):      # NaN compares False with every limit below
-            problems.append((field, f"{field} must be a finite number, got {getattr(op, field)}"))
-    if problems:
-        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
-    if abs(op.torque_nm) > lim.max_torque_nm:
-        problems.append(("torque_nm", f"torque_nm {op.torque_nm:g} exceeds the limit of {lim.max_torque_nm:g} Nm"))
-    if lim.torque_sign == "positive" and op.torque_nm < 0 or lim.torque_sign == "negative" and op.torque_nm > 0:
-        problems.append(("torque_nm", f"torque_nm {op.torque_nm:g}: this bench allows {lim.torque_sign} torque only "
-                                      f"(safety.torque_sign)"))
-    if abs(op.speed_rpm) > lim.max_speed_rpm:
-        problems.append(("speed_rpm", f"speed_rpm {op.speed_rpm:g} exceeds the limit of {lim.max_speed_rpm:g} rpm"))
-    if abs(op.speed_rpm) < lim.min_speed_rpm:
-        problems.append(("speed_rpm", f"speed_rpm {op.speed_rpm:g} is below the minimum of {lim.min_speed_rpm:g} rpm "
-                                      f"(safety.min_speed_rpm)"))
-    if not lim.min_udc_v <= op.udc_v <= lim.max_udc_v:
-        problems.append(("udc_v", f"udc_v {op.udc_v:g} outside {lim.min_udc_v:g}..{lim.max_udc_v:g} V"))
-    if problems:
-        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
 
 
 class Bench:
@@ -103,7 +72,6 @@ class Bench:
         self.interlocks: InterlockMonitor | None = None
         self._supply_interlock: SupplyOutOfRange | None = None
         self.busy = False
-        self.cancel_event = None                # set by the engine; checked at every DAQ read
         self._gamma_max_rad: float | None = None  # of the run in progress
         # the shaft mode of G_Salpha: the settings' pole, learned from the windows of every run (sec. 2.3)
         self.resonance = ResonanceTracker(ResonanceMode(settings.mechanics.pole_re_rad_s, settings.mechanics.pole_im_rad_s))
@@ -173,12 +141,12 @@ class Bench:
         except Exception as exc:  # noqa: BLE001 - the drive may be the thing that is gone; make_safe retries
             log.warning("interlock: immediate torque off failed: %s", exc)
 
-    def _guard(self) -> None:
-        """Checked before every DAQ read of a run: raises to stop it (interlock trip, operator cancel)."""
+    def _guard(self, cancel: threading.Event | None = None) -> None:
+        """Checked before every DAQ read of a run: raises to stop it (interlock trip, the run's cancel token)."""
         trip = self.interlocks.run_trip if self.interlocks is not None else None
         if trip is not None:
             raise InterlockTripped(trip)
-        if self.cancel_event is not None and self.cancel_event.is_set():
+        if cancel is not None and cancel.is_set():
             raise RunCancelled("run cancelled")
 
     def _require_clear(self) -> None:
@@ -305,7 +273,7 @@ class Bench:
 
     @contextlib.contextmanager
     def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
-                        settle_s: float = 0.25) -> Iterator[OperatingPointSession]:
+                        settle_s: float = 0.25, cancel: threading.Event | None = None) -> Iterator[OperatingPointSession]:
         """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
         gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps.
         Refused (InterlockTripped, nothing commanded) while an interlock is tripped. A run that an
@@ -315,15 +283,16 @@ class Bench:
         with self._lock:
             self._refuse_or_auto_reset()
             self.busy = True
-            self._gamma_max_rad = min(gamma_max_rad or math.inf, math.radians(self.settings.identification.gamma_max_deg))
+            self._gamma_max_rad = min(gamma_max_rad or math.inf, limits.gamma_max_rad(None, self.settings))
             self.interlocks.arm()
             first: BaseException | None = None
             try:
                 self._resync_setpoints()
-                session = OperatingPointSession(self, self.cursor, harmonic_order, s.daq.sample_rate_hz,
-                                                s.motor.pole_pairs, sync_input=s.daq.sync_input,
-                                                no_sync_settle_s=s.daq.no_sync_settle_s, guard=self._guard,
-                                                resonance=self.resonance)
+                # the session gets what it needs passed in and never calls back into the bench
+                session = OperatingPointSession(self.cursor, self.send_theta, self.setpoints_written, harmonic_order,
+                                                s.daq.sample_rate_hz, s.motor.pole_pairs, sync_input=s.daq.sync_input,
+                                                no_sync_settle_s=s.daq.no_sync_settle_s,
+                                                guard=lambda: self._guard(cancel), resonance=self.resonance)
                 self._go_to(op, harmonic_order)
                 session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()

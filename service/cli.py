@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 
 from service import __version__
+from service.identification.registry import METHODS
+from service.lut_export import EXPORT_FORMATS
 from service.settings import Settings, SettingsError, load_settings
 
 
@@ -198,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--torque", type=_floats, required=True, help="torques, Nm, comma-separated")
             p.add_argument("--speed", type=_floats, required=True, help="speeds, rpm, comma-separated")
             p.add_argument("--udc", type=_floats, default=[12.0], help="DC-link voltages, V, comma-separated")
-        p.add_argument("--method", choices=["adaptive", "grid", "probe"], default="adaptive")
+        p.add_argument("--method", choices=list(METHODS), default="adaptive")
         p.add_argument("--options", help="method options as JSON, e.g. '{\"mu_per_s\": 10}'")
         p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
         p.add_argument("--json", action="store_true", help="print the full result as JSON")
@@ -206,7 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="export a map as a LUT")
     p.add_argument("map_id", type=int)
-    p.add_argument("--format", choices=["csv", "json", "c", "dcm"], default="csv")
+    p.add_argument("--format", choices=list(EXPORT_FORMATS), default="csv")
     p.add_argument("--out", help="file to write (stdout otherwise)")
     p.add_argument("--db", metavar="PATH")
     p.add_argument("--settings", metavar="FILE")

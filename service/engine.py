@@ -25,7 +25,7 @@ from enum import Enum
 
 from service.events import EventBroker
 from service import __version__
-from service.bench import check_limits
+from service.limits import check_limits
 from service.interlocks import InterlockTripped
 from service.identify import check_plant_time, identify_at, parse_options, public_result, result_row
 from service.maps import build_map_from_sweep
@@ -317,9 +317,8 @@ class Engine:
         op = OperatingPoint.model_validate(req["operating_point"])
         options = parse_options(req["method"], req["options"])
         started = now_iso()
-        self.bench.cancel_event = self._job_cancel[job_id]
         try:
-            result = identify_at(self.bench, self.settings, op, req["method"], options)
+            result = identify_at(self.bench, self.settings, op, req["method"], options, cancel=self._job_cancel[job_id])
         except Exception as exc:
             if self._job_cancel[job_id].is_set() and not isinstance(exc, InterlockTripped):
                 raise Cancelled() from exc
@@ -328,8 +327,6 @@ class Engine:
             rid = self.storage.insert_result(row)
             self.storage.update_job(job_id, result_id=rid)
             raise
-        finally:
-            self.bench.cancel_event = None
         rid = self.storage.insert_result(result_row(op, req["method"], options, self.bench.identity, started, result,
                                                     job_id=job_id, harmonic_order=result.harmonic_order))
         self.storage.update_job(job_id, result_id=rid)
@@ -343,42 +340,39 @@ class Engine:
         done = self.storage.committed_points(sweep_id)          # a resumed sweep measures only the rest
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
         self._publish_sweep(sweep_id)
-        self.bench.cancel_event = ctl.cancel
         in_flight = None
-        try:
-            points = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
-            i = 0
-            while i < len(points):
-                op = points[i]
-                self._hold_while_paused(sweep_id, ctl)
+        points = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
+        i = 0
+        while i < len(points):
+            op = points[i]
+            self._hold_while_paused(sweep_id, ctl)
+            if ctl.cancel.is_set():
+                break
+            in_flight = op
+            started = now_iso()
+            try:
+                prior = prior_from_neighbours(op, self.storage.sweep_results(sweep_id), grid.model_dump())
+                result = identify_at(self.bench, self.settings, op, sweep["method"], options, prior=prior,
+                                     cancel=ctl.cancel)
+                row = result_row(op, sweep["method"], options, self.bench.identity, started, result,
+                                 sweep_id=sweep_id, harmonic_order=result.harmonic_order)
+            except InterlockTripped as exc:
+                # the point is measured again after the operator resumes; its attempt (if any
+                # torque was commanded) is kept as a failed, discarded attempt, never ok
+                if not exc.refused:
+                    self._store_point(sweep_id, op, self._discarded_row(op, sweep, options, started, exc, sweep_id))
+                self._pause_for_interlock(sweep_id, ctl, op, exc)
+                continue
+            except Exception as exc:
                 if ctl.cancel.is_set():
                     break
-                in_flight = op
-                started = now_iso()
-                try:
-                    prior = prior_from_neighbours(op, self.storage.sweep_results(sweep_id), grid.model_dump())
-                    result = identify_at(self.bench, self.settings, op, sweep["method"], options, prior=prior)
-                    row = result_row(op, sweep["method"], options, self.bench.identity, started, result,
-                                     sweep_id=sweep_id, harmonic_order=result.harmonic_order)
-                except InterlockTripped as exc:
-                    # the point is measured again after the operator resumes; its attempt (if any
-                    # torque was commanded) is kept as a failed, discarded attempt, never ok
-                    if not exc.refused:
-                        self._store_point(sweep_id, op, self._discarded_row(op, sweep, options, started, exc, sweep_id))
-                    self._pause_for_interlock(sweep_id, ctl, op, exc)
-                    continue
-                except Exception as exc:
-                    if ctl.cancel.is_set():
-                        break
-                    log.warning("sweep %s point %s failed: %s", sweep_id, op.label(), exc)
-                    row = result_row(op, sweep["method"], options, self.bench.identity, started,
-                                     error=_error_text(exc), sweep_id=sweep_id,
-                                     harmonic_order=self.settings.identification.harmonic_order)
-                self._store_point(sweep_id, op, row)
-                in_flight = None
-                i += 1
-        finally:
-            self.bench.cancel_event = None
+                log.warning("sweep %s point %s failed: %s", sweep_id, op.label(), exc)
+                row = result_row(op, sweep["method"], options, self.bench.identity, started,
+                                 error=_error_text(exc), sweep_id=sweep_id,
+                                 harmonic_order=self.settings.identification.harmonic_order)
+            self._store_point(sweep_id, op, row)
+            in_flight = None
+            i += 1
         if self._shutdown.is_set():
             s = self.storage.get_sweep(sweep_id)
             where = f" during point {in_flight.label()} (measured again on resume)" if in_flight is not None else ""

@@ -3,26 +3,23 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from typing import Any
 
 from service import __version__
-from service.identification import (AdaptiveOptions, GridOptions, IdentificationResult, ProbeOptions, identify_adaptive,
-                                    identify_grid, identify_probe)
+from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
+from service.limits import gamma_max_rad
 from service.operating_point import OperatingPoint
 from service.secondary_path import model_secondary_path
 from service.settings import Settings
 from service.storage import now_iso
 
-OPTION_MODELS = {"adaptive": AdaptiveOptions, "grid": GridOptions, "probe": ProbeOptions}
-METHOD_FUNCTIONS = {"adaptive": identify_adaptive, "grid": identify_grid, "probe": identify_probe}
-
-
 def parse_options(method: str, options: dict[str, Any] | None):
     """Validated options model for `method` (raises ValueError / pydantic ValidationError)."""
-    if method not in OPTION_MODELS:
-        raise ValueError(f"method {method!r} is not available; choose one of {sorted(OPTION_MODELS)}")
-    return OPTION_MODELS[method].model_validate(options or {})
+    if method not in METHODS:
+        raise ValueError(f"method {method!r} is not available; choose one of {sorted(METHODS)}")
+    return METHODS[method].options_model.model_validate(options or {})
 
 
 class PlantTimeError(ValueError):
@@ -43,21 +40,21 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
 
 
 def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
-                prior: Prior | None = None) -> IdentificationResult:
-    """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe."""
+                prior: Prior | None = None, cancel: threading.Event | None = None) -> IdentificationResult:
+    """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe.
+    `cancel` is the run's cancel token: set, the run stops at its next DAQ read."""
     h = settings.identification.harmonic_order
-    gamma_max_rad = math.radians(getattr(options, "gamma_max_deg", None) or settings.identification.gamma_max_deg)
-    gamma_max_rad = min(gamma_max_rad, math.radians(settings.identification.gamma_max_deg))
+    gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
     ident = settings.identification
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
-    with bench.operating_point(op, h, gamma_max_rad) as session:
+    with bench.operating_point(op, h, gamma_max, cancel=cancel) as session:
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
         mode = bench.resonance.mode
         s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,
                                      resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
         conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
                                 current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=ident.decoupling)
-        result = METHOD_FUNCTIONS[method](session, s_hat, options, gamma_max_rad, prior=prior, conditions=conditions)
+        result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured

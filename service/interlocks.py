@@ -220,23 +220,27 @@ class SupplyOutOfRange(Interlock):
         self.tolerance_v = tolerance_v
         self.expected_v: float | None = None      # set by the bench once the supply has reached it
 
-    def band(self) -> float:
-        return max(self.tolerance_fraction * abs(self.expected_v or 0.0), self.tolerance_v)
+    def band(self, expected_v: float) -> float:
+        return max(self.tolerance_fraction * abs(expected_v), self.tolerance_v)
 
-    def read(self) -> float | None:
-        if self.expected_v is None:
+    def read(self) -> tuple[float, float] | None:
+        """(measured, expected) read together: the bench clears expected_v at the end of a run, from
+        another thread, between this read and the decision."""
+        expected_v = self.expected_v
+        if expected_v is None:
             return None
-        return self.supply.measure_voltage()
+        return self.supply.measure_voltage(), expected_v
 
     def should_trip(self, value) -> bool:
-        return value is not None and abs(value - self.expected_v) > self.band()
+        return value is not None and abs(value[0] - value[1]) > self.band(value[1])
 
     def should_clear(self, value) -> bool:
-        return value is None or abs(value - self.expected_v) <= 0.5 * self.band()   # hysteresis
+        return value is None or abs(value[0] - value[1]) <= 0.5 * self.band(value[1])   # hysteresis
 
     def justification(self, value) -> str:
-        return (f"DC supply out of range: measures {value:.2f} V, set {self.expected_v:.2f} V "
-                f"(band +-{self.band():.2f} V)")
+        measured_v, expected_v = value
+        return (f"DC supply out of range: measures {measured_v:.2f} V, set {expected_v:.2f} V "
+                f"(band +-{self.band(expected_v):.2f} V)")
 
 
 class InterlockMonitor:

@@ -4,6 +4,9 @@ which the drive interpolates (never across the 0/360 deg wrap of delta); gamma/d
 are given for reading. Cells without a valid result export theta = 0 (no injection) and valid = 0."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import csv
 import io
 import json
@@ -15,7 +18,6 @@ import numpy as np
 
 from service import __version__
 
-FORMATS = {"csv": "text/csv", "json": "application/json", "c": "text/x-csrc", "dcm": "text/plain"}
 
 
 def _grid_values(m: dict, key: str) -> list[list[list[float]]]:
@@ -162,10 +164,26 @@ def lut_image(m: dict) -> bytes:
     return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
 
 
-EXPORTERS = {"csv": export_csv, "json": export_json, "c": export_c, "dcm": export_dcm}
+@dataclass(frozen=True)
+class ExportFormat:
+    name: str
+    display_name: str
+    media_type: str
+    extension: str
+    render: Callable[[dict], str]
+
+
+# the one registry of export formats: the API's `format` parameter, the CLI's choices and the
+# dashboard (GET /api/v1/export-formats) read it
+EXPORT_FORMATS: dict[str, ExportFormat] = {f.name: f for f in (
+    ExportFormat("csv", "CSV", "text/csv", "csv", export_csv),
+    ExportFormat("json", "JSON", "application/json", "json", export_json),
+    ExportFormat("c", "C header", "text/x-csrc", "h", export_c),
+    ExportFormat("dcm", "DCM (INCA / CANape)", "text/plain", "dcm", export_dcm),
+)}
 
 
 def export_map(m: dict, fmt: str) -> str:
-    if fmt not in EXPORTERS:
-        raise ValueError(f"format {fmt!r} is not supported; choose one of {sorted(EXPORTERS)}")
-    return EXPORTERS[fmt](m)
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"format {fmt!r} is not supported; choose one of {sorted(EXPORT_FORMATS)}")
+    return EXPORT_FORMATS[fmt].render(m)

@@ -47,6 +47,10 @@ class DaqCursor:
         self.last_index = -1
         self._level: int | None = None
 
+    def discard_buffered(self) -> int:
+        """Drop what the reader and the port hold (a bench without the sync line); returns the samples dropped."""
+        return self.reader.discard_buffered(flush_port=True)
+
     def read(self, n: int) -> Chunk:
         samples = self.reader.read(n, self.read_timeout_s)
         level = (samples.flags & FLAG_SYNC_INPUT) != 0
@@ -66,11 +70,13 @@ class OperatingPointSession:
     CHUNK_SAMPLES = 256
     MAX_WINDOW_ATTEMPTS = 5
 
-    def __init__(self, bench, cursor: DaqCursor, harmonic_order: int, sample_rate_hz: float,
+    def __init__(self, cursor: DaqCursor, send_theta: Callable[[float, float], None],
+                 setpoints_written: Callable[[], int], harmonic_order: int, sample_rate_hz: float,
                  pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
                  no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
                  resonance: ResonanceTracker | None = None):
-        self.bench = bench
+        self._send_theta = send_theta                  # theta to the drive (checked against gamma_max there)
+        self._setpoints_written = setpoints_written    # setpoints the drive accepted: one sync toggle each
         # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
         self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
         self.noise_rms_fs: float | None = None      # rms of alpha around the fitted model, last window
@@ -132,7 +138,7 @@ class OperatingPointSession:
         while True:
             before = self.cursor.toggles_seen
             chunk = self.cursor.read(self.CHUNK_SAMPLES)
-            missing = self.bench.setpoints_written() - before
+            missing = self._setpoints_written() - before
             if len(chunk.toggle_offsets) >= missing > 0:
                 offset = int(chunk.toggle_offsets[missing - 1])
                 self.stale_samples += offset
@@ -146,12 +152,12 @@ class OperatingPointSession:
             if consumed > budget:
                 raise MeasurementError(
                     f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
-                    f"({self.bench.setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
+                    f"({self._setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
 
     def _discard_stale(self) -> None:
         """Without the sync line nothing marks a setpoint's sample: drop what the reader and the port hold."""
         self._pending = None
-        self.stale_samples += self.cursor.reader.discard_buffered(flush_port=True)
+        self.stale_samples += self.cursor.discard_buffered()
 
     def _settle_on_data(self, max_plant_s: float) -> int:
         """A bench without the sync line: drop what is buffered, let `no_sync_settle_s` of plant time
@@ -188,7 +194,7 @@ class OperatingPointSession:
 
     # --- MeasurementSession ----------------------------------------------------------------------
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        self.bench.send_theta(theta_cos_rad, theta_sin_rad)
+        self._send_theta(theta_cos_rad, theta_sin_rad)
         self.wait_for_effect()
         self.skip(self.settle_after_theta_s)
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator
 
-from service.bench import LimitError, check_limits
+from service.limits import LimitError, check_limits
 from service.operating_point import OperatingPoint
 from service.settings import SafetySettings, Settings
 

@@ -15,7 +15,7 @@ import uvicorn
 
 from live_app import bearer, client_for, started_service, wait_finished
 from service.api.app import create_app
-from service.bench import LimitError, check_limits
+from service.limits import LimitError, check_limits
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
 from service.settings import SettingsError, load_settings

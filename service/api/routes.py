@@ -13,11 +13,12 @@ from pydantic import ValidationError
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
 from service.api.schemas import IdentificationCreate, JobPublic, SweepCreate, SweepPublic
-from service.bench import BenchError, LimitError
+from service.bench import BenchError
+from service.limits import LimitError
 from service.engine import TransitionError
 from service.events import format_sse
 from service.identify import PlantTimeError, parse_options, public_result
-from service.lut_export import FORMATS, export_map, lut_image
+from service.lut_export import EXPORT_FORMATS, export_map, lut_image
 from service.maps import public_map
 from service.plans import SweepTooLarge, check_sweep_size
 
@@ -216,19 +217,21 @@ def get_map(map_id: ResourceId, service: ServiceDep) -> dict:
 
 
 _EXPORT_CONTENT = {media: {"schema": {"type": "object" if media == "application/json" else "string"}}
-                   for media in FORMATS.values()}
+                   for media in {f.media_type for f in EXPORT_FORMATS.values()}}
+ExportFormatName = Literal[tuple(EXPORT_FORMATS)]
 
 
 @router.get("/maps/{map_id}/export",
             responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)})
 def export(map_id: ResourceId, service: ServiceDep,
-           format: Literal["csv", "json", "c", "dcm"] = Query("csv", description="csv | json | c | dcm")) -> PlainTextResponse:
+           format: ExportFormatName = Query("csv", description=" | ".join(
+               f"{f.name}: {f.display_name}" for f in EXPORT_FORMATS.values()))) -> PlainTextResponse:
     m = public_map(service.storage, map_id)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
-    ext = {"csv": "csv", "json": "json", "c": "h", "dcm": "dcm"}[format]
-    return PlainTextResponse(export_map(m, format), media_type=FORMATS[format],
-                             headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{ext}"'})
+    fmt = EXPORT_FORMATS[format]
+    return PlainTextResponse(export_map(m, format), media_type=fmt.media_type,
+                             headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{fmt.extension}"'})
 
 
 @router.post("/maps/{map_id}/download", responses=error_responses(401, 403, 404, 409, 502))

@@ -5,15 +5,19 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.identification.registry import METHODS
 from service.operating_point import OperatingPoint
 from service.plans import Grid
+
+
+MethodName = Literal[tuple(METHODS)]
 
 
 class IdentificationCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "adaptive", "options": {}}]})
     operating_point: OperatingPoint
-    method: Literal["adaptive", "grid", "probe"] = "adaptive"
+    method: MethodName = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -21,7 +25,7 @@ class SweepCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}, "method": "adaptive"}]})
     grid: Grid
-    method: Literal["adaptive", "grid", "probe"] = "adaptive"
+    method: MethodName = "adaptive"
     options: dict[str, Any] = Field(default_factory=dict)
     confirm_large: bool = Field(False, description="required for a grid above safety.max_sweep_points_unconfirmed "
                                                    "points (a run of hours is started on purpose)")

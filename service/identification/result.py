@@ -8,9 +8,6 @@ from typing import Any
 from service.harmonic import Phasor
 from service.secondary_path import gamma_delta
 
-METHODS = ("adaptive", "grid", "probe")
-
-
 def suppression_db(uncompensated: Phasor, residual: Phasor) -> float:
     """20 log10(|a_uncompensated| / |a_residual|), dB (positive = harmonic reduced)."""
     return 20.0 * math.log10(max(uncompensated.amplitude, 1e-300) / max(residual.amplitude, 1e-300))
