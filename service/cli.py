@@ -88,7 +88,8 @@ def _wait(predicate, deadline: float, what: str):
 
 def cmd_identify(args) -> int:
     from service.calibration_service import CalibrationService
-    from service.identify import parse_options, public_result
+    from service.identify import parse_options
+    from service.public import result_public
     from service.operating_point import OperatingPoint
     settings = _settings(args)
     op = OperatingPoint(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
@@ -97,7 +98,7 @@ def cmd_identify(args) -> int:
         job_id = service.engine.submit_identification(op, args.method, options)
         job = _wait(lambda: (j if (j := service.storage.get_job(job_id))["state"] in ("done", "failed", "cancelled") else None),
                     time.monotonic() + args.timeout, f"identification job {job_id}")
-        result = public_result(service.storage.get_result(job["result_id"])) if job["result_id"] else None
+        result = result_public(service.storage.get_result(job["result_id"])).model_dump() if job["result_id"] else None
     if args.json:
         print(json.dumps({"job_id": job_id, "state": job["state"], "error": job["error"], "result": result}, indent=1))
     elif result is None or job["state"] != "done":
@@ -141,14 +142,14 @@ def cmd_sweep(args) -> int:
 
 def cmd_export(args) -> int:
     from service.lut_export import export_map
-    from service.maps import public_map
+    from service.public import map_public
     from service.storage import Storage
     settings = _settings(args)
-    m = public_map(Storage(settings.server.db_path), args.map_id)
+    m = map_public(Storage(settings.server.db_path), args.map_id)
     if m is None:
         print(f"map {args.map_id} does not exist in {settings.server.db_path}", file=sys.stderr)
         return 2
-    text = export_map(m, args.format)
+    text = export_map(m.model_dump(), args.format)
     if args.out:
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")

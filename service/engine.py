@@ -27,7 +27,8 @@ from service.events import EventBroker
 from service import __version__
 from service.limits import check_limits
 from service.interlocks import InterlockTripped
-from service.identify import check_plant_time, identify_at, parse_options, public_result, result_row
+from service.identify import check_plant_time, identify_at, parse_options
+from service.public import result_public, result_row
 from service.maps import build_map_from_sweep
 from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
@@ -390,7 +391,7 @@ class Engine:
         rid = self.storage.insert_result(row)
         self.broker.publish("sweep.point", {"sweep_id": sweep_id, "operating_point": op.model_dump(),
                                             "state": row["status"],
-                                            "result": public_result({**self.storage.get_result(rid), "traces_json": "{}"})})
+                                            "result": result_public(self.storage.get_result(rid), with_traces=False).model_dump()})
         self._publish_sweep(sweep_id)
 
     def _discarded_row(self, op, sweep, options, started, exc: InterlockTripped, sweep_id: int) -> dict:

@@ -50,8 +50,8 @@ def _locs(response) -> list[list]:
     ('{"operating_point": {"torque_nm": 1e999, "speed_rpm": 2000}}', ["body", "operating_point", "torque_nm"]),
     ('{"operating_point": {"torque_nm": 1, "speed_rpm": 2000}, "options": {"mu_per_s": NaN}}',
      ["body", "options", "mu_per_s"]),
-    ('{"operating_point": {"torque_nm": 1, "speed_rpm": 2000}, "options": {"theta_tolerance_deg": 1e999}}',
-     ["body", "options", "theta_tolerance_deg"]),
+    ('{"operating_point": {"torque_nm": 1, "speed_rpm": 2000}, "options": {"mu_per_s": 1e999}}',
+     ["body", "options", "mu_per_s"]),
 ])
 def test_non_finite_identification_input_is_422_at_its_field(live, raw, loc):
     r = _post(live, "/api/v1/identifications", raw)

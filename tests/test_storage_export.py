@@ -10,12 +10,13 @@ import subprocess
 import pytest
 
 from service import __version__
-from service.identify import result_row
+from service.public import result_row
 from service.identification.adaptive import AdaptiveOptions
 from service.identification.result import IdentificationResult
 from service.harmonic import Phasor
 from service.lut_export import export_map
-from service.maps import build_map_from_sweep, public_map
+from service.maps import build_map_from_sweep
+from service.public import map_public
 from service.operating_point import OperatingPoint
 from service.storage import Storage, StorageError, migrations
 
@@ -72,13 +73,13 @@ def test_failed_point_keeps_the_others(storage):
     rows = storage.sweep_results(sweep_id)
     assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"]
     assert storage.get_sweep(sweep_id)["done_points"] == 4
-    m = public_map(storage, build_map_from_sweep(storage, sweep_id))
+    m = map_public(storage, build_map_from_sweep(storage, sweep_id)).model_dump()
     bad = [c for c in m["cells"] if c["status"] == "failed"]
     assert len(bad) == 1 and bad[0]["theta_cos"] is None and "boom" in bad[0]["error"]
 
 
 def test_csv_export_carries_axes_units_order_version(storage):
-    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage)))
+    m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage))).model_dump()
     text = export_map(m, "csv")
     header = "".join(line for line in text.splitlines(True) if line.startswith("#"))
     assert "harmonic order h = 6" in header and __version__ in header and "speed_rpm = [1000.0, 2000.0]" in header
@@ -90,7 +91,7 @@ def test_csv_export_carries_axes_units_order_version(storage):
 
 
 def test_json_export_indexes_udc_speed_torque(storage):
-    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage)))
+    m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage))).model_dump()
     doc = json.loads(export_map(m, "json"))
     assert doc["index_order"] == ["udc_v", "speed_rpm", "torque_nm"] and doc["harmonic_order"] == 6
     # cell (udc 12, speed 2000, torque 2.5) was the 4th result: gamma 4 deg, delta 280 deg
@@ -101,7 +102,7 @@ def test_json_export_indexes_udc_speed_torque(storage):
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
 def test_c_header_compiles_and_holds_the_values(storage, tmp_path):
-    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)})))
+    m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
     (tmp_path / "lut.h").write_text(export_map(m, "c"))
     (tmp_path / "main.c").write_text(
         '#include <stdio.h>\n#include <math.h>\n#include "lut.h"\n'
@@ -118,7 +119,7 @@ def test_c_header_compiles_and_holds_the_values(storage, tmp_path):
 
 
 def test_dcm_export_has_one_map_per_component(storage):
-    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage)))
+    m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage))).model_dump()
     text = export_map(m, "dcm")
     assert "KONSERVIERUNG_FORMAT 2.0" in text
     assert text.count("KENNFELD ") == 3 and text.count("END") == 3
@@ -131,7 +132,7 @@ def test_lut_image_is_what_the_drive_parses(storage):
 
     from plant_emulator.lut_image import LutImageError, parse
     from service.lut_export import lut_image
-    m = public_map(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)})))
+    m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
     image = lut_image(m)
     lut = parse(image)
     assert lut.crc == zlib.crc32(image) and lut.harmonic_order == 6

@@ -7,7 +7,7 @@ import pytest
 
 from service import __version__
 from service.identification import AdaptiveOptions
-from service.identify import result_row
+from service.public import result_row
 from service.operating_point import OperatingPoint
 from service.storage import Storage
 

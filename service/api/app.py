@@ -13,8 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from service import __version__
 from service.api.body_limit import BodySizeLimit
 from service.api.errors import request_validation_error
-from service.api.bench_routes import router as bench_router
-from service.api.routes import router
+from service.api.routes import ROUTERS
 from service.calibration_service import CalibrationService
 
 WEB_DIR = Path(__file__).resolve().parent.parent.parent / "web"
@@ -35,10 +34,10 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
     app = FastAPI(title="ripplecal", version=__version__, lifespan=lifespan,
                   description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.")
     app.state.service = service
-    app.include_router(router)
+    for router in ROUTERS:
+        app.include_router(router)
     app.add_exception_handler(RequestValidationError, request_validation_error)
     app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
-    app.include_router(bench_router)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

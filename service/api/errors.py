@@ -10,6 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from service.api.schemas import ErrorPublic
+from service.identification.registry import METHODS
 
 _DESCRIPTIONS = {
     400: "Malformed request (not JSON, or an unreadable header)",
@@ -44,7 +45,12 @@ def _json_safe(value: Any) -> bool:
 async def request_validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     detail = []
     for e in exc.errors():
-        item = validation_error([p if isinstance(p, (str, int)) else str(p) for p in e["loc"]], e["msg"], e["type"])
+        loc = [p if isinstance(p, (str, int)) else str(p) for p in e["loc"]]
+        if len(loc) > 1 and loc[0] == "body" and loc[1] in METHODS:
+            del loc[1]          # the method union's tag: the field is body.options..., not body.probe.options...
+        elif loc == ["body"] and e["type"] == "union_tag_invalid":
+            loc = ["body", "method"]        # an unknown method
+        item = validation_error(loc, e["msg"], e["type"])
         if "input" in e and _json_safe(e["input"]):
             item["input"] = e["input"]
         detail.append(item)

@@ -1,70 +1,58 @@
-"""Request/response schemas (Create / Public families)."""
+"""Request schemas (the Create family) and the error answer; the Public family lives in service.public.
+
+A request names its method and carries that method's options: a discriminated union built from the
+method registry, so /docs lists every method's options with their bounds and units, and a new
+method appears here by being registered. `method` may be left out: it defaults to "adaptive".
+"""
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model
 
 from service.identification.registry import METHODS
 from service.operating_point import OperatingPoint
 from service.plans import Grid
 
-
 MethodName = Literal[tuple(METHODS)]
+DEFAULT_METHOD = "adaptive"
 
 
-class IdentificationCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "adaptive", "options": {}}]})
-    operating_point: OperatingPoint
-    method: MethodName = "adaptive"
-    options: dict[str, Any] = Field(default_factory=dict)
+def _method_of(value: Any) -> str:
+    """The union's tag: the `method` of a request body (or model), "adaptive" when it is left out."""
+    if isinstance(value, dict):
+        return value.get("method", DEFAULT_METHOD)
+    return getattr(value, "method", DEFAULT_METHOD)
 
 
-class SweepCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}, "method": "adaptive"}]})
-    grid: Grid
-    method: MethodName = "adaptive"
-    options: dict[str, Any] = Field(default_factory=dict)
-    confirm_large: bool = Field(False, description="required for a grid above safety.max_sweep_points_unconfirmed "
-                                                   "points (a run of hours is started on purpose)")
+def _per_method(kind: str, fields: dict[str, Any], example: dict) -> Any:
+    """Annotated union of one model per registered method: `{kind}` fields + method + its options."""
+    variants = []
+    for name, method in METHODS.items():
+        model = create_model(
+            f"{name.capitalize()}{kind}Create",
+            __config__=ConfigDict(extra="forbid", json_schema_extra={"examples": [{**example, "method": name}]}),
+            __doc__=f"{kind} with the {method.display_name} method: {method.summary}.",
+            **fields,
+            method=(Literal[name], Field(name, description=method.display_name)),
+            options=(method.options_model, Field(default_factory=method.options_model)),
+        )
+        variants.append(Annotated[model, Tag(name)])
+    return Annotated[Union[tuple(variants)], Discriminator(_method_of)]
+
+
+IdentificationCreate = _per_method(
+    "Identification", {"operating_point": (OperatingPoint, ...)},
+    {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "options": {}})
+
+SweepCreate = _per_method(
+    "Sweep", {"grid": (Grid, ...),
+              "confirm_large": (bool, Field(False, description="required for a grid above "
+                                                               "safety.max_sweep_points_unconfirmed points (a run of "
+                                                               "hours is started on purpose)"))},
+    {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}})
 
 
 class ErrorPublic(BaseModel):
     """Every refusal except 422 (which lists one item per field, see HTTPValidationError)."""
     detail: str = Field(..., description="what was refused and why")
-
-
-class JobPublic(BaseModel):
-    id: int
-    kind: str
-    state: str
-    request: dict[str, Any]
-    sweep_id: int | None = None
-    error: str | None = None
-    created_at: str
-    started_at: str | None = None
-    finished_at: str | None = None
-    result: dict[str, Any] | None = None
-
-
-class SweepPublic(BaseModel):
-    id: int
-    state: str
-    method: str
-    harmonic_order: int
-    grid: dict[str, Any]
-    options: dict[str, Any]
-    progress: dict[str, int] = Field(description="done, failed, total, and the current results per status: "
-                                     "ok, below_target, no_authority, failed")
-    plant_time_s: float = Field(0.0, description="plant time of the current results, summed (s)")
-    map_id: int | None = None
-    error: str | None = None
-    pause_reason: str | None = None
-    bench_identity: str
-    software_version: str
-    created_at: str
-    started_at: str | None = None
-    finished_at: str | None = None
-    points: list[dict[str, Any]] | None = None

@@ -41,7 +41,7 @@ from service.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 
 class AdaptiveOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     mu_per_s: float = Field(25.0, gt=0, le=1000, description="adaptation gain mu of eq. 16, 1/s")
     block_s: float = Field(0.03, gt=0, le=1.0, description="plant time per adaptation block (whole electrical turns)")
@@ -74,7 +74,6 @@ def _row(w: Window, theta: np.ndarray) -> list:
 
 def identify_adaptive(session: MeasurementSession, s_hat: complex, options: AdaptiveOptions, gamma_max_rad: float, *,
                       prior: Prior | None = None, conditions: Conditions | None = None) -> IdentificationResult:
-    h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
     prior = prior if options.use_prior else None
     block_periods = periods_for(session, options.block_s)

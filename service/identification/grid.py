@@ -39,7 +39,7 @@ def _count(start_deg: float, stop_deg: float, step_deg: float) -> int:
 
 class GridOptions(BaseModel):
     """The paper's grid by default: gamma 0.5..10 deg step 0.5, delta 0..340 deg step 20 (360 points)."""
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     gamma_start_deg: float = Field(0.5, ge=0, le=45)
     gamma_stop_deg: float = Field(10.0, ge=0, le=45)
     gamma_step_deg: float = Field(0.5, gt=0, validate_default=True)

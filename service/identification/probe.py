@@ -40,7 +40,7 @@ HISTORY_COLUMNS = ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"]
 
 
 class ProbeOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     probe_fraction: float = Field(0.5, gt=0, le=1.0, description="probe size as a fraction of the model's |theta*|")
     probe_min_deg: float = Field(0.3, gt=0, le=10, description="smallest probe amplitude, deg")

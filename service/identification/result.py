@@ -44,31 +44,3 @@ class IdentificationResult:
     @property
     def suppression_db(self) -> float:
         return suppression_db(self.uncompensated, self.residual)
-
-    def to_public(self) -> dict[str, Any]:
-        def cplx(c: complex | None):
-            return None if c is None else {"re": c.real, "im": c.imag, "gain": abs(c),
-                                           "phase_deg": math.degrees(math.atan2(c.imag, c.real))}
-        return {
-            "method": self.method,
-            "harmonic_order": self.harmonic_order,
-            "status": self.status,
-            "message": self.message,
-            "gamma_deg": self.gamma_deg,
-            "delta_deg": self.delta_deg,
-            "theta_cos": self.theta_cos,
-            "theta_sin": self.theta_sin,
-            "residual": {"a_c": self.residual.a_c, "a_s": self.residual.a_s, "amplitude": self.residual.amplitude},
-            "uncompensated": {"a_c": self.uncompensated.a_c, "a_s": self.uncompensated.a_s,
-                              "amplitude": self.uncompensated.amplitude},
-            "suppression_db": self.suppression_db,
-            "target_db": self.target_db,
-            "noise_floor_db": self.noise_floor_db,
-            "plant_time_s": self.plant_time_s,
-            "windows_used": self.windows_used,
-            "windows_discarded": self.windows_discarded,
-            "s_model": cplx(self.s_model),
-            "s_measured": cplx(self.s_measured),
-            "details": self.details,
-            "traces": self.traces,
-        }

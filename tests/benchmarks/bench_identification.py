@@ -16,7 +16,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from service.calibration_service import CalibrationService  # noqa: E402
-from service.identify import parse_options, public_result  # noqa: E402
+from service.identify import parse_options  # noqa: E402
+from service.public import result_public  # noqa: E402
 from service.operating_point import OperatingPoint  # noqa: E402
 from service.plans import Grid  # noqa: E402
 from service.settings import load_settings  # noqa: E402
@@ -38,7 +39,7 @@ def run_job(svc, method):
     job_id = svc.engine.submit_identification(OP1, method, parse_options(method, {}))
     job = wait(lambda: j if (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") else None)
     assert job["state"] == "done", job
-    return public_result(svc.storage.get_result(job["result_id"])), time.perf_counter() - t0
+    return result_public(svc.storage.get_result(job["result_id"])).model_dump(), time.perf_counter() - t0
 
 
 def main() -> None:

@@ -1,18 +1,27 @@
-"""Bench routes of issue 8: a person acknowledges a drive fault (POST /bench/fault-reset)."""
+"""Bench: its live status, the software version, and the fault reset a person acknowledges."""
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, status
 
 from service.api.deps import OperatorDep, ServiceDep
+from service.api.errors import error_responses
 from service.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
 
 
-@router.post("/bench/fault-reset", responses={401: {"description": "no or unknown bearer token"},
-                                               403: {"description": "role below operator"},
-                                               409: {"description": "the bench is busy with a run"},
-                                               502: {"description": "the drive did not answer or did not leave FAULT"}})
+@router.get("/bench/status")
+def bench_status(service: ServiceDep) -> dict:
+    """Per device: connected, last error, age; the interlocks; whether a run holds the bench."""
+    return service.bench.status()
+
+
+@router.get("/version")
+def version(service: ServiceDep) -> dict:
+    return {"software_version": service.version, "bench": service.bench.identity}
+
+
+@router.post("/bench/fault-reset", responses=error_responses(401, 403, 409, 502))
 def fault_reset(service: ServiceDep, _: OperatorDep) -> dict:
     """Acknowledge a drive/load FAULT (CiA 402 fault reset) and clear the latched interlocks whose
     condition has gone. The service never does this by itself (unless `interlocks.auto_fault_reset`).

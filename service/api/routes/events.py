@@ -1,0 +1,37 @@
+"""Server-Sent Events: bench status, job and sweep progress, interlock trips, as they happen."""
+from __future__ import annotations
+
+import asyncio
+import json
+
+from fastapi import APIRouter, Request
+from fastapi.responses import StreamingResponse
+
+from service.api.deps import ServiceDep
+from service.events import format_sse
+
+router = APIRouter(prefix="/api/v1", tags=["events"])
+
+
+@router.get("/events")
+async def events(request: Request, service: ServiceDep) -> StreamingResponse:
+    token = service.broker.subscribe()
+    _, queue = token
+
+    async def stream():
+        try:
+            yield format_sse("bench.status", json.dumps(service.bench.status(), default=str))
+            while True:
+                if await request.is_disconnected():
+                    break
+                try:
+                    event_type, data = await asyncio.wait_for(queue.get(), timeout=15.0)
+                except asyncio.TimeoutError:
+                    yield ": keep-alive\n\n"
+                    continue
+                yield format_sse(event_type, data)
+        finally:
+            service.broker.unsubscribe(token)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -1,0 +1,52 @@
+"""Identifications (one operating point, one method) and the jobs that run them."""
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Query, status
+
+from service.api.deps import OperatorDep, ResourceId, ServiceDep
+from service.api.errors import error_responses, validation_error
+from service.api.refusals import limit_error, unprocessable
+from service.api.schemas import IdentificationCreate
+from service.engine import TransitionError
+from service.identify import PlantTimeError
+from service.limits import LimitError
+from service.public import JobPublic, job_public
+
+router = APIRouter(prefix="/api/v1", tags=["identifications"])
+
+
+@router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
+             responses=error_responses(400, 401, 403, 413))
+def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
+    options = body.options
+    try:
+        job_id = service.engine.submit_identification(body.operating_point, body.method, options)
+    except LimitError as exc:
+        raise limit_error(exc, ["body", "operating_point"]) from None
+    except PlantTimeError as exc:
+        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
+    return job_public(service.storage, service.storage.get_job(job_id))
+
+
+@router.get("/jobs", response_model=list[JobPublic])
+def list_jobs(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[JobPublic]:
+    return [job_public(service.storage, j) for j in service.storage.list_jobs(limit)]
+
+
+@router.get("/jobs/{job_id}", response_model=JobPublic, responses=error_responses(404))
+def get_job(job_id: ResourceId, service: ServiceDep) -> JobPublic:
+    job = service.storage.get_job(job_id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist")
+    return job_public(service.storage, job)
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobPublic, responses=error_responses(401, 403, 404, 409))
+def cancel_job(job_id: ResourceId, service: ServiceDep, _: OperatorDep) -> JobPublic:
+    try:
+        service.engine.cancel_job(job_id)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist") from None
+    except TransitionError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return job_public(service.storage, service.storage.get_job(job_id))

@@ -1,0 +1,66 @@
+"""Sweeps: an operating-point grid measured point by point, paused, resumed, cancelled."""
+from __future__ import annotations
+
+from typing import Literal
+
+from fastapi import APIRouter, HTTPException, Query, status
+
+from service.api.deps import OperatorDep, ResourceId, ServiceDep
+from service.api.errors import error_responses, validation_error
+from service.api.refusals import limit_error, unprocessable
+from service.api.schemas import SweepCreate
+from service.engine import TransitionError
+from service.identify import PlantTimeError
+from service.limits import LimitError
+from service.plans import SweepTooLarge, check_sweep_size
+from service.public import SweepPublic, sweep_public
+
+router = APIRouter(prefix="/api/v1", tags=["sweeps"])
+
+
+@router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic,
+             responses=error_responses(400, 401, 403, 413))
+def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
+    try:
+        check_sweep_size(body.grid, body.confirm_large, service.settings.safety)
+    except SweepTooLarge as exc:
+        raise unprocessable(validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")) from None
+    except ValueError as exc:
+        raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
+    options = body.options
+    try:
+        sweep_id = service.engine.submit_sweep(body.grid, body.method, options)
+    except LimitError as exc:
+        raise limit_error(exc, ["body", "grid"]) from None
+    except PlantTimeError as exc:
+        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
+    except ValueError as exc:
+        raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
+    return sweep_public(service.storage, service.storage.get_sweep(sweep_id))
+
+
+@router.get("/sweeps", response_model=list[SweepPublic])
+def list_sweeps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[SweepPublic]:
+    return [sweep_public(service.storage, s) for s in service.storage.list_sweeps(limit)]
+
+
+@router.get("/sweeps/{sweep_id}", response_model=SweepPublic, responses=error_responses(404))
+def get_sweep(sweep_id: ResourceId, service: ServiceDep) -> SweepPublic:
+    sweep = service.storage.get_sweep(sweep_id)
+    if sweep is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist")
+    return sweep_public(service.storage, sweep, with_points=True)
+
+
+@router.post("/sweeps/{sweep_id}/{action}", response_model=SweepPublic, responses=error_responses(401, 403, 404, 409))
+def control_sweep(sweep_id: ResourceId, action: Literal["pause", "resume", "cancel"], service: ServiceDep,
+                  _: OperatorDep) -> SweepPublic:
+    handler = {"pause": service.engine.pause_sweep, "resume": service.engine.resume_sweep,
+               "cancel": service.engine.cancel_sweep}[action]
+    try:
+        handler(sweep_id)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist in this service run") from None
+    except TransitionError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return sweep_public(service.storage, service.storage.get_sweep(sweep_id))

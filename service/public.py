@@ -1,0 +1,259 @@
+"""The public shapes (the Public schema family) and their mapping from storage, in one place.
+
+A result has three shapes and no more: `IdentificationResult` (what a method returns), its storage
+row (`result_row`, the columns of `results` plus `detail_json` / `traces_json`) and `ResultPublic`
+(what the API, the SSE events and the CLI show). Jobs, sweeps and maps likewise have one Public model
+each, built here from their rows; routes return these models, so /docs shows every field.
+"""
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from service import __version__
+from service.identification import IdentificationResult
+from service.operating_point import OperatingPoint
+from service.storage import Storage, now_iso
+
+# every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
+RESULT_STATUSES = ("ok", "below_target", "no_authority", "failed")
+CELL_STATUSES = (*RESULT_STATUSES, "missing")
+
+
+class PhasorPublic(BaseModel):
+    a_c: float = Field(description="(2/N) sum(alpha cos(h phi_e)), sensor full scale")
+    a_s: float = Field(description="(2/N) sum(alpha sin(h phi_e)), sensor full scale")
+    amplitude: float
+
+
+class ComplexGainPublic(BaseModel):
+    re: float
+    im: float
+    gain: float = Field(description="|S|, full scale per rad")
+    phase_deg: float
+
+
+class ResultPublic(BaseModel):
+    """One identification at one operating point, self-describing (DESIGN 6)."""
+    id: int
+    status: str = Field(description="ok (met target_db) | below_target | no_authority | failed")
+    error: str | None = Field(None, description="for every status but ok: the reason a test engineer can act on")
+    message: str | None = None
+    method: str
+    operating_point: OperatingPoint
+    harmonic_order: int
+    gamma_deg: float | None = None
+    delta_deg: float | None = None
+    theta_cos: float | None = Field(None, description="rad")
+    theta_sin: float | None = Field(None, description="rad")
+    residual: PhasorPublic | None = None
+    uncompensated: PhasorPublic | None = None
+    suppression_db: float | None = None
+    target_db: float | None = None
+    noise_floor_db: float | None = Field(None, description="rms noise phasor of the final window against |uncompensated|")
+    plant_time_s: float | None = Field(None, description="DAQ samples / rate, counted from each setpoint's effect")
+    windows_used: int | None = None
+    windows_discarded: int | None = None
+    s_model: ComplexGainPublic | None = None
+    s_measured: ComplexGainPublic | None = None
+    details: dict[str, Any] | None = None
+    options: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    finished_at: str
+    traces: dict[str, Any] = Field(default_factory=dict, description="data to redraw the result's plots")
+
+
+class JobPublic(BaseModel):
+    id: int
+    kind: str
+    state: str
+    request: dict[str, Any]
+    sweep_id: int | None = None
+    error: str | None = None
+    created_at: str
+    started_at: str | None = None
+    finished_at: str | None = None
+    result: ResultPublic | None = None
+
+
+class SweepPointPublic(BaseModel):
+    operating_point: OperatingPoint
+    state: str = Field(description="the result's status")
+    error: str | None = None
+    result: ResultPublic
+
+
+class SweepPublic(BaseModel):
+    id: int
+    state: str
+    method: str
+    harmonic_order: int
+    grid: dict[str, Any]
+    options: dict[str, Any]
+    progress: dict[str, int] = Field(description="done, failed, total, and the current results per status: "
+                                     "ok, below_target, no_authority, failed")
+    plant_time_s: float = Field(0.0, description="plant time of the current results, summed (s)")
+    map_id: int | None = None
+    error: str | None = None
+    pause_reason: str | None = None
+    bench_identity: str
+    software_version: str
+    created_at: str
+    started_at: str | None = None
+    finished_at: str | None = None
+    points: list[SweepPointPublic] | None = None
+
+
+class MapCellPublic(BaseModel):
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    status: str = Field(description="ok | below_target | no_authority | failed | missing; only ok is valid in a LUT")
+    result_id: int | None = None
+    gamma_deg: float | None = None
+    delta_deg: float | None = None
+    theta_cos: float | None = None
+    theta_sin: float | None = None
+    suppression_db: float | None = None
+    target_db: float | None = None
+    noise_floor_db: float | None = None
+    error: str | None = None
+
+
+class MapPublic(BaseModel):
+    id: int
+    sweep_id: int | None = None
+    harmonic_order: int
+    method: str
+    bench_identity: str
+    software_version: str
+    created_at: str
+    axes: dict[str, list[float]]
+    status_counts: dict[str, int]
+    cells: list[MapCellPublic]
+
+
+class MapSummaryPublic(BaseModel):
+    id: int
+    sweep_id: int | None = None
+    harmonic_order: int
+    method: str
+    created_at: str
+
+
+# --- results: domain -> row -> public ---------------------------------------------------------------
+def _complex(c: complex | None) -> dict | None:
+    return None if c is None else {"re": c.real, "im": c.imag, "gain": abs(c),
+                                   "phase_deg": math.degrees(math.atan2(c.imag, c.real))}
+
+
+def _phasor(p) -> dict:
+    return {"a_c": p.a_c, "a_s": p.a_s, "amplitude": p.amplitude}
+
+
+def result_row(op: OperatingPoint, method: str, options, bench_identity: str, started_at: str,
+               result: IdentificationResult | None = None, error: str | None = None,
+               job_id: int | None = None, sweep_id: int | None = None, harmonic_order: int = 6) -> dict:
+    """A `results` row: the outcome (or the error) with everything that describes it."""
+    row = {
+        "job_id": job_id, "sweep_id": sweep_id,
+        "torque_nm": op.torque_nm, "speed_rpm": op.speed_rpm, "udc_v": op.udc_v,
+        "harmonic_order": harmonic_order, "method": method,
+        "options_json": json.dumps(options.model_dump() if options is not None else {}),
+        "bench_identity": bench_identity, "software_version": __version__,
+        "started_at": started_at, "finished_at": now_iso(),
+    }
+    if result is None:
+        row.update({"status": "failed", "error": error or "unknown error"})
+        return row
+    detail = {"message": result.message, "residual": _phasor(result.residual),
+              "uncompensated": _phasor(result.uncompensated), "s_model": _complex(result.s_model),
+              "s_measured": _complex(result.s_measured), "details": result.details,
+              "windows_discarded": result.windows_discarded}
+    row.update({
+        "status": result.status, "error": None if result.status == "ok" else result.message,
+        "theta_cos": result.theta_cos, "theta_sin": result.theta_sin,
+        "gamma_deg": result.gamma_deg, "delta_deg": result.delta_deg,
+        "residual_a_c": result.residual.a_c, "residual_a_s": result.residual.a_s,
+        "uncompensated_a_c": result.uncompensated.a_c, "uncompensated_a_s": result.uncompensated.a_s,
+        "suppression_db": result.suppression_db, "plant_time_s": result.plant_time_s,
+        "windows_used": result.windows_used, "target_db": result.target_db, "noise_floor_db": result.noise_floor_db,
+        "detail_json": json.dumps(detail), "traces_json": json.dumps(result.traces),
+    })
+    return row
+
+
+def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
+    """The API view of a stored result row (traces left out where a list shows many results)."""
+    detail = json.loads(row.get("detail_json") or "{}")
+    return ResultPublic(
+        id=row["id"], status=row["status"], error=row["error"], method=row["method"], message=detail.get("message"),
+        operating_point=OperatingPoint(torque_nm=row["torque_nm"], speed_rpm=row["speed_rpm"], udc_v=row["udc_v"]),
+        harmonic_order=row["harmonic_order"], gamma_deg=row.get("gamma_deg"), delta_deg=row.get("delta_deg"),
+        theta_cos=row.get("theta_cos"), theta_sin=row.get("theta_sin"), residual=detail.get("residual"),
+        uncompensated=detail.get("uncompensated"), suppression_db=row.get("suppression_db"),
+        target_db=row.get("target_db"), noise_floor_db=row.get("noise_floor_db"), plant_time_s=row.get("plant_time_s"),
+        windows_used=row.get("windows_used"), windows_discarded=detail.get("windows_discarded"),
+        s_model=detail.get("s_model"), s_measured=detail.get("s_measured"), details=detail.get("details"),
+        options=json.loads(row["options_json"]), bench_identity=row["bench_identity"],
+        software_version=row["software_version"], started_at=row["started_at"], finished_at=row["finished_at"],
+        traces=json.loads(row.get("traces_json") or "{}") if with_traces else {})
+
+
+# --- jobs, sweeps, maps -----------------------------------------------------------------------------
+def job_public(storage: Storage, job: dict) -> JobPublic:
+    row = storage.get_result(job["result_id"]) if job.get("result_id") else None
+    return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
+                     sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
+                     started_at=job["started_at"], finished_at=job["finished_at"],
+                     result=result_public(row) if row else None)
+
+
+def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> SweepPublic:
+    points = None
+    if with_points:
+        points = [SweepPointPublic(operating_point=OperatingPoint(torque_nm=r["torque_nm"], speed_rpm=r["speed_rpm"],
+                                                                  udc_v=r["udc_v"]),
+                                   state=r["status"], error=r["error"], result=result_public(r, with_traces=False))
+                  for r in storage.sweep_results(sweep["id"])]
+    outcome = storage.sweep_outcome(sweep["id"])
+    return SweepPublic(
+        id=sweep["id"], state=sweep["state"], method=sweep["method"], harmonic_order=sweep["harmonic_order"],
+        grid=json.loads(sweep["grid_json"]), options=json.loads(sweep["options_json"]),
+        progress={"done": sweep["done_points"], "failed": sweep["failed_points"], "total": sweep["total_points"],
+                  **outcome["counts"]},
+        plant_time_s=outcome["plant_time_s"], map_id=sweep["map_id"], error=sweep["error"],
+        pause_reason=sweep.get("pause_reason"), bench_identity=sweep["bench_identity"],
+        software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
+        finished_at=sweep["finished_at"], points=points)
+
+
+def map_public(storage: Storage, map_id: int) -> MapPublic | None:
+    row = storage.get_map(map_id)
+    if row is None:
+        return None
+    cells = []
+    for c in row["cells"]:
+        status = c["status"] or "missing"
+        ok = status == "ok"
+        cells.append(MapCellPublic(
+            torque_nm=c["torque_nm"], speed_rpm=c["speed_rpm"], udc_v=c["udc_v"], status=status,
+            result_id=c["result_id"], gamma_deg=c["gamma_deg"] if ok else None, delta_deg=c["delta_deg"] if ok else None,
+            theta_cos=c["theta_cos"] if ok else None, theta_sin=c["theta_sin"] if ok else None,
+            suppression_db=c["suppression_db"], target_db=c.get("target_db"), noise_floor_db=c.get("noise_floor_db"),
+            error=c["error"]))
+    counts = {status: 0 for status in CELL_STATUSES}
+    for c in cells:
+        counts[c.status] = counts.get(c.status, 0) + 1
+    return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
+                     bench_identity=row["bench_identity"], software_version=row["software_version"],
+                     created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells)
+
+
+def map_summaries(storage: Storage, limit: int) -> list[MapSummaryPublic]:
+    return [MapSummaryPublic(**row) for row in storage.list_maps(limit)]
