@@ -126,8 +126,11 @@ def _noise_density(residual: np.ndarray, turns: float, harmonic_order: int) -> f
     """Noise variance per sample as it acts on order h: the residual's power density around f_h
     (half to one and a half times), leaving out the bins of integer orders, which average out
     over whole turns and would overstate the phasor's noise (a drive's spectrum is full of them).
-    For white noise of variance s^2 this is s^2; the phasor's noise is then s sqrt(2/N). None when
-    the window is too short to tell (fewer than 6 bins)."""
+    The median of the bins, not their mean: a stray tone (the shaft mode rung by the load, a
+    non-integer order) fills a bin or two and leaks into the phasor only by 1/(pi df T), so it
+    must not count as broadband noise; for white noise, |X_k|^2 / N is exponential with mean s^2
+    and median s^2 ln 2. The phasor's noise is then s sqrt(2/N). None when the window is too short
+    to tell (fewer than 6 bins)."""
     n = len(residual)
     if abs(turns - round(turns)) > 1e-6 or turns < 1:
         return None
@@ -140,7 +143,7 @@ def _noise_density(residual: np.ndarray, turns: float, harmonic_order: int) -> f
     usable = band & (distance_to_order > 1)
     if usable.sum() < 6:
         return None
-    return float(np.mean(spectrum[usable]))
+    return float(np.median(spectrum[usable]) / math.log(2.0))
 
 
 def best_mode_scale(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,

@@ -157,23 +157,26 @@ class Engine:
                 self._set_sweep(sweep["id"], SweepState.INTERRUPTED,
                                 pause_reason=f"{self._shutdown_reason} while this sweep was {state.value}; "
                                              f"{sweep['done_points']} of {sweep['total_points']} points are stored")
-                self._publish_sweep(sweep["id"])
 
     # --- state writes (every one through the tables) ----------------------------------------------------------
     def _set_job(self, job_id: int, target: JobState, **fields) -> None:
+        """Check the transition, write it, tell the subscribers (SSE)."""
         with self._lock:
             current = JobState(self.storage.get_job(job_id)["state"])
             if current != target:
                 check_transition(JOB_TRANSITIONS, current, target)
             self.storage.update_job(job_id, state=target.value, **fields)
+        self._publish_job(job_id)
 
     def _set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None:
-        """A same-state write only updates fields (e.g. a new pause_reason)."""
+        """Check the transition, write it, tell the subscribers (SSE). A same-state write only updates
+        fields (e.g. a new pause_reason)."""
         with self._lock:
             current = SweepState(self.storage.get_sweep(sweep_id)["state"])
             if current != target:
                 check_transition(SWEEP_TRANSITIONS, current, target)
             self.storage.update_sweep(sweep_id, state=target.value, **fields)
+        self._publish_sweep(sweep_id)
 
     # --- submitting --------------------------------------------------------------------------------------
     def submit_identification(self, op: OperatingPoint, method: str, options) -> int:
@@ -260,7 +263,6 @@ class Engine:
         self._job_cancel.setdefault(job_id, threading.Event()).set()
         if job["state"] == "queued":
             self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
-            self._publish_job(job_id)
 
     def _sweep_state(self, sweep_id: int) -> SweepState:
         sweep = self.storage.get_sweep(sweep_id)
@@ -292,7 +294,6 @@ class Engine:
                 self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
                 continue
             self._set_job(job_id, JobState.RUNNING, started_at=now_iso())
-            self._publish_job(job_id)
             try:
                 if job["kind"] == "identification":
                     self._run_identification(job_id, job)
@@ -310,7 +311,6 @@ class Engine:
                 self._set_job(job_id, JobState.FAILED, error=error, finished_at=now_iso())
                 if job["sweep_id"] is not None:
                     self._set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
-                    self._publish_sweep(job["sweep_id"])
             self._publish_job(job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
@@ -340,7 +340,6 @@ class Engine:
         plan = SweepPlan.from_grid(grid)
         done = self.storage.committed_points(sweep_id)          # a resumed sweep measures only the rest
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
-        self._publish_sweep(sweep_id)
         in_flight = None
         points = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
         i = 0
@@ -380,12 +379,10 @@ class Engine:
             self._set_sweep(sweep_id, SweepState.INTERRUPTED,
                             pause_reason=f"{self._shutdown_reason}{where}; {s['done_points']} of {s['total_points']} "
                                          "points are stored")
-            self._publish_sweep(sweep_id)
             return
         map_id = build_map_from_sweep(self.storage, sweep_id)
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self._set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
-        self._publish_sweep(sweep_id)
 
     def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict) -> None:
         rid = self.storage.insert_result(row)

@@ -6,6 +6,7 @@ from typing import Any
 
 from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
+from service.identification.session import MeasurementError
 from service.limits import gamma_max_rad
 from service.operating_point import OperatingPoint
 from service.secondary_path import model_secondary_path
@@ -50,7 +51,15 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
                                      resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
         conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
                                 current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=ident.decoupling)
-        result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
+        try:
+            result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
+        except MeasurementError as exc:
+            if "over-range" not in str(exc):
+                raise
+            # say why the sensor saturates: a harmonic next to the shaft resonance is amplified by its Q
+            distance_hz = abs(conditions.harmonic_frequency_hz - mode.frequency_hz)
+            raise MeasurementError(f"{exc} (harmonic at {conditions.harmonic_frequency_hz:.0f} Hz, {distance_hz:.0f} Hz "
+                                   f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)") from exc
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured

@@ -67,7 +67,7 @@ def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_
         sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed") and s, 400,
                          "sweep done")
         assert sweep["state"] == "done" and sweep["map_id"] is not None
-        assert sweep["progress"] == {"done": 16, "failed": sweep["progress"]["failed"], "total": 16}
+        assert sweep["progress"]["done"] == 16 and sweep["progress"]["total"] == 16
         assert len(sweep["points"]) == 16
         after = attempts_per_point(db, sweep_id)
         assert len(after) == 16 and set(after.values()) == {1}          # none lost, none measured twice

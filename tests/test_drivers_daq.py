@@ -181,9 +181,9 @@ def test_read_before_start_is_an_error():
         reader.read(1, timeout_s=0.1)
 
 
-def test_decoding_keeps_up_with_two_million_samples_per_second():
-    """Large chunks over loopback TCP: the reader thread must sustain >= 2 MS/s (the emulator at
-    speedup 0 produces as fast as we consume, so reader throughput bounds identification speed)."""
+def test_a_million_samples_over_tcp_arrive_in_order():
+    """Large chunks over loopback TCP: every sample arrives, in order, none twice. (Its speed is a
+    figure of `make bench` (tests/benchmarks/bench_daq.py), never a timed assertion here.)"""
     n = 1_000_000
     stream, _ = make_stream(n)
     server = socket.create_server(("127.0.0.1", 0))
@@ -201,8 +201,7 @@ def test_decoding_keeps_up_with_two_million_samples_per_second():
     try:
         with DaqReader(f"socket://127.0.0.1:{port}", max_buffered_samples=1 << 18,
                        read_chunk_bytes=1 << 18) as reader:
-            first = reader.read(1, timeout_s=5.0)  # the clock starts with the first sample
-            t0 = time.perf_counter()
+            first = reader.read(1, timeout_s=5.0)
             got = 1
             last = int(first.index[0])
             while got < n:
@@ -210,8 +209,8 @@ def test_decoding_keeps_up_with_two_million_samples_per_second():
                 assert block.index[0] == last + 1
                 last = int(block.index[-1])
                 got += len(block)
-            rate = n / (time.perf_counter() - t0)
+            assert reader.counters.sequence_gaps == 0 and reader.counters.crc_failures == 0
     finally:
         server.close()
         thread.join(3.0)
-    assert rate >= 2e6, f"reader sustained only {rate / 1e6:.2f} MS/s"
+    assert got == n and last == int(first.index[0]) + n - 1
