@@ -1,7 +1,7 @@
 """Firmware of the emulated drive (node 5): CiA 402 profile torque + harmonic injection record.
 
 Object dictionary: drivers/eds/drive.eds, semantics: docs/interfaces.md. The fast control loop
-(current control, injection, delay) is in physics.py; this module is the slow firmware around it:
+(current control, injection, delay) is in physics/firmware.py; this module is the slow firmware around it:
 it validates SDO writes, stages setpoints, and hands them to the control loop at a chunk boundary.
 
 Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
