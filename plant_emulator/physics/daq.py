@@ -37,6 +37,9 @@ CRC_STOP = wire.CRC_STOP
 CRC_INIT = wire.CRC_INIT
 
 crc16_step = njit(cache=True, inline="always")(wire.crc16_step)
+# write_frame feeds the CRC from the field values, so the span must be exactly these fields in order
+assert (CRC_FIRST, CRC_STOP) == (OFFSET_SEQ, OFFSET_FLAGS + 2)
+assert OFFSET_ANGLE == OFFSET_SEQ + 2 and OFFSET_ACCEL == OFFSET_ANGLE + 2 and OFFSET_FLAGS == OFFSET_ACCEL + 2
 
 
 @njit(cache=True, inline="always")
@@ -67,13 +70,21 @@ def write_frame(frames, o, seq, phi, raw, flags):
     # round half away from zero (int16 counts), angle counts modulo 65536
     acc = (int(raw + 0.5) if raw >= 0.0 else -int(-raw + 0.5)) & 0xFFFF
     ang = int(phi * COUNTS_PER_RAD + 0.5) & 0xFFFF
+    sq = seq & 0xFFFF
+    fl = flags & 0xFFFF
     frames[o] = SYNC_0
     frames[o + 1] = SYNC_1
-    _put_u16(frames, o + OFFSET_SEQ, seq & 0xFFFF)
+    _put_u16(frames, o + OFFSET_SEQ, sq)
     _put_u16(frames, o + OFFSET_ANGLE, ang)
     _put_u16(frames, o + OFFSET_ACCEL, acc)
-    _put_u16(frames, o + OFFSET_FLAGS, flags & 0xFFFF)
-    crc = CRC_INIT
-    for j in range(CRC_FIRST, CRC_STOP):
-        crc = crc16_step(crc, frames[o + j])
+    _put_u16(frames, o + OFFSET_FLAGS, fl)
+    # the CRC span holds these four fields in this order (checked at import), low byte first
+    crc = crc16_step(CRC_INIT, sq & 0xFF)
+    crc = crc16_step(crc, sq >> 8)
+    crc = crc16_step(crc, ang & 0xFF)
+    crc = crc16_step(crc, ang >> 8)
+    crc = crc16_step(crc, acc & 0xFF)
+    crc = crc16_step(crc, acc >> 8)
+    crc = crc16_step(crc, fl & 0xFF)
+    crc = crc16_step(crc, fl >> 8)
     _put_u16(frames, o + OFFSET_CRC, crc)
