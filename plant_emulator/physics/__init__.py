@@ -22,7 +22,7 @@ from .daq import FRAME_BYTES, OVER_RANGE_FLAG, P_ALPHA_FS, S_SYNC, SYNC_FLAG
 from .firmware import (P_FW_BW, P_FW_TARGET, P_IMAX, P_KI_D, P_KI_Q, P_KP_D, P_KP_Q, P_LD_NOM, P_LQ_NOM,
                        P_PSI_NOM, P_R_NOM, P_TS, P_V_MARGIN, P_W_BW, S_DECOUPLING, S_H, S_POWER, S_THETA_COS,
                        S_THETA_SIN, S_TORQUE_NM, S_UDC_V, S_VEST, X_FW_DID, X_IF_D, X_IF_Q, X_IHAT_D, X_IHAT_Q,
-                       X_INT_D, X_INT_Q, X_VD_APP, X_VQ_APP, current_reference, mtpa_id, torque_to_current_ref)
+                       X_INT_D, X_INT_Q, X_VD_APP, X_VQ_APP, current_reference, mtpa_id)
 from .inverter import P_ANGLE_COMP, P_F_PWM, P_I_ZC, P_T_DEAD, X_UD_APP, X_UQ_APP
 from .loop import (N_PARAMS, N_SETPOINTS, N_STATE, N_SUMMARY, N_TRACE, OMEGA_RECOMPUTE_RAD_S, TR_ALPHA,
                    TR_ALPHA_MEAS, TR_DIST, TR_ID, TR_IQ, TR_OMEGA_M, TR_PHI_E, TR_T_LOAD, TR_TORQUE, TR_UD,

@@ -222,13 +222,6 @@ def current_reference(torque_nm, w_e, udc_v, r, ld, lq, psi, n_p, i_max, margin)
     return i_d, sgn * i_q
 
 
-@njit(cache=True)
-def torque_to_current_ref(torque_nm, psi_nom_wb, n_p, i_max_a):
-    """Surface-magnet MTPA below base speed: i_d* = 0, i_q* = T*/(1.5 N_p psi_p) (kept for callers)."""
-    return current_reference(torque_nm, 0.0, 0.0, 0.0, 1.0, 1.0, psi_nom_wb, n_p, i_max_a, 1.0)
-
-
-
 # ------------------------------------------------------------------------------------------------
 # per control period
 
