@@ -9,9 +9,11 @@ One little-endian frame of 12 bytes per sample:
     8  uint16   status flags (FLAG_*)
    10  uint16   CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over bytes 2..9
 
-The emulator encodes with `encode_frames`; the reader decodes with `FrameDecoder`, which works on
-whole byte chunks with numpy (no per-frame Python) so that decoding keeps up with millions of
-samples per second.
+Both ends of the wire read the layout from here: the reader decodes with `FrameDecoder`, which
+works on whole byte chunks with numpy (no per-frame Python) so that decoding keeps up with millions
+of samples per second; the emulator's numba frame writer (plant_emulator/physics/daq.py) takes the
+sync bytes, field offsets, CRC table, CRC step and flag bits below as compile-time constants, and
+`encode_frames` is the vectorised encoder for tools and tests.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ import numpy as np
 
 FRAME_BYTES = 12
 SYNC = b"\xa5\x5a"
+SYNC_0, SYNC_1 = SYNC            # the two sync bytes as ints (0xA5, 0x5A)
 FLAG_OVER_RANGE = 1 << 0
 FLAG_SENSOR_FAULT = 1 << 1
 FLAG_SYNC_INPUT = 1 << 2
@@ -34,6 +37,14 @@ FRAME_DTYPE = np.dtype(
      ("flags", "<u2"), ("crc", "<u2")]
 )
 assert FRAME_DTYPE.itemsize == FRAME_BYTES
+# byte offsets of the little-endian uint16/int16 fields, from the dtype
+OFFSET_SEQ = FRAME_DTYPE.fields["seq"][1]
+OFFSET_ANGLE = FRAME_DTYPE.fields["angle"][1]
+OFFSET_ACCEL = FRAME_DTYPE.fields["accel"][1]
+OFFSET_FLAGS = FRAME_DTYPE.fields["flags"][1]
+OFFSET_CRC = FRAME_DTYPE.fields["crc"][1]
+CRC_FIRST, CRC_STOP = OFFSET_SEQ, OFFSET_CRC    # the CRC covers bytes [CRC_FIRST, CRC_STOP)
+CRC_INIT = 0xFFFF
 
 
 def _crc_table() -> np.ndarray:
@@ -49,17 +60,23 @@ def _crc_table() -> np.ndarray:
 CRC_TABLE = _crc_table()
 
 
+def crc16_step(crc: int, byte: int) -> int:
+    """One byte into a CRC-16/CCITT-FALSE register (table-driven). Plain Python that numba also
+    compiles: the emulator's frame writer jits this very function."""
+    return ((crc << 8) & 0xFFFF) ^ int(CRC_TABLE[((crc >> 8) ^ byte) & 0xFF])
+
+
 def crc16_ccitt_false(data: bytes) -> int:
     """CRC-16/CCITT-FALSE of one byte string (check value for b'123456789' is 0x29B1)."""
-    crc = 0xFFFF
+    crc = CRC_INIT
     for byte in data:
-        crc = ((crc << 8) & 0xFFFF) ^ int(CRC_TABLE[((crc >> 8) ^ byte) & 0xFF])
+        crc = crc16_step(crc, byte)
     return crc
 
 
 def crc16_rows(rows: np.ndarray) -> np.ndarray:
     """CRC-16/CCITT-FALSE of every row of a (n, k) uint8 array, table-driven one column at a time."""
-    crc = np.full(rows.shape[0], 0xFFFF, dtype=np.uint16)
+    crc = np.full(rows.shape[0], CRC_INIT, dtype=np.uint16)
     for col in range(rows.shape[1]):
         crc = (crc << np.uint16(8)) ^ CRC_TABLE[(crc >> np.uint16(8)) ^ rows[:, col]]
     return crc
@@ -70,13 +87,13 @@ def encode_frames(seq: np.ndarray, angle_counts: np.ndarray, accel_counts: np.nd
     """Frames for n samples; inputs are arrays of the wire integers (seq wraps modulo 65536)."""
     n = len(seq)
     frames = np.zeros(n, dtype=FRAME_DTYPE)
-    frames["sync0"], frames["sync1"] = 0xA5, 0x5A
+    frames["sync0"], frames["sync1"] = SYNC_0, SYNC_1
     frames["seq"] = np.asarray(seq, dtype=np.int64) & 0xFFFF
     frames["angle"] = np.asarray(angle_counts, dtype=np.int64) & 0xFFFF
     frames["accel"] = accel_counts
     frames["flags"] = flags
     raw = frames.view(np.uint8).reshape(n, FRAME_BYTES)
-    frames["crc"] = crc16_rows(raw[:, 2:10])
+    frames["crc"] = crc16_rows(raw[:, CRC_FIRST:CRC_STOP])
     return frames.tobytes()
 
 
@@ -140,9 +157,10 @@ class FrameDecoder:
             self._pending = buf
             return DecodedSamples.empty()
         # candidate frame starts: every sync pattern with a whole frame after it
-        cand = np.flatnonzero((arr[: n - FRAME_BYTES + 1] == 0xA5) & (arr[1 : n - FRAME_BYTES + 2] == 0x5A))
+        cand = np.flatnonzero((arr[: n - FRAME_BYTES + 1] == SYNC_0) & (arr[1 : n - FRAME_BYTES + 2] == SYNC_1))
         rows = arr[cand[:, None] + np.arange(FRAME_BYTES)] if len(cand) else np.zeros((0, FRAME_BYTES), np.uint8)
-        crc_ok = crc16_rows(rows[:, 2:10]) == (rows[:, 10].astype(np.uint16) | (rows[:, 11].astype(np.uint16) << 8))
+        crc_ok = crc16_rows(rows[:, CRC_FIRST:CRC_STOP]) == (rows[:, OFFSET_CRC].astype(np.uint16)
+                                                             | (rows[:, OFFSET_CRC + 1].astype(np.uint16) << 8))
         starts = cand[crc_ok]
         # a valid frame may contain a false sync pattern with a (rare) valid CRC: keep non-overlapping ones
         if len(starts) > 1 and np.any(np.diff(starts) < FRAME_BYTES):

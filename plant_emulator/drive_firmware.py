@@ -1,7 +1,7 @@
 """Firmware of the emulated drive (node 5): CiA 402 profile torque + harmonic injection record.
 
 Object dictionary: drivers/eds/drive.eds, semantics: docs/interfaces.md. The fast control loop
-(current control, injection, delay) is in physics.py; this module is the slow firmware around it:
+(current control, injection, delay) is in physics/firmware.py; this module is the slow firmware around it:
 it validates SDO writes, stages setpoints, and hands them to the control loop at a chunk boundary.
 
 Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
@@ -11,7 +11,7 @@ chunk's first sample on and toggles the sync level there, so each event is exact
 toggle (two at the same sample would cancel). gamma_max (0x2000:5) takes effect at the next chunk
 without a toggle: it only clamps |theta|.
 
-LUT (0x2001): a download is parsed and checked (lut_image.parse, docs/interfaces.md "LUT image");
+LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
 download refused). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
 block) start: theta interpolated in (torque command, measured speed, measured U_dc), clamped to
@@ -31,10 +31,10 @@ from collections import deque
 import numpy as np
 from canopen.sdo import SdoAbortedError
 
+from drivers import lut_image
 from drivers.cia402 import State402
 
 from . import physics as ph
-from . import lut_image
 from .cia402_device import ABORT_VALUE_RANGE, Cia402Device
 
 ABORT_CANNOT_STORE = 0x08000020     # data cannot be transferred or stored to the application
@@ -112,7 +112,7 @@ class DriveFirmware(Cia402Device):
         elif index == 0x2001 and subindex == 1:
             blob = bytes(value)
             try:
-                lut = lut_image.parse(blob)
+                lut = lut_image.decode(blob)
             except lut_image.LutImageError as exc:
                 log.warning("drive: LUT download refused: %s", exc)
                 self.lut_status = 2

@@ -1,7 +1,7 @@
 """Firmware of the emulated load machine (node 6): CiA 402 profile velocity.
 
 Object dictionary: drivers/eds/load.eds. 0x60FF target velocity (rpm, mechanical) is followed through
-a ramp (scenario [load] ramp_rpm_per_s) and a PI speed loop (in physics.py) while OPERATION_ENABLED;
+a ramp (scenario [load] ramp_rpm_per_s) and a PI speed loop (physics/mechanics.py) while OPERATION_ENABLED;
 otherwise the machine is torque-free (the shaft coasts). 0x606C velocity actual (rpm), 0x6077 torque
 actual in mNm (the load EDS has no rated torque; drivers.load_machine scales 0.001 Nm per count),
 positive in the direction of rotation, i.e. negative while it brakes a motoring drive.

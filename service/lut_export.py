@@ -11,11 +11,8 @@ import csv
 import io
 import json
 import re
-import struct
-import zlib
 
-import numpy as np
-
+from drivers import lut_image as lut_codec
 from service import __version__
 
 
@@ -141,27 +138,14 @@ def export_dcm(m: dict) -> str:
     return "\n".join(out)
 
 
-LUT_MAGIC = b"RCL1"
-LUT_FORMAT_VERSION = 1
-LUT_MAX_CELLS = 4096
-
-
 def lut_image(m: dict) -> bytes:
-    """The binary image the drive takes on 0x2001:1 (docs/interfaces.md, "LUT image")."""
+    """The binary image the drive takes on 0x2001:1 (docs/interfaces.md, "LUT image"; encoded by
+    drivers.lut_image, the one definition the drive firmware decodes with). Raises ValueError if
+    the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
-    nt, nn, nu = (len(axes[k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
-    if nt * nn * nu > LUT_MAX_CELLS:
-        raise ValueError(f"map has {nt * nn * nu} cells; the drive takes at most {LUT_MAX_CELLS}")
-    for key in ("torque_nm", "speed_rpm", "udc_v"):
-        if any(b <= a for a, b in zip(axes[key], axes[key][1:])):
-            raise ValueError(f"axis {key} is not strictly increasing")
-    body = struct.pack("<4sHBBHHHH", LUT_MAGIC, LUT_FORMAT_VERSION, int(m["harmonic_order"]), 0, nt, nn, nu, 0)
-    for key in ("torque_nm", "speed_rpm", "udc_v"):
-        body += np.asarray(axes[key], dtype="<f4").tobytes()
-    body += np.asarray(_grid_values(m, "theta_cos"), dtype="<f4").tobytes()
-    body += np.asarray(_grid_values(m, "theta_sin"), dtype="<f4").tobytes()
-    body += np.asarray(_grid_values(m, "valid"), dtype=np.uint8).tobytes()
-    return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
+    return lut_codec.encode(m["harmonic_order"], *(axes[key] for key in lut_codec.AXES),
+                            _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin"),
+                            valid=_grid_values(m, "valid"))
 
 
 @dataclass(frozen=True)

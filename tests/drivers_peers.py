@@ -1,26 +1,23 @@
 """Real peers for the driver tests: the other end of each wire, built from the same parts.
 
-- Cia402Peer: a canopen LocalNode from the same EDS the client reads, on its own python-can `virtual`
-  bus instance; its 0x6040 write callback walks drivers.cia402.DEVICE_TRANSITIONS and updates 0x6041,
-  so client and server form a symmetric pair (as in canopen's test/test_local.py).
+- EmulatedDevice: one of the emulator's own CiA 402 devices (plant_emulator's DriveFirmware or
+  LoadMachineFirmware: canopen LocalNodes from the same EDS the client reads, walking
+  drivers.cia402.DEVICE_TRANSITIONS) on its own python-can `virtual` bus instance, so client and
+  server form a symmetric pair (as in canopen's test/test_local.py) and the driver tests meet the
+  device the emulated bench runs.
 - ScpiPeer: a tiny SCPI instrument on a 127.0.0.1 TCP socket (pyserial URL socket://127.0.0.1:PORT).
 """
 from __future__ import annotations
 
 import socket
-import struct
 import threading
 import uuid
-import zlib
 from pathlib import Path
 
 import can
 import canopen
-from canopen.sdo import SdoAbortedError
 
-from drivers.cia402 import DEVICE_TRANSITIONS, State402, decode_controlword, decode_statusword, encode_statusword
-
-ABORT_VALUE_RANGE_EXCEEDED = 0x06090030
+from plant_emulator.cia402_device import Cia402Device
 
 
 def unique_channel(prefix: str = "ripplecal-test") -> str:
@@ -28,82 +25,36 @@ def unique_channel(prefix: str = "ripplecal-test") -> str:
     return f"{prefix}-{uuid.uuid4().hex[:12]}"
 
 
-class Cia402Peer:
-    """A CiA 402 device as a canopen LocalNode on a virtual bus.
+class EmulatedDevice:
+    """An emulator device class (a Cia402Device subclass) booted on a virtual bus of its own.
 
-    writes: every SDO write the device accepted, as (index, subindex, value decoded per the EDS),
-    in order. The torque limit of the drive EDS (+-1000 per mille) is enforced with an SDO abort.
+    device: the emulator's device object (state, stored(), publish(), fault(), ...).
+    writes: every SDO write the device accepted, as (index, subindex, value decoded per the EDS), in
+    order: a write callback added after the device's own, which raises SdoAbortedError on a refusal
+    before this one runs.
     """
 
-    def __init__(self, channel: str, node_id: int, eds_path: Path, heartbeat_ms: int | None = None):
-        self.node_id = node_id
+    def __init__(self, device_class: type[Cia402Device], channel: str, node_id: int, eds_path: Path, **kwargs):
         self.network = canopen.Network(can.Bus(interface="virtual", channel=channel))
         self.network.NOTIFIER_CYCLE = 0.05
         self.network.connect()
-        self.node = canopen.LocalNode(node_id, str(eds_path))
-        self.network.add_node(self.node)
+        self.device = device_class(self.network, node_id, str(eds_path), **kwargs)
+        self.node = self.device.node
         self.writes: list[tuple[int, int, object]] = []
-        self.commits = 0
         self.lock = threading.Lock()
-        self.set_statusword(State402.SWITCH_ON_DISABLED)
-        self.node.add_write_callback(self._on_write)
-        self.node.add_read_callback(self._on_read)
-        if heartbeat_ms is not None:
-            self.node.data_store.setdefault(0x1017, {})[0] = struct.pack("<H", heartbeat_ms)
-        # INITIALISING -> PRE-OPERATIONAL starts the heartbeat producer with 0x1017 (NmtSlave)
-        self.node.nmt.state = "PRE-OPERATIONAL"
+        self.node.add_write_callback(self._record)
+        self.device.boot()
 
-    # -- object dictionary access -------------------------------------------------------------------
-    def set_value(self, index: int, subindex: int, value) -> None:
-        """Set an object the way the device firmware would (no write callbacks, not recorded)."""
-        od = self.node.object_dictionary.get_variable(index, subindex)
-        self.node.data_store.setdefault(index, {})[subindex] = od.encode_raw(value)
-
-    def value(self, index: int, subindex: int = 0):
-        od = self.node.object_dictionary.get_variable(index, subindex)
-        return od.decode_raw(self.node.get_data(index, subindex))
-
-    def set_statusword(self, state: State402) -> None:
-        self.set_value(0x6041, 0, encode_statusword(state))
-
-    @property
-    def state(self) -> State402:
-        return decode_statusword(self.value(0x6041))
+    def _record(self, index: int, subindex: int, od, data: bytes, **_kwargs) -> None:
+        with self.lock:
+            self.writes.append((index, subindex, od.decode_raw(data)))
 
     def writes_to(self, index: int, subindex: int = 0) -> list:
         with self.lock:
             return [v for (i, s, v) in self.writes if (i, s) == (index, subindex)]
 
-    # -- device behaviour ---------------------------------------------------------------------------
-    def _on_write(self, index: int, subindex: int, od, data: bytes, **_kwargs) -> None:
-        value = od.decode_raw(data)
-        if index == 0x6071 and not -1000 <= value <= 1000:
-            raise SdoAbortedError(ABORT_VALUE_RANGE_EXCEEDED)
-        with self.lock:
-            self.writes.append((index, subindex, value))
-        if index == 0x6040:
-            command = decode_controlword(value)
-            if command is not None:
-                new_state = DEVICE_TRANSITIONS.get((self.state, command))
-                if new_state is not None:
-                    self.set_statusword(new_state)
-        elif index == 0x2001 and subindex == 1:
-            self.set_value(0x2001, 2, zlib.crc32(bytes(data)) & 0xFFFFFFFF)
-            self.set_value(0x2001, 3, 1)
-        elif index == 0x2000 and subindex == 7 and value == 1:
-            with self.lock:
-                self.commits += 1
-
-    def _on_read(self, index: int, subindex: int, od, **_kwargs):
-        if index == 0x2000 and subindex == 7:
-            return self.commits % 256
-        return None
-
-    def stop_heartbeat(self) -> None:
-        self.node.nmt.stop_heartbeat()
-
     def close(self) -> None:
-        self.node.nmt.stop_heartbeat()
+        self.device.shutdown()
         self.network.disconnect()
 
 

@@ -1,7 +1,9 @@
-"""CANopen drivers against real canopen LocalNode peers on python-can virtual buses (no mocks).
+"""CANopen drivers against the emulator's own CiA 402 devices on python-can virtual buses (no mocks).
 
-The peers load the same EDS files as the clients and walk the same CiA 402 transition table, so these
-tests exercise the real SDO protocol, NMT, heartbeat and EMCY paths end to end.
+The devices are plant_emulator's DriveFirmware and LoadMachineFirmware: canopen LocalNodes that load
+the same EDS files as the clients and walk the same CiA 402 transition table, the very objects the
+emulated bench serves over socketcand. So these tests exercise the real SDO protocol, NMT,
+heartbeat and EMCY paths end to end, against the device the service meets on the emulated bench.
 """
 from __future__ import annotations
 
@@ -11,16 +13,19 @@ import threading
 import time
 import zlib
 
+import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from drivers import DRIVE_EDS, LOAD_EDS
+from drivers import DRIVE_EDS, LOAD_EDS, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus
 from drivers.errors import DriveFaultError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
-from drivers_peers import Cia402Peer, unique_channel
+from drivers_peers import EmulatedDevice, unique_channel
+from plant_emulator.drive_firmware import DriveFirmware
+from plant_emulator.load_machine import LoadMachineFirmware
 
 DRIVE_NODE = 5
 LOAD_NODE = 6
@@ -40,7 +45,7 @@ def bus(channel):
 
 @pytest.fixture
 def drive_peer(channel):
-    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS, heartbeat_ms=50)
+    peer = EmulatedDevice(DriveFirmware, channel, DRIVE_NODE, DRIVE_EDS)
     yield peer
     peer.close()
 
@@ -55,7 +60,7 @@ def drive(bus, drive_peer):
 
 @pytest.fixture
 def load_peer(channel):
-    peer = Cia402Peer(channel, LOAD_NODE, LOAD_EDS)
+    peer = EmulatedDevice(LoadMachineFirmware, channel, LOAD_NODE, LOAD_EDS)
     yield peer
     peer.close()
 
@@ -71,16 +76,16 @@ def wait_until(predicate, timeout_s: float, interval_s: float = 0.01) -> bool:
 
 def test_connect_configures_heartbeat_consumer_and_reads_rated_torque(drive, drive_peer):
     assert drive_peer.node.nmt.state == "OPERATIONAL"
-    assert drive_peer.value(0x1016, 1) == (SERVICE_NODE << 16) | 500
+    assert drive_peer.device.stored(0x1016, 1) == (SERVICE_NODE << 16) | 500
     assert drive.rated_torque_nm == pytest.approx(5.0)
-    assert drive.heartbeat_period_ms == 50
+    assert drive.heartbeat_period_ms == int(drive_peer.node.object_dictionary[0x1017].default)   # 100
 
 
 def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer):
     assert drive.state() is State402.SWITCH_ON_DISABLED
     drive.enable(timeout_s=2.0)
     assert drive.state() is State402.OPERATION_ENABLED
-    assert drive_peer.value(0x6060) == 4
+    assert drive_peer.device.stored(0x6060) == 4
     assert drive_peer.writes_to(0x6040) == [CONTROLWORD[Command402.SHUTDOWN], CONTROLWORD[Command402.SWITCH_ON],
                                             CONTROLWORD[Command402.ENABLE_OPERATION]]
     drive.set_torque_nm(1.0)
@@ -88,26 +93,27 @@ def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer
     drive.disable(timeout_s=2.0)
     assert drive.state() is State402.SWITCH_ON_DISABLED
     # the safety path made the drive harmless before switching the power stage off
-    assert drive_peer.value(0x6071) == 0
-    assert drive_peer.value(0x2000, 2) == 0
+    assert drive_peer.device.stored(0x6071) == 0
+    assert drive_peer.device.stored(0x2000, 2) == 0
 
 
 def test_enable_refuses_a_fault_and_only_fault_reset_clears_it(drive, drive_peer):
     """Issue 8: a drive fault is acknowledged by a person; enable() never resets it by itself."""
-    drive_peer.set_statusword(State402.FAULT)
+    drive_peer.device.fault(0x3210)                    # DC link over-voltage
     with pytest.raises(DriveFaultError, match=r"drive node 5 in FAULT.*fault reset"):
         drive.enable(timeout_s=2.0)
     assert CONTROLWORD[Command402.FAULT_RESET] not in drive_peer.writes_to(0x6040)
-    assert drive_peer.state is State402.FAULT
+    assert drive_peer.device.state is State402.FAULT
     assert drive.fault_reset(timeout_s=2.0) is True
     assert drive_peer.writes_to(0x6040)[-2:] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
+    assert drive_peer.device.error_code == 0
     drive.enable(timeout_s=2.0)
-    assert drive_peer.state is State402.OPERATION_ENABLED
+    assert drive_peer.device.state is State402.OPERATION_ENABLED
     assert drive.fault_reset() is False          # not in FAULT: nothing sent
 
 
 def test_enable_times_out_with_a_clear_error_when_the_device_does_not_follow(drive, drive_peer):
-    drive_peer.node._write_callbacks.remove(drive_peer._on_write)  # device ignores controlwords now
+    drive_peer.node._write_callbacks.remove(drive_peer.device._on_write)  # device ignores controlwords now
     with pytest.raises(StateTransitionError, match=r"drive node 5: .*SWITCH_ON_DISABLED.*after SHUTDOWN"):
         drive.enable(timeout_s=0.2)
 
@@ -117,11 +123,8 @@ def test_torque_is_sent_in_per_mille_of_rated_torque(drive, drive_peer):
     assert drive.set_torque_nm(-5.0) == -1000
     drive.set_torque_nm(0.0012)
     assert drive_peer.writes_to(0x6071) == [500, -1000, 0]
-    drive_peer.set_value(0x6077, 0, 498)
-    drive_peer.set_value(0x606C, 0, 2001)
-    drive_peer.set_value(0x6079, 0, 12_000)
-    drive_peer.set_value(0x2010, 1, -1.5)
-    drive_peer.set_value(0x2010, 2, 7.25)
+    # what the control loop publishes, served live by SDO: 0x6077 = 498 per mille, 0x6079 = 12000 mV
+    drive_peer.device.publish(speed_rpm=2001.0, torque_nm=2.49, udc_v=12.0, ud_ref_v=-1.5, uq_ref_v=7.25)
     status = drive.read_status()
     assert isinstance(status, DriveStatus)
     assert status == DriveStatus(state=State402.SWITCH_ON_DISABLED, torque_nm=pytest.approx(2.49),
@@ -166,18 +169,19 @@ def test_set_injection_writes_real32_pair_and_commits(drive, drive_peer):
     index_order = [(i, s) for (i, s, _v) in drive_peer.writes if i == 0x2000]
     assert index_order == [(0x2000, 3), (0x2000, 4), (0x2000, 7), (0x2000, 2), (0x2000, 3), (0x2000, 4), (0x2000, 7)]
     drive.injection_off()
-    assert drive_peer.value(0x2000, 2) == 0
+    assert drive_peer.device.stored(0x2000, 2) == 0
 
 
 def test_injection_parameters(drive, drive_peer):
     drive.set_harmonic_order(12)
     drive.set_gamma_max_rad(0.1)
     drive.set_decoupling(True)
-    assert drive_peer.value(0x2000, 1) == 12
-    assert drive_peer.value(0x2000, 5) == pytest.approx(0.1, rel=1e-6)
-    assert drive_peer.value(0x2000, 6) == 1
+    assert drive_peer.device.stored(0x2000, 1) == 12
+    assert drive_peer.device.stored(0x2000, 5) == pytest.approx(0.1, rel=1e-6)
+    assert drive_peer.device.gamma_max_rad == pytest.approx(0.1, rel=1e-6)
+    assert drive_peer.device.stored(0x2000, 6) == 1
     drive.set_decoupling(False)
-    assert drive_peer.value(0x2000, 6) == 0
+    assert drive_peer.device.stored(0x2000, 6) == 0
     for bad in (0, 256, 2.5):
         with pytest.raises(ValueError):
             drive.set_harmonic_order(bad)
@@ -198,7 +202,7 @@ def test_sdo_timeout_on_missing_node_names_the_object(bus, drive_peer):
 
 
 def test_disable_tries_every_step_and_raises_the_first_error(bus, channel):
-    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS)
+    peer = EmulatedDevice(DriveFirmware, channel, DRIVE_NODE, DRIVE_EDS)
     try:
         client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.1)
         client.connect()
@@ -211,15 +215,15 @@ def test_disable_tries_every_step_and_raises_the_first_error(bus, channel):
         peer.node._write_callbacks.insert(0, refuse_injection)
         with pytest.raises(SdoAbortError, match=r"0x2000:02 'Harmonic injection.Injection mode'.*0x08000022"):
             client.disable()
-        assert peer.value(0x6071) == 0
-        assert peer.state is State402.SWITCH_ON_DISABLED
+        assert peer.device.stored(0x6071) == 0
+        assert peer.device.state is State402.SWITCH_ON_DISABLED
         client.close()
     finally:
         peer.close()
 
 
 def test_can_bus_produces_service_heartbeat(channel):
-    peer = Cia402Peer(channel, DRIVE_NODE, DRIVE_EDS)
+    peer = EmulatedDevice(DriveFirmware, channel, DRIVE_NODE, DRIVE_EDS)
     frames: list[tuple[float, bytes]] = []
     peer.network.subscribe(0x701, lambda can_id, data, ts: frames.append((time.monotonic(), bytes(data))))
     try:
@@ -236,10 +240,11 @@ def test_can_bus_produces_service_heartbeat(channel):
 def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
     assert wait_until(drive.heartbeat_alive, 1.0)
     assert wait_until(lambda: drive.nmt_state == 5, 1.0)  # the NMT start command took effect
-    drive_peer.node.emcy.send(0x8130, 0x11)
+    drive_peer.device.heartbeat_lost()                 # the drive's own reaction: FAULT and EMCY 0x8130
     assert wait_until(lambda: len(drive.emcy_log) == 1, 1.0)
     assert drive.emcy_log[0].code == 0x8130
-    drive_peer.stop_heartbeat()
+    assert drive.state() is State402.FAULT
+    drive_peer.device.shutdown()                       # the producer heartbeat stops
     assert wait_until(lambda: not drive.heartbeat_alive(), 1.0)
 
 
@@ -247,17 +252,16 @@ def test_load_client_enables_and_sets_speed(bus, load_peer):
     load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=0.5)
     load.connect()
     load.enable()
-    assert load_peer.state is State402.OPERATION_ENABLED
-    assert load_peer.value(0x6060) == 3
+    assert load_peer.device.state is State402.OPERATION_ENABLED
+    assert load_peer.device.stored(0x6060) == 3
     assert load.set_speed_rpm(2000.4) == 2000
     assert load_peer.writes_to(0x60FF) == [2000]
-    load_peer.set_value(0x606C, 0, 1998)
-    load_peer.set_value(0x6077, 0, -250)
+    load_peer.device.publish(speed_rpm=1998.0, torque_nm=-0.25)     # served as 1998 rpm and -250 mNm
     status = load.read_status()
     assert status == LoadStatus(state=State402.OPERATION_ENABLED, speed_rpm=1998.0, torque_nm=pytest.approx(-0.25))
     load.disable()
     assert load_peer.writes_to(0x60FF)[-1] == 0
-    assert load_peer.state is State402.SWITCH_ON_DISABLED
+    assert load_peer.device.state is State402.SWITCH_ON_DISABLED
     load.close()
 
 
@@ -301,11 +305,20 @@ def test_clients_need_a_connected_bus(channel):
 
 
 def test_lut_download_is_segmented_and_crc_checked(drive, drive_peer):
-    blob = bytes(range(256)) * 5  # 1280 bytes: many segments
+    n_t, n_n, n_u = 8, 6, 3     # 144 cells: a 1505-byte image, many segments
+    cells = np.arange(n_t * n_n * n_u, dtype=float)
+    blob = lut_image.encode(6, np.linspace(0.5, 4.0, n_t), np.linspace(500.0, 3000.0, n_n), [10.0, 12.0, 14.0],
+                            1e-4 * cells, -2e-4 * cells)
+    assert len(blob) > 1000
     crc = drive.download_lut(blob)
     assert crc == zlib.crc32(blob)
     assert drive_peer.writes_to(0x2001, 1) == [blob]
     assert drive.lut_status() == 1
-    drive_peer.node._write_callbacks.remove(drive_peer._on_write)  # the device stops updating its CRC
+    assert drive_peer.device.lut.crc == crc            # the drive decoded it and holds it in force
+    # a malformed image is refused by the drive itself (SDO abort), and its LUT stays
+    with pytest.raises(SdoAbortError, match="0x08000020"):
+        drive.download_lut(blob[:-1] + bytes([blob[-1] ^ 1]))
+    assert drive.lut_status() == 2 and drive_peer.device.lut.crc == crc
+    drive_peer.node._write_callbacks.remove(drive_peer.device._on_write)  # the device stops updating its CRC
     with pytest.raises(SdoError, match="LUT CRC-32 read-back"):
         drive.download_lut(b"other table")

@@ -3,6 +3,7 @@ injection = interpolated theta, the eq. 11 switch 0x2000:8."""
 from __future__ import annotations
 
 import math
+import struct
 import zlib
 
 import canopen
@@ -10,8 +11,8 @@ import numpy as np
 import pytest
 
 from drivers import DRIVE_EDS
+from drivers import lut_image
 from drivers.cia402 import State402
-from plant_emulator import lut_image
 from plant_emulator import physics as ph
 from plant_emulator.drive_firmware import DriveFirmware
 
@@ -41,7 +42,16 @@ def read(d, index, sub):
 def image(scale=1.0, valid=None, h=6):
     tc = scale * np.arange(6, dtype=float).reshape(1, 2, 3) * 0.01
     ts = -scale * np.arange(6, dtype=float)[::-1].reshape(1, 2, 3) * 0.005
-    return lut_image.build(h, T_AX, N_AX, U_AX, tc, ts, valid), tc, ts
+    return lut_image.encode(h, T_AX, N_AX, U_AX, tc, ts, valid), tc, ts
+
+
+def with_repeated_torque_value(blob: bytes) -> bytes:
+    """The image with its second torque axis value set to the first (CRC made valid again): the
+    encoder refuses such an axis, so the refusal of the drive is tested on bytes patched by hand."""
+    body = bytearray(blob[:-4])
+    first = struct.unpack_from("<f", body, lut_image.HEADER.size)[0]
+    struct.pack_into("<f", body, lut_image.HEADER.size + 4, first)
+    return bytes(body) + struct.pack("<I", zlib.crc32(body))
 
 
 def test_download_crc_read_back_and_refusal_keeps_old_lut(drive):
@@ -52,7 +62,7 @@ def test_download_crc_read_back_and_refusal_keeps_old_lut(drive):
     for bad in (good[:-1] + bytes([good[-1] ^ 1]),                     # CRC
                 b"XCL1" + good[4:],                                     # magic
                 good[:40],                                              # length
-                lut_image.build(6, [1.0, 1.0, 2.0], N_AX, U_AX, np.zeros(6), np.zeros(6))):  # axis
+                with_repeated_torque_value(good)):                      # axis
         with pytest.raises(canopen.SdoAbortedError) as exc:
             write(drive, 0x2001, 1, bad)
         assert exc.value.code == 0x08000020

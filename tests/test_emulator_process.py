@@ -210,9 +210,9 @@ def control(emulator, cmd: dict) -> dict:
 def test_lut_download_over_sdo_segmented(bench):
     import zlib
 
-    from plant_emulator import lut_image
+    from drivers import lut_image
     drive = bench["drive"]
-    good = lut_image.build(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02))
+    good = lut_image.encode(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02))
     drive.sdo.download(0x2001, 1, good, force_segment=True)
     assert drive.sdo[0x2001][2].raw == zlib.crc32(good)
     assert drive.sdo[0x2001][3].raw == 1

@@ -24,7 +24,7 @@ H = 6
 def firmware_reference(sc: scn.Scenario, torque_nm: float, speed_rpm: float, udc_v: float) -> tuple[float, float]:
     """(i_d*, i_q*) as a firmware with the [firmware] parameters must choose them: minimum current
     for the torque (MTPA) while the steady |u| stays below margin * U_dc/sqrt(3); else the i_d >= -I_max
-    that puts |u| on that limit (field weakening). Solved numerically, independently of physics.py."""
+    that puts |u| on that limit (field weakening). Solved numerically, independently of plant_emulator.physics."""
     fw = sc.section("firmware")
     n_p = sc.section("machine")["pole_pairs"]
     r, ld, lq, psi = fw["r_s_ohm"], fw["l_d_h"], fw["l_q_h"], fw["psi_p_wb"]
