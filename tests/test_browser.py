@@ -372,6 +372,10 @@ def test_sweep_from_the_form_shows_its_map_and_a_cell_opens_its_result(service, 
     that cell's result in the result view."""
     context, page, rec = _open(browser, service["base"])
     try:
+        # progress comes over SSE; a sweep that finishes before the stream is open would be missed
+        # (the list is polled only while SSE is down), so start it once the page is live
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
         page.fill('[data-testid="token"]', service["token"])
         page.fill('[data-testid="sweep-torque"]', "2.5")
         page.fill('[data-testid="sweep-speed"]', "2000")
@@ -422,5 +426,33 @@ def test_sweep_from_the_form_shows_its_map_and_a_cell_opens_its_result(service, 
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         assert not rec["console"], f"console errors: {rec['console']}"
         page.screenshot(path=str(tmp_path / "sweep_map_result.png"), full_page=True)
+    finally:
+        context.close()
+
+
+def test_dashboard_polls_bench_status_and_sweeps_while_sse_is_refused(service, browser):
+    """events.js: without the SSE stream the page polls /bench/status (every 2 s) and the sweep list
+    (every 5 s), says so in the live indicator, and the panels fill as they do over SSE."""
+    base = service["base"]
+    context = browser.new_context(viewport={"width": 1600, "height": 1000})
+    page = context.new_page()
+    pageerrors, polls = [], []
+    page.on("pageerror", lambda e: pageerrors.append(str(e)))
+    page.on("request", lambda r: polls.append((time.monotonic(), r.url)))
+    try:
+        page.route("**/api/v1/events", lambda route: route.fulfill(status=503, body="no stream in this test"))
+        page.goto(base + "/", wait_until="load")
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'poll'""", timeout=10_000)
+        assert page.inner_text('[data-testid="live-mode"]').strip() == "polling every 2 s"
+        assert DRIVE_STATES.match(page.text_content('[data-testid="drive-state"]').strip())
+        start = time.monotonic()
+        page.wait_for_timeout(6_500)
+        status_polls = [u for t, u in polls if t >= start and u == base + "/api/v1/bench/status"]
+        sweep_polls = [u for t, u in polls if t >= start and u == base + "/api/v1/sweeps"]
+        assert 2 <= len(status_polls) <= 5, status_polls
+        assert len(sweep_polls) >= 1, sweep_polls
+        assert page.get_attribute('[data-testid="live-mode"]', "data-mode") == "poll"
+        assert not pageerrors, pageerrors
     finally:
         context.close()
