@@ -1,7 +1,8 @@
 // ripplecal dashboard: bench status (SSE with polling fallback), sweeps, compensation maps,
 // single identifications and the result view (paper Fig. 8, 9, 10). Native ES modules, no build
 // step. This module wires the others: it subscribes the panels to the live events, hands each
-// panel what it may ask of another, and starts every timer. Nothing runs on import elsewhere.
+// panel what it may ask of another, and starts every periodic timer (the fallback poll of
+// /bench/status through events.start()). No other module does anything on import.
 import * as api from "./api.js";
 import * as events from "./events.js";
 import * as benchStatus from "./panels/bench-status.js";
