@@ -22,6 +22,7 @@ import pytest
 pytestmark = pytest.mark.browser
 
 REPO = Path(__file__).resolve().parents[1]
+WEB_MODULES = REPO / "web" / "js"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
     "--no-sandbox",
@@ -148,11 +149,12 @@ def _open(browser, base):
     """A fresh page on the dashboard that records console errors, page errors and requests."""
     context = browser.new_context(viewport={"width": 1600, "height": 1000})
     page = context.new_page()
-    rec = {"console": [], "pageerrors": [], "requests": [], "failed": []}
+    rec = {"console": [], "pageerrors": [], "requests": [], "failed": [], "responses": {}}
     page.on("console", lambda m: rec["console"].append(f"{m.type}: {m.text}") if m.type == "error" else None)
     page.on("pageerror", lambda e: rec["pageerrors"].append(str(e)))
     page.on("request", lambda r: rec["requests"].append(r.url))
     page.on("requestfailed", lambda r: rec["failed"].append(f"{r.url}: {r.failure}"))
+    page.on("response", lambda r: rec["responses"].__setitem__(r.url, (r.status, r.headers.get("content-type", ""))))
     page.goto(base + "/", wait_until="load")
     return context, page, rec
 
@@ -218,6 +220,38 @@ def test_dashboard_shows_live_bench_status(service, browser, tmp_path):
         context.close()
 
 
+def test_dashboard_loads_every_module_as_javascript_without_errors(service, browser):
+    """index.html loads web/js/main.js as an ES module; it imports every other module under web/js,
+    each served with a JavaScript MIME type (browsers refuse a module script otherwise), and the
+    page runs without console errors or uncaught exceptions."""
+    base = service["base"]
+    expected = {base + "/static/js/" + f.relative_to(WEB_MODULES).as_posix() for f in WEB_MODULES.rglob("*.js")}
+    assert base + "/static/js/main.js" in expected
+    context, page, rec = _open(browser, base)
+    try:
+        assert page.evaluate("document.querySelector('script[src=\"/static/js/main.js\"]').type") == "module"
+        # main.js's init() ran: the live indicator left "connecting", the Identify panel set its example
+        try:
+            page.wait_for_function(
+                """() => document.querySelector('[data-testid="live-mode"]').dataset.mode !== 'connecting'
+                    && document.querySelector('[data-testid="identify-options"]').placeholder.includes('mu_per_s')""",
+                timeout=15_000)
+        except Exception:
+            raise AssertionError("the modules did not start the page:\nJavaScript errors: %s\nconsole errors: %s\n"
+                                 "failed requests: %s" % (rec["pageerrors"], rec["console"], rec["failed"]))
+        loaded = {u: v for u, v in rec["responses"].items() if u.startswith(base + "/static/js/")}
+        missing = sorted(expected - set(loaded))
+        assert not missing, f"modules under web/js never loaded by the page (dead or not imported): {missing}"
+        for url, (status, ctype) in loaded.items():
+            assert status in (200, 304), f"{url}: HTTP {status}"
+            assert ctype.split(";")[0].strip() in ("text/javascript", "application/javascript"), f"{url}: {ctype!r}"
+        page.wait_for_timeout(1500)
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+    finally:
+        context.close()
+
+
 def test_sweep_form_without_token_shows_auth_error(service, browser):
     """POST /sweeps without a token is refused (nothing moves); the page says why."""
     context, page, rec = _open(browser, service["base"])
@@ -233,6 +267,8 @@ def test_sweep_form_without_token_shows_auth_error(service, browser):
         assert "token missing or invalid" in err.inner_text()
         assert page.is_hidden('[data-testid="sweep-ok"]')
         assert not rec["pageerrors"], rec["pageerrors"]
+        # the refused POST is the only console error (Chromium logs every failed fetch)
+        assert all("401" in m or "403" in m for m in rec["console"]), rec["console"]
     finally:
         context.close()
 
@@ -270,7 +306,8 @@ def test_identify_panel_runs_probe_and_shows_result(service, browser, tmp_path):
                    err.inner_text() if err.is_visible() else None,
                    rec["console"] + rec["pageerrors"], _log_tail(service["log"])))
         state = page.get_attribute('[data-testid="identify-state"]', "data-state")
-        assert state == "done", f"job {state}: {page.text_content('[data-testid=identify-note]')}"
+        assert state == "done", (f"job {state}: {page.text_content('[data-testid=identify-note]')}; "
+                                 f"{page.text_content('[data-testid=identify-error]')}\nservice log:\n{_log_tail(service['log'])}")
         assert page.is_hidden('[data-testid="identify-error"]'), page.inner_text('[data-testid="identify-error"]')
 
         # the result view shows this job's result, with its numbers
@@ -322,5 +359,100 @@ def test_identify_panel_runs_probe_and_shows_result(service, browser, tmp_path):
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         assert not rec["console"], f"console errors: {rec['console']}"
         page.screenshot(path=str(tmp_path / "identify.png"), full_page=True)
+    finally:
+        context.close()
+
+
+SWEEP_TIMEOUT_MS = 120_000
+
+
+def test_sweep_from_the_form_shows_its_map_and_a_cell_opens_its_result(service, browser, tmp_path):
+    """The panels meet only through events and main.js: a sweep started in the Sweeps panel reports
+    progress over SSE, its finished map comes up in the Map panel, and a click on a map cell opens
+    that cell's result in the result view."""
+    context, page, rec = _open(browser, service["base"])
+    try:
+        # progress comes over SSE; a sweep that finishes before the stream is open would be missed
+        # (the list is polled only while SSE is down), so start it once the page is live
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
+        page.fill('[data-testid="token"]', service["token"])
+        page.fill('[data-testid="sweep-torque"]', "2.5")
+        page.fill('[data-testid="sweep-speed"]', "2000")
+        page.fill('[data-testid="sweep-udc"]', "12")
+        page.select_option('[data-testid="sweep-method"]', "probe")
+        page.click('[data-testid="sweep-submit"]')
+        ok = page.locator('[data-testid="sweep-ok"]')
+        ok.wait_for(state="visible", timeout=10_000)
+        sweep_id = re.search(r"Sweep (\d+) accepted", ok.inner_text()).group(1)
+        row = f'[data-testid="sweep-row"][data-sweep-id="{sweep_id}"]'
+        try:
+            page.wait_for_function(
+                f"""() => {{
+                    const r = document.querySelector('{row}');
+                    return r && ['done', 'failed', 'cancelled'].includes(r.dataset.state);
+                }}""",
+                timeout=SWEEP_TIMEOUT_MS,
+            )
+            assert page.get_attribute(row, "data-state") == "done", page.inner_text(row)
+            # the Map panel brings up the sweep's map by itself (sweep.progress done -> map)
+            page.wait_for_function(
+                """() => /finished — showing its map/.test(document.querySelector('[data-testid="map-note"]').textContent)
+                    && document.querySelector('[data-testid="plot-gamma"]').classList.contains('js-plotly-plot')""",
+                timeout=15_000,
+            )
+        except Exception:
+            page.screenshot(path=str(tmp_path / "sweep_failure.png"), full_page=True)
+            raise AssertionError("sweep or its map not shown: row=%r map-note=%r\nconsole: %s\nservice log:\n%s"
+                                 % (page.text_content(row), page.text_content('[data-testid="map-note"]'),
+                                    rec["console"] + rec["pageerrors"], _log_tail(service["log"])))
+        map_link = page.locator(f"{row} .map-cell a")
+        map_id = map_link.inner_text().split()[-1]
+        assert page.input_value('[data-testid="map-select"]') == map_id
+        assert "1 cells (" in page.inner_text('[data-testid="map-meta"]')
+        # the row's map link selects that map (Sweeps panel -> Map panel, through main.js)
+        map_link.click()
+        assert page.input_value('[data-testid="map-select"]') == map_id
+
+        # one cell, so the middle of the plot area is that cell
+        page.locator('[data-testid="plot-gamma"] .nsewdrag').first.click()
+        page.wait_for_function(
+            """() => /from map/.test(document.querySelector('[data-testid="result-title"]').textContent)""",
+            timeout=10_000,
+        )
+        assert page.inner_text('[data-testid="result-status"]').strip() in ("ok", "below_target", "no_authority", "failed")
+        assert "probe" in page.inner_text('[data-testid="result-title"]')
+        assert page.get_attribute('[data-testid="result-view"]', "data-empty") == ""
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+        page.screenshot(path=str(tmp_path / "sweep_map_result.png"), full_page=True)
+    finally:
+        context.close()
+
+
+def test_dashboard_polls_bench_status_and_sweeps_while_sse_is_refused(service, browser):
+    """events.js: without the SSE stream the page polls /bench/status (every 2 s) and the sweep list
+    (every 5 s), says so in the live indicator, and the panels fill as they do over SSE."""
+    base = service["base"]
+    context = browser.new_context(viewport={"width": 1600, "height": 1000})
+    page = context.new_page()
+    pageerrors, polls = [], []
+    page.on("pageerror", lambda e: pageerrors.append(str(e)))
+    page.on("request", lambda r: polls.append((time.monotonic(), r.url)))
+    try:
+        page.route("**/api/v1/events", lambda route: route.fulfill(status=503, body="no stream in this test"))
+        page.goto(base + "/", wait_until="load")
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'poll'""", timeout=10_000)
+        assert page.inner_text('[data-testid="live-mode"]').strip() == "polling every 2 s"
+        assert DRIVE_STATES.match(page.text_content('[data-testid="drive-state"]').strip())
+        start = time.monotonic()
+        page.wait_for_timeout(6_500)
+        status_polls = [u for t, u in polls if t >= start and u == base + "/api/v1/bench/status"]
+        sweep_polls = [u for t, u in polls if t >= start and u == base + "/api/v1/sweeps"]
+        assert 2 <= len(status_polls) <= 5, status_polls
+        assert len(sweep_polls) >= 1, sweep_polls
+        assert page.get_attribute('[data-testid="live-mode"]', "data-mode") == "poll"
+        assert not pageerrors, pageerrors
     finally:
         context.close()

@@ -1,0 +1,282 @@
+// Plotly figure builders: data in, {data, layout, config} out. The only module that talks to
+// Plotly (window.Plotly, from /vendor/plotly.min.js, loaded before the modules).
+import { escapeHtml, fmt } from "./format.js";
+
+const FONT = { family: "system-ui, -apple-system, Segoe UI, Roboto, sans-serif", size: 11 };
+const CONFIG = { displaylogo: false, responsive: true };
+const C_BEFORE = "#9aa4b2";
+const C_AFTER = "#1b5fae";
+const C_COS = "#1b5fae";
+const C_SIN = "#d1495b";
+
+export function plotlyLoaded() {
+  return Boolean(window.Plotly);
+}
+
+export function draw(divId, figure) {
+  window.Plotly.react(divId, figure.data, figure.layout, figure.config);
+}
+
+export function purge(divId) {
+  if (window.Plotly) window.Plotly.purge(divId);
+}
+
+// fn(point) on a click on a drawn figure; bound once per div.
+export function onClick(divId, fn) {
+  const div = document.getElementById(divId);
+  if (div.dataset.clickBound || typeof div.on !== "function") return;
+  div.dataset.clickBound = "1";
+  div.on("plotly_click", (ev) => {
+    const pt = ev && ev.points && ev.points[0];
+    if (pt) fn(pt);
+  });
+}
+
+// ------------------------------------------------------------------ compensation map
+// gamma = |theta| (>= 0, clamped to gamma_max); delta = -atan2(theta_sin, theta_cos) is a phase,
+// so it gets a cyclic colour scale over a full turn.
+const CYCLIC = [[0, "#3b6fb6"], [0.25, "#3aa57a"], [0.5, "#e8c547"], [0.75, "#d1495b"], [1, "#3b6fb6"]];
+export const MAP_QUANTITIES = [
+  { key: "gamma_deg", title: "γ — injection amplitude", unit: "deg", cbar: "γ (°)", sym: "γ",
+    scale: "Viridis", range: "zero", digits: 2 },
+  { key: "delta_deg", title: "δ — injection phase", unit: "deg", cbar: "δ (°)", sym: "δ",
+    scale: CYCLIC, range: "phase", digits: 1 },
+  { key: "suppression_db", title: "suppression of the h-th harmonic", unit: "dB", cbar: "dB",
+    sym: "suppression", scale: "Cividis", range: "auto", digits: 1 },
+];
+
+// The cells of `map` at one DC-link voltage: torque on x, speed on y.
+export function mapSlice(map, udc) {
+  const cells = map.cells.filter((c) => Number(c.udc_v) === udc);
+  const axis = (key) => ((map.axes && map.axes[key]) || [...new Set(cells.map((c) => c[key]))])
+    .slice().sort((a, b) => a - b);
+  return { udc, cells, xs: axis("torque_nm"), ys: axis("speed_rpm") };
+}
+
+// One heatmap of a MAP_QUANTITIES entry; blank where a cell has no valid value.
+export function mapHeatmap(slice, q) {
+  const { udc, cells, xs, ys } = slice;
+  const xi = new Map(xs.map((v, i) => [Number(v), i]));
+  const yi = new Map(ys.map((v, i) => [Number(v), i]));
+  const z = ys.map(() => xs.map(() => null));
+  const text = ys.map((n) => xs.map((t) =>
+    `T* ${t} N·m<br>n ${n} rpm<br>U<sub>dc</sub> ${udc} V<br><i>no cell</i>`));
+  for (const c of cells) {
+    const i = yi.get(Number(c.speed_rpm));
+    const j = xi.get(Number(c.torque_nm));
+    if (i === undefined || j === undefined) continue;
+    const head = `T* ${fmt(c.torque_nm)} N·m<br>n ${fmt(c.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(c.udc_v)} V<br>`;
+    const click = c.result_id ? "<br><i>click: result details</i>" : "";
+    const v = c[q.key];
+    if (c.status === "ok" && v !== null && v !== undefined) {
+      z[i][j] = v;
+      text[i][j] = head + `<b>${q.sym} = ${Number(v).toFixed(q.digits)} ${q.unit === "deg" ? "°" : q.unit}</b>` + click;
+    } else {
+      text[i][j] = head + `<b>status: ${escapeHtml(String(c.status))}</b> (no value)` + click;
+    }
+  }
+  const trace = {
+    type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>",
+    hoverongaps: true, colorscale: q.scale,
+    xgap: 1, ygap: 1,
+    colorbar: { title: { text: q.cbar, side: "right" }, thickness: 12, len: 0.9 },
+  };
+  const finite = z.flat().filter((v) => v !== null);
+  if (q.range === "zero" && finite.length) {
+    trace.zmin = 0;
+    trace.zmax = Math.max(...finite, 1e-6);
+  } else if (q.range === "phase") {
+    const lo = finite.length ? Math.min(...finite) : 0;
+    const hi = finite.length ? Math.max(...finite) : 0;
+    [trace.zmin, trace.zmax] = (lo >= 0 && hi > 180) ? [0, 360] : [-180, 180];
+    trace.colorbar.tickvals = trace.zmin === 0 ? [0, 90, 180, 270, 360] : [-180, -90, 0, 90, 180];
+  }
+  const layout = {
+    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V`, font: { size: 13 }, x: 0.02, xanchor: "left" },
+    margin: { l: 58, r: 10, t: 36, b: 44 },
+    xaxis: { title: { text: "torque T* (N·m)" }, tickvals: xs.length <= 12 ? xs : undefined, zeroline: false },
+    yaxis: { title: { text: "speed n (rpm)" }, tickvals: ys.length <= 12 ? ys : undefined, zeroline: false },
+    font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
+  };
+  return { data: [trace], layout, config: CONFIG };
+}
+
+// ------------------------------------------------------------------ one result (paper Fig. 8, 9, 10)
+function baseLayout(title, xTitle, yTitle, extra) {
+  return Object.assign({
+    title: { text: title, font: { size: 13 }, x: 0.02, xanchor: "left" },
+    margin: { l: 64, r: 12, t: 36, b: 44 },
+    xaxis: { title: { text: xTitle }, zeroline: false },
+    yaxis: { title: { text: yTitle }, zeroline: false },
+    legend: { orientation: "h", x: 1, xanchor: "right", y: 1.02, yanchor: "bottom", font: { size: 10 } },
+    font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#f7f8fa",
+  }, extra || {});
+}
+
+// Column `name` of trace rows, by the stored column list or at index `fallback`.
+function column(rows, names, name, fallback) {
+  const i = Array.isArray(names) ? names.indexOf(name) : -1;
+  const k = i >= 0 ? i : fallback;
+  return rows.map((row) => (Array.isArray(row) ? row[k] : null));
+}
+
+function thetaHistory(r) {
+  const tr = r.traces || {};
+  const rows = Array.isArray(tr.theta_history) ? tr.theta_history : [];
+  if (rows.length === 0) return null;
+  const cols = tr.theta_history_columns;
+  return {
+    t: column(rows, cols, "plant_time_s", 0),
+    cos: column(rows, cols, "theta_cos", 1),
+    sin: column(rows, cols, "theta_sin", 2),
+    amplitude: column(rows, cols, "amplitude_fs", 3),
+  };
+}
+
+// Fig. 9: theta_cos and theta_sin over plant time; null without a theta history.
+export function thetaTransient(r) {
+  const h = thetaHistory(r);
+  if (!h) return null;
+  return {
+    data: [
+      { x: h.t, y: h.cos, name: "θ_cos", mode: "lines+markers", line: { color: C_COS, width: 2 }, marker: { size: 5 },
+        hovertemplate: "t %{x:.4f} s<br>θ_cos %{y:.5f} rad<extra></extra>" },
+      { x: h.t, y: h.sin, name: "θ_sin", mode: "lines+markers", line: { color: C_SIN, width: 2 }, marker: { size: 5 },
+        hovertemplate: "t %{x:.4f} s<br>θ_sin %{y:.5f} rad<extra></extra>" },
+    ],
+    layout: baseLayout(`Fig. 9 — θ transient (${escapeHtml(String(r.method))})`, "plant time t (s)", "θ (rad)"),
+    config: CONFIG,
+  };
+}
+
+// Fig. 9: the h-th amplitude per window (log), the -40 dB line and the verified residual.
+export function amplitudeTransient(r) {
+  const h = thetaHistory(r);
+  if (!h) return null;
+  const d = r.details || {};
+  const shapes = [];
+  const annotations = [];
+  const u0 = r.uncompensated && Number(r.uncompensated.amplitude);
+  if (u0 > 0) {
+    shapes.push({ type: "line", xref: "paper", x0: 0, x1: 1, y0: u0 / 100, y1: u0 / 100,
+      line: { color: "#667085", width: 1, dash: "dot" } });
+    annotations.push({ xref: "paper", x: 1, y: Math.log10(u0 / 100), text: "−40 dB", showarrow: false,
+      xanchor: "right", yanchor: "bottom", font: { size: 10, color: "#667085" } });
+  }
+  if (Number.isFinite(Number(d.time_to_40db_s))) {
+    shapes.push({ type: "line", yref: "paper", y0: 0, y1: 1, x0: d.time_to_40db_s, x1: d.time_to_40db_s,
+      line: { color: "#3a9d63", width: 1, dash: "dash" } });
+  }
+  const data = [{ x: h.t, y: h.amplitude, name: "|a_h| per window", mode: "lines+markers",
+    line: { color: C_AFTER, width: 2 }, marker: { size: 5 },
+    hovertemplate: "t %{x:.4f} s<br>|a| %{y:.3e} FS<extra></extra>" }];
+  if (r.residual && Number(r.residual.amplitude) > 0 && Number.isFinite(Number(r.plant_time_s))) {
+    data.push({ x: [r.plant_time_s], y: [r.residual.amplitude], name: "verified residual", mode: "markers",
+      marker: { symbol: "star", size: 11, color: "#3a9d63" },
+      hovertemplate: "t %{x:.4f} s<br>residual |a| %{y:.3e} FS<extra></extra>" });
+  }
+  return {
+    data,
+    layout: baseLayout(`Fig. 9 — h-th harmonic amplitude (h = ${escapeHtml(fmt(r.harmonic_order))})`,
+      "plant time t (s)", "|a_h| (FS, log)", { shapes, annotations,
+        yaxis: { title: { text: "|a_h| (FS, log)" }, type: "log", exponentformat: "power" } }),
+    config: CONFIG,
+  };
+}
+
+// Fig. 10: spectrum of alpha (orders 1..n) before and after; null without a stored spectrum.
+export function spectrum(r) {
+  const tr = r.traces || {};
+  const sb = Array.isArray(tr.spectrum_before) ? tr.spectrum_before : [];
+  const sa = Array.isArray(tr.spectrum_after) ? tr.spectrum_after : [];
+  if (sb.length === 0 && sa.length === 0) return null;
+  const orders = (arr) => arr.map((_, i) => i + 1);
+  const h = Number(r.harmonic_order);
+  const hb = sb[h - 1];
+  const ha = sa[h - 1];
+  const annotations = [];
+  if (Number.isFinite(h) && (hb > 0 || ha > 0)) {
+    annotations.push({ x: h, y: Math.log10(Math.max(hb || 0, ha || 0)), text: `h = ${h}`, showarrow: true,
+      arrowhead: 0, ax: 24, ay: -18, font: { size: 10 } });
+  }
+  const n = Math.max(sb.length, sa.length);
+  return {
+    data: [
+      { type: "bar", x: orders(sb), y: sb, name: "before (θ = 0)", marker: { color: C_BEFORE },
+        hovertemplate: "order %{x}<br>%{y:.3e} FS<extra>before</extra>" },
+      { type: "bar", x: orders(sa), y: sa, name: "after (identified θ)", marker: { color: C_AFTER },
+        hovertemplate: "order %{x}<br>%{y:.3e} FS<extra>after</extra>" },
+    ],
+    layout: baseLayout("Fig. 10 — spectrum of α", "electrical order k (× f_e)", "amplitude |a_k| (FS, log)", {
+      barmode: "group", bargap: 0.2, annotations,
+      xaxis: { title: { text: "electrical order k (× f_e)" }, tickmode: "linear", dtick: n > 12 ? 2 : 1, range: [0.4, n + 0.6] },
+      yaxis: { title: { text: "amplitude |a_k| (FS, log)" }, type: "log", exponentformat: "power" },
+    }),
+    config: CONFIG,
+  };
+}
+
+// Fig. 10: alpha over the electrical angle before and after; null without stored snippets.
+export function alphaSnippets(r) {
+  const tr = r.traces || {};
+  const ab = tr.alpha_before || {};
+  const aa = tr.alpha_after || {};
+  if (!Array.isArray(ab.alpha_fs) && !Array.isArray(aa.alpha_fs)) return null;
+  return {
+    data: [
+      { x: ab.angle_rad || [], y: ab.alpha_fs || [], name: "before (θ = 0)", mode: "lines",
+        line: { color: C_BEFORE, width: 1.2 }, hovertemplate: "φ_e %{x:.3f} rad<br>α %{y:.5f} FS<extra>before</extra>" },
+      { x: aa.angle_rad || [], y: aa.alpha_fs || [], name: "after (identified θ)", mode: "lines",
+        line: { color: C_AFTER, width: 1.2 }, hovertemplate: "φ_e %{x:.3f} rad<br>α %{y:.5f} FS<extra>after</extra>" },
+    ],
+    layout: baseLayout("Fig. 10 — acceleration α, before / after", "electrical angle φ_e (rad, unwrapped)", "α (FS)"),
+    config: CONFIG,
+  };
+}
+
+// Fig. 8: |a_h| over the (gamma, delta) grid with the grid minimum and the affine fit;
+// null unless the result has a grid search (method grid).
+export function gridSurface(r) {
+  const tr = r.traces || {};
+  const grid = Array.isArray(tr.grid) ? tr.grid : [];
+  if (grid.length === 0) return null;
+  const d = r.details || {};
+  const cols = tr.grid_columns;
+  const g = column(grid, cols, "gamma_deg", 0).map(Number);
+  const dl = column(grid, cols, "delta_deg", 1).map(Number);
+  const ac = column(grid, cols, "a_c", 2).map(Number);
+  const as = column(grid, cols, "a_s", 3).map(Number);
+  const xs = [...new Set(g)].sort((a, b) => a - b);
+  const ys = [...new Set(dl)].sort((a, b) => a - b);
+  const xi = new Map(xs.map((v, i) => [v, i]));
+  const yi = new Map(ys.map((v, i) => [v, i]));
+  const z = ys.map(() => xs.map(() => null));
+  for (let k = 0; k < g.length; k++) z[yi.get(dl[k])][xi.get(g[k])] = Math.hypot(ac[k], as[k]);
+  const data = [{
+    type: "contour", x: xs, y: ys, z, colorscale: "Viridis", connectgaps: false,
+    contours: { coloring: "heatmap", showlines: true }, line: { width: 0.5, color: "rgba(255,255,255,0.45)" },
+    colorbar: { title: { text: "|a_h| (FS)", side: "right" }, thickness: 12, len: 0.9 },
+    hovertemplate: "γ %{x}°<br>δ %{y}°<br>|a_h| %{z:.3e} FS<extra></extra>", name: "|a_h|",
+  }];
+  const m = d.minimum;
+  if (m && Number.isFinite(Number(m.gamma_deg))) {
+    data.push({ type: "scatter", mode: "markers", x: [m.gamma_deg], y: [m.delta_deg], name: "grid minimum",
+      marker: { symbol: "x", size: 12, color: "#ffffff", line: { width: 1.5, color: "#1d2430" } },
+      hovertemplate: "grid minimum<br>γ %{x:.3f}°<br>δ %{y:.2f}°<extra></extra>" });
+  }
+  const f = d.fit;
+  if (f && Number.isFinite(Number(f.gamma_deg))) {
+    data.push({ type: "scatter", mode: "markers", x: [f.gamma_deg], y: [f.delta_deg], name: "affine fit",
+      marker: { symbol: "star", size: 13, color: "#d1495b", line: { width: 1, color: "#ffffff" } },
+      hovertemplate: "affine fit<br>γ %{x:.3f}°<br>δ %{y:.2f}°<extra></extra>" });
+  }
+  return {
+    data,
+    layout: baseLayout(`Fig. 8 — grid search: |a_h| over (γ, δ), ${grid.length} points`, "injection amplitude γ (°)",
+      "injection phase δ (°)", {
+        legend: { orientation: "h", x: 0, xanchor: "left", y: -0.18, yanchor: "top", font: { size: 10 } },
+        margin: { l: 64, r: 12, t: 36, b: 64 },
+      }),
+    config: CONFIG,
+  };
+}

@@ -1,0 +1,60 @@
+// ripplecal dashboard: bench status (SSE with polling fallback), sweeps, compensation maps,
+// single identifications and the result view (paper Fig. 8, 9, 10). Native ES modules, no build
+// step. This module wires the others: it subscribes the panels to the live events, hands each
+// panel what it may ask of another, and starts every periodic timer (the fallback poll of
+// /bench/status through events.start()). No other module does anything on import.
+import * as api from "./api.js";
+import * as events from "./events.js";
+import * as benchStatus from "./panels/bench-status.js";
+import * as sweeps from "./panels/sweeps.js";
+import * as maps from "./panels/maps.js";
+import * as identify from "./panels/identify.js";
+import * as resultView from "./panels/result-view.js";
+
+const TOKEN_KEY = "ripplecal.token";
+const SWEEP_POLL_MS = 5000;      // sweep list refresh while SSE is down
+
+// The token field is remembered in localStorage; the API client reads it when it sends.
+function bindToken() {
+  const field = document.getElementById("token");
+  try {
+    field.value = localStorage.getItem(TOKEN_KEY) || "";
+  } catch (_) { /* storage disabled */ }
+  field.addEventListener("input", () => {
+    try {
+      localStorage.setItem(TOKEN_KEY, field.value.trim());
+    } catch (_) { /* storage disabled */ }
+  });
+  api.useToken(() => field.value.trim());
+}
+
+function init() {
+  bindToken();
+  sweeps.init({ openMapOf: maps.select });
+  maps.init({ openResultOf: resultView.openResult });
+  identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
+
+  events.on("connection", benchStatus.showConnection);
+  events.on("bench.status", benchStatus.render);
+  events.on("sweep.progress", sweeps.onProgress);
+  events.on("sweep.progress", maps.onSweepProgress);
+  events.on("sweep.point", sweeps.onPoint);
+  events.on("job.state", sweeps.onJobState);
+  events.on("job.state", identify.onJobState);
+  events.on("resync", () => {
+    // SSE was down: sweep progress may have been missed
+    sweeps.reload();
+    maps.reload(false);
+  });
+
+  events.start();
+  setInterval(() => {
+    if (!events.isLive()) sweeps.reload();
+  }, SWEEP_POLL_MS);
+  sweeps.reload();
+  maps.reload(true);
+  identify.resume();
+}
+
+// Module scripts run after the document is parsed, so the elements are there.
+init();

@@ -1,0 +1,112 @@
+// Panel (3): the compensation maps: pick a map and a DC-link voltage, see gamma, delta and the
+// suppression as heatmaps, export the LUT; a click on a cell opens its stored result.
+import * as api from "../api.js";
+import { $, el, setText, showMsg } from "../dom.js";
+import { fmt, shortTime } from "../format.js";
+import * as figures from "../figures.js";
+
+// where each quantity of figures.MAP_QUANTITIES is drawn
+const PLOT_DIV = { gamma_deg: "plot-gamma", delta_deg: "plot-delta", suppression_db: "plot-supp" };
+
+let currentMap = null;           // the full map shown, as GET /maps/{id} answers
+let openResult = () => {};
+
+// openResultOf(resultId, source): what a click on a map cell does.
+export function init({ openResultOf }) {
+  openResult = openResultOf;
+  $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
+  $("udc-select").addEventListener("change", draw);
+  if (!figures.plotlyLoaded()) {
+    showMsg("map-note", ["Plotly.js did not load from /vendor/plotly.min.js — maps cannot be drawn."]);
+  }
+}
+
+// Refill the map list; show the newest map, or keep the one selected if it is still there.
+export async function reload(selectNewest) {
+  let maps;
+  try {
+    maps = await api.get("/maps");
+  } catch (_) {
+    return;
+  }
+  const sel = $("map-select");
+  const prev = sel.value;
+  sel.replaceChildren(...maps.slice().sort((a, b) => b.id - a.id).map((m) =>
+    el("option", { value: String(m.id) },
+      `map ${m.id} · sweep ${m.sweep_id} · h=${m.harmonic_order} · ${shortTime(m.created_at)}`)));
+  $("map-empty").hidden = maps.length > 0;
+  $("map").dataset.empty = maps.length === 0 ? "1" : "";
+  if (maps.length === 0) return;
+  if (!selectNewest && prev && maps.some((m) => String(m.id) === prev)) {
+    sel.value = prev;
+  } else {
+    sel.value = sel.options[0].value;
+    await show(Number(sel.value));
+  }
+}
+
+export async function select(id) {
+  const sel = $("map-select");
+  if (![...sel.options].some((o) => o.value === String(id))) await reload(false);
+  sel.value = String(id);
+  await show(id);
+}
+
+// SSE sweep.progress: a finished sweep brings its map to the front.
+export async function onSweepProgress(p) {
+  if (p.state !== "done" || p.map_id === null || p.map_id === undefined) return;
+  await reload(false);
+  select(p.map_id);  // clears the note at once, then fetches; the note below stays
+  showMsg("map-note", [`Sweep ${p.sweep_id} finished — showing its map ${p.map_id}.`]);
+}
+
+async function show(id) {
+  showMsg("map-note", null);
+  for (const a of document.querySelectorAll("#map-exports a")) {
+    a.href = `${api.API_BASE}/maps/${id}/export?format=${a.dataset.format}`;
+    a.setAttribute("download", "");
+  }
+  let m;
+  try {
+    m = await api.get(`/maps/${id}`);
+  } catch (e) {
+    showMsg("map-note", [`map ${id}: ${e.message}`]);
+    return;
+  }
+  currentMap = m;
+  const udcs = (m.axes && m.axes.udc_v) || [...new Set(m.cells.map((c) => c.udc_v))].sort((a, b) => a - b);
+  const usel = $("udc-select");
+  const prev = usel.value;
+  usel.replaceChildren(...udcs.map((u) => el("option", { value: String(u) }, `${u} V`)));
+  if (udcs.some((u) => String(u) === prev)) usel.value = prev;
+  const counts = {};
+  for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
+  const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
+  setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · sweep ${m.sweep_id} · ` +
+    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText})`);
+  draw();
+}
+
+function draw() {
+  if (!figures.plotlyLoaded() || !currentMap) return;
+  const slice = figures.mapSlice(currentMap, Number($("udc-select").value));
+  for (const q of figures.MAP_QUANTITIES) {
+    const div = PLOT_DIV[q.key];
+    figures.draw(div, figures.mapHeatmap(slice, q));
+    figures.onClick(div, openCell);
+  }
+}
+
+function openCell(pt) {
+  if (!currentMap) return;
+  const udc = Number($("udc-select").value);
+  const cell = currentMap.cells.find((c) => Number(c.torque_nm) === Number(pt.x) &&
+    Number(c.speed_rpm) === Number(pt.y) && Number(c.udc_v) === udc);
+  if (!cell) return;
+  if (cell.result_id === null || cell.result_id === undefined) {
+    showMsg("map-note", [`No stored result for T* ${fmt(cell.torque_nm)} N·m, n ${fmt(cell.speed_rpm)} rpm, ` +
+      `U_dc ${fmt(cell.udc_v)} V (status ${cell.status}).`]);
+    return;
+  }
+  openResult(cell.result_id, `map ${currentMap.id}`);
+}
