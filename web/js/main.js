@@ -4,6 +4,7 @@
 // panel what it may ask of another, and starts every periodic timer (the fallback poll of
 // /bench/status through events.start()). No other module does anything on import.
 import * as api from "./api.js";
+import * as catalog from "./catalog.js";
 import * as events from "./events.js";
 import * as benchStatus from "./panels/bench-status.js";
 import * as sweeps from "./panels/sweeps.js";
@@ -28,8 +29,13 @@ function bindToken() {
   api.useToken(() => field.value.trim());
 }
 
-function init() {
+async function init() {
   bindToken();
+  try {
+    await catalog.load();        // the forms' method choices and the export links, from the registries
+  } catch (e) {
+    reportError(e);
+  }
   sweeps.init({ openMapOf: maps.select });
   maps.init({ openResultOf: resultView.openResult });
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
