@@ -202,7 +202,7 @@ class DriveClient(Cia402Master):
         """Decoupling of the current controller (0x2000:6, DESIGN section 3.1)."""
         self.write(OD_INJECTION, SUB_DECOUPLING, 1 if on else 0)
 
-    # -- LUT download (issue 3) ---------------------------------------------------------------------
+    # -- LUT download -------------------------------------------------------------------------------
     def download_lut(self, blob: bytes) -> int:
         """Download a LUT image to 0x2001:1 (segmented SDO) and check the drive's CRC-32 read-back
         (0x2001:2) against ours. Returns the CRC. The image format is defined by the LUT exporter."""

@@ -1,4 +1,4 @@
--- ripplecal schema 2 (issue 7): honest result statuses.
+-- ripplecal schema 2: honest result statuses.
 -- A result is `ok` only when it met its target; `below_target` is a finished identification that
 -- did not reach it (with the reason). Every result reports the target it was held to and the
 -- noise floor it measured. SQLite cannot alter a CHECK constraint: the table is rebuilt (the

@@ -1,4 +1,4 @@
--- ripplecal schema 3 (issue 8): sweeps that survive the night.
+-- ripplecal schema 3: sweeps that survive the night.
 -- - `interrupted`: the service stopped under a running sweep; it can be resumed.
 -- - `pause_reason`: why a sweep is paused or interrupted (interlock, operator, shutdown).
 -- - results.superseded_by: a sweep shows one result per operating point; an earlier attempt at the

@@ -7,7 +7,7 @@ next point starts, and a failing point is stored as failed and the sweep goes on
 between points, cancel between points or inside a measurement; the bench is left safe (torque off,
 injection off) in every case.
 
-Surviving the night (issue 8): an interlock trip discards the point in flight (stored as a failed,
+Surviving the night: an interlock trip discards the point in flight (stored as a failed,
 discarded attempt, never ok), pauses the sweep with the reason and measures that point again on
 resume. A sweep the service stopped under (crash, kill -9, shutdown) is `interrupted` when the
 service starts again; resume (or `engine.auto_resume`) measures only the points not yet committed,

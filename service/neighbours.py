@@ -1,4 +1,4 @@
-"""Sweeps learn as they go (issue 7): each point starts from what its neighbours measured.
+"""Sweeps learn as they go: each point starts from what its neighbours measured.
 
 theta* = -theta_d is the disturbance in injection units: the shaft's G_Salpha cancels out of it, so
 it varies smoothly with the operating point even across the shaft resonance, and a neighbour's

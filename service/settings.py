@@ -107,7 +107,7 @@ class SafetySettings(_Section):
 
 
 class InterlockSettings(_Section):
-    """Interlocks (issue 8): how they are watched, and whether a drive fault may ever be reset without a person."""
+    """Interlocks: how they are watched, and whether a drive fault may ever be reset without a person."""
     monitor_period_s: float = Field(0.05, gt=0, le=1.0, description="period of the interlock monitor thread")
     stall_s: float = Field(1.0, gt=0, description="a monitor gap this long trips the run: twice the drive's 500 ms "
                            "heartbeat consumer time, so the drive has surely lost our heartbeat (a shorter gap that "

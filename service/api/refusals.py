@@ -1,11 +1,13 @@
 """Refusals the routes share: 422 items naming the field at fault (bench limits, plant time)."""
 from __future__ import annotations
 
-from typing import Any
+import contextlib
+from typing import Any, Iterator
 
 from fastapi import HTTPException, status
 
 from service.api.errors import validation_error
+from service.identify import PlantTimeError
 from service.limits import LimitError
 
 
@@ -19,3 +21,17 @@ def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
         return unprocessable(validation_error(where, str(exc), "value_error.bench_limits"))
     return unprocessable(*(validation_error([*where, field], msg, "value_error.bench_limits")
                            for field, msg in exc.problems))
+
+
+@contextlib.contextmanager
+def refused_at(setpoints: list[str]) -> Iterator[None]:
+    """Submitting a run: bench limits become 422s at the setpoint fields (`setpoints`, e.g. body.grid),
+    a plant-time refusal a 422 at body.options, any other ValueError a 422 at the setpoints."""
+    try:
+        yield
+    except LimitError as exc:
+        raise limit_error(exc, setpoints) from None
+    except PlantTimeError as exc:
+        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
+    except ValueError as exc:
+        raise unprocessable(validation_error(setpoints, str(exc))) from None

@@ -29,9 +29,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, Prior, affine_s_from_history, clamp,
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
                                            measure_reference, meets, noise_floor_db, periods_for, spectrum_traces,
                                            target_amplitude, time_to_suppression, verdict)
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
@@ -40,13 +40,9 @@ from service.identification.session import MeasurementError, MeasurementSession,
 from service.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 
-class AdaptiveOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
+class AdaptiveOptions(MethodOptions):
     mu_per_s: float = Field(25.0, gt=0, le=1000, description="adaptation gain mu of eq. 16, 1/s")
     block_s: float = Field(0.03, gt=0, le=1.0, description="plant time per adaptation block (whole electrical turns)")
-    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest block a precision need may extend to, plant s")
-    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta update before its block is measured")
     max_blocks: int = Field(40, ge=1, le=1000)
     stall_blocks: int = Field(6, ge=2, le=1000, description="blocks without a 10 % better residual that end the run")
     max_plant_s: float = Field(5.0, gt=0, le=60, description="plant time after which the run ends with what it has")
@@ -56,7 +52,6 @@ class AdaptiveOptions(BaseModel):
     s_refine: bool = Field(True, description="replace S_hat by the S fitted over the run's own blocks (DESIGN 3 (c))")
     s_refine_tolerance: float = Field(0.15, gt=0, le=10, description="relative |S_fit - S_hat| that triggers the replacement")
     use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
-    gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
     s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
                                           description="deliberate phase error added to S_hat (robustness tests)")
 

@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from service.harmonic import amplitude_spectrum
 from service.identification.session import MeasurementSession, Window
@@ -24,6 +25,17 @@ SNIPPET_SAMPLES = 800
 CONFIDENCE_SIGMAS = 2.0         # |a| + 2 sigma <= A_target counts as met
 PRECISION_FOR_TARGET = 5.0      # a window meant to confirm the target has sigma <= A_target / 5
 MIN_PERIODS = 12                # two electrical turns at h = 6: every integer order but h averages out
+
+
+class MethodOptions(BaseModel):
+    """Options every method has: the target, the injection limit, the window bounds. Finite numbers
+    only, every field bounded (no request can ask for unbounded plant time or memory)."""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
+    gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
+    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
+    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
+                            "(the shaft mode a step excites is fitted, not waited out)")
 
 
 @dataclass(frozen=True)

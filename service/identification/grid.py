@@ -20,9 +20,9 @@ import math
 
 import numpy as np
 from scipy import optimize, special
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, measure_reference, noise_floor_db, periods_for,
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, measure_reference, noise_floor_db, periods_for,
                                            spectrum_traces, target_amplitude, verdict)
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
@@ -37,22 +37,18 @@ def _count(start_deg: float, stop_deg: float, step_deg: float) -> int:
     return math.floor((stop_deg - start_deg) / step_deg + 1e-9) + 1
 
 
-class GridOptions(BaseModel):
+class GridOptions(MethodOptions):
     """The paper's grid by default: gamma 0.5..10 deg step 0.5, delta 0..340 deg step 20 (360 points)."""
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     gamma_start_deg: float = Field(0.5, ge=0, le=45)
     gamma_stop_deg: float = Field(10.0, ge=0, le=45)
     gamma_step_deg: float = Field(0.5, gt=0, validate_default=True)
     delta_start_deg: float = Field(0.0, ge=0, lt=360)
     delta_stop_deg: float = Field(340.0, ge=0, lt=360)
     delta_step_deg: float = Field(20.0, gt=0, validate_default=True)
-    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     window_periods: int = Field(18, ge=2, le=2_000, description="harmonic periods per grid point")
     settle_s: float = Field(0.01, ge=0, le=2.0, description="plant time after each grid point's theta before measuring "
                             "(the shaft mode a theta step rings is fitted as a nuisance, not waited out)")
-    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest reference/verification window, plant s")
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
-    gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
 
     # counted before anything is allocated (a tiny step must not ask numpy for terabytes); field
     # validators, so that a refusal names the step at fault

@@ -26,9 +26,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, Prior, clamp, measure_reference, meets,
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference, meets,
                                            noise_floor_db, periods_for, spectrum_traces, target_amplitude,
                                            time_to_suppression, verdict)
 from service.identification.result import IdentificationResult
@@ -39,19 +39,13 @@ from service.secondary_path import phase_error_deg, rotation_part, s_matrix
 HISTORY_COLUMNS = ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"]
 
 
-class ProbeOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
+class ProbeOptions(MethodOptions):
     probe_fraction: float = Field(0.5, gt=0, le=1.0, description="probe size as a fraction of the model's |theta*|")
     probe_min_deg: float = Field(0.3, gt=0, le=10, description="smallest probe amplitude, deg")
     probe_max_deg: float = Field(4.0, gt=0, le=20, description="largest probe amplitude, deg (kept <= gamma_max/2)")
     window_s: float = Field(0.01, gt=0, le=1.0, description="shortest window, plant s (whole electrical turns, >= 12 periods)")
-    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
-    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
-                            "(the shaft mode a step excites is fitted, not waited out)")
     max_newton_steps: int = Field(6, ge=1, le=50)
     use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
-    gamma_max_deg: float | None = Field(None, gt=0, le=45)
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
         """Worst-case plant time (s): reference (2 windows), prior start, 2 probes, the Newton steps,

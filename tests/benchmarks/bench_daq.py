@@ -1,4 +1,4 @@
-"""DAQ decoding + demodulation throughput on one core (run: python tests/benchmarks/bench_daq.py).
+"""DAQ decoding + demodulation throughput on one core (run: python -m tests.benchmarks.bench_daq).
 
 Frames of DESIGN section 5 are encoded once, then decoded by drivers.daq_protocol.FrameDecoder in
 64 KiB chunks (what the reader thread gets from the port) and demodulated into h-th phasors over
@@ -7,16 +7,13 @@ whole-period windows (service.harmonic.phasor). Throughput = samples / wall time
 from __future__ import annotations
 
 import math
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from drivers.daq_protocol import FrameDecoder, encode_frames  # noqa: E402
-from service.harmonic import phasor  # noqa: E402
+from drivers.daq_protocol import FrameDecoder, encode_frames
+from service.harmonic import phasor
 
 N = 2_000_000
 FS, H = 16000.0, 6

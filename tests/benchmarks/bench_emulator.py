@@ -1,4 +1,4 @@
-"""Real-time factor of the emulated bench (run: python tests/benchmarks/bench_emulator.py).
+"""Real-time factor of the emulated bench (run: python -m tests.benchmarks.bench_emulator).
 
 Two numbers, both at OP1 of paper-bench (2.5 Nm, 2000 rpm, 12 V) with injection, disturbance map,
 saturation, dead time and sensor noise on:
@@ -11,18 +11,15 @@ from __future__ import annotations
 
 import math
 import subprocess
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from plant_emulator import physics as ph  # noqa: E402
-from plant_emulator import scenario as scn  # noqa: E402
-from plant_emulator.calibrate_paper_bench import op_setpoints, theta_from_gamma_delta  # noqa: E402
-from plant_emulator.process import Emulator, warm_up  # noqa: E402
+from plant_emulator import physics as ph
+from plant_emulator import scenario as scn
+from plant_emulator.calibrate_paper_bench import op_setpoints, theta_from_gamma_delta
+from plant_emulator.process import Emulator, warm_up
 
 
 def physics_factor(seconds: float = 2.0, chunk: int = 256, block_chunks: int = 16) -> float:

@@ -1,4 +1,4 @@
-"""Fault figures of issue 8 (run: python tests/benchmarks/bench_faults.py, or `make bench`).
+"""Fault figures: interlocks and crashes (run: python -m tests.benchmarks.bench_faults, or `make bench`).
 
 The emulator runs in its own process; the service runs as `ripplecal serve --bench FILE` pointed at
 it; faults go through the emulator's control socket. Prints:
@@ -20,11 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_rig import Api, EmulatorRig  # noqa: E402
-from service_process import ServiceProcess  # noqa: E402
+from tests.support.bench_rig import Api, EmulatorRig
+from tests.support.service_process import ServiceProcess
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 GRID16 = {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 1750, 2000, 2250], "udc_v": [12]}

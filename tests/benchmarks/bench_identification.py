@@ -1,4 +1,4 @@
-"""Identification figures on the emulated bench (run: python tests/benchmarks/bench_identification.py).
+"""Identification figures on the emulated bench (run: python -m tests.benchmarks.bench_identification).
 
 Starts the service layer with plant_emulator (paper-bench, fast mode) and measures:
 - adaptive and probe at OP1 {2.5 Nm, 2000 rpm, 12 V}: plant time to 40 dB and in all (DAQ samples /
@@ -8,19 +8,17 @@ Starts the service layer with plant_emulator (paper-bench, fast mode) and measur
 """
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from service.calibration_service import CalibrationService  # noqa: E402
-from service.identify import parse_options  # noqa: E402
-from service.public import result_public  # noqa: E402
-from service.operating_point import OperatingPoint  # noqa: E402
-from service.plans import Grid  # noqa: E402
-from service.settings import load_settings  # noqa: E402
+from service.calibration_service import CalibrationService
+from service.identify import parse_options
+from service.public import result_public
+from service.operating_point import OperatingPoint
+from service.plans import Grid
+from service.settings import load_settings
 
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
 

@@ -1,6 +1,6 @@
-"""10 x 10 sweeps on the emulated bench (issue 7): what share of the map meets its target, and what it costs.
+"""10 x 10 sweeps on the emulated bench: what share of the map meets its target, and what it costs.
 
-Run: python tests/benchmarks/bench_sweep_quality.py [--seeds None,1,2,3,4,5] [--methods probe,adaptive]
+Run: python -m tests.benchmarks.bench_sweep_quality [--seeds None,1,2,3,4,5] [--methods probe,adaptive]
 
 For each scenario (paper-bench, and seeded truths it has never seen) and method: a sweep over torque
 0.5..5 Nm x speed 500..3200 rpm at 12 V through the engine (neighbour priors included). Prints a table:
@@ -11,7 +11,6 @@ statuses that claim ok below their target (must be 0).
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from collections import Counter
@@ -19,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from service.calibration_service import CalibrationService  # noqa: E402
-from service.identify import parse_options  # noqa: E402
-from service.plans import Grid  # noqa: E402
-from service.settings import load_settings  # noqa: E402
+from service.calibration_service import CalibrationService
+from service.identify import parse_options
+from service.plans import Grid
+from service.settings import load_settings
 
 TORQUES = [round(0.5 + 0.5 * i, 2) for i in range(10)]
 SPEEDS = [500 + 300 * i for i in range(10)]

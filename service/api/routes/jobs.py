@@ -4,12 +4,10 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
-from service.api.errors import error_responses, validation_error
-from service.api.refusals import limit_error, unprocessable
+from service.api.errors import error_responses
+from service.api.refusals import refused_at
 from service.api.schemas import IdentificationCreate
 from service.engine import TransitionError
-from service.identify import PlantTimeError
-from service.limits import LimitError
 from service.public import JobPublic, job_public
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
@@ -18,13 +16,8 @@ router = APIRouter(prefix="/api/v1", tags=["identifications"])
 @router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
              responses=error_responses(400, 401, 403, 413))
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
-    options = body.options
-    try:
-        job_id = service.engine.submit_identification(body.operating_point, body.method, options)
-    except LimitError as exc:
-        raise limit_error(exc, ["body", "operating_point"]) from None
-    except PlantTimeError as exc:
-        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
+    with refused_at(["body", "operating_point"]):
+        job_id = service.engine.submit_identification(body.operating_point, body.method, body.options)
     return job_public(service.storage, service.storage.get_job(job_id))
 
 

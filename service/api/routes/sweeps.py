@@ -7,11 +7,9 @@ from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
-from service.api.refusals import limit_error, unprocessable
+from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import SweepCreate
 from service.engine import TransitionError
-from service.identify import PlantTimeError
-from service.limits import LimitError
 from service.plans import SweepTooLarge, check_sweep_size
 from service.public import SweepPublic, sweep_public
 
@@ -27,15 +25,8 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
         raise unprocessable(validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")) from None
     except ValueError as exc:
         raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
-    options = body.options
-    try:
-        sweep_id = service.engine.submit_sweep(body.grid, body.method, options)
-    except LimitError as exc:
-        raise limit_error(exc, ["body", "grid"]) from None
-    except PlantTimeError as exc:
-        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
-    except ValueError as exc:
-        raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
+    with refused_at(["body", "grid"]):
+        sweep_id = service.engine.submit_sweep(body.grid, body.method, body.options)
     return sweep_public(service.storage, service.storage.get_sweep(sweep_id))
 
 

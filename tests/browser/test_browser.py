@@ -21,7 +21,7 @@ import pytest
 
 pytestmark = pytest.mark.browser
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 WEB_MODULES = REPO / "web" / "js"
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

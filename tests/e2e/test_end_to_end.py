@@ -11,7 +11,7 @@ import time
 import httpx
 import pytest
 
-from service_process import ServiceProcess, cli, create_token
+from tests.support.service_process import ServiceProcess, cli, create_token
 
 pytestmark = pytest.mark.e2e
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000.0, "udc_v": 12.0}

@@ -20,7 +20,7 @@ from drivers import DRIVE_EDS, LOAD_EDS
 from drivers.cia402 import CONTROLWORD, PATH_TO_OPERATION_ENABLED, State402, decode_statusword
 from drivers.daq_protocol import FLAG_SYNC_INPUT, FrameDecoder
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.e2e
 
 

@@ -1,6 +1,6 @@
 """The LUT image contract (drivers/lut_image.py): one encoder and one decoder, imported by the service's
 builder (service/lut_export.py) and the emulated drive firmware; the image bytes are those the two
-separate implementations produced before issue 9 merged them."""
+separate implementations produced before they were merged into one codec."""
 from __future__ import annotations
 
 import hashlib

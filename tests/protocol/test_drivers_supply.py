@@ -9,7 +9,7 @@ import pytest
 
 from drivers.dc_supply import ScpiSupply
 from drivers.errors import ScpiError, ScpiTimeout
-from drivers_peers import ScpiPeer
+from tests.support.drivers_peers import ScpiPeer
 
 
 @pytest.fixture

@@ -13,6 +13,7 @@ from service.measurement import MeasurementError
 from service.operating_point import OperatingPoint
 from service.plans import Grid
 from service.settings import load_settings
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.e2e
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
@@ -26,13 +27,7 @@ def svc(tmp_path_factory):
 
 
 def wait_for(predicate, timeout_s=120.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise TimeoutError("condition not reached")
+    return wait_until(predicate, timeout_s)
 
 
 def control(svc, command: dict) -> dict:

@@ -1,4 +1,4 @@
-"""simulate() pinned against a trace recorded before physics.py became a package of stages (issue 9).
+"""simulate() pinned against a trace recorded before physics.py became a package of stages.
 
 The restructuring moved code, not numbers: four short runs that together pass through every stage
 and branch of the control-period loop (injection by rotation and by the eq. 11 estimate,
@@ -22,7 +22,7 @@ from plant_emulator import physics as ph
 from plant_emulator import scenario as scn
 from plant_emulator.calibrate_paper_bench import op_setpoints, theta_from_gamma_delta
 
-PINNED = Path(__file__).resolve().parent / "data" / "physics_trace_pinned.json"
+PINNED = Path(__file__).resolve().parents[1] / "data" / "physics_trace_pinned.json"
 TRACE_EVERY = 7          # every 7th sample of the per-sample trace is kept in the recording
 
 

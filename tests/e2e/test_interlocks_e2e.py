@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from bench_rig import Api, EmulatorRig
-from service_process import ServiceProcess
+from tests.support.bench_rig import Api, EmulatorRig
+from tests.support.service_process import ServiceProcess
 
 pytestmark = pytest.mark.e2e
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}

@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from bench_rig import Api, EmulatorRig, alive, children_of
-from service_process import ServiceProcess
+from tests.support.bench_rig import Api, EmulatorRig, alive, children_of
+from tests.support.service_process import ServiceProcess
 
 pytestmark = pytest.mark.e2e
 GRID16 = {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 1750, 2000, 2250], "udc_v": [12]}

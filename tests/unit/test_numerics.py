@@ -118,6 +118,6 @@ def test_secondary_path_with_current_loop_closed_form(settings):
     gsa = (1 / mech.inertia_kg_m2) * (abs(p) ** 2 / -z) * (s - z) / ((s - p) * (s - p.conjugate()))
     expected = gsa * 1.5 * m.pole_pairs * m.psi_p_vs * iq_per_rad * delay / settings.daq.accel_full_scale_rad_s2
     assert model_secondary_path(settings, op, h, current_loop=True) == pytest.approx(expected, rel=1e-9)
-    # the loop turns S by tens of degrees at 800 Hz: what a drive without decoupling shows (issue 3)
+    # the loop turns S by tens of degrees at 800 Hz: what a drive without decoupling shows
     turn = math.degrees(cmath.phase(expected / model_secondary_path(settings, op, h)))
     assert 10 < abs(turn) < 60

@@ -6,7 +6,7 @@ import pytest
 
 from service.settings import SettingsError, load_settings
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def test_readme_bench_example_is_valid(tmp_path):

@@ -6,7 +6,7 @@ import numpy as np
 
 import pytest
 
-from affine_plant import AffinePlantSession
+from tests.support.affine_plant import AffinePlantSession
 from service.identification import (AdaptiveOptions, GridOptions, ProbeOptions, identify_adaptive, identify_grid,
                                     identify_probe)
 from service.identification.grid import effective_injection, gamma_from_effective

@@ -127,10 +127,11 @@ def test_dcm_export_has_one_map_per_component(storage):
 
 
 def test_lut_image_is_what_the_drive_parses(storage):
-    """The service's image against the drive firmware's parser (plant_emulator.lut_image): symmetric pair."""
+    """The service's image against the codec the drive firmware decodes with (drivers.lut_image)."""
     import zlib
 
-    from plant_emulator.lut_image import LutImageError, parse
+    from drivers.lut_image import LutImageError
+    from drivers.lut_image import decode as parse
     from service.lut_export import lut_image
     m = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
     image = lut_image(m)

@@ -13,13 +13,13 @@ import time
 import pytest
 import uvicorn
 
-from live_app import bearer, client_for, started_service, wait_finished
+from tests.support.live_app import bearer, client_for, started_service, wait_finished
 from service.api.app import create_app
 from service.limits import LimitError, check_limits
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
 from service.settings import SettingsError, load_settings
-from service_process import free_port
+from tests.support.service_process import free_port
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 MAX_BODY = 64 * 1024        # small limit for the module's service: the tests send a little more

@@ -23,7 +23,7 @@ from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus
 from drivers.errors import DriveFaultError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
-from drivers_peers import EmulatedDevice, unique_channel
+from tests.support.drivers_peers import EmulatedDevice, unique_channel
 from plant_emulator.drive_firmware import DriveFirmware
 from plant_emulator.load_machine import LoadMachineFirmware
 

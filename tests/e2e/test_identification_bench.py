@@ -1,4 +1,4 @@
-"""Identification on the emulated bench (issue 4): accuracy, speed, agreement, robustness, safety.
+"""Identification on the emulated bench: accuracy, speed, agreement, robustness, safety.
 
 The service layer runs in this process; plant_emulator runs as its own process (socketcand + pty).
 Plant time is DAQ samples / rate. Scenarios: paper-bench and seeded variants of it (the truth drawn

@@ -1,5 +1,5 @@
 """An emulated bench in its own process, and the service pointed at it with `--bench` as at a real
-bench (issue 8 end-to-end tests and tests/benchmarks/bench_faults.py). Faults go through the
+bench (the interlock and crash end-to-end tests and tests/benchmarks/bench_faults.py). Faults go through the
 emulator's control socket; the service never uses that socket."""
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from pathlib import Path
 
 import httpx
 
-from service_process import REPO, ServiceProcess, create_token
+from tests.support.waiting import wait_until
+from tests.support.service_process import REPO, ServiceProcess, create_token
 
 
 class EmulatorRig:
@@ -77,13 +78,7 @@ class Api:
         return self.http.post(path, json=body)
 
     def wait(self, predicate, timeout_s: float = 180.0, what: str = "condition"):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            value = predicate()
-            if value:
-                return value
-            time.sleep(0.1)
-        raise TimeoutError(f"{what} not reached within {timeout_s} s")
+        return wait_until(predicate, timeout_s, what, poll_s=0.1)
 
     def job_finished(self, job_id: int, timeout_s: float = 180.0) -> dict:
         return self.wait(lambda: (j := self.get(f"/jobs/{job_id}"))["state"] in ("done", "failed", "cancelled") and j,
