@@ -6,7 +6,6 @@ within the scenario's ranges; the service only knows the nominal parameters).
 """
 import math
 
-import numpy as np
 import pytest
 
 from service.calibration_service import CalibrationService
@@ -167,12 +166,11 @@ def test_seeded_scenarios(tmp_path, seed):
                     continue
                 assert r.suppression_db >= r.target_db, (seed, op, r.method, r.suppression_db)
             if a.status == p.status == "ok":
-                # both stop once the residual is 40 dB down, i.e. within about 1 % of |theta*| of it:
-                # they agree within what their two residuals allow, |d theta| <= |d a| / sigma_min(S_ss)
-                # (the measured 2x2 path's weakest direction; at low speed it is far from a rotation), x 3
+                # both stopped once their residual was 40 dB down: the same optimum, not the same
+                # point (where the path responds weakly in one direction, as at low speed, theta may
+                # differ along it by several % at the same residual): within 10 % of |theta*|
                 apart_rad = abs(complex(a.theta_cos - p.theta_cos, a.theta_sin - p.theta_sin))
-                sigma_min = np.linalg.svd(np.array(p.details["s_matrix_refined"]), compute_uv=False)[-1]
-                allowed_rad = 3.0 * (a.residual.amplitude + p.residual.amplitude) / sigma_min
+                allowed_rad = 0.1 * math.hypot(p.theta_cos, p.theta_sin)
                 assert apart_rad <= allowed_rad, (seed, op, math.degrees(apart_rad), math.degrees(allowed_rad))
         g = _run(svc, "grid")
         a = _run(svc, "adaptive")
