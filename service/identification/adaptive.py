@@ -114,7 +114,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         phasors.append(window.phasor.vector)
     best_theta, best_amp = theta.copy(), window.phasor.amplitude
     growing = at_limit = 0
-    limited = diverged = False
+    limited = diverged = over_range = False
     final: Window | None = window if meets(window, limit) and len(history) > 1 else None
     s_replaced_after = None
     blocks = best_block = 0
@@ -126,8 +126,16 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         theta, limited = clamp(theta - step, gamma_max_rad)
         session.apply_theta(*theta)
         expected = max((1.0 - 0.7 * gain) * window.phasor.amplitude, limit)
-        window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
-                                 max_periods=max_periods)
+        try:
+            window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
+                                     max_periods=max_periods)
+        except MeasurementError as exc:
+            if "over-range" not in str(exc):
+                raise
+            # the step drove the sensor over range: S_hat is far off here (a resonance nearer than the
+            # settings say); handled as a divergence: best theta back, probe from there
+            diverged, over_range = True, True
+            break
         amp = window.phasor.amplitude
         history.append(_row(window, theta))
         thetas.append(theta.copy())
@@ -166,7 +174,8 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
                "prior": None if prior is None else prior.source,
                "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0)}
     if diverged:
-        details["divergence"] = "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max"
+        details["divergence"] = ("sensor over range after a step" if over_range else
+                                 "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max")
         session.apply_theta(*best_theta)      # revert to the best theta seen
         if options.fallback:
             probe_opts = ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s)

@@ -68,6 +68,27 @@ def _probe_size(amplitude_fs: float, s_hat: complex, gamma_max_rad: float, optio
                math.radians(options.probe_max_deg), gamma_max_rad / 2, PROBE_MAX_RESPONSE_FS / abs(s_hat))
 
 
+PROBE_HALVINGS = 3     # a probe that drives the sensor over range is halved, at most this often
+
+
+def _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_periods, history, notes):
+    """S_ss from two probes; where the model underestimated the path (a shaft resonance nearer than
+    the settings say) and a probe drives the sensor over range, the probe is halved and measured again."""
+    for halvings in range(PROBE_HALVINGS + 1):
+        try:
+            s_ss = measure_s_matrix(session, theta, a, probe_rad, min_periods, max_periods,
+                                    abs(s_hat) * probe_rad / 50, history)
+        except MeasurementError as exc:
+            if "over-range" not in str(exc) or halvings == PROBE_HALVINGS:
+                raise
+            probe_rad /= 2
+            continue
+        if halvings:
+            notes.append(f"probes halved {halvings} time(s) to {math.degrees(probe_rad):.2f} deg: the sensor went over range")
+        return s_ss, probe_rad
+    raise AssertionError("unreachable")
+
+
 def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta: np.ndarray, probe_rad: float,
                      periods: int, max_periods: int, noise_limit_fs: float, history: list) -> np.ndarray:
     """S_ss measured by two probes around theta (one column each)."""
@@ -126,8 +147,8 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
     if s_ss is None:
         probe_rad = _probe_size(float(np.hypot(*a)), s_hat, gamma_max_rad, options)
         theta, _ = clamp(theta, gamma_max_rad - probe_rad)     # the probes go around theta: stay inside gamma_max
-        response = abs(s_hat) * probe_rad
-        s_ss = measure_s_matrix(session, theta, a, probe_rad, min_periods, max_periods, response / 50, history)
+        s_ss, probe_rad = _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_periods,
+                                              history, notes)
         s_probed = s_ss.copy()
     else:
         s_probed = None
@@ -186,8 +207,8 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
                                     max_periods=max_periods)
                 history.append(_row(w, theta))
                 best_a = w.phasor.vector
-            s_ss = measure_s_matrix(session, theta, best_a, probe_rad, min_periods, max_periods,
-                                    abs(s_hat) * probe_rad / 50, history)
+            s_ss, probe_rad = _probe_within_range(session, theta, best_a, probe_rad, s_hat, min_periods, max_periods,
+                                                  history, notes)
             s_probed = s_ss.copy()
             notes.append("the neighbours' S did not hold here: measured by probes")
             failures, damping, a = 0, 1.0, best_a
