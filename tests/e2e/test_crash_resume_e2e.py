@@ -69,6 +69,7 @@ def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_
         assert sweep["state"] == "done" and sweep["map_id"] is not None
         assert sweep["progress"]["done"] == 16 and sweep["progress"]["total"] == 16
         assert len(sweep["points"]) == 16
+        assert all(p["state"] == "ok" and p["result"]["suppression_db"] >= 40.0 for p in sweep["points"]), sweep["points"]
         after = attempts_per_point(db, sweep_id)
         assert len(after) == 16 and set(after.values()) == {1}          # none lost, none measured twice
         assert len(api.get(f"/maps/{sweep['map_id']}")["cells"]) == 16
