@@ -100,19 +100,26 @@ def _solve(x: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, float, np.ndar
 
 
 def fit_harmonic(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
-                 periods: int, mode: ResonanceMode | None = None) -> HarmonicFit:
+                 periods: int, mode: ResonanceMode | None = None, usable: np.ndarray | None = None) -> HarmonicFit:
     """Phasor of order h over a window of whole periods, with `mode` (if given) as a nuisance.
 
     The window must span whole periods (callers cut it with harmonic.whole_period_samples); the
-    time origin of the mode is the window's first sample."""
+    time origin of the mode is the window's first sample. `usable` (bool per sample) leaves samples
+    out of the fit: a sensor clipped at its full scale reads wrong there and only there, and least
+    squares over the rest is still unbiased (the noise estimate then comes from the residual)."""
     n = len(alpha_fs)
     t_s = np.arange(n) / sample_rate_hz
     turns = periods / harmonic_order
     electrical_hz = turns * sample_rate_hz / n
     x = _design(angle_rad, t_s, harmonic_order, mode, nuisance_orders(harmonic_order, electrical_hz, mode))
     alpha = np.asarray(alpha_fs, dtype=float)
-    coef, rss, cov = _solve(x, alpha)
-    sigma2 = _noise_density(alpha - x @ coef, turns, harmonic_order) or rss / max(n - x.shape[1], 1)
+    if usable is not None and not usable.all():
+        x, alpha = x[usable], alpha[usable]
+        coef, rss, cov = _solve(x, alpha)
+        sigma2 = rss / max(len(alpha) - x.shape[1], 1)
+    else:
+        coef, rss, cov = _solve(x, alpha)
+        sigma2 = _noise_density(alpha - x @ coef, turns, harmonic_order) or rss / max(n - x.shape[1], 1)
     noise_std = math.sqrt(sigma2 * 0.5 * (cov[0, 0] + cov[1, 1]))
     ring = ring_std = 0.0
     if mode is not None:
@@ -210,9 +217,12 @@ class ResonanceTracker:
                     "scale_to_settings": round(self._scale, 5), "learned_from_windows": self._learned_from}
 
     def fit(self, alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
-            periods: int) -> HarmonicFit:
-        """The window's harmonic fit with the current mode; a strong ring first refines the mode."""
-        result = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.mode)
+            periods: int, usable: np.ndarray | None = None) -> HarmonicFit:
+        """The window's harmonic fit with the current mode; a strong ring first refines the mode
+        (never from a window with samples left out: the search needs the whole record)."""
+        result = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.mode, usable)
+        if usable is not None and not usable.all():
+            return result
         with self._lock:
             center = self._scale
             learned = self._learned_from > 0

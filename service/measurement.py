@@ -24,7 +24,8 @@ from service.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm, whole_period_samples
 from service.identification.session import MeasurementError, Window
 
-BAD_FLAGS = FLAG_OVER_RANGE | FLAG_SENSOR_FAULT
+BAD_FLAGS = FLAG_SENSOR_FAULT
+MAX_CLIPPED_FRACTION = 0.5     # a window clipped over more than this share of its samples is measured again
 
 
 class RunCancelled(RuntimeError):
@@ -81,7 +82,7 @@ class OperatingPointSession:
         self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
         self.noise_rms_fs: float | None = None      # rms of alpha around the fitted model, last window
         self.op_settle_plant_s: float | None = None # plant time the move to the operating point took
-        self.over_range_windows = 0
+        self.over_range_windows = 0             # windows refused: clipped over most of their samples
         self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
         self.cursor = cursor
         self.harmonic_order = harmonic_order
@@ -232,8 +233,9 @@ class OperatingPointSession:
 
     def _fit(self, samples: DecodedSamples, periods: int) -> HarmonicFit:
         n = whole_period_samples(samples.angle_rad, self.harmonic_order, periods)
+        clipped = (samples.flags[:n] & FLAG_OVER_RANGE) != 0
         fit = self.resonance.fit(samples.accel_fs[:n], samples.angle_rad[:n], self.sample_rate_hz,
-                                 self.harmonic_order, periods)
+                                 self.harmonic_order, periods, usable=~clipped if clipped.any() else None)
         self.noise_rms_fs = fit.residual_rms_fs
         return fit
 
@@ -250,10 +252,14 @@ class OperatingPointSession:
             sync = (s.flags & FLAG_SYNC_INPUT) != 0
             setpoint_changed = (sync[1:] != sync[:-1]) if self.sync_input else np.zeros(len(s) - 1, bool)
             bad = np.flatnonzero(s.gap_before[1:] | ((s.flags & BAD_FLAGS) != 0)[1:] | setpoint_changed)
-            if (s.flags[0] & BAD_FLAGS) or len(bad) or (contiguous and s.gap_before[0]):
+            # over range is not a fault: the clipped samples are left out of the fit (_fit), as long as
+            # most of the window is in range; more than that and too little of the signal is seen
+            clipped_fraction = float(np.mean((s.flags & FLAG_OVER_RANGE) != 0))
+            if (s.flags[0] & FLAG_SENSOR_FAULT) or len(bad) or clipped_fraction > MAX_CLIPPED_FRACTION or (
+                    contiguous and s.gap_before[0]):
                 self.windows_discarded += 1
                 reasons["DAQ gap or bad frame"] += int(s.gap_before[1:].any())
-                over = int(((s.flags & FLAG_OVER_RANGE) != 0).any())
+                over = int(clipped_fraction > MAX_CLIPPED_FRACTION)
                 reasons["sensor over-range"] += over
                 self.over_range_windows += over
                 reasons["sensor fault"] += int(((s.flags & FLAG_SENSOR_FAULT) != 0).any())
