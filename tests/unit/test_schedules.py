@@ -151,3 +151,24 @@ def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(tmp_pat
     scheduler.tick()
     assert [r["outcome"] for r in storage.schedule_runs(sid)] == ["started"]
     assert json.loads(storage.get_schedule(sid)["sweep_json"])["method"] == "probe"
+
+
+def test_cli_schedule_add_list_preview_rm(tmp_path, capsys):
+    """`ripplecal schedule ...` on a database file: add (checked like POST /sweeps), list, preview, rm."""
+    from service.cli import main
+    db = str(tmp_path / "cli.db")
+    assert main(["schedule", "add", "--name", "nightly", "--cron", "30 2 * * *", "--timezone", "Europe/Berlin",
+                 "--torque", "1,2.5", "--speed", "2000", "--method", "probe", "--db", db]) == 0
+    assert "schedule 1 'nightly': 30 2 * * * (Europe/Berlin)" in capsys.readouterr().out
+    assert main(["schedule", "add", "--name", "too much", "--cron", "0 3 * * *", "--torque", "9", "--speed", "2000",
+                 "--db", db]) == 2
+    assert "outside the bench limits" in capsys.readouterr().err
+    assert main(["schedule", "list", "--db", db]) == 0
+    listed = capsys.readouterr().out
+    assert "nightly" in listed and "never fired" in listed and "too much" not in listed
+    assert main(["schedule", "preview", "30 2 * * *", "--timezone", "Europe/Berlin", "--start", "2027-03-27",
+                 "--count", "2"]) == 0
+    assert capsys.readouterr().out.split() == ["2027-03-27T02:30:00+01:00", "2027-03-28T03:00:00+02:00"]
+    assert main(["schedule", "rm", "1", "--db", db]) == 0
+    assert main(["schedule", "rm", "1", "--db", db]) == 1
+    assert Storage(db).list_schedules() == []
