@@ -15,6 +15,7 @@ from service.bench import Bench
 from service.emulator_process import EmulatorProcess
 from service.engine import Engine
 from service.events import EventBroker
+from service.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
 from service.storage import Storage
 
@@ -35,19 +36,22 @@ def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Set
 
 
 class CalibrationService:
-    def __init__(self, settings: Settings):
+    def __init__(self, settings: Settings, clock: Clock = utc_now):
         self.settings = settings
+        self.clock = clock              # the scheduler's time (tests step a fake one)
         self.storage = Storage(settings.server.db_path)
         self.broker = EventBroker()
         self.emulator: EmulatorProcess | None = None
         self.bench: Bench | None = None
         self.engine: Engine | None = None
+        self.scheduler: Scheduler | None = None
         self.version = __version__
         self._status_stop = threading.Event()
         self._status_thread: threading.Thread | None = None
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
-    def start(self, status_period_s: float | None = 1.0) -> None:
+    def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
+        """`run_schedules`: fire due schedules (the server does; a CLI run of one sweep does not)."""
         settings = self.settings
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
@@ -62,6 +66,9 @@ class CalibrationService:
             self.bench.connect()
             self.engine = Engine(self.storage, self.bench, settings, self.broker)
             self.engine.start()
+            if run_schedules:
+                self.scheduler = Scheduler(self.storage, self.engine, settings, self.broker, clock=self.clock)
+                self.scheduler.start()  # its first pass handles the firings missed while the service was down
         except Exception:
             self.stop()
             raise
@@ -72,12 +79,18 @@ class CalibrationService:
 
     def stop(self) -> None:
         self._status_stop.set()
+        if self.scheduler is not None:
+            self.scheduler.stop()       # first: no firing into an engine that is stopping
         if self.engine is not None:
             self.engine.stop(self.shutdown_reason)
         if self.bench is not None:
             self.bench.close()          # leaves the bench safe (torque off, injection off)
         if self.emulator is not None:
             self.emulator.stop()
+
+    def now(self):
+        """The scheduler's time: next_runs and the times a schedule records are counted from it."""
+        return self.clock()
 
     def _on_trip(self, trip) -> None:
         """An interlock tripped (monitor/CAN thread): tell the dashboard at once."""
@@ -96,7 +109,7 @@ class CalibrationService:
             self.broker.publish("bench.status", status)
 
     def __enter__(self) -> "CalibrationService":
-        self.start(status_period_s=None)
+        self.start(status_period_s=None, run_schedules=False)
         return self
 
     def __exit__(self, *exc) -> None:

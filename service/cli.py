@@ -1,4 +1,4 @@
-"""`ripplecal` command line: serve, identify, sweep, export, token.
+"""`ripplecal` command line: serve, identify, sweep, export, token, schedule.
 
 identify and sweep run in this process against the bench (emulated unless --bench names a bench
 settings file), through the same engine the REST API uses, and store their results in --db.
@@ -10,6 +10,7 @@ import json
 import logging
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 from service import __version__
@@ -177,6 +178,63 @@ def cmd_token(args) -> int:
     return 0
 
 
+def cmd_schedule(args) -> int:
+    """Schedules live in the database: a running `serve` on the same --db picks up a new one on its
+    next pass (schedules.tick_s), as it reads tokens made by `token create`."""
+    from zoneinfo import ZoneInfo
+
+    from pydantic import TypeAdapter, ValidationError
+
+    from service.api.schemas import SweepCreate
+    from service.public import schedule_public
+    from service.schedules import (check_cron, check_timezone, create_schedule, delete_schedule, next_runs,
+                                   iso, utc_now)
+    from service.storage import Storage
+    settings = _settings(args)
+    if args.schedule_cmd == "preview":
+        cron, zone = check_cron(args.cron), check_timezone(args.timezone)
+        start = datetime.fromisoformat(args.start) if args.start else utc_now()
+        for t in next_runs(cron, zone, start, args.count):
+            print(iso(t))
+        return 0
+    storage = Storage(settings.server.db_path)
+    now = utc_now()
+    if args.schedule_cmd == "add":
+        try:
+            sweep = TypeAdapter(SweepCreate).validate_python({
+                "grid": {"torque_nm": args.torque, "speed_rpm": args.speed, "udc_v": args.udc}, "method": args.method,
+                "options": json.loads(args.options) if args.options else {}, "confirm_large": args.confirm_large})
+        except ValidationError as exc:
+            raise ValueError("; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())) from None
+        schedule_id = create_schedule(storage, settings, now, args.name, args.cron, args.timezone, sweep,
+                                      enabled=not args.disabled)
+        s = schedule_public(storage, storage.get_schedule(schedule_id), now)
+        print(f"schedule {s.id} '{s.name}': {s.cron} ({s.timezone}), next {', '.join(s.next_runs[:3]) or '(disabled)'}")
+        print(f"stored in {settings.server.db_path}; a running service on this database fires it")
+    elif args.schedule_cmd == "rm":
+        try:
+            delete_schedule(storage, now, args.schedule_id)
+        except KeyError:
+            print(f"schedule {args.schedule_id} does not exist in {settings.server.db_path}", file=sys.stderr)
+            return 1
+        print(f"schedule {args.schedule_id} deleted")
+    else:
+        rows = storage.list_schedules()
+        if args.json:
+            print(json.dumps([schedule_public(storage, r, now).model_dump() for r in rows], indent=1))
+            return 0
+        if not rows:
+            print(f"no schedules in {settings.server.db_path}")
+        for r in rows:
+            s = schedule_public(storage, r, now, next_count=1, run_count=1)
+            last = s.runs[0] if s.runs else None
+            print(f"{s.id:>4}  {s.name:<24}  {s.cron:<16} {s.timezone:<16} {'on ' if s.enabled else 'off'}  "
+                  f"next {s.next_runs[0] if s.next_runs else '-':<25}  "
+                  + (f"last {last.due_at} {last.outcome}" + (f" sweep {last.sweep_id}" if last.sweep_id else "")
+                     if last else "never fired"))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ripplecal", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"ripplecal {__version__}")
@@ -230,6 +288,33 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--db", metavar="PATH")
     t.add_argument("--settings", metavar="FILE")
     p.set_defaults(func=cmd_token, bench=None)
+
+    p = sub.add_parser("schedule", help="add, list, remove or preview scheduled sweeps")
+    ssub = p.add_subparsers(dest="schedule_cmd", required=True)
+    t = ssub.add_parser("add", help="a sweep at the times of a cron expression")
+    t.add_argument("--name", required=True)
+    t.add_argument("--cron", required=True, help="5 fields, e.g. '0 2 * * 1-5' (Debian cron semantics)")
+    t.add_argument("--timezone", default="UTC", help="IANA time zone, e.g. Europe/Berlin (default UTC)")
+    t.add_argument("--torque", type=_floats, required=True, help="torques, Nm, comma-separated")
+    t.add_argument("--speed", type=_floats, required=True, help="speeds, rpm, comma-separated")
+    t.add_argument("--udc", type=_floats, default=[12.0], help="DC-link voltages, V, comma-separated")
+    t.add_argument("--method", choices=list(METHODS), default="adaptive")
+    t.add_argument("--options", help="method options as JSON")
+    t.add_argument("--confirm-large", action="store_true", help="allow a grid above safety.max_sweep_points_unconfirmed")
+    t.add_argument("--disabled", action="store_true", help="store it disabled")
+    t = ssub.add_parser("list", help="schedules with their next firing and last run")
+    t.add_argument("--json", action="store_true")
+    t = ssub.add_parser("rm", help="delete a schedule (its run history stays)")
+    t.add_argument("schedule_id", type=int)
+    t = ssub.add_parser("preview", help="the firings of a cron expression in a time zone")
+    t.add_argument("cron")
+    t.add_argument("--timezone", default="UTC")
+    t.add_argument("--start", help="ISO 8601; without an offset: wall time in --timezone (default now)")
+    t.add_argument("--count", type=int, default=10)
+    for t in ssub.choices.values():
+        t.add_argument("--db", metavar="PATH")
+        t.add_argument("--settings", metavar="FILE")
+    p.set_defaults(func=cmd_schedule, bench=None)
     return parser
 
 

@@ -189,12 +189,13 @@ class Engine:
         self._publish_job(job_id)
         return job_id
 
-    def submit_sweep(self, grid: Grid, method: str, options) -> int:
+    def submit_sweep(self, grid: Grid, method: str, options, schedule_id: int | None = None) -> int:
         plan = SweepPlan.from_grid(grid)
         check_plant_time(grid.speed_rpm, method, options, self.settings)
         plan.dry_run(self.settings)                         # every setpoint checked before the first frame
         sweep_id = self.storage.create_sweep(method, self.settings.identification.harmonic_order, grid.model_dump(),
-                                             options.model_dump(), len(plan.points), self.bench.identity, __version__)
+                                             options.model_dump(), len(plan.points), self.bench.identity, __version__,
+                                             schedule_id=schedule_id)
         self._queue_sweep(sweep_id)
         return sweep_id
 

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import json
 import math
+from datetime import datetime
 from typing import Any
+from zoneinfo import ZoneInfo
 
 from pydantic import BaseModel, Field
 
 from service import __version__
 from service.identification import IdentificationResult
 from service.operating_point import OperatingPoint
+from service.schedules import iso, next_runs
 from service.storage import Storage, now_iso
 
 # every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
@@ -106,6 +109,7 @@ class SweepPublic(BaseModel):
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None
+    schedule_id: int | None = Field(None, description="the schedule that submitted this sweep (none: started by hand)")
     points: list[SweepPointPublic] | None = None
 
 
@@ -144,6 +148,38 @@ class MapSummaryPublic(BaseModel):
     harmonic_order: int
     method: str
     created_at: str
+
+
+class ScheduleRunPublic(BaseModel):
+    """One firing of a schedule and what came of it."""
+    id: int
+    due_at: str = Field(description="when it fell due, ISO 8601 in the schedule's time zone")
+    fired_at: str = Field(description="when the scheduler handled it, ISO 8601 in the schedule's time zone")
+    outcome: str = Field(description="started (the bench was free) | queued (behind a run in progress) | skipped "
+                                     "(this schedule's previous sweep still waits) | missed (the service was down "
+                                     "longer than schedules.missed_grace_s) | failed (the sweep was refused)")
+    sweep_id: int | None = None
+    sweep_state: str | None = Field(None, description="the state of that sweep now")
+    note: str | None = None
+
+
+class SchedulePublic(BaseModel):
+    id: int
+    name: str
+    cron: str = Field(description="5 fields: minute hour day-of-month month day-of-week (Debian cron)")
+    timezone: str = Field(description="IANA time zone the cron is read in")
+    sweep: dict[str, Any] = Field(description="the sweep each firing submits: grid, method, options, confirm_large")
+    enabled: bool
+    created_at: str
+    updated_at: str
+    next_runs: list[str] = Field(description="the next firings, ISO 8601 with offset (empty while disabled)")
+    runs: list[ScheduleRunPublic] = Field(description="recent firings, newest first")
+
+
+class SchedulePreviewPublic(BaseModel):
+    cron: str
+    timezone: str
+    runs: list[str] = Field(description="the firings after `start`, ISO 8601 with the zone's offset")
 
 
 # --- results: domain -> row -> public ---------------------------------------------------------------
@@ -230,7 +266,7 @@ def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> Sw
         plant_time_s=outcome["plant_time_s"], map_id=sweep["map_id"], error=sweep["error"],
         pause_reason=sweep.get("pause_reason"), bench_identity=sweep["bench_identity"],
         software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
-        finished_at=sweep["finished_at"], points=points)
+        finished_at=sweep["finished_at"], schedule_id=sweep.get("schedule_id"), points=points)
 
 
 def map_public(storage: Storage, map_id: int) -> MapPublic | None:
@@ -253,6 +289,21 @@ def map_public(storage: Storage, map_id: int) -> MapPublic | None:
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
                      created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells)
+
+
+def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_count: int = 20) -> SchedulePublic:
+    """`now`: the scheduler's clock (aware), from which next_runs are counted."""
+    zone = ZoneInfo(row["timezone"])
+
+    def local(text: str) -> str:
+        return iso(datetime.fromisoformat(text).astimezone(zone))
+    upcoming = next_runs(row["cron"], zone, now, next_count) if row["enabled"] else []
+    runs = [ScheduleRunPublic(id=r["id"], due_at=local(r["due_at"]), fired_at=local(r["fired_at"]), outcome=r["outcome"],
+                              sweep_id=r["sweep_id"], sweep_state=r["sweep_state"], note=r["note"])
+            for r in storage.schedule_runs(row["id"], run_count)]
+    return SchedulePublic(id=row["id"], name=row["name"], cron=row["cron"], timezone=row["timezone"],
+                          sweep=json.loads(row["sweep_json"]), enabled=bool(row["enabled"]), created_at=local(row["created_at"]),
+                          updated_at=local(row["updated_at"]), next_runs=[iso(t) for t in upcoming], runs=runs)
 
 
 def map_summaries(storage: Storage, limit: int) -> list[MapSummaryPublic]:

@@ -122,6 +122,12 @@ class EngineSettings(_Section):
     auto_resume: bool = Field(False, description="on start, resume sweeps a previous service run left interrupted")
 
 
+class SchedulesSettings(_Section):
+    missed_grace_s: float = Field(3600.0, ge=0, le=7 * 86_400, description="a firing missed while the service was "
+                                  "down still runs once at start if it fell due at most this long ago; older: recorded as missed")
+    tick_s: float = Field(1.0, gt=0, le=60, description="how often the scheduler looks for due firings")
+
+
 class EmulatorSettings(_Section):
     scenario: str = "paper-bench"
     seed: int | None = None
@@ -150,6 +156,7 @@ class Settings(_Section):
     safety: SafetySettings = SafetySettings()
     interlocks: InterlockSettings = InterlockSettings()
     engine: EngineSettings = EngineSettings()
+    schedules: SchedulesSettings = SchedulesSettings()
     emulator: EmulatorSettings = EmulatorSettings()
     server: ServerSettings = ServerSettings()
 

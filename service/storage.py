@@ -143,13 +143,13 @@ class Storage:
 
     # --- sweeps ------------------------------------------------------------------------------------
     def create_sweep(self, method: str, harmonic_order: int, grid: dict, options: dict, total: int,
-                     bench_identity: str, software_version: str) -> int:
+                     bench_identity: str, software_version: str, schedule_id: int | None = None) -> int:
         with self.transaction() as conn:
             return conn.execute(
                 "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
-                "software_version, created_at) VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?)",
+                "software_version, created_at, schedule_id) VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (method, harmonic_order, json.dumps(grid), json.dumps(options), total, bench_identity, software_version,
-                 now_iso())).lastrowid
+                 now_iso(), schedule_id)).lastrowid
 
     def update_sweep(self, sweep_id: int, **fields: Any) -> None:
         _update(self, "sweeps", sweep_id, fields)
@@ -248,6 +248,60 @@ class Storage:
         with self.connect() as conn:
             return [dict(r) for r in conn.execute(
                 "SELECT id, sweep_id, harmonic_order, method, created_at FROM maps ORDER BY id DESC LIMIT ?", (limit,))]
+
+    # --- schedules ---------------------------------------------------------------------------------
+    def create_schedule(self, name: str, cron: str, timezone_name: str, sweep: dict, enabled: bool,
+                        now_utc: str) -> int:
+        with self.transaction() as conn:
+            return conn.execute(
+                "INSERT INTO schedules (name, cron, timezone, sweep_json, enabled, created_at, updated_at, last_due_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (name, cron, timezone_name, json.dumps(sweep), int(enabled), now_utc, now_utc, now_utc)).lastrowid
+
+    def update_schedule(self, schedule_id: int, **fields: Any) -> None:
+        _update(self, "schedules", schedule_id, fields)
+
+    def get_schedule(self, schedule_id: int) -> dict | None:
+        """A schedule that has not been deleted."""
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM schedules WHERE id = ? AND deleted_at IS NULL", (schedule_id,)).fetchone()
+            return dict(row) if row else None
+
+    def schedule_named(self, name: str) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM schedules WHERE name = ? AND deleted_at IS NULL", (name,)).fetchone()
+            return dict(row) if row else None
+
+    def list_schedules(self, limit: int = 1000) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute(
+                "SELECT * FROM schedules WHERE deleted_at IS NULL ORDER BY id LIMIT ?", (limit,))]
+
+    def insert_schedule_run(self, schedule_id: int, due_at: str, fired_at: str, outcome: str,
+                            sweep_id: int | None = None, note: str | None = None) -> int:
+        with self.transaction() as conn:
+            return conn.execute(
+                "INSERT INTO schedule_runs (schedule_id, due_at, fired_at, outcome, sweep_id, note) VALUES (?, ?, ?, ?, ?, ?)",
+                (schedule_id, due_at, fired_at, outcome, sweep_id, note)).lastrowid
+
+    def schedule_runs(self, schedule_id: int, limit: int = 20) -> list[dict]:
+        """The schedule's most recent runs, newest first, with the state of the sweep each submitted."""
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute(
+                "SELECT r.*, s.state AS sweep_state FROM schedule_runs r LEFT JOIN sweeps s ON s.id = r.sweep_id "
+                "WHERE r.schedule_id = ? ORDER BY r.id DESC LIMIT ?", (schedule_id, limit))]
+
+    def pending_schedule_sweep(self, schedule_id: int) -> int | None:
+        """A sweep of this schedule still waiting for the bench (queued, never started), if any."""
+        with self.connect() as conn:
+            row = conn.execute("SELECT id FROM sweeps WHERE schedule_id = ? AND state = 'queued' AND started_at IS NULL "
+                               "ORDER BY id LIMIT 1", (schedule_id,)).fetchone()
+            return row["id"] if row else None
+
+    def bench_has_work(self) -> bool:
+        """A job queued or running: a new sweep would wait for the bench."""
+        with self.connect() as conn:
+            return conn.execute("SELECT 1 FROM jobs WHERE state IN ('queued', 'running') LIMIT 1").fetchone() is not None
 
 
 _IDENT = re.compile(r"^[a-z_]+$")

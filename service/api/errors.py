@@ -46,10 +46,13 @@ async def request_validation_error(request: Request, exc: RequestValidationError
     detail = []
     for e in exc.errors():
         loc = [p if isinstance(p, (str, int)) else str(p) for p in e["loc"]]
-        if len(loc) > 1 and loc[0] == "body" and loc[1] in METHODS:
-            del loc[1]          # the method union's tag: the field is body.options..., not body.probe.options...
-        elif loc == ["body"] and e["type"] == "union_tag_invalid":
-            loc = ["body", "method"]        # an unknown method
+        # the method union's tag: the field is body.options..., not body.probe.options... (a schedule's
+        # sweep likewise: body.sweep.options...)
+        at = 2 if loc[:2] == ["body", "sweep"] else 1
+        if len(loc) > at and loc[0] == "body" and loc[at] in METHODS:
+            del loc[at]
+        elif loc in (["body"], ["body", "sweep"]) and e["type"] == "union_tag_invalid":
+            loc = [*loc, "method"]          # an unknown method
         item = validation_error(loc, e["msg"], e["type"])
         if "input" in e and _json_safe(e["input"]):
             item["input"] = e["input"]

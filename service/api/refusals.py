@@ -24,14 +24,14 @@ def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
 
 
 @contextlib.contextmanager
-def refused_at(setpoints: list[str]) -> Iterator[None]:
+def refused_at(setpoints: list[str], options_at: tuple[str, ...] = ("body", "options")) -> Iterator[None]:
     """Submitting a run: bench limits become 422s at the setpoint fields (`setpoints`, e.g. body.grid),
-    a plant-time refusal a 422 at body.options, any other ValueError a 422 at the setpoints."""
+    a plant-time refusal a 422 at the options (`options_at`), any other ValueError a 422 at the setpoints."""
     try:
         yield
     except LimitError as exc:
         raise limit_error(exc, setpoints) from None
     except PlantTimeError as exc:
-        raise unprocessable(validation_error(["body", "options"], str(exc), "value_error.plant_time")) from None
+        raise unprocessable(validation_error(list(options_at), str(exc), "value_error.plant_time")) from None
     except ValueError as exc:
         raise unprocessable(validation_error(setpoints, str(exc))) from None

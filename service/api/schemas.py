@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
 
 from service.identification.registry import METHODS
 from service.operating_point import OperatingPoint
 from service.plans import Grid
+from service.schedules import check_cron, check_timezone
 
 MethodName = Literal[tuple(METHODS)]
 DEFAULT_METHOD = "adaptive"
@@ -51,6 +52,46 @@ SweepCreate = _per_method(
                                                                "safety.max_sweep_points_unconfirmed points (a run of "
                                                                "hours is started on purpose)"))},
     {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}})
+
+
+_SCHEDULE_EXAMPLE = {"name": "nightly OP map", "cron": "0 2 * * 1-5", "timezone": "Europe/Berlin",
+                     "sweep": {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000], "udc_v": [12]},
+                               "method": "adaptive"}, "enabled": True}
+_CRON = ("cron in 5 fields: minute hour day-of-month month day-of-week, Debian cron semantics (across DST a time "
+         "that does not exist runs once right after the change, a time that repeats runs once)")
+
+
+class _ScheduleFields(BaseModel):
+    @field_validator("cron", check_fields=False)
+    @classmethod
+    def _cron(cls, value: str) -> str:
+        return check_cron(value)
+
+    @field_validator("timezone", check_fields=False)
+    @classmethod
+    def _zone(cls, value: str) -> str:
+        check_timezone(value)
+        return value
+
+
+class ScheduleCreate(_ScheduleFields):
+    """A sweep submitted at the times of a cron expression; `sweep` is checked exactly as POST /sweeps is."""
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_SCHEDULE_EXAMPLE]})
+    name: str = Field(..., min_length=1, max_length=100, description="unique among the schedules")
+    cron: str = Field(..., min_length=1, max_length=200, description=_CRON)
+    timezone: str = Field("UTC", min_length=1, max_length=64, description="IANA time zone, e.g. Europe/Berlin")
+    sweep: SweepCreate
+    enabled: bool = True
+
+
+class ScheduleUpdate(_ScheduleFields):
+    """The fields to change; the others stay. A new cron or zone, or enabling, counts from now."""
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"enabled": False}]})
+    name: str = Field(None, min_length=1, max_length=100)
+    cron: str = Field(None, min_length=1, max_length=200, description=_CRON)
+    timezone: str = Field(None, min_length=1, max_length=64, description="IANA time zone")
+    sweep: SweepCreate = None
+    enabled: bool = None
 
 
 class ErrorPublic(BaseModel):

@@ -456,3 +456,49 @@ def test_dashboard_polls_bench_status_and_sweeps_while_sse_is_refused(service, b
         assert not pageerrors, pageerrors
     finally:
         context.close()
+
+
+def test_schedule_created_in_the_panel_shows_its_next_runs_and_can_be_turned_off(service, browser, tmp_path):
+    """The Schedules panel: a schedule made from the form appears with its next runs (cron read in its
+    IANA zone), is turned off with its checkbox (no next runs) and deleted with its button."""
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.fill('[data-testid="token"]', service["token"])
+        page.fill('[data-testid="schedule-name"]', "browser nightly")
+        page.fill('[data-testid="schedule-cron"]', "30 2 * * *")
+        page.fill('[data-testid="schedule-timezone"]', "Europe/Berlin")
+        page.fill('[data-testid="schedule-torque"]', "2.5")
+        page.fill('[data-testid="schedule-speed"]', "2000")
+        page.fill('[data-testid="schedule-udc"]', "12")
+        page.select_option('[data-testid="schedule-method"]', "probe")
+        page.click('[data-testid="schedule-submit"]')
+        ok = page.locator('[data-testid="schedule-ok"]')
+        try:
+            ok.wait_for(state="visible", timeout=10_000)
+        except Exception:
+            page.screenshot(path=str(tmp_path / "schedule_failure.png"), full_page=True)
+            raise AssertionError("schedule not accepted: %r\nconsole: %s" % (
+                page.text_content('[data-testid="schedule-error"]'), rec["console"] + rec["pageerrors"]))
+        schedule_id = re.search(r"Schedule (\d+) \(browser nightly\) added", ok.inner_text()).group(1)
+        row = f'[data-testid="schedule-row"][data-schedule-id="{schedule_id}"]'
+        page.wait_for_selector(row, timeout=10_000)
+        assert page.get_attribute(row, "data-enabled") == "true"
+        next_runs = page.inner_text(f"{row} [data-testid=schedule-next]").split("\n")
+        assert len(next_runs) == 3 and all(re.search(r"02:30:00\+0[12]:00$|03:00:00\+02:00$", t) for t in next_runs), next_runs
+        assert page.inner_text(f"{row} [data-testid=schedule-runs]").strip() == "never fired"
+        with urllib.request.urlopen(service["base"] + f"/api/v1/schedules/{schedule_id}", timeout=10) as r:
+            stored = json.load(r)
+        assert stored["sweep"]["method"] == "probe" and stored["timezone"] == "Europe/Berlin", stored
+
+        page.uncheck(f"{row} [data-testid=schedule-enabled]")
+        page.wait_for_function(
+            f"""() => {{ const r = document.querySelector('{row}');
+                        return r && r.dataset.enabled === 'false'; }}""", timeout=10_000)
+        assert page.inner_text(f"{row} [data-testid=schedule-next]").strip() == "—"
+        page.click(f"{row} [data-testid=schedule-delete]")
+        page.wait_for_selector(row, state="detached", timeout=10_000)
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+        page.screenshot(path=str(tmp_path / "schedules.png"), full_page=True)
+    finally:
+        context.close()

@@ -38,6 +38,17 @@ export async function post(path, body) {
   return r.status === 204 ? null : r.json();
 }
 
+// PATCH / DELETE with the bearer token (schedules); 204 answers give null.
+export async function send(method, path, body) {
+  const headers = { Accept: "application/json" };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const token = tokenSource();
+  if (token) headers.Authorization = "Bearer " + token;
+  const r = await fetch(API_BASE + path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!r.ok) throw await errorOf(r);
+  return r.status === 204 ? null : r.json();
+}
+
 // The messages of a failed request: ApiError.lines, or the message of a network error.
 export function errorLines(e) {
   return e.lines || [String(e.message || e)];

@@ -11,9 +11,11 @@ import * as sweeps from "./panels/sweeps.js";
 import * as maps from "./panels/maps.js";
 import * as identify from "./panels/identify.js";
 import * as resultView from "./panels/result-view.js";
+import * as schedules from "./panels/schedules.js";
 
 const TOKEN_KEY = "ripplecal.token";
 const SWEEP_POLL_MS = 5000;      // sweep list refresh while SSE is down
+const SCHEDULE_POLL_MS = 15000;  // schedules: next runs move on, firings happen between sweep events
 
 // The token field is remembered in localStorage; the API client reads it when it sends.
 function bindToken() {
@@ -39,6 +41,9 @@ async function init() {
   sweeps.init({ openMapOf: maps.select });
   maps.init({ openResultOf: resultView.openResult });
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
+  schedules.init({});
+  events.on("sweep.progress", schedules.onSweepProgress);
+  setInterval(schedules.reload, SCHEDULE_POLL_MS);
 
   events.on("connection", benchStatus.showConnection);
   events.on("bench.status", benchStatus.render);
@@ -59,6 +64,7 @@ async function init() {
   }, SWEEP_POLL_MS);
   sweeps.reload();
   maps.reload(true);
+  schedules.reload();
   identify.resume();
 }
 
