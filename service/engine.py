@@ -59,7 +59,7 @@ class SweepState(str, Enum):
 
 J, W = JobState, SweepState
 JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
-    J.QUEUED: frozenset({J.RUNNING, J.CANCELLED}),
+    J.QUEUED: frozenset({J.RUNNING, J.CANCELLED, J.FAILED}),   # failed: the service stopped before it ran
     J.RUNNING: frozenset({J.DONE, J.FAILED, J.CANCELLED}),
     J.DONE: frozenset(), J.FAILED: frozenset(), J.CANCELLED: frozenset(),
 }
