@@ -27,9 +27,7 @@ RIPPLECAL = str(Path(sys.executable).parent / "ripplecal")
 
 def _env(xdg: Path, **extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RIPPLECAL_")}
-    # emulators paced at 20x real time: free-running they take a core each, and a loaded machine then
-    # starves the heartbeats (results do not depend on the pace: the DAQ clock times everything)
-    return {**env, "XDG_DATA_HOME": str(xdg), "RIPPLECAL_EMULATOR__SPEEDUP": "20", **extra}
+    return {**env, "XDG_DATA_HOME": str(xdg), **extra}
 
 
 def run(*args: str, env: dict, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:

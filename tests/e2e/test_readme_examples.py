@@ -21,9 +21,6 @@ from tests.support.service_process import REPO, ServiceProcess
 pytestmark = pytest.mark.e2e
 README = REPO / "README.md"
 MARK = "@@vars"
-# the emulators paced at 20x real time (results do not depend on it: the DAQ clock times everything):
-# a free-running emulator takes a whole core, and on a loaded machine the heartbeats then starve
-PACED = {"RIPPLECAL_EMULATOR__SPEEDUP": "20"}
 
 
 def readme_blocks() -> list[str]:
@@ -50,7 +47,7 @@ def earlier_rows(db: Path) -> None:
 def served(tmp_path_factory):
     db = tmp_path_factory.mktemp("readme") / "ripplecal.db"
     earlier_rows(db)
-    svc = ServiceProcess(db, "--speedup", PACED["RIPPLECAL_EMULATOR__SPEEDUP"])
+    svc = ServiceProcess(db)
     try:
         svc.wait_ready()
         yield svc, db
@@ -70,7 +67,7 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         block = block.replace("http://127.0.0.1:8000", svc.base).replace(".venv/bin/ripplecal", ripplecal)
         script += block + f'\necho; echo "{MARK} JOB=$JOB SWEEP=$SWEEP MAP=$MAP"; cp ripplecal_lut.h lut{i}.h\n'
     env = {k: v for k, v in os.environ.items() if not k.startswith("RIPPLECAL_")}
-    env.update(RIPPLECAL_SERVER__DB_PATH=str(db), XDG_DATA_HOME=str(tmp_path / "xdg"), **PACED,
+    env.update(RIPPLECAL_SERVER__DB_PATH=str(db), XDG_DATA_HOME=str(tmp_path / "xdg"),
                PATH=f"{Path(sys.executable).parent}:{env.get('PATH', '')}")
     proc = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1500)
     assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
