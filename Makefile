@@ -1,6 +1,11 @@
-# ripplecal: `make run` starts the service on the emulated bench, `make test` runs the suite,
-# `make bench` prints the performance figures. Each creates .venv and installs what is missing.
+# ripplecal: `make run` starts the service on the emulated bench (`make run PORT=8001 HOST=127.0.0.1`
+# to choose where it listens), `make test` runs the suite, `make bench` prints the performance figures.
+# Each creates .venv and installs what is missing.
 PYTHON ?= python3
+# plain assignments: `make run PORT=...` overrides them, an exported HOST (the machine's name in
+# some shells) does not
+HOST := 127.0.0.1
+PORT := 8000
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -22,7 +27,7 @@ chromium:
 	  { [ "$$(id -u)" = 0 ] && SUDO= || SUDO=sudo; $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; }; }
 
 run: $(STAMP)
-	$(VENV)/bin/ripplecal serve --emulate
+	$(VENV)/bin/ripplecal serve --emulate --host $(HOST) --port $(PORT)
 
 test: $(STAMP) chromium
 	$(PY) -m pytest -q

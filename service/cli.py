@@ -1,12 +1,17 @@
-"""`ripplecal` command line: serve, identify, sweep, export, token, schedule.
+"""`ripplecal` command line: serve, identify, sweep, export, token, schedule, maps, sweeps.
 
-identify and sweep run in this process against the bench (emulated unless --bench names a bench
-settings file), through the same engine the REST API uses, and store their results in --db.
+identify, sweep and `maps download` run in this process against the bench (emulated unless --bench
+names a bench settings file), through the same engine the REST API uses, and store into the database.
+The database is resolved once, made absolute and printed (stderr) at start: --db, else
+RIPPLECAL_SERVER__DB_PATH, else the per-user default ($XDG_DATA_HOME or ~/.local/share)/ripplecal/ripplecal.db,
+the same for every command whatever the working directory.
 """
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
+import math
 import logging
 import sys
 import time
@@ -50,7 +55,16 @@ def _settings(args) -> Settings:
     for key in ("host", "port"):
         if getattr(args, key, None) is not None:
             overrides[f"server.{key}"] = getattr(args, key)
-    return load_settings(path, overrides=overrides)
+    settings = load_settings(path, overrides=overrides)
+    settings.server.db_path = resolve_db_path(settings.server.db_path)
+    # stderr: stdout stays clean for the token's last line, --json and exports
+    print(f"ripplecal: database {settings.server.db_path}", file=sys.stderr, flush=True)
+    return settings
+
+
+def resolve_db_path(path: str) -> str:
+    """Absolute once, at start: a relative --db or RIPPLECAL_SERVER__DB_PATH is taken against this working directory."""
+    return str(Path(path).expanduser().absolute())
 
 
 def cmd_serve(args) -> int:
@@ -87,6 +101,51 @@ def _wait(predicate, deadline: float, what: str):
     raise TimeoutError(f"{what} did not finish before the timeout")
 
 
+JOB_FINAL = ("done", "failed", "cancelled")
+
+
+def _follow_job(service, submit, timeout_s: float, out=sys.stderr) -> dict:
+    """Submit a job and print its state changes and each accepted window (plant time, residual) as the
+    engine publishes them (the service's EventBroker, in this process) until it ends. The job row is
+    read after every event and at least once a second, so a lost event never hangs the wait."""
+    async def follow() -> dict:
+        token = service.broker.subscribe()       # before submitting: no early event is missed
+        queue = token[1]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        last_line = -math.inf
+        try:
+            job_id = submit()
+            print(f"job {job_id}: queued", file=out, flush=True)
+            while True:
+                job = service.storage.get_job(job_id)
+                if job["state"] in JOB_FINAL:
+                    return job
+                remaining = deadline - loop.time()
+                if remaining <= 0:
+                    raise TimeoutError(f"identification job {job_id} did not finish within {timeout_s:g} s "
+                                       "(--timeout); it was cancelled")
+                try:
+                    kind, data = await asyncio.wait_for(queue.get(), timeout=min(1.0, remaining))
+                except asyncio.TimeoutError:
+                    continue
+                event = json.loads(data)
+                if event.get("job_id") != job_id:
+                    continue
+                if kind == "job.state" and event["state"] != "queued":
+                    print(f"job {job_id}: {event['state']}" + (f" ({event['error']})" if event.get("error") else ""),
+                          file=out, flush=True)
+                elif kind == "job.progress" and (loop.time() - last_line >= 0.5):   # grid: 360 windows; a line per 0.5 s
+                    last_line = loop.time()
+                    residual = event["residual_fs"]
+                    dbfs = 20 * math.log10(residual) if residual > 0 else -math.inf
+                    print(f"  plant time {event['plant_time_s']:8.3f} s   residual {residual:.3e} FS ({dbfs:6.1f} dBFS)",
+                          file=out, flush=True)
+        finally:
+            service.broker.unsubscribe(token)
+    return asyncio.run(follow())
+
+
 def cmd_identify(args) -> int:
     from service.calibration_service import CalibrationService
     from service.identify import parse_options
@@ -94,11 +153,11 @@ def cmd_identify(args) -> int:
     from service.operating_point import OperatingPoint
     settings = _settings(args)
     op = OperatingPoint(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
-    options = parse_options(args.method, json.loads(args.options) if args.options else {})
+    options = parse_options(args.method, _json_option(args.options))
+    print(f"starting the {'bench ' + args.bench if args.bench else 'emulated bench'} ...", file=sys.stderr, flush=True)
     with CalibrationService(settings) as service:
-        job_id = service.engine.submit_identification(op, args.method, options)
-        job = _wait(lambda: (j if (j := service.storage.get_job(job_id))["state"] in ("done", "failed", "cancelled") else None),
-                    time.monotonic() + args.timeout, f"identification job {job_id}")
+        job = _follow_job(service, lambda: service.engine.submit_identification(op, args.method, options), args.timeout)
+        job_id = job["id"]
         result = result_public(service.storage.get_result(job["result_id"])).model_dump() if job["result_id"] else None
     if args.json:
         print(json.dumps({"job_id": job_id, "state": job["state"], "error": job["error"], "result": result}, indent=1))
@@ -112,8 +171,20 @@ def cmd_identify(args) -> int:
         print(f"theta             cos {result['theta_cos']:.6f} rad, sin {result['theta_sin']:.6f} rad")
         print(f"suppression       {result['suppression_db']:.1f} dB (h = {result['harmonic_order']})")
         print(f"plant time        {result['plant_time_s']:.3f} s")
-        print(f"result id         {result['id']} in {settings.server.db_path}")
+        print(f"result id         {result['id']} (job {job_id}) in {settings.server.db_path}")
     return 0 if job["state"] == "done" else 1
+
+
+def _json_option(text: str | None) -> dict:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--options is not valid JSON ({exc.msg} at character {exc.pos}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"--options must be a JSON object, e.g. '{{\"mu_per_s\": 10}}', got {text!r}")
+    return value
 
 
 def cmd_sweep(args) -> int:
@@ -122,7 +193,7 @@ def cmd_sweep(args) -> int:
     from service.plans import Grid
     settings = _settings(args)
     grid = Grid(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
-    options = parse_options(args.method, json.loads(args.options) if args.options else {})
+    options = parse_options(args.method, _json_option(args.options))
     started = time.monotonic()
     with CalibrationService(settings) as service:
         sweep_id = service.engine.submit_sweep(grid, args.method, options)
@@ -133,11 +204,17 @@ def cmd_sweep(args) -> int:
             s = service.storage.get_sweep(sweep_id)
             if (s["done_points"], s["state"]) != last:
                 last = (s["done_points"], s["state"])
-                print(f"sweep {sweep_id}: {s['done_points']}/{s['total_points']} points, {s['state']}", flush=True)
+                print(f"sweep {sweep_id}: {s['done_points']}/{s['total_points']} points, {s['state']}", file=sys.stderr,
+                      flush=True)
             return s if s["state"] in ("done", "failed", "cancelled") else None
         sweep = _wait(finished, time.monotonic() + args.timeout, f"sweep {sweep_id}")
-    print(f"sweep {sweep_id} {sweep['state']} in {time.monotonic() - started:.1f} s wall; "
-          f"{sweep['failed_points']} failed point(s); map {sweep['map_id']}")
+    if args.json:
+        print(json.dumps({"sweep_id": sweep_id, "state": sweep["state"], "map_id": sweep["map_id"],
+                          "done_points": sweep["done_points"], "failed_points": sweep["failed_points"],
+                          "total_points": sweep["total_points"]}, indent=1))
+    else:
+        print(f"sweep {sweep_id} {sweep['state']} in {time.monotonic() - started:.1f} s wall; "
+              f"{sweep['failed_points']} failed point(s); map {sweep['map_id']}")
     return 0 if sweep["state"] == "done" and sweep["failed_points"] == 0 else 1
 
 
@@ -181,8 +258,6 @@ def cmd_token(args) -> int:
 def cmd_schedule(args) -> int:
     """Schedules live in the database: a running `serve` on the same --db picks up a new one on its
     next pass (schedules.tick_s), as it reads tokens made by `token create`."""
-    from zoneinfo import ZoneInfo
-
     from pydantic import TypeAdapter, ValidationError
 
     from service.api.schemas import SweepCreate
@@ -235,60 +310,178 @@ def cmd_schedule(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ripplecal", description=__doc__.splitlines()[0])
-    parser.add_argument("--version", action="version", version=f"ripplecal {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _storage(args):
+    from service.storage import Storage
+    return Storage(_settings(args).server.db_path)
 
+
+def cmd_maps(args) -> int:
+    if args.maps_cmd == "download":
+        return _download_map(args)
+    from service.public import map_public
+    storage = _storage(args)
+    maps = [map_public(storage, row["id"]) for row in storage.list_maps(args.limit)]
+    if args.json:
+        print(json.dumps([m.model_dump(exclude={"cells"}) for m in maps], indent=1))
+        return 0
+    if not maps:
+        print("no maps yet: a sweep builds one when it ends")
+        return 0
+    print(f"{'id':>5}  {'sweep':>5}  {'method':<8}  {'h':>2}  {'ok/cells':>8}  {'created':<25}  bench")
+    for m in maps:
+        print(f"{m.id:>5}  {m.sweep_id if m.sweep_id is not None else '-':>5}  {m.method:<8}  {m.harmonic_order:>2}  "
+              f"{m.status_counts.get('ok', 0):>3}/{len(m.cells):<4}  {m.created_at:<25}  {m.bench_identity}")
+    return 0
+
+
+def _download_map(args) -> int:
+    """The map's LUT into the drive over the bench, as POST /maps/{id}/download does. It opens the bench
+    itself: run it with no `ripplecal serve` using the same bench (two masters on one bus and one DAQ
+    port would fight over it); without --bench it downloads into an emulator of its own."""
+    from service.bench import BenchError
+    from service.calibration_service import CalibrationService
+    from service.lut_export import lut_image
+    from service.public import map_public
+    from service.storage import Storage
+    settings = _settings(args)
+    m = map_public(Storage(settings.server.db_path), args.map_id)
+    if m is None:
+        print(f"ripplecal: map {args.map_id} does not exist in {settings.server.db_path}", file=sys.stderr)
+        return 2
+    try:
+        image = lut_image(m.model_dump())      # refused before the bench is started
+    except ValueError as exc:
+        print(f"ripplecal: map {args.map_id} cannot become a LUT: {exc}", file=sys.stderr)
+        return 2
+    print(f"starting the {'bench ' + args.bench if args.bench else 'emulated bench'} ...", file=sys.stderr, flush=True)
+    with CalibrationService(settings) as service:
+        try:
+            crc = service.bench.download_lut(image)
+        except BenchError as exc:
+            print(f"ripplecal: {exc}", file=sys.stderr)
+            return 1
+        except Exception as exc:   # SDO abort / timeout: the drive refused or did not answer
+            print(f"ripplecal: drive refused the LUT: {exc}", file=sys.stderr)
+            return 1
+        identity = service.bench.identity
+    answer = {"map_id": m.id, "bytes": len(image), "crc32": f"0x{crc:08X}", "cells": len(m.cells),
+              "harmonic_order": m.harmonic_order, "bench": identity}
+    if args.json:
+        print(json.dumps(answer, indent=1))
+    else:
+        print(f"map {m.id}: {len(image)} bytes ({len(m.cells)} cells, h = {m.harmonic_order}) in the drive of {identity}; "
+              f"CRC-32 read back {answer['crc32']}")
+    return 0
+
+
+def cmd_sweeps(args) -> int:
+    from service.public import sweep_public
+    storage = _storage(args)
+    if args.sweeps_cmd == "show":
+        row = storage.get_sweep(args.sweep_id)
+        if row is None:
+            print(f"ripplecal: sweep {args.sweep_id} does not exist in {storage.path}", file=sys.stderr)
+            return 2
+        sw = sweep_public(storage, row, with_points=True)
+        if args.json:
+            print(json.dumps(sw.model_dump(), indent=1))
+            return 0
+        p = sw.progress
+        print(f"sweep {sw.id}: {sw.state}, {sw.method}, h = {sw.harmonic_order}, bench {sw.bench_identity}")
+        print(f"grid      torque {sw.grid['torque_nm']} Nm, speed {sw.grid['speed_rpm']} rpm, udc {sw.grid['udc_v']} V")
+        print(f"progress  {p['done']}/{p['total']} points: {p['ok']} ok, {p['below_target']} below target, "
+              f"{p['no_authority']} no authority, {p['failed']} failed; plant time {sw.plant_time_s:.1f} s")
+        print(f"map       {sw.map_id if sw.map_id is not None else '-'}")
+        if sw.pause_reason:
+            print(f"paused    {sw.pause_reason}")
+        if sw.error:
+            print(f"error     {sw.error}")
+        for pt in sw.points or []:
+            r, op = pt.result, pt.operating_point
+            numbers = (f"gamma {r.gamma_deg:6.3f} deg  delta {r.delta_deg:7.2f} deg  {r.suppression_db:5.1f} dB"
+                       if r.gamma_deg is not None and r.suppression_db is not None else "")
+            print(f"  {op.label():<28} {pt.state:<13} {numbers}" + (f"  {r.message}" if pt.state != "ok" and r.message else ""))
+        return 0
+    sweeps = [sweep_public(storage, row) for row in storage.list_sweeps(args.limit)]
+    if args.json:
+        print(json.dumps([sw.model_dump() for sw in sweeps], indent=1))
+        return 0
+    if not sweeps:
+        print("no sweeps yet")
+        return 0
+    print(f"{'id':>5}  {'state':<11}  {'method':<8}  {'points':>9}  {'failed':>6}  {'map':>5}  created")
+    for sw in sweeps:
+        print(f"{sw.id:>5}  {sw.state:<11}  {sw.method:<8}  {sw.progress['done']:>4}/{sw.progress['total']:<4}  "
+              f"{sw.progress['failed']:>6}  {sw.map_id if sw.map_id is not None else '-':>5}  {sw.created_at}")
+    return 0
+
+
+# --- the parser: one small function per command (each keeps its options to itself) --------------------
+def _db_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", metavar="PATH", help="SQLite database file (default: RIPPLECAL_SERVER__DB_PATH, "
+                                                  "else ~/.local/share/ripplecal/ripplecal.db)")
+    p.add_argument("--settings", metavar="FILE", help="settings TOML")
+
+
+def _parser_serve(sub) -> None:
     p = sub.add_parser("serve", help="run the REST API and dashboard")
     _add_bench_args(p)
     p.add_argument("--host", help="bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="port (default 8000)")
     p.set_defaults(func=cmd_serve)
 
-    for name, func, helptext in (("identify", cmd_identify, "identify theta* at one operating point"),
-                                 ("sweep", cmd_sweep, "identify over a grid and build a map")):
-        p = sub.add_parser(name, help=helptext)
-        _add_bench_args(p)
-        if name == "identify":
-            p.add_argument("--torque", type=float, required=True, help="torque command, Nm")
-            p.add_argument("--speed", type=float, required=True, help="speed, rpm")
-            p.add_argument("--udc", type=float, default=12.0, help="DC-link voltage, V (default 12)")
-        else:
-            p.add_argument("--torque", type=_floats, required=True, help="torques, Nm, comma-separated")
-            p.add_argument("--speed", type=_floats, required=True, help="speeds, rpm, comma-separated")
-            p.add_argument("--udc", type=_floats, default=[12.0], help="DC-link voltages, V, comma-separated")
-        p.add_argument("--method", choices=list(METHODS), default="adaptive")
-        p.add_argument("--options", help="method options as JSON, e.g. '{\"mu_per_s\": 10}'")
-        p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
-        p.add_argument("--json", action="store_true", help="print the full result as JSON")
-        p.set_defaults(func=func)
 
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=list(METHODS), default="adaptive")
+    p.add_argument("--options", help="method options as JSON, e.g. '{\"mu_per_s\": 10}'")
+    p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many seconds")
+    p.add_argument("--json", action="store_true", help="print the outcome as JSON (progress stays on stderr)")
+
+
+def _parser_identify(sub) -> None:
+    p = sub.add_parser("identify", help="identify theta* at one operating point (prints its progress on stderr)")
+    _add_bench_args(p)
+    p.add_argument("--torque", type=float, required=True, help="torque command, Nm")
+    p.add_argument("--speed", type=float, required=True, help="speed, rpm")
+    p.add_argument("--udc", type=float, default=12.0, help="DC-link voltage, V (default 12)")
+    _run_args(p)
+    p.set_defaults(func=cmd_identify)
+
+
+def _parser_sweep(sub) -> None:
+    p = sub.add_parser("sweep", help="identify over a grid and build a map")
+    _add_bench_args(p)
+    p.add_argument("--torque", type=_floats, required=True, help="torques, Nm, comma-separated")
+    p.add_argument("--speed", type=_floats, required=True, help="speeds, rpm, comma-separated")
+    p.add_argument("--udc", type=_floats, default=[12.0], help="DC-link voltages, V, comma-separated")
+    _run_args(p)
+    p.set_defaults(func=cmd_sweep)
+
+
+def _parser_export(sub) -> None:
     p = sub.add_parser("export", help="export a map as a LUT")
     p.add_argument("map_id", type=int)
     p.add_argument("--format", choices=list(EXPORT_FORMATS), default="csv")
     p.add_argument("--out", help="file to write (stdout otherwise)")
-    p.add_argument("--db", metavar="PATH")
-    p.add_argument("--settings", metavar="FILE")
+    _db_args(p)
     p.set_defaults(func=cmd_export, bench=None)
 
+
+def _parser_token(sub) -> None:
     p = sub.add_parser("token", help="create, revoke or list API tokens")
     tsub = p.add_subparsers(dest="token_cmd", required=True)
     t = tsub.add_parser("create")
     t.add_argument("--role", choices=["viewer", "operator", "admin"], required=True)
     t.add_argument("--label")
-    t.add_argument("--db", metavar="PATH")
-    t.add_argument("--settings", metavar="FILE")
+    _db_args(t)
     t = tsub.add_parser("revoke")
     t.add_argument("token_id", type=int)
-    t.add_argument("--db", metavar="PATH")
-    t.add_argument("--settings", metavar="FILE")
+    _db_args(t)
     t = tsub.add_parser("list")
-    t.add_argument("--db", metavar="PATH")
-    t.add_argument("--settings", metavar="FILE")
+    _db_args(t)
     p.set_defaults(func=cmd_token, bench=None)
 
+def _parser_schedule(sub) -> None:
     p = sub.add_parser("schedule", help="add, list, remove or preview scheduled sweeps")
     ssub = p.add_subparsers(dest="schedule_cmd", required=True)
     t = ssub.add_parser("add", help="a sweep at the times of a cron expression")
@@ -312,9 +505,51 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--start", help="ISO 8601; without an offset: wall time in --timezone (default now)")
     t.add_argument("--count", type=int, default=10)
     for t in ssub.choices.values():
-        t.add_argument("--db", metavar="PATH")
-        t.add_argument("--settings", metavar="FILE")
+        _db_args(t)
     p.set_defaults(func=cmd_schedule, bench=None)
+
+
+def _parser_maps(sub) -> None:
+    p = sub.add_parser("maps", aliases=["map"], help="list maps; download one into the drive")
+    msub = p.add_subparsers(dest="maps_cmd", required=True)
+    t = msub.add_parser("list", help="the newest maps first")
+    t.add_argument("--limit", type=int, default=50)
+    t.add_argument("--json", action="store_true")
+    _db_args(t)
+    t.set_defaults(bench=None)
+    t = msub.add_parser("download", help="the map's LUT into the drive (0x2001), CRC-32 read back; opens the bench "
+                                         "itself: not while a `ripplecal serve` holds the same bench")
+    t.add_argument("map_id", type=int)
+    t.add_argument("--json", action="store_true")
+    _add_bench_args(t)
+    p.set_defaults(func=cmd_maps)
+
+
+def _parser_sweeps(sub) -> None:
+    p = sub.add_parser("sweeps", help="list sweeps; show one with its points")
+    ssub = p.add_subparsers(dest="sweeps_cmd", required=True)
+    t = ssub.add_parser("list", help="the newest sweeps first")
+    t.add_argument("--limit", type=int, default=50)
+    t.add_argument("--json", action="store_true")
+    _db_args(t)
+    t = ssub.add_parser("show", help="one sweep: progress, map, each point's result")
+    t.add_argument("sweep_id", type=int)
+    t.add_argument("--json", action="store_true")
+    _db_args(t)
+    p.set_defaults(func=cmd_sweeps, bench=None)
+
+
+COMMANDS = (_parser_serve, _parser_identify, _parser_sweep, _parser_export, _parser_token, _parser_schedule,
+            _parser_maps, _parser_sweeps)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ripplecal", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"ripplecal {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in COMMANDS:
+        add(sub)
     return parser
 
 
@@ -330,6 +565,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TimeoutError) as exc:
         print(f"ripplecal: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:      # the service's context has already left the bench safe
+        print("ripplecal: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

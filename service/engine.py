@@ -59,7 +59,7 @@ class SweepState(str, Enum):
 
 J, W = JobState, SweepState
 JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
-    J.QUEUED: frozenset({J.RUNNING, J.CANCELLED}),
+    J.QUEUED: frozenset({J.RUNNING, J.CANCELLED, J.FAILED}),   # failed: the service stopped before it ran
     J.RUNNING: frozenset({J.DONE, J.FAILED, J.CANCELLED}),
     J.DONE: frozenset(), J.FAILED: frozenset(), J.CANCELLED: frozenset(),
 }
@@ -320,7 +320,8 @@ class Engine:
         options = parse_options(req["method"], req["options"])
         started = now_iso()
         try:
-            result = identify_at(self.bench, self.settings, op, req["method"], options, cancel=self._job_cancel[job_id])
+            result = identify_at(self.bench, self.settings, op, req["method"], options, cancel=self._job_cancel[job_id],
+                                 progress=lambda w: self._publish_window(job_id, w))
         except Exception as exc:
             if self._job_cancel[job_id].is_set() and not isinstance(exc, InterlockTripped):
                 raise Cancelled() from exc
@@ -429,6 +430,12 @@ class Engine:
         job = self.storage.get_job(job_id)
         self.broker.publish("job.state", {"job_id": job_id, "state": job["state"], "kind": job["kind"],
                                           "error": job["error"]})
+
+    def _publish_window(self, job_id: int, window) -> None:
+        """A run's accepted window as it comes (plant time on the DAQ clock, residual in full scale)."""
+        self.broker.publish("job.progress", {"job_id": job_id, "plant_time_s": window.end_time_s,
+                                             "residual_fs": window.phasor.amplitude,
+                                             "noise_std_fs": window.noise_std_fs})
 
     def _publish_sweep(self, sweep_id: int) -> None:
         s = self.storage.get_sweep(sweep_id)

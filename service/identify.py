@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import threading
-from typing import Any
+from typing import Any, Callable
 
 from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
-from service.identification.session import MeasurementError
+from service.identification.session import MeasurementError, Window
 from service.limits import gamma_max_rad
 from service.operating_point import OperatingPoint
 from service.secondary_path import model_secondary_path
@@ -37,14 +37,17 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
 
 
 def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
-                prior: Prior | None = None, cancel: threading.Event | None = None) -> IdentificationResult:
+                prior: Prior | None = None, cancel: threading.Event | None = None,
+                progress: Callable[[Window], None] | None = None) -> IdentificationResult:
     """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe.
-    `cancel` is the run's cancel token: set, the run stops at its next DAQ read."""
+    `cancel` is the run's cancel token: set, the run stops at its next DAQ read. `progress` is called
+    with every accepted window (plant time, residual) while the method runs."""
     h = settings.identification.harmonic_order
     gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
     ident = settings.identification
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
     with bench.operating_point(op, h, gamma_max, cancel=cancel) as session:
+        session.on_window = progress
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
         mode = bench.resonance.mode
         s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,

@@ -97,6 +97,7 @@ class OperatingPointSession:
         self.stale_samples = 0
         self.windows_discarded = 0
         self.speed_rpm_measured: float | None = None
+        self.on_window: Callable[[Window], None] | None = None   # progress observer (CLI, SSE job.progress)
 
     # --- the DAQ stream, in order --------------------------------------------------------------
     def _next(self, n: int) -> DecodedSamples:
@@ -219,8 +220,11 @@ class OperatingPointSession:
             samples = DecodedSamples.concat([samples, extension])
             periods += more
             fit = self._fit(samples, periods)
-        return Window(fit.phasor, samples.accel_fs[:fit.phasor.samples], samples.angle_rad[:fit.phasor.samples],
-                      self.plant_time_s, fit.noise_std_fs, fit.ring_fs)
+        window = Window(fit.phasor, samples.accel_fs[:fit.phasor.samples], samples.angle_rad[:fit.phasor.samples],
+                        self.plant_time_s, fit.noise_std_fs, fit.ring_fs)
+        if self.on_window is not None:
+            self.on_window(window)
+        return window
 
     def _periods_to_resolve_the_shaft(self, beats: float = 2.0) -> int:
         """Whole turns of a window long enough to tell the shaft mode from the harmonic: `beats`

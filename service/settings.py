@@ -135,10 +135,18 @@ class EmulatorSettings(_Section):
     start_timeout_s: float = Field(60.0, gt=0)
 
 
+def default_db_path() -> str:
+    """One database per user whatever the working directory (XDG data dir), so `ripplecal token create`
+    run anywhere lands in the database `ripplecal serve` reads. RIPPLECAL_SERVER__DB_PATH or --db
+    name another; the CLI makes a relative one absolute (against its working directory) once, at start."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return str(Path(base) / "ripplecal" / "ripplecal.db")
+
+
 class ServerSettings(_Section):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    db_path: str = "data/ripplecal.db"
+    db_path: str = Field(default_factory=default_db_path)
     max_body_bytes: int = Field(1_048_576, ge=1024, description="larger request bodies get 413 before they are "
                                                                 "parsed or authenticated")
 
@@ -158,7 +166,7 @@ class Settings(_Section):
     engine: EngineSettings = EngineSettings()
     schedules: SchedulesSettings = SchedulesSettings()
     emulator: EmulatorSettings = EmulatorSettings()
-    server: ServerSettings = ServerSettings()
+    server: ServerSettings = Field(default_factory=ServerSettings)   # the db default read when loaded, not at import
 
 
 class SettingsError(ValueError):

@@ -1,0 +1,15 @@
+"""A database with jobs a previous process left queued (killed before they ran) still starts: recover
+marks them failed with the reason (found by the README test's database with earlier rows)."""
+from service.engine import Engine
+from service.events import EventBroker
+from service.settings import load_settings
+from service.storage import Storage
+
+
+def test_recover_fails_jobs_left_queued(tmp_path):
+    storage = Storage(tmp_path / "r.db")
+    job_id = storage.create_job("identification", {"operating_point": {}, "method": "adaptive", "options": {}})
+    settings = load_settings(environ={}, overrides={"server.db_path": str(tmp_path / "r.db")})
+    Engine(storage, None, settings, EventBroker()).recover()
+    job = storage.get_job(job_id)
+    assert job["state"] == "failed" and "stopped while this job was queued" in job["error"]
