@@ -51,7 +51,8 @@ class CalibrationService:
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
-        """`run_schedules`: fire due schedules (the server does; a CLI run of one sweep does not)."""
+        """`run_schedules`: fire due schedules and recover what a previous server left unfinished (the
+        server does; a CLI run of one sweep does neither: a server may be running on the same database)."""
         settings = self.settings
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
@@ -65,7 +66,7 @@ class CalibrationService:
             self.bench = Bench(settings, identity, on_trip=self._on_trip)
             self.bench.connect()
             self.engine = Engine(self.storage, self.bench, settings, self.broker)
-            self.engine.start()
+            self.engine.start(recover=run_schedules)
             if run_schedules:
                 self.scheduler = Scheduler(self.storage, self.engine, settings, self.broker, clock=self.clock)
                 self.scheduler.start()  # its first pass handles the firings missed while the service was down

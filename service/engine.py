@@ -106,11 +106,14 @@ class Engine:
         self._shutdown_reason = "service shut down"
 
     # --- lifecycle -----------------------------------------------------------------------------------
-    def start(self) -> None:
-        self.recover()
+    def start(self, recover: bool = True) -> None:
+        """`recover`: mark what a previous process left unfinished (only the process that owns the
+        database's runs does this: a CLI run beside a server must not touch the server's work)."""
+        if recover:
+            self.recover()
         self._thread = threading.Thread(target=self._work, name="ripplecal-engine", daemon=True)
         self._thread.start()
-        if self.settings.engine.auto_resume:
+        if recover and self.settings.engine.auto_resume:
             for sweep in self.storage.unfinished_sweeps():
                 if sweep["state"] == SweepState.INTERRUPTED.value:
                     log.warning("engine.auto_resume: resuming sweep %s (%s)", sweep["id"], sweep["pause_reason"])
@@ -283,36 +286,48 @@ class Engine:
             job_id = self._queue.get()
             if job_id is None:
                 return
-            job = self.storage.get_job(job_id)
-            if job is None or job["state"] != "queued":
-                continue
-            cancel = self._job_cancel.setdefault(job_id, threading.Event())
-            if self._shutdown.is_set():
-                self._set_job(job_id, JobState.FAILED, error=f"{self._shutdown_reason} before this job ran",
-                              finished_at=now_iso())
-                continue
-            if cancel.is_set():
-                self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
-                continue
-            self._set_job(job_id, JobState.RUNNING, started_at=now_iso())
             try:
-                if job["kind"] == "identification":
-                    self._run_identification(job_id, job)
-                else:
-                    self._run_sweep(job_id, job["sweep_id"])
-                final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
-                self._set_job(job_id, final, finished_at=now_iso(),
-                              error=self._shutdown_reason if self._shutdown.is_set() else None)
-            except Cancelled:
-                self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso(),
-                              error=self._shutdown_reason if self._shutdown.is_set() else None)
-            except Exception as exc:
-                log.error("job %s failed: %s", job_id, traceback.format_exc())
-                error = _error_text(exc)
-                self._set_job(job_id, JobState.FAILED, error=error, finished_at=now_iso())
-                if job["sweep_id"] is not None:
-                    self._set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
-            self._publish_job(job_id)
+                self._work_on(job_id)
+            except TransitionError as exc:
+                # a state the table refuses (e.g. a sweep cancelled as the worker took it): the job is
+                # over either way; the worker must live on for the next one
+                log.warning("job %s ended with a refused transition: %s", job_id, exc)
+            except Exception:
+                log.error("job %s: the worker caught an error it did not expect: %s", job_id, traceback.format_exc())
+
+    def _work_on(self, job_id: int) -> None:
+        job = self.storage.get_job(job_id)
+        if job is None or job["state"] != "queued":
+            return
+        cancel = self._job_cancel.setdefault(job_id, threading.Event())
+        if self._shutdown.is_set():
+            self._set_job(job_id, JobState.FAILED, error=f"{self._shutdown_reason} before this job ran",
+                          finished_at=now_iso())
+            return
+        if cancel.is_set():
+            self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
+            return
+        self._set_job(job_id, JobState.RUNNING, started_at=now_iso())
+        try:
+            if job["kind"] == "identification":
+                self._run_identification(job_id, job)
+            else:
+                self._run_sweep(job_id, job["sweep_id"])
+            final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
+            self._set_job(job_id, final, finished_at=now_iso(),
+                          error=self._shutdown_reason if self._shutdown.is_set() else None)
+        except Cancelled:
+            self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso(),
+                          error=self._shutdown_reason if self._shutdown.is_set() else None)
+        except Exception as exc:
+            log.error("job %s failed: %s", job_id, traceback.format_exc())
+            error = _error_text(exc)
+            self._set_job(job_id, JobState.FAILED, error=error, finished_at=now_iso())
+            sweep = self.storage.get_sweep(job["sweep_id"]) if job["sweep_id"] is not None else None
+            if sweep is not None and SweepState(sweep["state"]) not in (SweepState.CANCELLED, SweepState.DONE,
+                                                                         SweepState.FAILED):
+                self._set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
+        self._publish_job(job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
         req = json.loads(job["request_json"])
@@ -341,6 +356,8 @@ class Engine:
         options = parse_options(sweep["method"], json.loads(sweep["options_json"]))
         plan = SweepPlan.from_grid(grid)
         done = self.storage.committed_points(sweep_id)          # a resumed sweep measures only the rest
+        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
+            raise Cancelled()       # cancelled as the worker took it: nothing was run
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
         in_flight = None
         points = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
