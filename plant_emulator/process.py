@@ -129,10 +129,13 @@ class Emulator:
 
     # -- threads -------------------------------------------------------------------------------------
     def _watchdog(self) -> None:
+        woke = time.monotonic()
         while not self.stop_event.wait(WATCHDOG_PERIOD_S):
+            now = time.monotonic()
+            stalled_s, woke = max(0.0, now - woke - WATCHDOG_PERIOD_S), now     # our own lateness
             try:
-                self.drive.check_heartbeat()
-                self.load.check_heartbeat()
+                self.drive.check_heartbeat(now, stalled_s)
+                self.load.check_heartbeat(now, stalled_s)
             except Exception:
                 log.exception("heartbeat watchdog")
 

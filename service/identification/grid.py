@@ -33,8 +33,10 @@ MAX_GRID_POINTS = 2_000        # x about 30 ms of plant time each: about a minut
 
 
 def _count(start_deg: float, stop_deg: float, step_deg: float) -> int:
-    """Values of start..stop (inclusive) by step, counted without building them."""
-    return math.floor((stop_deg - start_deg) / step_deg + 1e-9) + 1
+    """Values of start..stop (inclusive) by step, counted without building them (a subnormal step
+    makes the ratio infinite: counted as more than any grid may have)."""
+    ratio = (stop_deg - start_deg) / step_deg
+    return math.floor(ratio + 1e-9) + 1 if ratio < 1e12 else 10 ** 12
 
 
 class GridOptions(MethodOptions):

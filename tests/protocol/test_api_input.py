@@ -189,6 +189,7 @@ def test_largest_id_is_a_plain_404(live, method, template):
     ("adaptive", {"mu_per_s": -1}, "mu_per_s"),
     ("probe", {"window_s": 10**30}, "window_s"),
     ("grid", {"delta_step_deg": 1e-6}, "delta_step_deg"),            # counted before anything is allocated
+    ("grid", {"gamma_step_deg": 5e-324}, "gamma_step_deg"),           # a subnormal step: an infinite count
     ("adaptive", {"reference_periods": 10**9}, "reference_periods"),  # gone: windows follow precision needs
     ("probe", {"bogus": 1}, "bogus"),
     ("grid", {"result": ["fit"]}, "result"),
