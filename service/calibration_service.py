@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any
 
 from service import __version__
-from service.bench import Bench
+from service.bench import Bench, BenchUnreachable
 from service.emulator_process import EmulatorProcess
 from service.engine import Engine
 from service.events import EventBroker
@@ -47,7 +48,11 @@ class CalibrationService:
         self._status_thread: threading.Thread | None = None
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
-    def start(self, status_period_s: float | None = 1.0) -> None:
+    def start(self, status_period_s: float | None = 0.5) -> None:
+        """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
+        (every status_period_s: 2 Hz keeps the live view above 1 Hz whatever the reads cost).
+        A real bench that cannot be reached is logged in one line and left disconnected: the service
+        still comes up (dashboard, stored results, the reason in /bench/status) and refuses runs."""
         settings = self.settings
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
@@ -59,7 +64,12 @@ class CalibrationService:
         self.settings = settings
         try:
             self.bench = Bench(settings, identity, on_trip=self._on_trip)
-            self.bench.connect()
+            try:
+                self.bench.connect()
+            except BenchUnreachable as exc:
+                if self.emulator is not None:    # our own emulator not answering is a bug, not a bench to check
+                    raise
+                log.error("%s", exc)
             self.engine = Engine(self.storage, self.bench, settings, self.broker)
             self.engine.start()
         except Exception:
@@ -91,8 +101,15 @@ class CalibrationService:
         return result
 
     def _poll_status(self, period_s: float) -> None:
-        while not self._status_stop.wait(period_s):
-            status = self.bench.refresh_status()
+        # fixed rate (not period + read time), so slow reads do not drop the rate below 1/period_s
+        next_at = time.monotonic() + period_s
+        while not self._status_stop.wait(max(0.0, next_at - time.monotonic())):
+            next_at = max(next_at + period_s, time.monotonic())
+            try:
+                status = self.bench.refresh_status()
+            except Exception:  # noqa: BLE001 - the live view must outlive one bad round
+                log.exception("bench status round failed")
+                continue
             self.broker.publish("bench.status", status)
 
     def __enter__(self) -> "CalibrationService":
