@@ -124,7 +124,14 @@ class Bench:
         s = self.settings
         self.bus = CanBus(s.can.interface, s.can.channel, host=s.can.host, port=s.can.port, bitrate=s.can.bitrate,
                           service_node_id=s.can.service_node_id, heartbeat_period_ms=s.can.heartbeat_period_ms)
-        self.bus.connect()
+        # python-can logs every failed attempt as a warning; connect() says it once, with what to check
+        can_log = logging.getLogger("can")
+        level = can_log.level
+        can_log.setLevel(logging.ERROR)
+        try:
+            self.bus.connect()
+        finally:
+            can_log.setLevel(level)
 
     def _connect_drive(self) -> None:
         self.drive = DriveClient(self.bus, self.settings.can.drive_node, sdo_timeout_s=self.settings.can.sdo_timeout_s)
