@@ -54,6 +54,7 @@ async function init() {
   });
 
   events.start();
+  setInterval(benchStatus.tick, 1000);   // ages count on between updates; stale marks appear by themselves
   setInterval(() => {
     if (!events.isLive()) sweeps.reload();
   }, SWEEP_POLL_MS);
