@@ -103,8 +103,8 @@ export function mapHeatmap(slice, q) {
     title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 },
     // category axes: every grid value one cell wide, and a single-cell map is a cell, not an empty box
-    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", zeroline: false },
-    yaxis: { title: { text: "speed n (rpm)" }, type: "category", zeroline: false },
+    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
+    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
   return { data: [trace], layout, config: CONFIG };
