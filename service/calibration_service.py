@@ -48,9 +48,9 @@ class CalibrationService:
         self._status_thread: threading.Thread | None = None
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
-    def start(self, status_period_s: float | None = 0.5) -> None:
+    def start(self, status_period_s: float | None = 1.0) -> None:
         """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
-        (every status_period_s: 2 Hz keeps the live view above 1 Hz whatever the reads cost).
+        (every status_period_s, at a fixed rate: slow reads do not lower it).
         A real bench that cannot be reached is logged in one line and left disconnected: the service
         still comes up (dashboard, stored results, the reason in /bench/status) and refuses runs."""
         settings = self.settings

@@ -10,7 +10,7 @@ import threading
 import time
 from typing import Any, Callable
 
-STALE_AFTER_S = 3.0     # a value older than this is marked stale (the poller refreshes at 2 Hz)
+STALE_AFTER_S = 3.0     # a value older than this is marked stale (the poller refreshes at 1 Hz)
 
 
 class LiveValues:
