@@ -1,5 +1,5 @@
 """FastAPI application: the routes, the dashboard's static files, Plotly.js from the plotly package,
-/docs and /redoc with their assets from the fastapi-offline package (benches are offline: no CDN)."""
+/docs with its assets from the fastapi-offline package (benches are offline: no CDN)."""
 from __future__ import annotations
 
 import contextlib
@@ -9,7 +9,7 @@ import fastapi_offline
 import plotly
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
-from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+from fastapi.openapi.docs import get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -59,7 +59,8 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
 
 
 def _add_docs(app: FastAPI) -> None:
-    """/docs (Swagger UI) and /redoc as FastAPI serves them, their assets from DOCS_ASSETS."""
+    """/docs (Swagger UI) as FastAPI serves it, its assets from DOCS_ASSETS. No /redoc: ReDoc's page
+    loads its logo from a CDN."""
     app.mount(DOCS_ASSETS_URL, StaticFiles(directory=DOCS_ASSETS), name="docs-assets")
     favicon = f"{DOCS_ASSETS_URL}/favicon.png"
 
@@ -75,10 +76,3 @@ def _add_docs(app: FastAPI) -> None:
     @app.get(app.swagger_ui_oauth2_redirect_url, include_in_schema=False)
     def swagger_ui_redirect() -> HTMLResponse:
         return get_swagger_ui_oauth2_redirect_html()
-
-    @app.get("/redoc", include_in_schema=False)
-    def redoc() -> HTMLResponse:
-        return get_redoc_html(openapi_url=app.openapi_url, title=f"{app.title} - API",
-                              redoc_js_url=f"{DOCS_ASSETS_URL}/redoc.standalone.js", redoc_favicon_url=favicon,
-                              with_google_fonts=False)
-    return app

@@ -543,9 +543,8 @@ def test_docs_render_offline(service, browser):
         assert "/api/v1/identifications" in text and "/api/v1/bench/status" in text
         assert not blocked, f"/docs asked the network: {blocked}"
         assert not errors, errors
-        page.goto(base + "/redoc", wait_until="load")
-        page.wait_for_function("() => document.body.innerText.includes('/api/v1/bench/status')", timeout=30_000)
-        assert not blocked, f"/redoc asked the network: {blocked}"
+        # no ReDoc: its page loads a logo from a CDN
+        assert page.goto(base + "/redoc").status == 404
     finally:
         context.close()
 

@@ -126,6 +126,8 @@ async function loadAttention(s) {
   attention.set(s.id, { key, points: attention.has(s.id) ? attention.get(s.id).points : [] });
   try {
     const full = await api.get(`/sweeps/${s.id}`);
+    // an answer to an older request must not overwrite a newer one (requests can overtake)
+    if (!attention.has(s.id) || attention.get(s.id).key !== key) return;
     const points = (full.points || []).filter((p) => NOT_OK.includes(p.state));
     attention.set(s.id, { key, points });
     const cell = document.querySelector(`[data-sweep-id="${s.id}"] .wide`);
