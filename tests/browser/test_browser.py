@@ -585,11 +585,17 @@ def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_p
         final = _api(service, "GET", f"/sweeps/{sweep['id']}")
         not_ok = [p for p in final["points"] if p["state"] != "ok"]
         assert not_ok, f"every point met 80 dB?: {final['progress']}"
-        page.wait_for_selector(f'{row} [data-testid="sweep-attention"]', timeout=15_000)
+        # the list follows the sweep's counts (fetched again when they change)
+        try:
+            page.wait_for_function(
+                f"""(n) => document.querySelectorAll('{row} [data-testid="sweep-attention-point"]').length === n""",
+                arg=len(not_ok), timeout=15_000)
+        except Exception:
+            raise AssertionError(f"{len(not_ok)} non-ok points not listed: {page.inner_text(row)}")
         page.click(f'{row} [data-testid="sweep-attention"] summary')
+        page.wait_for_selector(f'{row} [data-testid="sweep-attention"][open]', timeout=5_000)
         items = page.locator(f'{row} [data-testid="sweep-attention-point"]')
-        assert items.count() == len(not_ok), page.inner_text(row)
-        first = items.first.inner_text()
+        first = items.first.text_content()
         reason = not_ok[0]["error"] or not_ok[0]["result"]["message"]
         assert not_ok[0]["state"] in first and reason and reason[:20] in first, (first, not_ok[0])
         assert "elapsed" in page.inner_text(f'{row} [data-testid="sweep-timing"]')

@@ -10,6 +10,7 @@ const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
 const lastPoint = new Map();     // sweep id -> text of its last finished point
 const pausing = new Set();       // sweep ids paused by us while their point in flight finishes
 const attention = new Map();     // sweep id -> {key, points}: its non-ok points with their reasons
+const attentionOpen = new Set(); // sweep ids whose list the reader opened
 const NOT_OK = ["failed", "below_target", "no_authority"];
 let reloadTimer = null;
 let openMap = () => {};
@@ -143,6 +144,8 @@ function renderAttention(td, id) {
   const a = attention.get(id);
   if (!a || a.points.length === 0) return;
   const box = el("details", { class: "attention", "data-testid": "sweep-attention" });
+  box.open = attentionOpen.has(id);      // rows are redrawn on every event: keep what the reader opened
+  box.addEventListener("toggle", () => (box.open ? attentionOpen.add(id) : attentionOpen.delete(id)));
   box.appendChild(el("summary", null, `${a.points.length} point${a.points.length > 1 ? "s" : ""} not ok — reasons`));
   const ul = el("ul");
   for (const p of a.points) {
