@@ -36,6 +36,7 @@ from service.interlocks import (DaqLost, DeviceFault, HeartbeatLost, InterlockMo
                                 ServiceHeartbeatStopped, SupplyOutOfRange, Trip)
 from service import limits
 from service.limits import LimitError, check_limits
+from service.live_values import STALE_AFTER_S, LiveValues
 from service.measurement import DaqCursor, OperatingPointSession, RunCancelled
 from service.operating_point import OperatingPoint
 from service.settings import Settings
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 
 class BenchError(RuntimeError):
     pass
+
+
+class BenchUnreachable(BenchError):
+    """connect() failed: str() is one line naming the device, its address and what to check."""
 
 
 class RunError(BenchError):
@@ -76,29 +81,76 @@ class Bench:
         # the shaft mode of G_Salpha: the settings' pole, learned from the windows of every run (sec. 2.3)
         self.resonance = ResonanceTracker(ResonanceMode(settings.mechanics.pole_re_rad_s, settings.mechanics.pole_im_rad_s))
         self._auto_resets: list[float] = []     # monotonic times of automatic fault resets (rate limit)
-        self._devices: dict[str, dict[str, Any]] = {"drive": {}, "load": {}, "supply": {}}
+        self._devices: dict[str, dict[str, Any]] = {"drive": {}, "load": {}, "supply": {}}   # link state, last error
+        self.live = LiveValues()                # every reading with its time (poller, the run's session, commands)
+        self.unreachable: dict[str, str] | None = None   # {device, address, hint, error} when connect() failed
         self._status: dict[str, Any] = {"connected": False, "bench": identity, "busy": False,
                                         "drive": None, "load": None, "daq": None, "supply": None,
                                         "updated_at": None, "error": None}
 
     # --- lifecycle ---------------------------------------------------------------------------------
     def connect(self) -> None:
+        """Open every link; a link that fails raises BenchUnreachable naming the device, its address and
+        what to check (nothing half-open is left behind)."""
         s = self.settings
         if not s.daq.url or not s.supply.url:
             raise BenchError("bench settings name no DAQ port (daq.url) or supply port (supply.url)")
-        self.bus = CanBus(s.can.interface, s.can.channel, host=s.can.host, port=s.can.port, bitrate=s.can.bitrate,
-                          service_node_id=s.can.service_node_id, heartbeat_period_ms=s.can.heartbeat_period_ms)
-        self.bus.connect()
-        self.drive = DriveClient(self.bus, s.can.drive_node, sdo_timeout_s=s.can.sdo_timeout_s)
-        self.drive.connect()
-        self.load = LoadClient(self.bus, s.can.load_node, sdo_timeout_s=s.can.sdo_timeout_s)
-        self.load.connect()
-        self.supply = ScpiSupply(s.supply.url, timeout_s=s.supply.timeout_s)
-        self.daq = DaqReader(s.daq.url, max_buffered_samples=4096)   # little stale data before each setpoint
-        self.daq.start()
+        can_at = f"{s.can.interface} {s.can.channel}" + (f" at {s.can.host}:{s.can.port}" if s.can.host else "")
+        steps = [
+            ("CAN bus", can_at, "the CAN adapter or socketcand server is up and can.interface/channel/host/port name it",
+             self._connect_bus),
+            (f"drive (node {s.can.drive_node})", can_at, "the drive is powered, on the bus, and can.drive_node is its node id",
+             self._connect_drive),
+            (f"load machine (node {s.can.load_node})", can_at,
+             "the load machine is powered, on the bus, and can.load_node is its node id", self._connect_load),
+            ("DC supply", s.supply.url, "the supply is on and supply.url names its port", self._connect_supply),
+            ("DAQ", s.daq.url, "the DAQ is plugged in and daq.url names its port", self._connect_daq),
+        ]
+        for device, address, hint, step in steps:
+            try:
+                step()
+            except Exception as exc:
+                self.close()
+                self.unreachable = {"device": device, "address": address, "hint": f"check that {hint}",
+                                    "error": f"{type(exc).__name__}: {exc}"}
+                raise BenchUnreachable(f"bench unreachable: {device} at {address} ({type(exc).__name__}: {exc}); "
+                                       f"check that {hint}") from exc
+        self.unreachable = None
         self.cursor = DaqCursor(self.daq, s.daq.read_timeout_s)
         self._start_interlocks()
         self.refresh_status()
+
+    def _connect_bus(self) -> None:
+        s = self.settings
+        self.bus = CanBus(s.can.interface, s.can.channel, host=s.can.host, port=s.can.port, bitrate=s.can.bitrate,
+                          service_node_id=s.can.service_node_id, heartbeat_period_ms=s.can.heartbeat_period_ms)
+        # python-can logs every failed attempt as a warning; connect() says it once, with what to check
+        can_log = logging.getLogger("can")
+        level = can_log.level
+        can_log.setLevel(logging.ERROR)
+        try:
+            self.bus.connect()
+        finally:
+            can_log.setLevel(level)
+
+    def _connect_drive(self) -> None:
+        self.drive = DriveClient(self.bus, self.settings.can.drive_node, sdo_timeout_s=self.settings.can.sdo_timeout_s)
+        self.drive.connect()
+
+    def _connect_load(self) -> None:
+        self.load = LoadClient(self.bus, self.settings.can.load_node, sdo_timeout_s=self.settings.can.sdo_timeout_s)
+        self.load.connect()
+
+    def _connect_supply(self) -> None:
+        self.supply = ScpiSupply(self.settings.supply.url, timeout_s=self.settings.supply.timeout_s)
+
+    def _connect_daq(self) -> None:
+        self.daq = DaqReader(self.settings.daq.url, max_buffered_samples=4096)   # little stale data before each setpoint
+        self.daq.start()
+
+    @property
+    def connected(self) -> bool:
+        return self.interlocks is not None and self.unreachable is None
 
     def _start_interlocks(self) -> None:
         il = self.settings.interlocks
@@ -113,9 +165,9 @@ class Bench:
         self.interlocks.start()
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.make_safe()
-        if self.interlocks is not None:
+        if self.interlocks is not None:      # connected: leave it safe first
+            with contextlib.suppress(Exception):
+                self.make_safe()
             self.interlocks.stop()
         for part in (self.daq, self.supply):
             with contextlib.suppress(Exception):
@@ -174,8 +226,16 @@ class Bench:
         return len(self._auto_resets) < il.auto_fault_reset_per_hour
 
     def interlock_refusal(self) -> Trip | None:
-        """What forbids a run now (None: clear to go); read fresh."""
+        """What forbids a run now (None: clear to go); read fresh. A bench never reached forbids it too."""
+        if self.unreachable is not None:
+            return self._unreachable_trip()
         return self.interlocks.refusal() if self.interlocks is not None else None
+
+    def _unreachable_trip(self) -> Trip:
+        u = self.unreachable
+        return Trip("bench_unreachable", f"{u['device']} at {u['address']} unreachable at start ({u['error']}); "
+                    f"{u['hint']}, then restart the service", latched=False,
+                    at=datetime.now(timezone.utc).isoformat(timespec="seconds"), monotonic=time.monotonic())
 
     def _reset_devices(self) -> dict[str, bool]:
         return {"drive": self.drive.fault_reset(), "load": self.load.fault_reset()}
@@ -184,6 +244,8 @@ class Bench:
         """A person acknowledges a fault: CiA 402 fault reset of the drive and the load (those in
         FAULT), then the latched interlocks are cleared if their condition has gone. Returns what was
         reset and what (if anything) still forbids a run."""
+        if not self.connected:
+            raise BenchError(self.interlock_refusal().reason)
         if not self._lock.acquire(timeout=2.0):
             raise BenchError("the bench is busy with a run; the run stops by itself on a trip, then reset")
         try:
@@ -197,50 +259,66 @@ class Bench:
     # --- status ------------------------------------------------------------------------------------
     def refresh_status(self) -> dict[str, Any]:
         """Read drive/load/supply by SDO/SCPI, each on its own (one failing device does not hide the
-        others); skipped (last readings kept, with their age) while a run holds the wires."""
-        if self._lock.acquire(timeout=0.05):
+        others). During a run the same reads go on without the run lock: each device's link has a lock
+        of its own (the interlock monitor reads the same way), so the view stays live while a run
+        holds the bench. Only a LUT download or a fault reset (the run lock without a run) is waited
+        out: the last readings are kept, with their age."""
+        if self.connected:
+            got = self._lock.acquire(timeout=0.05)
             try:
-                self._read_device("drive", lambda: self.drive.read_status(), lambda d: {
-                    "state": d.state.value, "torque_nm": d.torque_nm, "speed_rpm": d.speed_rpm, "udc_v": d.udc_v})
-                self._read_device("load", lambda: self.load.read_status(), lambda l: {
-                    "state": l.state.value, "speed_rpm": l.speed_rpm})
-                self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
+                if got or self.busy:
+                    self._read_device("drive", lambda: self.drive.read_status(), lambda d: {
+                        "state": d.state.value, "torque_nm": d.torque_nm, "speed_rpm": d.speed_rpm, "udc_v": d.udc_v})
+                    self._read_device("load", lambda: self.load.read_status(), lambda l: {
+                        "state": l.state.value, "speed_rpm": l.speed_rpm})
+                    self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
             finally:
-                self._lock.release()
+                if got:
+                    self._lock.release()
         self._status["updated_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         return self.status()
 
     def _read_device(self, name: str, read, shape) -> None:
         entry = self._devices[name]
         try:
-            entry.update(shape(read()))
-            entry.update({"last_error": None, "read_at": time.monotonic()})
+            self.live.publish(name, **shape(read()))
+            entry["last_error"] = None
         except Exception as exc:  # status must never take the service down
             entry["last_error"] = f"{type(exc).__name__}: {exc}"
 
     def status(self) -> dict[str, Any]:
-        """The truth per device: live link state (heartbeats, DAQ port) plus the last readings with
-        their age; `error` is the first thing wrong."""
-        if self.drive is None:
-            return {**self._status, "busy": self.busy}
-        now = time.monotonic()
-        out = {**self._status, "busy": self.busy, "connected": bool(self.bus and self.bus.connected)}
+        """The truth per device: live link state (heartbeats, DAQ port) plus the last readings, each
+        with its age (`ages`, s) and `stale` past STALE_AFTER_S; `run`: what the run in flight sees on
+        the DAQ (encoder speed, the h-th acceleration amplitude); `error` is the first thing wrong."""
+        s = self.settings
+        common = {"busy": self.busy, "stale_after_s": STALE_AFTER_S,
+                  "accel_full_scale_rad_s2": s.daq.accel_full_scale_rad_s2}
+        if not self.connected:
+            u = self.unreachable
+            return {**self._status, **common, "connected": False, "unreachable": u,
+                    "error": self._unreachable_trip().reason if u else self._status.get("error")}
+        out = {**self._status, **common, "connected": bool(self.bus and self.bus.connected), "unreachable": None}
 
         def device(name: str, live: dict[str, Any]) -> dict[str, Any]:
-            entry = dict(self._devices[name])
-            read_at = entry.pop("read_at", None)
-            age = None if read_at is None else round(now - read_at, 2)
-            return {**entry, **live, "age_s": age, "stale": age is None or age > 3.0}
+            values, ages = self.live.group(name)
+            oldest = max(ages.values()) if ages else None
+            return {**values, **self._devices[name], **live, "ages": ages, "age_s": oldest,
+                    "stale": oldest is None or oldest > STALE_AFTER_S}
 
         for name, dev in (("drive", self.drive), ("load", self.load)):
             age = dev.heartbeat_age_s()
             out[name] = device(name, {"connected": dev.heartbeat_alive(), "heartbeat_ok": dev.heartbeat_alive(),
                                       "heartbeat_age_s": None if age is None else round(age, 2)})
-        out["supply"] = device("supply", {"url": self.settings.supply.url})
+        out["supply"] = device("supply", {"url": s.supply.url})
         out["supply"]["connected"] = out["supply"].get("last_error") is None and out["supply"]["age_s"] is not None
         c = self.daq.counters
         out["daq"] = {**self.daq.health(), "frames": c.frames, "crc_failures": c.crc_failures,
                       "sequence_gaps": c.sequence_gaps}
+        run, run_ages = self.live.group("run")
+        if run.get("harmonic_amplitude_fs") is not None:
+            run["harmonic_amplitude_rad_s2"] = run["harmonic_amplitude_fs"] * s.daq.accel_full_scale_rad_s2
+            run_ages["harmonic_amplitude_rad_s2"] = run_ages["harmonic_amplitude_fs"]
+        out["run"] = {**run, "active": self.busy, "ages": run_ages}
         out["service_heartbeat_ok"] = self.bus.heartbeat_producing()
         out["interlocks"] = self.interlocks.snapshot()
         problems = [t["reason"] for t in out["interlocks"]["tripped"]]
@@ -273,13 +351,16 @@ class Bench:
 
     @contextlib.contextmanager
     def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
-                        settle_s: float = 0.25, cancel: threading.Event | None = None) -> Iterator[OperatingPointSession]:
+                        settle_s: float = 0.25, cancel: threading.Event | None = None,
+                        on_window: Callable | None = None) -> Iterator[OperatingPointSession]:
         """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
         gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps.
         Refused (InterlockTripped, nothing commanded) while an interlock is tripped. A run that an
         interlock stopped ends in InterlockTripped even if the method finished: its data are not good."""
         check_limits(op, self.settings)
         s = self.settings
+        if not self.connected:
+            raise InterlockTripped(self._unreachable_trip(), refused=True)
         with self._lock:
             self._refuse_or_auto_reset()
             self.busy = True
@@ -292,7 +373,10 @@ class Bench:
                 session = OperatingPointSession(self.cursor, self.send_theta, self.setpoints_written, harmonic_order,
                                                 s.daq.sample_rate_hz, s.motor.pole_pairs, sync_input=s.daq.sync_input,
                                                 no_sync_settle_s=s.daq.no_sync_settle_s,
-                                                guard=lambda: self._guard(cancel), resonance=self.resonance)
+                                                guard=lambda: self._guard(cancel), resonance=self.resonance,
+                                                observe=self.live.publisher("run"), on_window=on_window)
+                self.live.publish("run", operating_point=op.model_dump(),
+                                  speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
                 self._go_to(op, harmonic_order)
                 session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any
 
 from service import __version__
-from service.bench import Bench
+from service.bench import Bench, BenchUnreachable
 from service.emulator_process import EmulatorProcess
 from service.engine import Engine
 from service.events import EventBroker
@@ -51,7 +52,11 @@ class CalibrationService:
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
-        """`run_schedules`: fire due schedules and recover what a previous server left unfinished (the
+        """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
+        (every status_period_s, at a fixed rate: slow reads do not lower it).
+        A real bench that cannot be reached is logged in one line and left disconnected: the service
+        still comes up (dashboard, stored results, the reason in /bench/status) and refuses runs.
+        `run_schedules`: fire due schedules and recover what a previous server left unfinished (the
         server does; a CLI run of one sweep does neither: a server may be running on the same database)."""
         settings = self.settings
         identity = settings.bench_name
@@ -64,7 +69,12 @@ class CalibrationService:
         self.settings = settings
         try:
             self.bench = Bench(settings, identity, on_trip=self._on_trip)
-            self.bench.connect()
+            try:
+                self.bench.connect()
+            except BenchUnreachable as exc:
+                if self.emulator is not None:    # our own emulator not answering is a bug, not a bench to check
+                    raise
+                log.error("%s", exc)
             self.engine = Engine(self.storage, self.bench, settings, self.broker)
             self.engine.start(recover=run_schedules)
             if run_schedules:
@@ -105,8 +115,15 @@ class CalibrationService:
         return result
 
     def _poll_status(self, period_s: float) -> None:
-        while not self._status_stop.wait(period_s):
-            status = self.bench.refresh_status()
+        # fixed rate (not period + read time), so slow reads do not drop the rate below 1/period_s
+        next_at = time.monotonic() + period_s
+        while not self._status_stop.wait(max(0.0, next_at - time.monotonic())):
+            next_at = max(next_at + period_s, time.monotonic())
+            try:
+                status = self.bench.refresh_status()
+            except Exception:  # noqa: BLE001 - the live view must outlive one bad round
+                log.exception("bench status round failed")
+                continue
             self.broker.publish("bench.status", status)
 
     def __enter__(self) -> "CalibrationService":

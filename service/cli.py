@@ -83,10 +83,18 @@ def cmd_serve(args) -> int:
 
         def handle_exit(self, sig: int, frame) -> None:
             service.shutdown_reason = f"service shut down ({signal.Signals(sig).name})"
+            service.broker.close()      # open SSE streams end now: uvicorn waits for them before shutting down
             super().handle_exit(sig, frame)
 
     print(f"ripplecal {__version__}: dashboard at http://{settings.server.host}:{settings.server.port}/", flush=True)
-    Server(uvicorn.Config(app, host=settings.server.host, port=settings.server.port, log_level="info")).run()
+    # timeout_graceful_shutdown: a backstop for a connection that does not end by itself
+    server = Server(uvicorn.Config(app, host=settings.server.host, port=settings.server.port, log_level="info",
+                                   timeout_graceful_shutdown=10))
+    try:
+        server.run()
+    except KeyboardInterrupt:
+        # uvicorn re-raises the Ctrl+C it handled once the shutdown is done: exit as interrupted, quietly
+        return 130
     return 0
 
 

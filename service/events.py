@@ -7,11 +7,27 @@ import threading
 from typing import Any
 
 
+END = ("", "")       # the message that ends a stream
+
+
 class EventBroker:
     def __init__(self, max_queue: int = 1000):
         self._lock = threading.Lock()
         self._subscribers: set[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = set()
         self.max_queue = max_queue
+        self.closed = False
+
+    def close(self) -> None:
+        """Shutting down: every open stream gets END and ends (uvicorn waits for open connections
+        before the app's shutdown runs, so streams must end first). Callable from any thread."""
+        self.closed = True
+        with self._lock:
+            subscribers = list(self._subscribers)
+        for loop, queue in subscribers:
+            try:
+                loop.call_soon_threadsafe(_offer, queue, END)
+            except RuntimeError:  # loop closed
+                pass
 
     def publish(self, event_type: str, data: dict[str, Any]) -> None:
         message = (event_type, json.dumps(data, default=str))

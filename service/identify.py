@@ -46,8 +46,7 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
     gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
     ident = settings.identification
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
-    with bench.operating_point(op, h, gamma_max, cancel=cancel) as session:
-        session.on_window = progress
+    with bench.operating_point(op, h, gamma_max, cancel=cancel, on_window=progress) as session:
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
         mode = bench.resonance.mode
         s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,

@@ -13,6 +13,7 @@ mode to buffered data) and are reported separately as `stale_samples`.
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -23,6 +24,8 @@ from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_I
 from service.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm, whole_period_samples
 from service.identification.session import MeasurementError, Window
+
+log = logging.getLogger(__name__)
 
 BAD_FLAGS = FLAG_SENSOR_FAULT
 MAX_CLIPPED_FRACTION = 0.5     # a window clipped over more than this share of its samples is measured again
@@ -75,7 +78,8 @@ class OperatingPointSession:
                  setpoints_written: Callable[[], int], harmonic_order: int, sample_rate_hz: float,
                  pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
                  no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
-                 resonance: ResonanceTracker | None = None):
+                 resonance: ResonanceTracker | None = None, observe: Callable[..., None] | None = None,
+                 on_window: Callable[[Window], None] | None = None):
         self._send_theta = send_theta                  # theta to the drive (checked against gamma_max there)
         self._setpoints_written = setpoints_written    # setpoints the drive accepted: one sync toggle each
         # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
@@ -84,6 +88,7 @@ class OperatingPointSession:
         self.op_settle_plant_s: float | None = None # plant time the move to the operating point took
         self.over_range_windows = 0             # windows refused: clipped over most of their samples
         self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
+        self._observe = observe     # observe(**values): what the run sees, for the live status (one-way)
         self.cursor = cursor
         self.harmonic_order = harmonic_order
         self.sample_rate_hz = sample_rate_hz
@@ -97,7 +102,7 @@ class OperatingPointSession:
         self.stale_samples = 0
         self.windows_discarded = 0
         self.speed_rpm_measured: float | None = None
-        self.on_window: Callable[[Window], None] | None = None   # progress observer (CLI, SSE job.progress)
+        self.on_window = on_window      # each accepted window, for progress (CLI, SSE job.progress)
 
     # --- the DAQ stream, in order --------------------------------------------------------------
     def _next(self, n: int) -> DecodedSamples:
@@ -220,11 +225,22 @@ class OperatingPointSession:
             samples = DecodedSamples.concat([samples, extension])
             periods += more
             fit = self._fit(samples, periods)
+        self._publish(speed_rpm=mechanical_speed_rpm(samples.angle_rad, self.sample_rate_hz, self.pole_pairs),
+                      harmonic_amplitude_fs=fit.phasor.amplitude, plant_time_s=self.plant_time_s)
         window = Window(fit.phasor, samples.accel_fs[:fit.phasor.samples], samples.angle_rad[:fit.phasor.samples],
                         self.plant_time_s, fit.noise_std_fs, fit.ring_fs)
         if self.on_window is not None:
             self.on_window(window)
         return window
+
+    def _publish(self, **values) -> None:
+        """Tell the observer what the run sees; the live view must never stop a measurement."""
+        if self._observe is None:
+            return
+        try:
+            self._observe(**values)
+        except Exception:  # noqa: BLE001
+            log.debug("run observer failed", exc_info=True)
 
     def _periods_to_resolve_the_shaft(self, beats: float = 2.0) -> int:
         """Whole turns of a window long enough to tell the shaft mode from the harmonic: `beats`
@@ -315,6 +331,7 @@ class OperatingPointSession:
                 raise MeasurementError(f"speed did not settle at {target_speed_rpm:g} rpm within {max_plant_s} s "
                                        f"of plant time (last {speed:.1f} rpm)")
         self.speed_rpm_measured = speed
+        self._publish(speed_rpm=speed)
         self._segment_start = None
         skip_n = int(settle_s * self.sample_rate_hz)
         while skip_n > 0:

@@ -502,3 +502,155 @@ def test_schedule_created_in_the_panel_shows_its_next_runs_and_can_be_turned_off
         page.screenshot(path=str(tmp_path / "schedules.png"), full_page=True)
     finally:
         context.close()
+
+
+def _api(service, method: str, path: str, body: dict | None = None) -> dict:
+    """A REST call with the operator token (urllib: no browser involved)."""
+    req = urllib.request.Request(service["base"] + "/api/v1" + path, method=method,
+                                 data=None if body is None else json.dumps(body).encode(),
+                                 headers={"Authorization": f"Bearer {service['token']}",
+                                          "Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=30) as r:
+        return json.load(r)
+
+
+def _wait_api(service, path: str, done, timeout_s: float = 180.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        body = _api(service, "GET", path)
+        if done(body):
+            return body
+        assert time.monotonic() < deadline, f"{path} did not finish in {timeout_s} s: {body.get('state')}"
+        time.sleep(0.5)
+
+
+def test_live_status_shows_the_drive_running_during_a_run(service, browser, tmp_path):
+    """During a run (grid method: the longest) the status is not frozen: the drive reads
+    operation_enabled with its torque, fresh (not struck through), and the run's DAQ view fills."""
+    context, page, rec = _open(browser, service["base"])
+    job = None
+    try:
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
+        job = _api(service, "POST", "/identifications", {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000,
+                                                                           "udc_v": 12}, "method": "grid"})
+        try:
+            page.wait_for_function(
+                """() => {
+                    const t = (id) => document.querySelector(`[data-testid="${id}"]`);
+                    return t('bench-busy').textContent === 'busy'
+                        && t('drive-state').textContent === 'operation_enabled' && !t('drive-state').dataset.stale
+                        && Math.abs(parseFloat(t('drive-torque').textContent)) > 1 && !t('drive-torque').dataset.stale
+                        && /^\\d/.test(t('run-speed').textContent) && /^\\d/.test(t('run-accel').textContent);
+                }""", timeout=120_000)
+        except Exception:
+            page.screenshot(path=str(tmp_path / "live_failure.png"), full_page=True)
+            raise AssertionError("the running drive never showed in the live status: %s\nservice log:\n%s"
+                                 % (page.inner_text("#bench"), _log_tail(service["log"])))
+        torque = float(page.text_content('[data-testid="drive-torque"]'))
+        assert 2.0 < torque < 3.0, torque            # 2.5 Nm commanded
+        assert "s ago" in page.text_content('[data-testid="drive-torque-age"]')
+        # acceleration in rad/s^2 beside its fraction of full scale (the setting comes with the status)
+        fs = float(page.text_content('[data-testid="accel-fs"]'))
+        a_fs = float(page.text_content('[data-testid="run-accel-fs"]'))
+        a = float(page.text_content('[data-testid="run-accel"]'))
+        assert abs(a - a_fs * fs) <= 0.01 * abs(a) + 1e-3, (a, a_fs, fs)
+        page.screenshot(path=str(tmp_path / "live_run.png"), full_page=True)
+        assert not rec["pageerrors"], rec["pageerrors"]
+        assert not rec["console"], rec["console"]
+    finally:
+        if job is not None:    # the next tests get an idle bench
+            _wait_api(service, f"/jobs/{job['id']}", lambda j: j["state"] in ("done", "failed", "cancelled"))
+        context.close()
+
+
+def test_docs_render_offline(service, browser):
+    """/docs with every non-loopback request blocked: Swagger UI (served by the service) shows the operations."""
+    base = service["base"]
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    blocked = []
+
+    def only_loopback(route):
+        url = route.request.url
+        if url.startswith(("http://127.0.0.1:", "data:", "blob:")):
+            route.continue_()
+        else:
+            blocked.append(url)
+            route.abort()
+
+    context.route("**/*", only_loopback)
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(base + "/docs", wait_until="load")
+        page.wait_for_function("() => document.querySelectorAll('.opblock').length >= 10", timeout=30_000)
+        text = page.inner_text("body")
+        assert "/api/v1/identifications" in text and "/api/v1/bench/status" in text
+        assert not blocked, f"/docs asked the network: {blocked}"
+        assert not errors, errors
+        # no ReDoc: its page loads a logo from a CDN
+        assert page.goto(base + "/redoc").status == 404
+    finally:
+        context.close()
+
+
+def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_path):
+    """A sweep whose target cannot be met (80 dB, beyond the sensor's noise floor): while it runs the
+    page is no wider than a 1400 px window (pause/cancel and the created column stay inside the card)
+    and pause says "pausing..."; its non-ok points are listed with their reasons."""
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    page = context.new_page()
+    pageerrors = []
+    page.on("pageerror", lambda e: pageerrors.append(str(e)))
+    sweep = None
+    try:
+        page.goto(service["base"] + "/", wait_until="load")
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
+        page.fill('[data-testid="token"]', service["token"])
+        sweep = _api(service, "POST", "/sweeps", {"grid": {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [2000],
+                                                            "udc_v": [12]}, "method": "probe",
+                                                   "options": {"target_db": 80}})
+        row = f'[data-testid="sweep-row"][data-sweep-id="{sweep["id"]}"]'
+        page.wait_for_selector(f'{row} [data-action="pause"]', timeout=60_000)
+        widths = page.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
+        page.screenshot(path=str(tmp_path / "sweep_running_1400.png"), full_page=True)
+        assert widths[0] <= widths[1], f"page {widths[0]} px wide in a {widths[1]} px window"
+        # the row is running: pause answers with "pausing..." at once, resume follows once paused
+        if page.get_attribute(row, "data-state") == "running":
+            page.click(f'{row} [data-action="pause"]')
+            page.wait_for_selector(f'{row} [data-testid="sweep-pausing"], {row}[data-state="paused"]', timeout=10_000)
+            page.wait_for_selector(f'{row}[data-state="paused"]', timeout=120_000)
+            page.click(f'{row} [data-action="resume"]')
+        page.wait_for_function(
+            f"""() => {{
+                const r = document.querySelector('{row}');
+                return r && ['done', 'failed', 'cancelled'].includes(r.dataset.state);
+            }}""", timeout=SWEEP_TIMEOUT_MS * 2)
+        final = _api(service, "GET", f"/sweeps/{sweep['id']}")
+        not_ok = [p for p in final["points"] if p["state"] != "ok"]
+        assert not_ok, f"every point met 80 dB?: {final['progress']}"
+        # the list follows the sweep's counts (fetched again when they change)
+        try:
+            page.wait_for_function(
+                f"""(n) => document.querySelectorAll('{row} [data-testid="sweep-attention-point"]').length === n""",
+                arg=len(not_ok), timeout=15_000)
+        except Exception:
+            raise AssertionError(f"{len(not_ok)} non-ok points not listed: {page.inner_text(row)}")
+        page.click(f'{row} [data-testid="sweep-attention"] summary')
+        page.wait_for_selector(f'{row} [data-testid="sweep-attention"][open]', timeout=5_000)
+        items = page.locator(f'{row} [data-testid="sweep-attention-point"]')
+        first = items.first.text_content()
+        reason = not_ok[0]["error"] or not_ok[0]["result"]["message"]
+        assert not_ok[0]["state"] in first and reason and reason[:20] in first, (first, not_ok[0])
+        assert "elapsed" in page.inner_text(f'{row} [data-testid="sweep-timing"]')
+        widths = page.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
+        assert widths[0] <= widths[1], f"page {widths[0]} px wide in a {widths[1]} px window"
+        page.screenshot(path=str(tmp_path / "sweep_attention_1400.png"), full_page=True)
+        assert not pageerrors, pageerrors
+    finally:
+        if sweep is not None:
+            _wait_api(service, f"/sweeps/{sweep['id']}", lambda s: s["state"] not in ("queued", "running"),
+                      timeout_s=300)
+        context.close()

@@ -42,7 +42,7 @@ export const MAP_QUANTITIES = [
   { key: "delta_deg", title: "δ — injection phase", unit: "deg", cbar: "δ (°)", sym: "δ",
     scale: CYCLIC, range: "phase", digits: 1 },
   { key: "suppression_db", title: "suppression of the h-th harmonic", unit: "dB", cbar: "dB",
-    sym: "suppression", scale: "Cividis", range: "auto", digits: 1 },
+    sym: "suppression", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
 ];
 
 // The cells of `map` at one DC-link voltage: torque on x, speed on y.
@@ -75,14 +75,22 @@ export function mapHeatmap(slice, q) {
       text[i][j] = head + `<b>status: ${escapeHtml(String(c.status))}</b> (no value)` + click;
     }
   }
+  // every cell carries its number (a map is read, not only looked at)
   const trace = {
     type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>",
     hoverongaps: true, colorscale: q.scale,
     xgap: 1, ygap: 1,
+    texttemplate: `%{z:.${q.digits}f}`, textfont: { size: xs.length > 8 ? 9 : 11 },
     colorbar: { title: { text: q.cbar, side: "right" }, thickness: 12, len: 0.9 },
   };
   const finite = z.flat().filter((v) => v !== null);
-  if (q.range === "zero" && finite.length) {
+  let rangeNote = "";
+  if (q.range === "fixed") {
+    // the same range for every map, so maps compare by colour; values outside it saturate
+    [trace.zmin, trace.zmax] = [q.zmin, q.zmax];
+    trace.colorbar.title.text = `${q.cbar} (fixed ${q.zmin}…${q.zmax})`;
+    rangeNote = ` · colour ${q.zmin}…${q.zmax} ${q.unit}`;
+  } else if (q.range === "zero" && finite.length) {
     trace.zmin = 0;
     trace.zmax = Math.max(...finite, 1e-6);
   } else if (q.range === "phase") {
@@ -92,10 +100,11 @@ export function mapHeatmap(slice, q) {
     trace.colorbar.tickvals = trace.zmin === 0 ? [0, 90, 180, 270, 360] : [-180, -90, 0, 90, 180];
   }
   const layout = {
-    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V`, font: { size: 13 }, x: 0.02, xanchor: "left" },
+    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 },
-    xaxis: { title: { text: "torque T* (N·m)" }, tickvals: xs.length <= 12 ? xs : undefined, zeroline: false },
-    yaxis: { title: { text: "speed n (rpm)" }, tickvals: ys.length <= 12 ? ys : undefined, zeroline: false },
+    // category axes: every grid value one cell wide, and a single-cell map is a cell, not an empty box
+    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
+    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
   return { data: [trace], layout, config: CONFIG };
@@ -105,10 +114,11 @@ export function mapHeatmap(slice, q) {
 function baseLayout(title, xTitle, yTitle, extra) {
   return Object.assign({
     title: { text: title, font: { size: 13 }, x: 0.02, xanchor: "left" },
-    margin: { l: 64, r: 12, t: 36, b: 44 },
+    margin: { l: 64, r: 12, t: 36, b: 78 },
     xaxis: { title: { text: xTitle }, zeroline: false },
     yaxis: { title: { text: yTitle }, zeroline: false },
-    legend: { orientation: "h", x: 1, xanchor: "right", y: 1.02, yanchor: "bottom", font: { size: 10 } },
+    // below the x axis title: a legend above the plot runs into the title on a narrow figure
+    legend: { orientation: "h", x: 0, xanchor: "left", y: -0.22, yanchor: "top", font: { size: 10 } },
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#f7f8fa",
   }, extra || {});
 }
@@ -154,22 +164,24 @@ export function amplitudeTransient(r) {
   const h = thetaHistory(r);
   if (!h) return null;
   const d = r.details || {};
-  const shapes = [];
-  const annotations = [];
   const u0 = r.uncompensated && Number(r.uncompensated.amplitude);
-  if (u0 > 0) {
-    shapes.push({ type: "line", xref: "paper", x0: 0, x1: 1, y0: u0 / 100, y1: u0 / 100,
-      line: { color: "#667085", width: 1, dash: "dot" } });
-    annotations.push({ xref: "paper", x: 1, y: Math.log10(u0 / 100), text: "−40 dB", showarrow: false,
-      xanchor: "right", yanchor: "bottom", font: { size: 10, color: "#667085" } });
-  }
-  if (Number.isFinite(Number(d.time_to_40db_s))) {
-    shapes.push({ type: "line", yref: "paper", y0: 0, y1: 1, x0: d.time_to_40db_s, x1: d.time_to_40db_s,
-      line: { color: "#3a9d63", width: 1, dash: "dash" } });
-  }
+  const ts = h.t.map(Number).filter(Number.isFinite);
   const data = [{ x: h.t, y: h.amplitude, name: "|a_h| per window", mode: "lines+markers",
     line: { color: C_AFTER, width: 2 }, marker: { size: 5 },
     hovertemplate: "t %{x:.4f} s<br>|a| %{y:.3e} FS<extra></extra>" }];
+  // the -40 dB level as a trace over the measured time span (data coordinates on the log axis; it
+  // never stretches the time axis)
+  if (u0 > 0 && ts.length) {
+    data.push({ x: [Math.min(...ts), Math.max(...ts)], y: [u0 / 100, u0 / 100], name: "−40 dB", mode: "lines",
+      line: { color: "#667085", width: 1, dash: "dot" }, hoverinfo: "skip" });
+  }
+  // the time 40 dB was reached: only when it was (null otherwise, which Number() would make 0)
+  const t40 = d.time_to_40db_s;
+  if (t40 !== null && t40 !== undefined && Number.isFinite(Number(t40)) && Number(t40) > 0 && u0 > 0) {
+    data.push({ x: [Number(t40)], y: [u0 / 100], name: `40 dB at ${fmt(t40, 3)} s`, mode: "markers",
+      marker: { symbol: "diamond", size: 9, color: "#3a9d63" },
+      hovertemplate: "40 dB reached at t %{x:.4f} s<extra></extra>" });
+  }
   if (r.residual && Number(r.residual.amplitude) > 0 && Number.isFinite(Number(r.plant_time_s))) {
     data.push({ x: [r.plant_time_s], y: [r.residual.amplitude], name: "verified residual", mode: "markers",
       marker: { symbol: "star", size: 11, color: "#3a9d63" },
@@ -178,7 +190,7 @@ export function amplitudeTransient(r) {
   return {
     data,
     layout: baseLayout(`Fig. 9 — h-th harmonic amplitude (h = ${escapeHtml(fmt(r.harmonic_order))})`,
-      "plant time t (s)", "|a_h| (FS, log)", { shapes, annotations,
+      "plant time t (s)", "|a_h| (FS, log)", {
         yaxis: { title: { text: "|a_h| (FS, log)" }, type: "log", exponentformat: "power" } }),
     config: CONFIG,
   };
@@ -275,7 +287,7 @@ export function gridSurface(r) {
     layout: baseLayout(`Fig. 8 — grid search: |a_h| over (γ, δ), ${grid.length} points`, "injection amplitude γ (°)",
       "injection phase δ (°)", {
         legend: { orientation: "h", x: 0, xanchor: "left", y: -0.18, yanchor: "top", font: { size: 10 } },
-        margin: { l: 64, r: 12, t: 36, b: 64 },
+        margin: { l: 64, r: 12, t: 36, b: 78 },
       }),
     config: CONFIG,
   };

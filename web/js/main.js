@@ -60,6 +60,10 @@ async function init() {
 
   events.start();
   setInterval(() => {
+    benchStatus.tick();      // ages count on between updates; stale marks appear by themselves
+    sweeps.tick();           // elapsed time and ETA of running sweeps
+  }, 1000);
+  setInterval(() => {
     if (!events.isLive()) sweeps.reload();
   }, SWEEP_POLL_MS);
   sweeps.reload();

@@ -1,4 +1,5 @@
-"""Server-Sent Events: bench status, job and sweep progress, interlock trips, as they happen."""
+"""Server-Sent Events: bench status, job and sweep progress, interlock trips, as they happen.
+A stream ends when the service shuts down (EventBroker.close), so one Ctrl+C stops it."""
 from __future__ import annotations
 
 import asyncio
@@ -8,7 +9,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
 
 from service.api.deps import ServiceDep
-from service.events import format_sse
+from service.events import END, format_sse
 
 router = APIRouter(prefix="/api/v1", tags=["events"])
 
@@ -21,7 +22,7 @@ async def events(request: Request, service: ServiceDep) -> StreamingResponse:
     async def stream():
         try:
             yield format_sse("bench.status", json.dumps(service.bench.status(), default=str))
-            while True:
+            while not service.broker.closed:
                 if await request.is_disconnected():
                     break
                 try:
@@ -29,6 +30,8 @@ async def events(request: Request, service: ServiceDep) -> StreamingResponse:
                 except asyncio.TimeoutError:
                     yield ": keep-alive\n\n"
                     continue
+                if (event_type, data) == END:      # the service is shutting down
+                    break
                 yield format_sse(event_type, data)
         finally:
             service.broker.unsubscribe(token)

@@ -8,6 +8,10 @@ const GRID_FIELDS = [["torque_nm", "torque"], ["speed_rpm", "speed"], ["udc_v", 
 
 const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
 const lastPoint = new Map();     // sweep id -> text of its last finished point
+const pausing = new Set();       // sweep ids paused by us while their point in flight finishes
+const attention = new Map();     // sweep id -> {key, points}: its non-ok points with their reasons
+const attentionOpen = new Set(); // sweep ids whose list the reader opened
+const NOT_OK = ["failed", "below_target", "no_authority"];
 let reloadTimer = null;
 let openMap = () => {};
 
@@ -70,8 +74,92 @@ export function onJobState(p) {
 
 function render() {
   const rows = [...sweeps.values()].sort((a, b) => b.id - a.id);
+  for (const s of rows) if (s.state !== "running" && s.state !== "queued") pausing.delete(s.id);
   $("sweep-empty").hidden = rows.length > 0;
   $("sweep-rows").replaceChildren(...rows.map(row));
+  for (const s of rows) loadAttention(s);
+}
+
+// Every second (main.js): elapsed time and ETA of the running sweeps count on.
+export function tick() {
+  for (const s of sweeps.values()) {
+    if (s.state !== "running") continue;
+    const cell = document.querySelector(`[data-sweep-id="${s.id}"] [data-testid="sweep-timing"]`);
+    if (cell) cell.textContent = timingText(s);
+  }
+}
+
+function seconds(iso) {
+  const t = Date.parse(iso);
+  return Number.isFinite(t) ? t / 1000 : null;
+}
+
+export function duration(sec) {
+  if (sec === null || !Number.isFinite(sec)) return "—";
+  const s = Math.max(0, Math.round(sec));
+  if (s < 60) return `${s} s`;
+  if (s < 3600) return `${Math.floor(s / 60)} min ${String(s % 60).padStart(2, "0")} s`;
+  return `${Math.floor(s / 3600)} h ${String(Math.floor((s % 3600) / 60)).padStart(2, "0")} min`;
+}
+
+// "elapsed 2 min 10 s · ETA 4 min 20 s" (ETA from the mean time per point so far; running sweeps only)
+function timingText(s) {
+  const start = seconds(s.started_at);
+  if (start === null) return "";
+  const end = s.finished_at ? seconds(s.finished_at) : Date.now() / 1000;
+  const elapsed = end - start;
+  let text = `elapsed ${duration(elapsed)}`;
+  const prog = s.progress || {};
+  const done = Number(prog.done) || 0;
+  const total = Number(prog.total) || 0;
+  if (s.state === "running") {
+    text += done > 0 && total > done ? ` · ETA ${duration((elapsed / done) * (total - done))}` : done === 0 ? " · ETA after the first point" : "";
+  }
+  return text;
+}
+
+// The sweep's non-ok points with their reasons (GET /sweeps/{id}), fetched again only when its counts change.
+async function loadAttention(s) {
+  const prog = s.progress || {};
+  const bad = NOT_OK.reduce((n, k) => n + (Number(prog[k]) || 0), 0);
+  const key = `${prog.done}/${bad}`;
+  if (bad === 0 || (attention.has(s.id) && attention.get(s.id).key === key)) return;
+  attention.set(s.id, { key, points: attention.has(s.id) ? attention.get(s.id).points : [] });
+  try {
+    const full = await api.get(`/sweeps/${s.id}`);
+    // an answer to an older request must not overwrite a newer one (requests can overtake)
+    if (!attention.has(s.id) || attention.get(s.id).key !== key) return;
+    const points = (full.points || []).filter((p) => NOT_OK.includes(p.state));
+    attention.set(s.id, { key, points });
+    const cell = document.querySelector(`[data-sweep-id="${s.id}"] .wide`);
+    if (cell) renderAttention(cell, s.id);
+  } catch (_) {
+    attention.delete(s.id);   /* retried on the next render */
+  }
+}
+
+function renderAttention(td, id) {
+  const old = td.querySelector('[data-testid="sweep-attention"]');
+  if (old) old.remove();
+  const a = attention.get(id);
+  if (!a || a.points.length === 0) return;
+  const box = el("details", { class: "attention", "data-testid": "sweep-attention" });
+  box.open = attentionOpen.has(id);      // rows are redrawn on every event: keep what the reader opened
+  box.addEventListener("toggle", () => (box.open ? attentionOpen.add(id) : attentionOpen.delete(id)));
+  box.appendChild(el("summary", null, `${a.points.length} point${a.points.length > 1 ? "s" : ""} not ok — reasons`));
+  const ul = el("ul");
+  for (const p of a.points) {
+    const op = p.operating_point || {};
+    const r = p.result || {};
+    const reason = p.error || r.message || "no reason stored";
+    const li = el("li", { "data-testid": "sweep-attention-point", "data-status": p.state });
+    li.appendChild(el("span", { class: "badge", "data-level": p.state === "failed" ? "bad" : "warn" }, p.state));
+    li.appendChild(document.createTextNode(
+      ` T ${fmt(op.torque_nm)} N·m, n ${fmt(op.speed_rpm)} rpm, U ${fmt(op.udc_v)} V: ${api.detailText(reason)}`));
+    ul.appendChild(li);
+  }
+  box.appendChild(ul);
+  td.appendChild(box);
 }
 
 function gridSummary(g) {
@@ -110,7 +198,11 @@ function row(s) {
     mapTd.appendChild(a);
   } else mapTd.textContent = "—";
   tr.appendChild(mapTd);
-  tr.appendChild(el("td", { class: "time" }, shortTime(s.created_at)));
+  // date over time: the column stays narrow
+  const [day, clock] = shortTime(s.created_at).split(" ");
+  const timeTd = el("td", { class: "time", title: s.created_at || "" }, day || "—");
+  if (clock) timeTd.appendChild(el("div", null, clock));
+  tr.appendChild(timeTd);
 
   const act = el("td", { class: "actions" });
   const button = (label, action) => {
@@ -118,7 +210,9 @@ function row(s) {
     b.addEventListener("click", () => control(s.id, action));
     act.appendChild(b);
   };
-  if (s.state === "running" || s.state === "queued") button("pause", "pause");
+  if (pausing.has(s.id) && (s.state === "running" || s.state === "queued")) {
+    act.appendChild(el("span", { class: "badge", "data-level": "warn", "data-testid": "sweep-pausing" }, "pausing…"));
+  } else if (s.state === "running" || s.state === "queued") button("pause", "pause");
   if (s.state === "paused") button("resume", "resume");
   if (s.state === "running" || s.state === "queued" || s.state === "paused") button("cancel", "cancel");
   tr.appendChild(act);
@@ -140,22 +234,35 @@ function progressCell(s) {
   const outcome = ["ok", "below_target", "no_authority", "failed"]
     .filter((k) => Number(prog[k]) > 0).map((k) => `${prog[k]} ${k.replace("_", " ")}`);
   if (outcome.length) td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-outcome" }, outcome.join(" · ")));
+  const timing = timingText(s);
+  if (timing) td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-timing" }, timing));
+  if (s.state === "paused" && s.pause_reason) {
+    td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-pause-reason" }, `paused: ${s.pause_reason}`));
+  }
   if (s.error) td.appendChild(el("div", { class: "row-error", "data-testid": "sweep-row-error" }, api.detailText(s.error)));
   else if (lastPoint.has(s.id) && (s.state === "running" || s.state === "paused")) {
     td.appendChild(el("div", { class: "row-note" }, lastPoint.get(s.id)));
   }
+  renderAttention(td, s.id);
   return td;
 }
 
 // POST /sweeps/{id}/pause|resume|cancel
 async function control(id, action) {
   showMsg("sweep-error", null);
+  // the point in flight finishes first: say so at once instead of a button that seems to do nothing
+  if (action === "pause") {
+    pausing.add(id);
+    render();
+  }
   try {
     const s = await api.post(`/sweeps/${id}/${action}`);
     if (s && s.id !== undefined) sweeps.set(s.id, s);
     render();
     scheduleReload();
   } catch (e) {
+    pausing.delete(id);
+    render();
     showMsg("sweep-error", api.errorLines(e), `${action} sweep ${id} failed (HTTP ${e.status || "?"})`);
   }
 }
