@@ -20,6 +20,7 @@ import numpy as np
 
 
 from service.calibration_service import CalibrationService
+from service.engine import TransitionError
 from service.identify import parse_options
 from service.plans import Grid
 from service.settings import load_settings
@@ -42,8 +43,11 @@ def run_sweep(svc, method: str) -> dict:
             # operator would, count it, and go on; the point in flight is measured again
             interlock_trips += 1
             print(f"   sweep paused: {sweep['pause_reason']}; fault reset and resume", flush=True)
-            svc.fault_reset()
-            svc.engine.resume_sweep(sweep_id)
+            try:
+                svc.fault_reset()
+                svc.engine.resume_sweep(sweep_id)
+            except (TransitionError, RuntimeError) as exc:     # tripped again meanwhile: next round
+                print(f"   not resumed yet: {exc}", flush=True)
         time.sleep(0.2)
     wall = time.perf_counter() - t0
     rows = svc.storage.sweep_results(sweep_id)
