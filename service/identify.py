@@ -56,12 +56,12 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
         try:
             result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
         except MeasurementError as exc:
-            if "over-range" not in str(exc):
+            if not exc.over_range:
                 raise
             # say why the sensor saturates: a harmonic next to the shaft resonance is amplified by its Q
             distance_hz = abs(conditions.harmonic_frequency_hz - mode.frequency_hz)
             raise MeasurementError(f"{exc} (harmonic at {conditions.harmonic_frequency_hz:.0f} Hz, {distance_hz:.0f} Hz "
-                                   f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)") from exc
+                                   f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)", over_range=True) from exc
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured

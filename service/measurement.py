@@ -289,7 +289,8 @@ class OperatingPointSession:
                 continue
             return s
         why = ", ".join(f"{k} in {v}" for k, v in reasons.items() if v)
-        raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid: {why}")
+        raise MeasurementError(f"{self.MAX_WINDOW_ATTEMPTS} consecutive windows were invalid: {why}",
+                               over_range=reasons["sensor over-range"] > 0)
 
     def _samples_for(self, periods: int) -> int:
         return int(math.ceil(periods * self.sample_rate_hz / self.harmonic_frequency_hz * 1.02)) + 8

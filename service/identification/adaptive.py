@@ -82,7 +82,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     try:
         before = measure_reference(session, block_periods, max_periods)
     except MeasurementError as exc:
-        if "over-range" not in str(exc) or prior is None:
+        if not exc.over_range or prior is None:
             raise
         # next to the resonance: the probe method starts from the neighbours and estimates A_0 (its doc)
         result = identify_probe(session, s_hat, ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s),
@@ -130,7 +130,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
             window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
                                      max_periods=max_periods)
         except MeasurementError as exc:
-            if "over-range" not in str(exc):
+            if not exc.over_range:
                 raise
             # the step drove the sensor over range: S_hat is far off here (a resonance nearer than the
             # settings say); handled as a divergence: best theta back, probe from there

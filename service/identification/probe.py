@@ -79,7 +79,7 @@ def _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_pe
             s_ss = measure_s_matrix(session, theta, a, probe_rad, min_periods, max_periods,
                                     abs(s_hat) * probe_rad / 50, history)
         except MeasurementError as exc:
-            if "over-range" not in str(exc) or halvings == PROBE_HALVINGS:
+            if not exc.over_range or halvings == PROBE_HALVINGS:
                 raise
             probe_rad /= 2
             continue
@@ -119,11 +119,12 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         try:
             before = measure_reference(session, min_periods, max_periods)
         except MeasurementError as exc:
-            if "over-range" not in str(exc):
+            if not exc.over_range:
                 raise
             if prior is None:
                 raise MeasurementError("sensor over range without compensation and no neighbouring result to start "
-                                       "from: measure this point in a sweep with its neighbours, or at lower torque") from None
+                                       "from: measure this point in a sweep with its neighbours, or at lower torque",
+                                       over_range=True) from None
             notes.append("sensor over range at theta = 0: started from the neighbours' theta, uncompensated "
                          "phasor estimated from the affine model")
     history = history if history is not None else ([[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
@@ -175,7 +176,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
             w = session.measure(min_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
                                 max_periods=max_periods)
         except MeasurementError as exc:
-            if "over-range" not in str(exc):
+            if not exc.over_range:
                 raise
             w = None            # the step overshot into the resonance: a failed step, half as long next time
         if w is not None:

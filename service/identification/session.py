@@ -10,7 +10,13 @@ from service.harmonic import Phasor
 
 
 class MeasurementError(RuntimeError):
-    """The bench did not deliver what a measurement needs (settling, valid windows, sync)."""
+    """The bench did not deliver what a measurement needs (settling, valid windows, sync).
+    `over_range`: the windows were refused because the sensor was clipped over most of them (a
+    method can try a smaller step; the caller can say how near the resonance the harmonic is)."""
+
+    def __init__(self, message: str, over_range: bool = False):
+        super().__init__(message)
+        self.over_range = over_range
 
 
 @dataclass

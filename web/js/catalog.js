@@ -6,10 +6,10 @@ import { el } from "./dom.js";
 
 export async function load() {
   const [methods, formats] = await Promise.all([api.get("/methods"), api.get("/export-formats")]);
-  for (const id of ["sweep-method", "identify-method"]) {
+  for (const id of ["sweep-method", "schedule-method", "identify-method"]) {
     const select = document.getElementById(id);
     select.replaceChildren(...methods.map((m) =>
-      el("option", { value: m.name, title: m.summary }, id === "sweep-method" ? m.name : `${m.name} — ${m.display_name}`)));
+      el("option", { value: m.name, title: m.summary }, id === "identify-method" ? `${m.name} — ${m.display_name}` : m.name)));
   }
   const exports = document.getElementById("map-exports");
   exports.replaceChildren("export: ", ...formats.flatMap((f, i) =>

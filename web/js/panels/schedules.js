@@ -4,12 +4,11 @@
 import * as api from "../api.js";
 import { $, el, showMsg } from "../dom.js";
 import { runLevel, shortTime } from "../format.js";
+import { readGrid } from "../grid-form.js";
 
 const RELOAD_DEBOUNCE_MS = 300;
 const NEXT_SHOWN = 3;            // next runs per row
 const RUNS_SHOWN = 5;            // recent runs per row
-const GRID_FIELDS = [["torque_nm", "torque"], ["speed_rpm", "speed"], ["udc_v", "DC link voltage"]];
-
 let schedules = [];
 let reloadTimer = null;
 let openSweep = () => {};
@@ -17,9 +16,6 @@ let openSweep = () => {};
 // openSweepOf(sweepId): what a run's "sweep N" link does.
 export function init({ openSweepOf }) {
   openSweep = openSweepOf || openSweep;
-  // the method choices come from the registry (catalog.js fills the sweep form's select first)
-  const methods = $("sweep-method");
-  $("schedule-method").replaceChildren(...[...methods.options].map((o) => el("option", { value: o.value }, o.value)));
   try {
     $("schedule-timezone").value = Intl.DateTimeFormat().resolvedOptions().timeZone || "UTC";
   } catch (_) { /* keep UTC */ }
@@ -125,26 +121,12 @@ async function remove(id, name) {
   scheduleReload();
 }
 
-function parseList(str, name) {
-  const parts = str.split(/[,;\s]+/).filter((x) => x !== "");
-  if (parts.length === 0) return { error: `${name}: enter at least one number` };
-  const vals = parts.map(Number);
-  const bad = parts.find((p, i) => !Number.isFinite(vals[i]));
-  return bad === undefined ? { vals } : { error: `${name}: "${bad}" is not a number` };
-}
-
 async function submit(ev) {
   ev.preventDefault();
   showMsg("schedule-error", null);
   showMsg("schedule-ok", null);
   const f = ev.target;
-  const grid = {};
-  const errs = [];
-  for (const [key, label] of GRID_FIELDS) {
-    const r = parseList(f.elements[key].value, label);
-    if (r.error) errs.push(r.error);
-    else grid[key] = r.vals;
-  }
+  const { grid, errors: errs } = readGrid(f);
   if (errs.length) {
     showMsg("schedule-error", errs, "Check the grid:");
     return;

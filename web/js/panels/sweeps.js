@@ -2,10 +2,9 @@
 import * as api from "../api.js";
 import { $, el, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
+import { readGrid } from "../grid-form.js";
 
 const RELOAD_DEBOUNCE_MS = 300;  // several events in a burst -> one GET /sweeps
-const GRID_FIELDS = [["torque_nm", "torque"], ["speed_rpm", "speed"], ["udc_v", "DC link voltage"]];
-
 const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
 const lastPoint = new Map();     // sweep id -> text of its last finished point
 const pausing = new Set();       // sweep ids paused by us while their point in flight finishes
@@ -268,30 +267,12 @@ async function control(id, action) {
 }
 
 // "1, 2.5; 4" -> {vals: [1, 2.5, 4]} or {error}
-function parseList(str, name) {
-  const parts = str.split(/[,;\s]+/).map((x) => x.trim()).filter((x) => x !== "");
-  if (parts.length === 0) return { error: `${name}: enter at least one number` };
-  const vals = [];
-  for (const p of parts) {
-    const v = Number(p);
-    if (!Number.isFinite(v)) return { error: `${name}: "${p}" is not a number` };
-    vals.push(v);
-  }
-  return { vals };
-}
-
 async function submit(ev) {
   ev.preventDefault();
   showMsg("sweep-error", null);
   showMsg("sweep-ok", null);
   const f = ev.target;
-  const grid = {};
-  const errs = [];
-  for (const [key, label] of GRID_FIELDS) {
-    const r = parseList(f.elements[key].value, label);
-    if (r.error) errs.push(r.error);
-    else grid[key] = r.vals;
-  }
+  const { grid, errors: errs } = readGrid(f);
   if (errs.length) {
     showMsg("sweep-error", errs, "Check the grid:");
     return;
