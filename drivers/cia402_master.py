@@ -56,7 +56,12 @@ DEFAULT_PRODUCER_HEARTBEAT_MS = 100
 """Drive heartbeat period we configure if the device has its producer heartbeat (0x1017) switched off."""
 
 HEARTBEAT_ALIVE_PERIODS = 3.0
-"""The device counts as alive if its heartbeat was seen within this many of its periods."""
+"""The device counts as alive if its heartbeat was seen within this many of its periods ..."""
+
+HEARTBEAT_ALIVE_MIN_S = 1.0
+"""... and never less than this: a PC master's receive thread can be late by some 100 ms on a loaded
+machine, and a drive whose link is really down falls safe on its own (it consumes our heartbeat),
+so this check must not trip on scheduling jitter."""
 
 STATUS_POLL_INTERVAL_S = 0.002
 """Pause between statusword reads while waiting for a state change (each read is one SDO round trip)."""
@@ -344,11 +349,12 @@ class Cia402Master:
         return None if seen is None else time.monotonic() - seen
 
     def heartbeat_alive(self) -> bool:
-        """True if the device's heartbeat was seen within 3 of its periods (0x1017, read at connect)."""
+        """True if the device's heartbeat was seen within 3 of its periods (0x1017, read at connect),
+        and at least HEARTBEAT_ALIVE_MIN_S."""
         age = self.heartbeat_age_s()
         if age is None or not self.heartbeat_period_ms:
             return False
-        return age <= HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0
+        return age <= max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, HEARTBEAT_ALIVE_MIN_S)
 
     @property
     def nmt_state(self) -> int | None:
