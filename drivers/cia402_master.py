@@ -11,6 +11,7 @@ when one fails (subclasses add their own "make it harmless first" steps, e.g. to
 """
 from __future__ import annotations
 
+import queue
 import struct
 import threading
 import time
@@ -93,6 +94,7 @@ class Cia402Master:
         self.node.sdo.MAX_RETRIES = 1
         # one SDO transfer at a time: the SDO client keeps a single response queue per node
         self._sdo_lock = threading.RLock()
+        self._sdo_failed_at: float | None = None    # monotonic time of a transaction that lost its answer
         self._network: canopen.Network | None = None
         self._heartbeat_lock = threading.Lock()
         self._heartbeat_seen_monotonic: float | None = None
@@ -180,22 +182,46 @@ class Cia402Master:
             return SdoError(self.node_id, action, index, subindex, name, f"CAN transport error: {exc}", value=value)
         return SdoError(self.node_id, action, index, subindex, name, f"{type(exc).__name__}: {exc}", value=value)
 
+    def _quiet_channel(self) -> None:
+        """After a transaction that failed without its answer (timeout, or an answer to another request),
+        the device may still answer it late, and that answer would be taken for the next request's:
+        wait out one more SDO timeout from the failure, dropping what arrives, before the next request.
+        Called with the SDO lock held."""
+        if self._sdo_failed_at is None:
+            return
+        deadline = self._sdo_failed_at + self.sdo_timeout_s
+        self._sdo_failed_at = None
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                self.node.sdo.responses.get(timeout=left)
+            except queue.Empty:
+                break
+        self.node.sdo.responses = queue.Queue()
+
     def read(self, index: int, subindex: int = 0) -> Any:
         """Read one object by SDO (decoded per its EDS data type)."""
         self._require_connected()
         with self._sdo_lock:
+            self._quiet_channel()
             try:
                 return self._variable(index, subindex).raw
-            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+            except SdoCommunicationError as exc:
+                self._sdo_failed_at = time.monotonic()
+                raise self._translate("read", index, subindex, exc) from exc
+            except (SdoAbortedError, CanError) as exc:
                 raise self._translate("read", index, subindex, exc) from exc
 
     def write(self, index: int, subindex: int, value: Any) -> None:
         """Write one object by SDO (encoded per its EDS data type; expedited when it fits in 4 bytes)."""
         self._require_connected()
         with self._sdo_lock:
+            self._quiet_channel()
             try:
                 self._variable(index, subindex).raw = value
-            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+            except SdoCommunicationError as exc:
+                self._sdo_failed_at = time.monotonic()
+                raise self._translate("write", index, subindex, exc, value) from exc
+            except (SdoAbortedError, CanError) as exc:
                 raise self._translate("write", index, subindex, exc, value) from exc
             except (struct.error, TypeError, ValueError) as exc:
                 name = self._object_name(index, subindex)
@@ -206,9 +232,13 @@ class Cia402Master:
         """Write a DOMAIN object by segmented SDO transfer (block transfer is never used)."""
         self._require_connected()
         with self._sdo_lock:
+            self._quiet_channel()
             try:
                 self.node.sdo.download(index, subindex, bytes(data), force_segment=True)
-            except (SdoAbortedError, SdoCommunicationError, CanError) as exc:
+            except SdoCommunicationError as exc:
+                self._sdo_failed_at = time.monotonic()
+                raise self._translate("write", index, subindex, exc, f"<{len(data)} bytes>") from exc
+            except (SdoAbortedError, CanError) as exc:
                 raise self._translate("write", index, subindex, exc, f"<{len(data)} bytes>") from exc
 
     # -- CiA 402 state machine ----------------------------------------------------------------------
