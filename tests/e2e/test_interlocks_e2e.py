@@ -92,7 +92,10 @@ def test_daq_disconnect_and_reconnect_at_the_same_path(rig):
     assert "DAQ" in status["error"] and "disconnected" in status["error"]
     job = api.identify(OP1, timeout_s=60)
     assert job["state"] == "failed" and "refused: interlock tripped: DAQ" in job["error"]
-    assert api.get("/bench/status")["drive"]["state"] != "operation_enabled"   # nothing was commanded
+    # nothing was commanded: a fresh reading of the drive (the status keeps the last one with its age;
+    # the one from the previous test's run may still be shown until the next 1 Hz poll)
+    api.wait(lambda: (d := api.get("/bench/status")["drive"]).get("ages", {}).get("state", 99) < 1.5
+             and d["state"] != "operation_enabled", 15, "a fresh drive reading, not operation_enabled")
     reply = emu.control({"fault": "daq_reconnect"})
     assert reply["ok"] and reply["daq"] == emu.endpoints["daq"]               # same stable path
     status = api.wait(lambda: (s := api.get("/bench/status"))["daq"]["connected"] and s, 10, "DAQ shown back")
