@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import Field
 
 from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
-                                           measure_reference, meets, noise_floor_db, periods_for, spectrum_traces,
+                                           measure_reference, measure_step, meets, noise_floor_db, periods_for, spectrum_traces,
                                            target_amplitude, time_to_suppression, verdict)
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
 from service.identification.result import IdentificationResult
@@ -126,16 +126,13 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         theta, limited = clamp(theta - step, gamma_max_rad)
         session.apply_theta(*theta)
         expected = max((1.0 - 0.7 * gain) * window.phasor.amplitude, limit)
-        try:
-            window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
-                                     max_periods=max_periods)
-        except MeasurementError as exc:
-            if not exc.over_range:
-                raise
+        stepped = measure_step(session, block_periods, max_periods, limit, expected)
+        if stepped is None:
             # the step drove the sensor over range: S_hat is far off here (a resonance nearer than the
             # settings say); handled as a divergence: best theta back, probe from there
             diverged, over_range = True, True
             break
+        window = stepped
         amp = window.phasor.amplitude
         history.append(_row(window, theta))
         thetas.append(theta.copy())

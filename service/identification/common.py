@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.harmonic import amplitude_spectrum
-from service.identification.session import MeasurementSession, Window
+from service.identification.session import MeasurementError, MeasurementSession, Window
 
 SPECTRUM_MAX_ORDER = 24
 SNIPPET_SAMPLES = 800
@@ -81,6 +81,20 @@ def measure_reference(session: MeasurementSession, min_periods: int, max_periods
         return first
     return session.measure(min_periods, max_noise_std_fs=relative_precision * first.phasor.amplitude,
                            max_periods=max_periods)
+
+
+def measure_step(session: MeasurementSession, periods: int, max_periods: int, target_fs: float,
+                 expected_fs: float) -> Window | None:
+    """The window after a step: resolve what the step is expected to leave to 1/20, never coarser than
+    the target needs (1/PRECISION_FOR_TARGET of it). None where the step drove the sensor over range:
+    a failed step, the caller steps back."""
+    try:
+        return session.measure(periods, max_noise_std_fs=max(target_fs / PRECISION_FOR_TARGET, expected_fs / 20),
+                               max_periods=max_periods)
+    except MeasurementError as exc:
+        if not exc.over_range:
+            raise
+        return None
 
 
 def noise_floor_db(window: Window, uncompensated_fs: float) -> float | None:

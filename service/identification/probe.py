@@ -28,7 +28,8 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference, meets,
+from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference,
+                                           measure_step, meets,
                                            noise_floor_db, periods_for, spectrum_traces, target_amplitude,
                                            time_to_suppression, verdict)
 from service.identification.result import IdentificationResult
@@ -169,16 +170,9 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         target = theta - damping * np.linalg.solve(s_ss, a)
         new_theta, limited = clamp(target, gamma_max_rad)
         session.apply_theta(*new_theta)
-        # resolve what this step is expected to leave (a tenth of now) to 1/20, and never coarser
-        # than the target needs once the target is near
-        expected = max(0.1 * float(np.hypot(*a)), limit)
-        try:
-            w = session.measure(min_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, expected / 20),
-                                max_periods=max_periods)
-        except MeasurementError as exc:
-            if not exc.over_range:
-                raise
-            w = None            # the step overshot into the resonance: a failed step, half as long next time
+        # a Newton step is expected to leave a tenth of now; None: it overshot into the resonance, a
+        # failed step, half as long next time
+        w = measure_step(session, min_periods, max_periods, limit, max(0.1 * float(np.hypot(*a)), limit))
         if w is not None:
             history.append(_row(w, new_theta))
             new_a = w.phasor.vector

@@ -266,7 +266,6 @@ async function control(id, action) {
   }
 }
 
-// "1, 2.5; 4" -> {vals: [1, 2.5, 4]} or {error}
 async function submit(ev) {
   ev.preventDefault();
   showMsg("sweep-error", null);
