@@ -31,6 +31,7 @@ import canopen
 import numpy as np
 
 from drivers import DRIVE_EDS, LOAD_EDS
+from drivers.canopen_bus import one_blas_thread
 
 from . import physics as ph
 from . import scenario as scn
@@ -257,6 +258,7 @@ def _watch_parent_pipe(stop: threading.Event) -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    one_blas_thread()
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stop = threading.Event()

@@ -352,9 +352,11 @@ class Bench:
     @contextlib.contextmanager
     def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
                         settle_s: float = 0.25, cancel: threading.Event | None = None,
-                        on_window: Callable | None = None) -> Iterator[OperatingPointSession]:
+                        on_window: Callable | None = None,
+                        decoupling: bool | None = None) -> Iterator[OperatingPointSession]:
         """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
         gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps.
+        decoupling (default: settings) is the drive's 0x2000:6 for this run.
         Refused (InterlockTripped, nothing commanded) while an interlock is tripped. A run that an
         interlock stopped ends in InterlockTripped even if the method finished: its data are not good."""
         check_limits(op, self.settings)
@@ -377,7 +379,8 @@ class Bench:
                                                 observe=self.live.publisher("run"), on_window=on_window)
                 self.live.publish("run", operating_point=op.model_dump(),
                                   speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
-                self._go_to(op, harmonic_order)
+                self._go_to(op, harmonic_order,
+                            self.settings.identification.decoupling if decoupling is None else decoupling)
                 session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
                 yield session
@@ -437,7 +440,7 @@ class Bench:
             log.warning("drive commit counter %d, expected %d: setpoint count re-established from the drive",
                         report["commits_reported"], report["commits_expected"])
 
-    def _go_to(self, op: OperatingPoint, harmonic_order: int) -> None:
+    def _go_to(self, op: OperatingPoint, harmonic_order: int, decoupling: bool) -> None:
         self.supply.set_voltage(op.udc_v)
         self.supply.output(True)
         self._wait_supply(op.udc_v)
@@ -449,7 +452,7 @@ class Bench:
         self.drive.enable()
         self.drive.set_gamma_max_rad(self._gamma_max_rad)
         self.drive.set_harmonic_order(harmonic_order)
-        self.drive.set_decoupling(self.settings.identification.decoupling)
+        self.drive.set_decoupling(decoupling)
         self.drive.set_injection(0.0, 0.0)
         self.drive.set_injection_mode("manual")
         self._require_clear()
