@@ -15,10 +15,11 @@ from zoneinfo import ZoneInfo
 
 from pydantic import BaseModel, Field
 
-from service import __version__
+from service import __version__, map_quality
 from service.identification import IdentificationResult
 from service.operating_point import OperatingPoint
 from service.schedules import iso, next_runs
+from service.secondary_path import gamma_delta
 from service.storage import Storage, now_iso
 
 # every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
@@ -127,6 +128,24 @@ class MapCellPublic(BaseModel):
     target_db: float | None = None
     noise_floor_db: float | None = None
     error: str | None = None
+    quality: str | None = Field(None, description="ok cells only: consistent | outlier | unchecked (fewer than 2 ok "
+                                "neighbours) | smoothed (a smoothed view replaced the measured theta); "
+                                "service/map_quality.py")
+    outlier_reason: str | None = Field(None, description="outlier or smoothed: how far theta is from its neighbours'")
+    smoothed_from: str | None = Field(None, description="smoothed: where the theta shown comes from")
+
+
+class MapQualityPublic(BaseModel):
+    """Each ok cell's theta against its grid neighbours' (service/map_quality.py has the statistic)."""
+    consistent: int
+    outliers: int
+    unchecked: int = Field(description="ok cells with fewer than 2 ok neighbours to compare with")
+    smoothed: int = Field(0, description="outliers replaced by their neighbours' fit in this (smoothed) view")
+    outlier_factor: float = Field(description="an outlier is this many times further from its neighbours' "
+                                  "median than the step the map's median gradient expects")
+    min_step_deg: float = Field(description="the expected step is never taken below this")
+    gradient_deg_per_unit: dict[str, float | None] = Field(
+        description="median |delta theta| between ok neighbours per Nm, per rpm, per V (null: no pair on that axis)")
 
 
 class MapPublic(BaseModel):
@@ -140,6 +159,9 @@ class MapPublic(BaseModel):
     axes: dict[str, list[float]]
     status_counts: dict[str, int]
     cells: list[MapCellPublic]
+    quality: MapQualityPublic | None = None
+    smoothed: bool = Field(False, description="true: a view whose outlier cells carry their neighbours' fit "
+                           "(?smooth=outliers); the stored map is never changed")
 
 
 class MapSummaryPublic(BaseModel):
@@ -181,6 +203,59 @@ class SchedulePreviewPublic(BaseModel):
     timezone: str
     runs: list[str] = Field(description="the firings after `start`, ISO 8601 with the zone's offset")
 
+
+
+class MapCompareCellPublic(BaseModel):
+    """One operating point present in both maps (service/map_compare.py)."""
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    status_a: str
+    status_b: str
+    compared: bool = Field(description="both cells ok (each carries theta)")
+    gamma_a_deg: float | None = None
+    gamma_b_deg: float | None = None
+    delta_a_deg: float | None = None
+    delta_b_deg: float | None = None
+    delta_gamma_deg: float | None = Field(None, description="gamma_b - gamma_a")
+    delta_delta_deg: float | None = Field(None, description="delta_b - delta_a wrapped to (-180, 180]")
+    delta_theta_deg: float | None = Field(None, description="|theta_b - theta_a| (theta in rad, shown in deg)")
+    suppression_a_db: float | None = Field(None, description="what map a's result measured at its own theta")
+    predicted_suppression_db: float | None = Field(
+        None, description="20 log10(|a_uncompensated| / |a_residual + S_ss (theta_b - theta_a)|) with map a's "
+                          "measured S, residual and uncompensated phasor (affine model, eq. 15)")
+    s_measured_a: ComplexGainPublic | None = None
+    note: str | None = Field(None, description="why a cell is not compared, or has no prediction")
+
+
+class MapCompareSummaryPublic(BaseModel):
+    compared: int
+    not_compared: int = Field(description="in both maps, but not ok in one of them")
+    only_in_a: int
+    only_in_b: int
+    without_s: int = Field(description="compared cells whose map-a result stored no measured S (no prediction)")
+    median_delta_theta_deg: float | None = None
+    max_delta_theta_deg: float | None = None
+    median_abs_delta_gamma_deg: float | None = None
+    max_abs_delta_gamma_deg: float | None = None
+    median_abs_delta_delta_deg: float | None = None
+    max_abs_delta_delta_deg: float | None = None
+    worst_cell: OperatingPoint | None = Field(None, description="the compared cell with the largest delta theta")
+    median_predicted_suppression_db: float | None = None
+    min_predicted_suppression_db: float | None = None
+    worst_predicted_cell: OperatingPoint | None = Field(None, description="the cell with the lowest predicted suppression")
+
+
+class MapComparisonPublic(BaseModel):
+    """`GET /maps/{a}/compare/{b}`: map b's theta against map a's, at the operating points both hold."""
+    map_a: int
+    map_b: int
+    harmonic_order: int
+    same_axes: bool = Field(description="false: compared on the intersection of the grids; the rest is listed")
+    summary: MapCompareSummaryPublic
+    cells: list[MapCompareCellPublic]
+    only_in_a: list[OperatingPoint]
+    only_in_b: list[OperatingPoint]
 
 # --- results: domain -> row -> public ---------------------------------------------------------------
 def _complex(c: complex | None) -> dict | None:
@@ -269,7 +344,9 @@ def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> Sw
         finished_at=sweep["finished_at"], schedule_id=sweep.get("schedule_id"), points=points)
 
 
-def map_public(storage: Storage, map_id: int) -> MapPublic | None:
+def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic | None:
+    """The stored map with each ok cell's quality; `smooth`: the view whose outlier cells carry their
+    neighbours' fit instead of the measured theta (marked `smoothed`, the stored map is not changed)."""
     row = storage.get_map(map_id)
     if row is None:
         return None
@@ -286,9 +363,34 @@ def map_public(storage: Storage, map_id: int) -> MapPublic | None:
     counts = {status: 0 for status in CELL_STATUSES}
     for c in cells:
         counts[c.status] = counts.get(c.status, 0) + 1
+    axes = json.loads(row["axes_json"])
+    quality = map_quality.assess([c.model_dump() for c in cells], axes)
+    smoothed = {}
+    if smooth:
+        smoothed = map_quality.smoothing(quality, map_id, {map_quality.cell_key(c.model_dump()): c.result_id
+                                                           for c in cells})
+        for c in cells:
+            key = map_quality.cell_key(c.model_dump())
+            if key in smoothed:
+                (c.theta_cos, c.theta_sin), c.smoothed_from = smoothed[key]
+                c.outlier_reason, c.quality = quality.cells[key].reason, "smoothed"
+                c.gamma_deg, c.delta_deg = (math.degrees(v) for v in gamma_delta(c.theta_cos, c.theta_sin))
+                c.suppression_db = None        # measured at the replaced theta, not at this one
+        quality = map_quality.assess([c.model_dump() for c in cells], axes)
+    for c in cells:
+        q = quality.cells.get(map_quality.cell_key(c.model_dump()))
+        if q is not None and c.quality is None:
+            c.quality, c.outlier_reason = q.quality, q.reason
+    summary = MapQualityPublic(
+        consistent=sum(1 for c in cells if c.quality == "consistent"),
+        outliers=sum(1 for c in cells if c.quality == "outlier"),
+        unchecked=sum(1 for c in cells if c.quality == "unchecked"), smoothed=len(smoothed),
+        outlier_factor=map_quality.OUTLIER_FACTOR, min_step_deg=map_quality.MIN_STEP_DEG,
+        gradient_deg_per_unit={a: None if g is None else math.degrees(g) for a, g in quality.gradient_rad_per_unit.items()})
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
-                     created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells)
+                     created_at=row["created_at"], axes=axes, status_counts=counts, cells=cells,
+                     quality=summary, smoothed=smooth)
 
 
 def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_count: int = 20) -> SchedulePublic:

@@ -192,6 +192,15 @@ class Storage:
             row = conn.execute("SELECT * FROM results WHERE id = ?", (result_id,)).fetchone()
             return dict(row) if row else None
 
+    def results_by_id(self, result_ids: list[int]) -> dict[int, dict]:
+        """The result rows of these ids (ids with no row left out), in one query."""
+        ids = sorted({int(i) for i in result_ids})
+        if not ids:
+            return {}
+        with self.connect() as conn:
+            return {r["id"]: dict(r) for r in conn.execute(
+                f"SELECT * FROM results WHERE id IN ({', '.join('?' for _ in ids)})", ids)}
+
     def sweep_results(self, sweep_id: int) -> list[dict]:
         """The sweep's current results: one per operating point measured (earlier attempts left out)."""
         with self.connect() as conn:

@@ -654,3 +654,53 @@ def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_p
             _wait_api(service, f"/sweeps/{sweep['id']}", lambda s: s["state"] not in ("queued", "running"),
                       timeout_s=300)
         context.close()
+
+
+def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp_path):
+    """Two maps put into the service's database from stored results (no sweep: tests/support/maps.py):
+    the Map panel rings map a's planted outlier and gives its reason; the Compare panel, with map b
+    picked, shows |delta theta| and the predicted suppression of every cell, the outlier the worst."""
+    from service.storage import Storage
+    from tests.support.maps import make_map, theta_of
+
+    grid = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
+    outlier = (2.5, 2000.0, 12.0)
+
+    def smooth(p):
+        return theta_of(2.0 + 0.2 * p[0], 270.0 + p[1] / 200.0)
+
+    storage = Storage(service["log"].parent / "ripplecal.db")     # the service's own database
+    map_a = make_map(storage, grid, lambda p: theta_of(6.0, 200.0) if p == outlier else smooth(p))
+    map_b = make_map(storage, grid, smooth)
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.wait_for_function(f"""() => [...document.querySelectorAll('[data-testid="map-select"] option')]
+                                          .some((o) => o.value === '{map_a}')""", timeout=15_000)
+        page.select_option('[data-testid="map-select"]', str(map_a))
+        quality = page.locator('[data-testid="map-quality"]')
+        quality.wait_for(state="visible", timeout=10_000)
+        assert "T* 2.5 N·m, n 2000 rpm" in quality.inner_text()
+        assert "from the median of its 4 ok neighbours" in quality.inner_text()
+        assert "1 outlier(s)" in page.inner_text('[data-testid="map-meta"]')
+        page.wait_for_function("""() => { const d = document.querySelector('[data-testid="plot-gamma"]');
+                                          return d.data && d.data.some((t) => t.name === 'outlier'); }""",
+                               timeout=10_000)
+        assert page.inner_text('[data-testid="compare-a"]') == f"a: map {map_a}"
+
+        page.select_option('[data-testid="compare-b"]', str(map_b))
+        rows = page.locator('[data-testid="compare-row"][data-compared="1"]')
+        page.wait_for_function("""() => document.querySelectorAll('[data-testid="compare-row"]').length === 9""",
+                               timeout=10_000)
+        assert rows.count() == 9
+        assert "9 cells compared" in page.inner_text('[data-testid="compare-summary"]')
+        assert "at 2.5 N·m / 2000 rpm" in page.inner_text('[data-testid="compare-summary"]')
+        page.wait_for_function("""() => ['plot-compare-theta', 'plot-compare-supp'].every((id) =>
+                                          document.getElementById(id).classList.contains('js-plotly-plot'))""",
+                               timeout=10_000)
+        moved = [r for r in rows.all_inner_texts() if r.startswith("2.5\t2000")]
+        assert len(moved) == 1 and float(moved[0].split("\t")[5]) > 1.0, moved
+        page.screenshot(path=str(tmp_path / "map_compare.png"), full_page=True)
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+    finally:
+        context.close()

@@ -45,6 +45,21 @@ export const MAP_QUANTITIES = [
     sym: "suppression", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
 ];
 
+// Map b against map a (GET /maps/{a}/compare/{b}), drawn by mapHeatmap over compareCells().
+export const COMPARE_QUANTITIES = [
+  { key: "delta_theta_deg", title: "|Δθ| — map b against map a", unit: "deg", cbar: "|Δθ| (°)", sym: "|Δθ|",
+    scale: [[0, "#fff5eb"], [0.5, "#fd8d3c"], [1, "#a63603"]], range: "zero", digits: 2 },
+  { key: "predicted_suppression_db", title: "suppression b's θ would reach on a's bench", unit: "dB", cbar: "dB",
+    sym: "predicted", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
+];
+
+// A comparison's cells as map cells: compared cells count as ok, the others carry why not.
+export function compareCells(comparison) {
+  return comparison.cells.map((c) => Object.assign({}, c, {
+    status: c.compared ? "ok" : "not compared", result_id: null, quality: null,
+  }));
+}
+
 // The cells of `map` at one DC-link voltage: torque on x, speed on y.
 export function mapSlice(map, udc) {
   const cells = map.cells.filter((c) => Number(c.udc_v) === udc);
@@ -66,7 +81,8 @@ export function mapHeatmap(slice, q) {
     const j = xi.get(Number(c.torque_nm));
     if (i === undefined || j === undefined) continue;
     const head = `T* ${fmt(c.torque_nm)} N·m<br>n ${fmt(c.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(c.udc_v)} V<br>`;
-    const click = c.result_id ? "<br><i>click: result details</i>" : "";
+    const click = (c.quality === "outlier" ? `<br><b>outlier</b>: ${escapeHtml(String(c.outlier_reason).split(" (")[0])}` : "") +
+      (c.result_id ? "<br><i>click: result details</i>" : "");
     const v = c[q.key];
     if (c.status === "ok" && v !== null && v !== undefined) {
       z[i][j] = v;
@@ -107,7 +123,14 @@ export function mapHeatmap(slice, q) {
     yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
-  return { data: [trace], layout, config: CONFIG };
+  // outliers of the map quality (service/map_quality.py) get a ring; hover and clicks stay the heatmap's
+  const marked = cells.filter((c) => c.quality === "outlier");
+  const rings = {
+    type: "scatter", mode: "markers", x: marked.map((c) => c.torque_nm), y: marked.map((c) => c.speed_rpm),
+    marker: { symbol: "circle-open", size: 30, color: "#d1495b", line: { width: 2 } },
+    hoverinfo: "skip", showlegend: false, name: "outlier",
+  };
+  return { data: marked.length ? [trace, rings] : [trace], layout, config: CONFIG };
 }
 
 // ------------------------------------------------------------------ one result (paper Fig. 8, 9, 10)

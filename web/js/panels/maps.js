@@ -10,10 +10,12 @@ const PLOT_DIV = { gamma_deg: "plot-gamma", delta_deg: "plot-delta", suppression
 
 let currentMap = null;           // the full map shown, as GET /maps/{id} answers
 let openResult = () => {};
+let mapShown = () => {};
 
-// openResultOf(resultId, source): what a click on a map cell does.
-export function init({ openResultOf }) {
+// openResultOf(resultId, source): what a click on a map cell does; onMapShown(id): a map is shown.
+export function init({ openResultOf, onMapShown }) {
   openResult = openResultOf;
+  if (onMapShown) mapShown = onMapShown;
   $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
   $("udc-select").addEventListener("change", draw);
   if (!figures.plotlyLoaded()) {
@@ -82,9 +84,15 @@ async function show(id) {
   const counts = {};
   for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
   const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
+  const q = m.quality || {};
   setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · sweep ${m.sweep_id} · ` +
-    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText})`);
+    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${q.outliers || 0} outlier(s)`);
+  // outliers (ringed in the plots) with the reason to act on
+  const outliers = m.cells.filter((c) => c.quality === "outlier").map((c) =>
+    `T* ${fmt(c.torque_nm)} N·m, n ${fmt(c.speed_rpm)} rpm, U_dc ${fmt(c.udc_v)} V: ${c.outlier_reason}`);
+  showMsg("map-quality", outliers.length ? outliers : null, outliers.length ? "Outliers against their neighbours" : undefined);
   draw();
+  mapShown(id);
 }
 
 function draw() {
