@@ -137,7 +137,7 @@ class Bench:
             time.sleep(0.05)
         if job["state"] != "done" or job["result_id"] is None:
             if "InterlockTripped" in (job["error"] or ""):
-                raise TrippedJob(f"{method} at {op.label()}: {job['error']}")
+                raise TrippedJob(job["error"])
             raise RuntimeError(f"{method} at {op.label()}: job {job['state']}: {job['error']}")
         return result_public(svc.storage.get_result(job["result_id"]))
 
