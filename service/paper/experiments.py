@@ -85,7 +85,7 @@ class Held:
 
 
 @dataclass
-class Bench:
+class EmulatedBench:
     """One emulated bench (a CalibrationService with its emulator) for a group of figures."""
     scenario: str
     settings: Settings
@@ -94,7 +94,7 @@ class Bench:
     timings: dict[str, float] = field(default_factory=dict)
     trips: list[str] = field(default_factory=list)
 
-    def __enter__(self) -> "Bench":
+    def __enter__(self) -> "EmulatedBench":
         started = time.monotonic()
         self.service = CalibrationService(self.settings).__enter__()
         self.scope = Scope(self.service.emulator.endpoints["control"])
@@ -146,7 +146,8 @@ class Bench:
 
     def _hold(self, op: OperatingPoint, thetas: list[tuple[float, float]], plan: PaperPlan) -> list[Held]:
         """At `op`, each theta in turn: apply it, let the loops settle, then one DAQ window (the
-        service's phasor and spectrum) while the scope records the same stretch of plant time."""
+        service's phasor and spectrum) while the scope records the same steady state (from the next
+        physics block on, which may run a little ahead of the DAQ reader: theta does not change meanwhile)."""
         settings = self.service.settings
         h = settings.identification.harmonic_order
         out: list[Held] = []
@@ -181,7 +182,7 @@ def history(result: ResultPublic) -> np.ndarray:
 
 def run_paper_bench(db_path: str, plan: PaperPlan) -> dict:
     """Fig. 8-10 on paper-bench (Table 1: 160 Hz current control, dead time, saturation)."""
-    with Bench("paper-bench", bench_settings(db_path, "paper-bench")) as bench:
+    with EmulatedBench("paper-bench", bench_settings(db_path, "paper-bench")) as bench:
         t0 = time.monotonic()
         grid = bench.identify(OP1, "grid", plan.grid_options)
         t1 = time.monotonic()
@@ -204,7 +205,7 @@ def run_paper_sim(db_path: str, plan: PaperPlan, decoupling: bool) -> dict:
     motor = settings.motor
     t_max_nm = round(1.5 * motor.pole_pairs * motor.psi_p_vs * motor.i_max_a, 3)
     out: dict[str, Any] = {"torque_nm": t_max_nm}
-    with Bench("paper-sim", settings) as bench:
+    with EmulatedBench("paper-sim", settings) as bench:
         started = time.monotonic()
         for fig, speed in SIM_SPEEDS_RPM.items():
             op = OperatingPoint(torque_nm=t_max_nm, speed_rpm=speed, udc_v=12)
