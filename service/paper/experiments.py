@@ -36,7 +36,7 @@ SIM_SPEEDS_RPM = {"fig11": 1000.0, "fig12": 200.0}                 # paper sec. 
 SIM_BANDWIDTH_HZ = 1200.0                                          # sec. 3.1: f_3dB = 1.2 kHz
 JOB_TIMEOUT_S = 300.0
 EMULATOR_SPEEDUP = 0.0    # as fast as the DAQ is read (every figure is timed on the DAQ sample counter)
-MAX_TRIPS = 3       # interlock trips acknowledged and measured again per step (each listed in the report)
+MAX_TRIPS = 6       # interlock trips acknowledged and measured again per step (each listed in the report)
 SPECTRUM_ORDERS = 24
 
 # the paper's adaptive filter (eq. 16) as written: the model S_hat throughout, a fixed gain, no
