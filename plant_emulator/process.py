@@ -39,6 +39,7 @@ from .daq_stream import DaqPty
 from .drive_firmware import DriveFirmware
 from .faults import ControlServer, FaultState
 from .load_machine import LoadMachineFirmware
+from .scope import Scope
 from .scpi_supply import DcSupply, ScpiServer
 from .socketcand_server import SocketcandServer
 
@@ -78,6 +79,7 @@ class Emulator:
         self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
         self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS))
         self.daq = DaqPty()
+        self.scope = Scope(self.sample_rate_hz)
         self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)
         self.control = ControlServer(self.faults, port=control_port)
         self.can_server.delay_for = self.faults.sdo_delay_for
@@ -179,7 +181,11 @@ class Emulator:
             self.load.chunk_setpoints(sp)
             k = m * n
             noise = rng.standard_normal(k) if noise_on else zeros[:k]
-            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], no_trace)
+            scoping = self.scope.recording      # the oscilloscope wants this block's samples
+            trace = np.zeros((k, ph.N_TRACE)) if scoping else no_trace
+            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], trace)
+            if scoping:
+                self.scope.feed(trace)
             self.samples += k
             # publish the firmware's measurements (read by SDO)
             for row in range(max(0, m - n_mean), m):
