@@ -30,6 +30,15 @@ TORQUES = [round(0.5 + 0.5 * i, 2) for i in range(10)]
 SPEEDS = [500 + 300 * i for i in range(10)]
 
 
+# what a stored reason says, in the words of docs: the first phrase found names the cell's class
+REASON_CLASSES = ("enable decoupling", "shaft resonance", "noise floor", "over-range", "stopped falling", "gamma_max")
+
+
+def _reason_class(status: str, reason: str) -> str:
+    found = next((phrase for phrase in REASON_CLASSES if phrase in reason), reason[:60])
+    return f"{status}: {found}"
+
+
 def run_sweep(svc, method: str, decoupling: bool) -> dict:
     t0 = time.perf_counter()
     sweep_id = svc.engine.submit_sweep(Grid(torque_nm=TORQUES, speed_rpm=SPEEDS, udc_v=[12]), method,
@@ -56,7 +65,7 @@ def run_sweep(svc, method: str, decoupling: bool) -> dict:
     plant = np.array([r["plant_time_s"] for r in rows if r["plant_time_s"] is not None])
     reached = sum(1 for r in rows if (r["suppression_db"] or -1e9) >= 40.0)
     dishonest = sum(1 for r in rows if r["status"] == "ok" and (r["suppression_db"] or -1e9) < (r["target_db"] or 40.0))
-    reasons = Counter((r["error"] or "").split(":")[-1].split("(")[0].strip()[:70] for r in rows if r["status"] != "ok")
+    reasons = Counter(_reason_class(r["status"], r["error"] or "") for r in rows if r["status"] != "ok")
     return {"n": len(rows), "reached": reached, "statuses": statuses, "median": float(np.median(plant)),
             "p95": float(np.percentile(plant, 95)), "plant_total": float(plant.sum()), "wall": wall,
             "dishonest": dishonest, "reasons": reasons, "interlock_trips": interlock_trips}
