@@ -82,6 +82,8 @@ class JobPublic(BaseModel):
     started_at: str | None = None
     finished_at: str | None = None
     result: ResultPublic | None = None
+    validation: "ValidationPublic | None" = Field(None, description="kind validation: the map's LUT measured in "
+                                                                   "the drive's LUT mode, every cell")
 
 
 class SweepPointPublic(BaseModel):
@@ -140,6 +142,8 @@ class MapPublic(BaseModel):
     axes: dict[str, list[float]]
     status_counts: dict[str, int]
     cells: list[MapCellPublic]
+    validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation in the drive's "
+                                                                         "LUT mode (cells: GET /maps/{id}/validation)")
 
 
 class MapSummaryPublic(BaseModel):
@@ -180,6 +184,52 @@ class SchedulePreviewPublic(BaseModel):
     cron: str
     timezone: str
     runs: list[str] = Field(description="the firings after `start`, ISO 8601 with the zone's offset")
+
+
+class ValidationCellPublic(BaseModel):
+    """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
+    operating_point: OperatingPoint
+    kind: str = Field(description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated)")
+    status: str = Field(description="measured | failed (error says why) | not_measured (the run stopped first)")
+    error: str | None = None
+    suppression_db: float | None = Field(None, description="20 log10(|uncompensated| / |residual|), only if measured")
+    uncompensated: PhasorPublic | None = Field(None, description="injection off")
+    residual: PhasorPublic | None = Field(None, description="the drive's own LUT feedforward (injection mode 2)")
+    noise_floor_db: float | None = Field(None, description="rms noise phasor of the LUT window against |uncompensated|")
+    at_noise_floor: bool | None = Field(None, description="the residual is within 3 noise rms of zero: "
+                                                          "suppression_db is a lower bound")
+    plant_time_s: float | None = None
+    speed_rpm_measured: float | None = None
+    harmonic_frequency_hz: float | None = None
+
+
+class ValidationSummaryPublic(BaseModel):
+    """A validation's figures: per kind (grid, midpoint) the cells, how many were measured, failed or
+    not measured, and the median / minimum suppression of the measured ones (dB); the worst cell."""
+    id: int
+    job_id: int
+    map_id: int
+    state: str = Field(description="done | failed (interlock or error: see error) | cancelled")
+    error: str | None = None
+    finished_at: str
+    download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
+    grid: dict[str, Any]
+    midpoint: dict[str, Any]
+    worst: dict[str, Any] | None = None
+    plant_time_s: float
+
+
+class ValidationPublic(ValidationSummaryPublic):
+    harmonic_order: int
+    options: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    cells: list[ValidationCellPublic]
+
+
+JobPublic.model_rebuild()       # their `validation` fields name the models defined above
+MapPublic.model_rebuild()
 
 
 # --- results: domain -> row -> public ---------------------------------------------------------------
@@ -244,10 +294,26 @@ def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
 # --- jobs, sweeps, maps -----------------------------------------------------------------------------
 def job_public(storage: Storage, job: dict) -> JobPublic:
     row = storage.get_result(job["result_id"]) if job.get("result_id") else None
+    validation = storage.validation_of_job(job["id"]) if job["kind"] == "validation" else None
     return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
                      sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
                      started_at=job["started_at"], finished_at=job["finished_at"],
-                     result=result_public(row) if row else None)
+                     result=result_public(row) if row else None,
+                     validation=validation_public(validation) if validation else None)
+
+
+def validation_summary_public(row: dict) -> ValidationSummaryPublic:
+    summary = json.loads(row["summary_json"])
+    return ValidationSummaryPublic(id=row["id"], job_id=row["job_id"], map_id=row["map_id"], state=row["state"],
+                                   error=row["error"], finished_at=row["finished_at"],
+                                   download=json.loads(row["download_json"]), **summary)
+
+
+def validation_public(row: dict) -> ValidationPublic:
+    return ValidationPublic(**validation_summary_public(row).model_dump(), harmonic_order=row["harmonic_order"],
+                            options=json.loads(row["options_json"]), bench_identity=row["bench_identity"],
+                            software_version=row["software_version"], started_at=row["started_at"],
+                            cells=json.loads(row["cells_json"]))
 
 
 def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> SweepPublic:
@@ -286,9 +352,11 @@ def map_public(storage: Storage, map_id: int) -> MapPublic | None:
     counts = {status: 0 for status in CELL_STATUSES}
     for c in cells:
         counts[c.status] = counts.get(c.status, 0) + 1
+    validation = storage.latest_validation(map_id)
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
-                     created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells)
+                     created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells,
+                     validation=validation_summary_public(validation) if validation else None)
 
 
 def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_count: int = 20) -> SchedulePublic:

@@ -9,6 +9,7 @@ import * as events from "./events.js";
 import * as benchStatus from "./panels/bench-status.js";
 import * as sweeps from "./panels/sweeps.js";
 import * as maps from "./panels/maps.js";
+import * as mapValidation from "./panels/map-validation.js";
 import * as identify from "./panels/identify.js";
 import * as resultView from "./panels/result-view.js";
 import * as schedules from "./panels/schedules.js";
@@ -39,7 +40,9 @@ async function init() {
     reportError(e);
   }
   sweeps.init({ openMapOf: maps.select });
-  maps.init({ openResultOf: resultView.openResult });
+  maps.init({ openResultOf: resultView.openResult, shown: mapValidation.show });
+  mapValidation.init();
+  events.on("job.state", mapValidation.onJobState);
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
   schedules.init({});
   events.on("sweep.progress", schedules.onSweepProgress);
