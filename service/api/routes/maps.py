@@ -66,7 +66,7 @@ def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep) -> dic
 
 
 @router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(401, 403, 404))
+             responses=error_responses(400, 401, 403, 404, 413))
 def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
                  body: ValidationCreate | None = None) -> JobPublic:
     """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
