@@ -30,7 +30,8 @@ from service.interlocks import InterlockTripped
 from service.identify import check_plant_time, identify_at, parse_options
 from service.public import map_public, result_public, result_row
 from service.maps import build_map_from_sweep
-from service.map_validation import ValidationOptions, check_points, check_validatable, run_validation, store_validation
+from service.map_validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
+                                    store_validation)
 from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
@@ -383,7 +384,7 @@ class Engine:
         if run.state == "cancelled":
             raise Cancelled()
         if run.state == "failed":
-            raise RuntimeError(run.error)
+            raise ValidationStopped(run.error)
 
     def _run_sweep(self, job_id: int, sweep_id: int) -> None:
         sweep = self.storage.get_sweep(sweep_id)

@@ -60,6 +60,10 @@ class ValidationRefused(ValueError):
     """The map cannot be validated as asked (no valid cell; a partial map without force)."""
 
 
+class ValidationStopped(RuntimeError):
+    """An interlock trip stopped the validation (the cells measured before it are stored)."""
+
+
 def finer_axis(values: list[float]) -> list[tuple[float, bool]]:
     """(value, is_grid_value) along an axis: the grid values and their neighbours' midpoints."""
     out = []
@@ -157,8 +161,12 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
     run = ValidationRun(map_id=map_id, harmonic_order=h, options=options.model_dump())
     run.download = download(storage, bench, map_id, force)
     points = validation_points(m.axes)
-    for i, (op, kind) in enumerate(points):
+    # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
+    map_status = {(c.torque_nm, c.speed_rpm, c.udc_v): c.status for c in m.cells}
+    for op, kind in points:
         cell: dict[str, Any] = {"operating_point": op.model_dump(), "kind": kind}
+        if kind == "grid":
+            cell["map_cell_status"] = map_status.get((op.torque_nm, op.speed_rpm, op.udc_v), "missing")
         if run.state != "done":
             cell.update(status="not_measured", error=f"not measured: the validation stopped ({run.error})")
         elif cancel.is_set():

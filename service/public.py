@@ -201,6 +201,8 @@ class ValidationCellPublic(BaseModel):
     plant_time_s: float | None = None
     speed_rpm_measured: float | None = None
     harmonic_frequency_hz: float | None = None
+    map_cell_status: str | None = Field(None, description="grid points: the map cell's status (only ok cells carry "
+                                                          "injection in the LUT)")
 
 
 class ValidationSummaryPublic(BaseModel):

@@ -115,7 +115,9 @@ def main() -> None:
                 value = "-" if c.suppression_db is None else f"{c.suppression_db:5.1f} dB"
                 floor = "" if c.noise_floor_db is None else f" (floor {c.noise_floor_db:.0f} dB{', at floor' if c.at_noise_floor else ''})"
                 print(f"{'':22s}{c.kind:8s} {op.torque_nm:5.2f} Nm {op.speed_rpm:6.0f} rpm  {value}{floor}"
-                      + (f"  {c.error}" if c.error else "") + ident)
+                      + (f"  {c.error}" if c.error else "") + ident
+                      + (f"  (map cell {c.map_cell_status}: no injection in the LUT)"
+                         if c.map_cell_status not in (None, "ok") else ""))
 
 
 if __name__ == "__main__":

@@ -6,6 +6,8 @@ faults go through the emulator's control socket, which also tells what the drive
 states, reasons, counts and thresholds far from what the code reaches (grid points reach ~40-55 dB)."""
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from tests.support.bench_rig import Api, EmulatorRig
@@ -67,15 +69,14 @@ def test_validation_measures_grid_points_and_midpoints_in_lut_mode(rig, map_id):
         (t, n) for t in (2.0, 2.5, 3.0) for n in (1200.0, 1400.0, 1600.0)}
     assert all(c["status"] == "measured" and c["suppression_db"] is not None for c in cells), cells
     # the drive's own feedforward cancels at the points it was trained on (identification reaches >= 40 dB)
-    ok_grid = [c for c in cells if c["kind"] == "grid" and any(
-        x["status"] == "ok" and (x["torque_nm"], x["speed_rpm"]) == (c["operating_point"]["torque_nm"],
-                                                                    c["operating_point"]["speed_rpm"])
-        for x in m["cells"])]
+    status = {(x["torque_nm"], x["speed_rpm"]): x["status"] for x in m["cells"]}
+    assert all(c["map_cell_status"] == status[(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"])]
+               for c in cells if c["kind"] == "grid")
+    ok_grid = [c for c in cells if c["kind"] == "grid" and c["map_cell_status"] == "ok"]
     assert ok_grid and all(c["suppression_db"] >= 20.0 for c in ok_grid), ok_grid
     assert v["grid"]["median_db"] is not None and v["midpoint"]["measured"] == 5
     assert v["worst"]["suppression_db"] == min(c["suppression_db"] for c in cells)
     for c in cells:     # the figure is the ratio of the two phasors it reports
-        import math
         assert c["suppression_db"] == pytest.approx(
             20 * math.log10(c["uncompensated"]["amplitude"] / c["residual"]["amplitude"]), abs=1e-9)
         assert c["noise_floor_db"] < 0

@@ -311,7 +311,9 @@ export function validationHeatmap(cells, udc) {
     const op = c.operating_point;
     const i = yi.get(Number(op.speed_rpm));
     const j = xi.get(Number(op.torque_nm));
-    const head = `<b>${c.kind === "grid" ? "grid point (trained)" : "midpoint (interpolated)"}</b><br>` +
+    const untrained = c.kind === "grid" && c.map_cell_status && c.map_cell_status !== "ok" ?
+      ` — map cell ${escapeHtml(String(c.map_cell_status))}: no injection in the LUT` : "";
+    const head = `<b>${c.kind === "grid" ? "grid point (trained)" : "midpoint (interpolated)"}</b>${untrained}<br>` +
       `T* ${fmt(op.torque_nm)} N·m<br>n ${fmt(op.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(op.udc_v)} V<br>`;
     if (c.kind === "grid") {
       grid.x.push(xs[j]);
