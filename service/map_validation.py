@@ -128,7 +128,7 @@ def measure_point(bench, settings: Settings, op: OperatingPoint, h: int, options
     """One point: uncompensated (injection off), then the drive's own LUT feedforward (module doc)."""
     with bench.operating_point(op, h, cancel=cancel) as session:
         session.settle_after_theta_s = options.settle_s
-        max_periods = max(MIN_PERIODS, periods_for(session, options.max_window_s))
+        max_periods = periods_for(session, options.max_window_s)      # >= MIN_PERIODS
         session.apply_injection_mode("off")
         reference = measure_reference(session, MIN_PERIODS, max_periods)
         a0 = reference.phasor.amplitude
