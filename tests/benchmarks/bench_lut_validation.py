@@ -17,6 +17,12 @@ runs from 400 Hz to 720 Hz: above 2x the current loop's 160 Hz bandwidth (below 
 counteracts, sec. 2.4) and far from the shaft resonance (1074 Hz). 1..4 Nm keeps the harmonic well
 above the sensor noise (0.5 Nm is ~half of 1 Nm's) and below the rated 5 Nm; 400 rpm and 1.5 Nm
 steps keep the linear-interpolation error of the torque- and speed-dependent theta* small.
+
+Reading the grid figures: the drive holds the sweep's theta exactly at a grid point (read back over
+the emulator's control socket, `drive_theta_rad`, equal to the cell's to 1e-8 rad), but theta* itself
+moves by ~3 % between sessions at the same point (5 fresh probe identifications on paper-bench at
+1 Nm / 1600 rpm: gamma 2.54..2.62 deg, delta 260.6..262.2 deg, each >= 45.8 dB in its own session),
+so a trained point can show ~30 dB when measured again; the medians are what the LUT delivers.
 """
 from __future__ import annotations
 
