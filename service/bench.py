@@ -335,6 +335,11 @@ class Bench:
         self._guard()
         self.drive.set_injection(theta_cos_rad, theta_sin_rad)
 
+    def send_injection_mode(self, mode: str) -> None:
+        """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
+        self._guard()
+        self.drive.set_injection_mode(mode)
+
     def download_lut(self, image: bytes) -> int:
         """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns the CRC.
         Refused while a run holds the bench."""
@@ -376,7 +381,8 @@ class Bench:
                                                 s.daq.sample_rate_hz, s.motor.pole_pairs, sync_input=s.daq.sync_input,
                                                 no_sync_settle_s=s.daq.no_sync_settle_s,
                                                 guard=lambda: self._guard(cancel), resonance=self.resonance,
-                                                observe=self.live.publisher("run"), on_window=on_window)
+                                                observe=self.live.publisher("run"), on_window=on_window,
+                                                send_injection_mode=self.send_injection_mode)
                 self.live.publish("run", operating_point=op.model_dump(),
                                   speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
                 self._go_to(op, harmonic_order,

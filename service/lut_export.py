@@ -61,6 +61,26 @@ def _quality_json(m: dict) -> dict:
     return {**(m.get("quality") or {}), "smoothed_view": bool(m.get("smoothed")), "cells": marked}
 
 
+def _validation_text(m: dict) -> str:
+    """The latest validation in the drive's LUT mode, one line (every export carries it)."""
+    v = m.get("validation")
+    if not v:
+        return "not validated in the drive's LUT mode"
+
+    def part(kind: str) -> str:
+        k = v[kind]
+        if k["median_db"] is None:
+            return f"{kind} none measured of {k['cells']}"
+        return (f"{kind} median {k['median_db']:.1f} dB, min {k['min_db']:.1f} dB "
+                f"({k['measured']} of {k['cells']} measured)")
+    worst = v.get("worst")
+    where = "" if not worst else (f"; worst {worst['suppression_db']:.1f} dB at {worst['operating_point']['torque_nm']:g} Nm, "
+                                  f"{worst['operating_point']['speed_rpm']:g} rpm, {worst['operating_point']['udc_v']:g} V "
+                                  f"({worst['kind']})")
+    return (f"validated in the drive's LUT mode (job {v['job_id']}, {v['finished_at']}, {v['state']}): "
+            f"{part('grid')}; {part('midpoint')}{where}")
+
+
 def export_csv(m: dict) -> str:
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
@@ -69,6 +89,7 @@ def export_csv(m: dict) -> str:
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
     buf.write(f"# cells: {_counts_text(m)}; only ok cells carry theta (valid), the others are 0\n")
     buf.write(f"# {_quality_text(m)}\n")
+    buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
                 "suppression_db", "status"])
@@ -92,6 +113,7 @@ def export_json(m: dict) -> str:
         "valid": _grid_values(m, "valid"), "status_counts": m.get("status_counts"),
         "cells": [{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS} for c in m["cells"]],
         "quality": _quality_json(m),
+        "validation": m.get("validation"),
     }, indent=1)
 
 
@@ -121,6 +143,7 @@ def export_c(m: dict) -> str:
         " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
         f" * Cells: {_counts_text(m)}.",
         f" * {_quality_text(m)}.",
+        f" * {_validation_text(m)}.",
         " */",
         f"#ifndef {guard}", f"#define {guard}", "",
         "#include <stdint.h>", "",
@@ -150,6 +173,7 @@ def export_dcm(m: dict) -> str:
            f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
            f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok)",
            f"* {_quality_text(m)}",
+           f"* {_validation_text(m)}",
            "KONSERVIERUNG_FORMAT 2.0", ""]
     for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid")):
         for k, udc in enumerate(axes["udc_v"]):

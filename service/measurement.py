@@ -84,8 +84,10 @@ class OperatingPointSession:
                  pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
                  no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
                  resonance: ResonanceTracker | None = None, observe: Callable[..., None] | None = None,
-                 on_window: Callable[[Window], None] | None = None):
+                 on_window: Callable[[Window], None] | None = None,
+                 send_injection_mode: Callable[[str], None] | None = None):
         self._send_theta = send_theta                  # theta to the drive (checked against gamma_max there)
+        self._send_injection_mode = send_injection_mode   # off / manual / lut (the LUT's validation)
         self._setpoints_written = setpoints_written    # setpoints the drive accepted: one sync toggle each
         # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
         self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
@@ -207,6 +209,15 @@ class OperatingPointSession:
     # --- MeasurementSession ----------------------------------------------------------------------
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         self._send_theta(theta_cos_rad, theta_sin_rad)
+        self.wait_for_effect()
+        self.skip(self.settle_after_theta_s)
+
+    def apply_injection_mode(self, mode: str) -> None:
+        """Switch the drive's injection mode (0x2000:2: off / manual / lut; one setpoint, one sync toggle)
+        and return once it is in effect and the plant has settled, as apply_theta does."""
+        if self._send_injection_mode is None:
+            raise MeasurementError("this session cannot switch the injection mode")
+        self._send_injection_mode(mode)
         self.wait_for_effect()
         self.skip(self.settle_after_theta_s)
 

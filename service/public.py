@@ -83,6 +83,8 @@ class JobPublic(BaseModel):
     started_at: str | None = None
     finished_at: str | None = None
     result: ResultPublic | None = None
+    validation: "ValidationPublic | None" = Field(None, description="kind validation: the map's LUT measured in "
+                                                                   "the drive's LUT mode, every cell")
 
 
 class SweepPointPublic(BaseModel):
@@ -162,6 +164,8 @@ class MapPublic(BaseModel):
     quality: MapQualityPublic | None = None
     smoothed: bool = Field(False, description="true: a view whose outlier cells carry their neighbours' fit "
                            "(?smooth=outliers); the stored map is never changed")
+    validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation in the drive's "
+                                                                         "LUT mode (cells: GET /maps/{id}/validation)")
 
 
 class MapSummaryPublic(BaseModel):
@@ -257,6 +261,55 @@ class MapComparisonPublic(BaseModel):
     only_in_a: list[OperatingPoint]
     only_in_b: list[OperatingPoint]
 
+
+class ValidationCellPublic(BaseModel):
+    """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
+    operating_point: OperatingPoint
+    kind: str = Field(description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated)")
+    status: str = Field(description="measured | failed (error says why) | not_measured (the run stopped first)")
+    error: str | None = None
+    suppression_db: float | None = Field(None, description="20 log10(|uncompensated| / |residual|), only if measured")
+    uncompensated: PhasorPublic | None = Field(None, description="injection off")
+    residual: PhasorPublic | None = Field(None, description="the drive's own LUT feedforward (injection mode 2)")
+    noise_floor_db: float | None = Field(None, description="rms noise phasor of the LUT window against |uncompensated|")
+    at_noise_floor: bool | None = Field(None, description="the residual is within 3 noise rms of zero: "
+                                                          "suppression_db is a lower bound")
+    plant_time_s: float | None = None
+    speed_rpm_measured: float | None = None
+    harmonic_frequency_hz: float | None = None
+    map_cell_status: str | None = Field(None, description="grid points: the map cell's status (only ok cells carry "
+                                                          "injection in the LUT)")
+
+
+class ValidationSummaryPublic(BaseModel):
+    """A validation's figures: per kind (grid, midpoint) the cells, how many were measured, failed or
+    not measured, and the median / minimum suppression of the measured ones (dB); the worst cell."""
+    id: int
+    job_id: int
+    map_id: int
+    state: str = Field(description="done | failed (interlock or error: see error) | cancelled")
+    error: str | None = None
+    finished_at: str
+    download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
+    grid: dict[str, Any]
+    midpoint: dict[str, Any]
+    worst: dict[str, Any] | None = None
+    plant_time_s: float
+
+
+class ValidationPublic(ValidationSummaryPublic):
+    harmonic_order: int
+    options: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    cells: list[ValidationCellPublic]
+
+
+JobPublic.model_rebuild()       # their `validation` fields name the models defined above
+MapPublic.model_rebuild()
+
+
 # --- results: domain -> row -> public ---------------------------------------------------------------
 def _complex(c: complex | None) -> dict | None:
     return None if c is None else {"re": c.real, "im": c.imag, "gain": abs(c),
@@ -319,10 +372,26 @@ def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
 # --- jobs, sweeps, maps -----------------------------------------------------------------------------
 def job_public(storage: Storage, job: dict) -> JobPublic:
     row = storage.get_result(job["result_id"]) if job.get("result_id") else None
+    validation = storage.validation_of_job(job["id"]) if job["kind"] == "validation" else None
     return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
                      sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
                      started_at=job["started_at"], finished_at=job["finished_at"],
-                     result=result_public(row) if row else None)
+                     result=result_public(row) if row else None,
+                     validation=validation_public(validation) if validation else None)
+
+
+def validation_summary_public(row: dict) -> ValidationSummaryPublic:
+    summary = json.loads(row["summary_json"])
+    return ValidationSummaryPublic(id=row["id"], job_id=row["job_id"], map_id=row["map_id"], state=row["state"],
+                                   error=row["error"], finished_at=row["finished_at"],
+                                   download=json.loads(row["download_json"]), **summary)
+
+
+def validation_public(row: dict) -> ValidationPublic:
+    return ValidationPublic(**validation_summary_public(row).model_dump(), harmonic_order=row["harmonic_order"],
+                            options=json.loads(row["options_json"]), bench_identity=row["bench_identity"],
+                            software_version=row["software_version"], started_at=row["started_at"],
+                            cells=json.loads(row["cells_json"]))
 
 
 def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> SweepPublic:
@@ -364,6 +433,7 @@ def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic
     for c in cells:
         counts[c.status] = counts.get(c.status, 0) + 1
     axes = json.loads(row["axes_json"])
+    validation = storage.latest_validation(map_id)
     quality = map_quality.assess([c.model_dump() for c in cells], axes)
     smoothed = {}
     if smooth:
@@ -390,7 +460,8 @@ def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
                      created_at=row["created_at"], axes=axes, status_counts=counts, cells=cells,
-                     quality=summary, smoothed=smooth)
+                     quality=summary, smoothed=smooth,
+                     validation=validation_summary_public(validation) if validation else None)
 
 
 def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_count: int = 20) -> SchedulePublic:

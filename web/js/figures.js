@@ -315,3 +315,58 @@ export function gridSurface(r) {
     config: CONFIG,
   };
 }
+
+// ------------------------------------------------------------------ validation in the drive's LUT mode
+// Suppression measured with the drive's own LUT feedforward over the finer grid (grid values and
+// the midpoints between them) at one U_dc: grid points carry a ring marker, midpoints none; a
+// cell that failed or was not measured stays blank with its reason on hover.
+export function validationHeatmap(cells, udc) {
+  const mine = cells.filter((c) => Number(c.operating_point.udc_v) === udc);
+  const axis = (key) => [...new Set(mine.map((c) => Number(c.operating_point[key])))].sort((a, b) => a - b);
+  const xs = axis("torque_nm");
+  const ys = axis("speed_rpm");
+  const xi = new Map(xs.map((v, i) => [v, i]));
+  const yi = new Map(ys.map((v, i) => [v, i]));
+  const z = ys.map(() => xs.map(() => null));
+  const text = ys.map(() => xs.map(() => ""));
+  const grid = { x: [], y: [] };
+  for (const c of mine) {
+    const op = c.operating_point;
+    const i = yi.get(Number(op.speed_rpm));
+    const j = xi.get(Number(op.torque_nm));
+    const untrained = c.kind === "grid" && c.map_cell_status && c.map_cell_status !== "ok" ?
+      ` — map cell ${escapeHtml(String(c.map_cell_status))}: no injection in the LUT` : "";
+    const head = `<b>${c.kind === "grid" ? "grid point (trained)" : "midpoint (interpolated)"}</b>${untrained}<br>` +
+      `T* ${fmt(op.torque_nm)} N·m<br>n ${fmt(op.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(op.udc_v)} V<br>`;
+    if (c.kind === "grid") {
+      grid.x.push(xs[j]);
+      grid.y.push(ys[i]);
+    }
+    if (c.status === "measured" && c.suppression_db !== null && c.suppression_db !== undefined) {
+      z[i][j] = c.suppression_db;
+      const floor = c.noise_floor_db === null || c.noise_floor_db === undefined ? "" :
+        `<br>noise floor ${Number(c.noise_floor_db).toFixed(0)} dB${c.at_noise_floor ? " (at the floor: a lower bound)" : ""}`;
+      text[i][j] = head + `<b>suppression = ${Number(c.suppression_db).toFixed(1)} dB</b>${floor}`;
+    } else {
+      text[i][j] = head + `<b>${escapeHtml(String(c.status))}</b>: ${escapeHtml(String(c.error || "no value"))}`;
+    }
+  }
+  const heat = {
+    type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>", hoverongaps: true,
+    colorscale: "Cividis", zmin: 0, zmax: 60, xgap: 1, ygap: 1, texttemplate: "%{z:.1f}", textfont: { size: 11 },
+    colorbar: { title: { text: "dB (fixed 0…60)", side: "right" }, thickness: 12, len: 0.9 }, name: "suppression",
+  };
+  const marks = {
+    type: "scatter", mode: "markers", x: grid.x, y: grid.y, name: "grid point (trained)", hoverinfo: "skip",
+    marker: { symbol: "square-open", size: 30, color: "#d1495b", line: { width: 2 } },
+  };
+  const layout = {
+    title: { text: `suppression in the drive's LUT mode (dB) @ U<sub>dc</sub> = ${udc} V · ◻ grid point, else midpoint`,
+      font: { size: 13 }, x: 0.02, xanchor: "left" },
+    margin: { l: 58, r: 10, t: 36, b: 44 }, showlegend: false,
+    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
+    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
+    font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
+  };
+  return { data: [heat, marks], layout, config: CONFIG };
+}

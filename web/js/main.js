@@ -10,6 +10,7 @@ import * as benchStatus from "./panels/bench-status.js";
 import * as sweeps from "./panels/sweeps.js";
 import * as maps from "./panels/maps.js";
 import * as mapCompare from "./panels/map-compare.js";
+import * as mapValidation from "./panels/map-validation.js";
 import * as identify from "./panels/identify.js";
 import * as resultView from "./panels/result-view.js";
 import * as schedules from "./panels/schedules.js";
@@ -41,7 +42,9 @@ async function init() {
   }
   sweeps.init({ openMapOf: maps.select });
   mapCompare.init();
-  maps.init({ openResultOf: resultView.openResult, onMapShown: mapCompare.setMapA });
+  maps.init({ openResultOf: resultView.openResult, onMapShown: mapCompare.setMapA, shown: mapValidation.show });
+  mapValidation.init();
+  events.on("job.state", mapValidation.onJobState);
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
   schedules.init({});
   events.on("sweep.progress", schedules.onSweepProgress);

@@ -8,11 +8,13 @@ from fastapi.responses import PlainTextResponse
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
-from service.api.refusals import unprocessable
+from service.api.refusals import refused_at, unprocessable
+from service.api.schemas import ValidationCreate
 from service.bench import BenchError
 from service.lut_export import EXPORT_FORMATS, export_map, lut_image
 from service.map_compare import MapCompareError, compare_maps
-from service.public import MapComparisonPublic, MapPublic, MapSummaryPublic, map_public, map_summaries
+from service.public import (JobPublic, MapComparisonPublic, MapPublic, MapSummaryPublic, ValidationPublic, job_public,
+                            map_public, map_summaries, validation_public)
 
 router = APIRouter(prefix="/api/v1", tags=["maps"])
 
@@ -84,6 +86,30 @@ def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep) -> dic
             "harmonic_order": m["harmonic_order"]}
 
 
+@router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
+             responses=error_responses(400, 401, 403, 404, 413))
+def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
+                 body: ValidationCreate | None = None) -> JobPublic:
+    """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
+    grid point and at the midpoints between them (uncompensated and with the drive's own feedforward)."""
+    body = body or ValidationCreate()
+    try:
+        with refused_at(["path", "map_id"]):
+            job_id = service.engine.submit_validation(map_id, body.force, body.options)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
+    return job_public(service.storage, service.storage.get_job(job_id))
+
+
+@router.get("/maps/{map_id}/validation", response_model=ValidationPublic, responses=error_responses(404))
+def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
+    """The map's latest validation with every cell."""
+    if service.storage.get_map(map_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
+    row = service.storage.latest_validation(map_id)
+    if row is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} has not been validated: POST /maps/{map_id}/validate")
+    return validation_public(row)
 
 
 def _map_dict(service, map_id: int, smooth: bool = False) -> dict:

@@ -11,11 +11,14 @@ const PLOT_DIV = { gamma_deg: "plot-gamma", delta_deg: "plot-delta", suppression
 let currentMap = null;           // the full map shown, as GET /maps/{id} answers
 let openResult = () => {};
 let mapShown = () => {};
+let onShown = () => {};
 
-// openResultOf(resultId, source): what a click on a map cell does; onMapShown(id): a map is shown.
-export function init({ openResultOf, onMapShown }) {
+// openResultOf(resultId, source): what a click on a map cell does; onMapShown(id): a map is shown;
+// shown(map, udc): the map and U_dc slice drawn (the validation panel follows it).
+export function init({ openResultOf, onMapShown, shown }) {
   openResult = openResultOf;
   if (onMapShown) mapShown = onMapShown;
+  if (shown) onShown = shown;
   $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
   $("udc-select").addEventListener("change", draw);
   if (!figures.plotlyLoaded()) {
@@ -96,6 +99,7 @@ async function show(id) {
 }
 
 function draw() {
+  if (currentMap) onShown(currentMap, Number($("udc-select").value));
   if (!figures.plotlyLoaded() || !currentMap) return;
   const slice = figures.mapSlice(currentMap, Number($("udc-select").value));
   for (const q of figures.MAP_QUANTITIES) {
