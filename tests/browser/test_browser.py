@@ -702,6 +702,9 @@ def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp
         page.screenshot(path=str(tmp_path / "map_compare.png"), full_page=True)
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         assert not rec["console"], f"console errors: {rec['console']}"
+    finally:
+        context.close()
+
 
 def test_validate_on_drive_draws_the_suppression_over_grid_points_and_midpoints(service, browser, tmp_path):
     """A 2 x 1 map (made through the API): "Validate on drive" starts the job; when it ends the panel
