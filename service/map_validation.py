@@ -123,10 +123,25 @@ def _phasor(p) -> dict:
     return {"a_c": p.a_c, "a_s": p.a_s, "amplitude": p.amplitude}
 
 
+def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
+    """The drive decoupling (0x2000:6) the map's ok cells were measured with: the LUT holds only with
+    it. Cells stored before results recorded it count as the settings' default. A map mixing both
+    cannot be validated as one LUT."""
+    used = set()
+    for row in storage.results_by_id([c.result_id for c in m.cells if c.status == "ok" and c.result_id]).values():
+        details = json.loads(row.get("detail_json") or "{}").get("details") or {}
+        used.add(bool(details.get("decoupling", settings.identification.decoupling)))
+    if len(used) > 1:
+        raise ValueError(f"map {m.id} mixes cells measured with and without drive decoupling: "
+                         "validate maps measured one way")
+    return used.pop() if used else settings.identification.decoupling
+
+
 def measure_point(bench, settings: Settings, op: OperatingPoint, h: int, options: ValidationOptions,
-                  cancel: threading.Event | None = None) -> dict:
-    """One point: uncompensated (injection off), then the drive's own LUT feedforward (module doc)."""
-    with bench.operating_point(op, h, cancel=cancel) as session:
+                  cancel: threading.Event | None = None, decoupling: bool | None = None) -> dict:
+    """One point: uncompensated (injection off), then the drive's own LUT feedforward (module doc),
+    with the drive decoupling the map was measured with."""
+    with bench.operating_point(op, h, cancel=cancel, decoupling=decoupling) as session:
         session.settle_after_theta_s = options.settle_s
         max_periods = periods_for(session, options.max_window_s)      # >= MIN_PERIODS
         session.apply_injection_mode("off")
@@ -159,6 +174,8 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
         raise KeyError(f"map {map_id} does not exist")
     h = m.harmonic_order
     run = ValidationRun(map_id=map_id, harmonic_order=h, options=options.model_dump())
+    decoupling = measured_decoupling(storage, m, settings)
+    run.options["decoupling"] = decoupling
     run.download = download(storage, bench, map_id, force)
     points = validation_points(m.axes)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
@@ -174,7 +191,8 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
             cell.update(status="not_measured", error="not measured: the validation was cancelled")
         else:
             try:
-                cell.update(status="measured", error=None, **measure_point(bench, settings, op, h, options, cancel))
+                cell.update(status="measured", error=None,
+                            **measure_point(bench, settings, op, h, options, cancel, decoupling))
             except RunCancelled:
                 run.state, run.error = "cancelled", "cancelled by the operator"
                 cell.update(status="not_measured", error="not measured: the validation was cancelled")

@@ -85,7 +85,9 @@ def test_validation_measures_grid_points_and_midpoints_in_lut_mode(rig, map_id):
     # the map keeps it, the full cells are one GET away, and every export carries the summary
     m = api.get(f"/maps/{map_id}")
     assert m["validation"]["job_id"] == job["id"] and m["validation"]["grid"]["cells"] == 4
-    assert api.get(f"/maps/{map_id}/validation")["cells"] == cells
+    full = api.get(f"/maps/{map_id}/validation")
+    assert full["cells"] == cells
+    assert full["options"]["decoupling"] is False       # as the sweep measured the map (the settings' default)
     for fmt, marker in (("csv", "# validated in the drive's LUT mode"), ("c", " * validated in the drive's LUT mode"),
                         ("dcm", "* validated in the drive's LUT mode")):
         text = api.http.get(f"/maps/{map_id}/export", params={"format": fmt}).text
