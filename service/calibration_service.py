@@ -17,6 +17,7 @@ from service.bench import Bench, BenchUnreachable
 from service.emulator_process import EmulatorProcess
 from service.engine import Engine
 from service.events import EventBroker
+from service.recordings import RecordingStore, recordings_directory
 from service.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
 from service.storage import Storage
@@ -46,6 +47,7 @@ class CalibrationService:
         self.emulator: EmulatorProcess | None = None
         self.bench: Bench | None = None
         self.engine: Engine | None = None
+        self.recordings: RecordingStore | None = None
         self.scheduler: Scheduler | None = None
         self.version = __version__
         self._status_stop = threading.Event()
@@ -77,7 +79,11 @@ class CalibrationService:
                 if self.emulator is not None:    # our own emulator not answering is a bug, not a bench to check
                     raise
                 log.error("%s", exc)
-            self.engine = Engine(self.storage, self.bench, settings, self.broker)
+            rec = settings.recordings
+            self.recordings = RecordingStore(self.storage, recordings_directory(rec.directory, settings.server.db_path),
+                                             rec.keep_gb, settings.daq.sample_rate_hz,
+                                             settings.daq.accel_full_scale_rad_s2, enabled=rec.enabled)
+            self.engine = Engine(self.storage, self.bench, settings, self.broker, recordings=self.recordings)
             self.engine.start(recover=run_schedules)
             if run_schedules:
                 self.scheduler = Scheduler(self.storage, self.engine, settings, self.broker, clock=self.clock)

@@ -35,6 +35,7 @@ from service.map_validation import (ValidationOptions, ValidationStopped, check_
 from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
+from service.recordings import RecordingStore, RunRecorder
 from service.settings import Settings
 from service.storage import Storage, now_iso
 
@@ -97,8 +98,10 @@ class _SweepControl:
 
 
 class Engine:
-    def __init__(self, storage: Storage, bench, settings: Settings, broker: EventBroker):
+    def __init__(self, storage: Storage, bench, settings: Settings, broker: EventBroker,
+                 recordings: RecordingStore | None = None):
         self.storage, self.bench, self.settings, self.broker = storage, bench, settings, broker
+        self.recordings = recordings        # raw recording of every identification (None: none kept)
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._controls: dict[int, _SweepControl] = {}
         self._job_cancel: dict[int, threading.Event] = {}
@@ -354,20 +357,33 @@ class Engine:
         op = OperatingPoint.model_validate(req["operating_point"])
         options = parse_options(req["method"], req["options"])
         started = now_iso()
+        recorder = self._new_recorder()
         try:
             result = identify_at(self.bench, self.settings, op, req["method"], options, cancel=self._job_cancel[job_id],
-                                 progress=lambda w: self._publish_window(job_id, w))
+                                 progress=lambda w: self._publish_window(job_id, w), recorder=recorder)
         except Exception as exc:
             if self._job_cancel[job_id].is_set() and not isinstance(exc, InterlockTripped):
+                _discard(recorder)
                 raise Cancelled() from exc
             row = result_row(op, req["method"], options, self.bench.identity, started, error=_error_text(exc),
                              job_id=job_id, harmonic_order=self.settings.identification.harmonic_order)
-            rid = self.storage.insert_result(row)
+            rid = self._insert_result(row, recorder)
             self.storage.update_job(job_id, result_id=rid)
             raise
-        rid = self.storage.insert_result(result_row(op, req["method"], options, self.bench.identity, started, result,
-                                                    job_id=job_id, harmonic_order=result.harmonic_order))
+        rid = self._insert_result(result_row(op, req["method"], options, self.bench.identity, started, result,
+                                             job_id=job_id, harmonic_order=result.harmonic_order), recorder)
         self.storage.update_job(job_id, result_id=rid)
+
+    def _new_recorder(self) -> RunRecorder | None:
+        return self.recordings.recorder() if self.recordings is not None else None
+
+    def _insert_result(self, row: dict, recorder: RunRecorder | None) -> int:
+        """Store the result, then write its raw recording: a recording that fails is noted in the
+        stored row and never loses the result."""
+        rid = self.storage.insert_result(row)
+        if self.recordings is not None:
+            self.recordings.keep(recorder, rid, row)
+        return rid
 
     def _run_validation(self, job_id: int, job: dict) -> None:
         """Download, then every point; the validation is stored however it ends (the map keeps its
@@ -406,27 +422,32 @@ class Engine:
                 break
             in_flight = op
             started = now_iso()
+            recorder = self._new_recorder()
             try:
                 prior = prior_from_neighbours(op, self.storage.sweep_results(sweep_id), grid.model_dump())
                 result = identify_at(self.bench, self.settings, op, sweep["method"], options, prior=prior,
-                                     cancel=ctl.cancel)
+                                     cancel=ctl.cancel, recorder=recorder)
                 row = result_row(op, sweep["method"], options, self.bench.identity, started, result,
                                  sweep_id=sweep_id, harmonic_order=result.harmonic_order)
             except InterlockTripped as exc:
                 # the point is measured again after the operator resumes; its attempt (if any
                 # torque was commanded) is kept as a failed, discarded attempt, never ok
                 if not exc.refused:
-                    self._store_point(sweep_id, op, self._discarded_row(op, sweep, options, started, exc, sweep_id))
+                    self._store_point(sweep_id, op, self._discarded_row(op, sweep, options, started, exc, sweep_id),
+                                      recorder)
+                else:
+                    _discard(recorder)
                 self._pause_for_interlock(sweep_id, ctl, op, exc)
                 continue
             except Exception as exc:
                 if ctl.cancel.is_set():
+                    _discard(recorder)
                     break
                 log.warning("sweep %s point %s failed: %s", sweep_id, op.label(), exc)
                 row = result_row(op, sweep["method"], options, self.bench.identity, started,
                                  error=_error_text(exc), sweep_id=sweep_id,
                                  harmonic_order=self.settings.identification.harmonic_order)
-            self._store_point(sweep_id, op, row)
+            self._store_point(sweep_id, op, row, recorder)
             in_flight = None
             i += 1
         if self._shutdown.is_set():
@@ -440,8 +461,8 @@ class Engine:
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self._set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
 
-    def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict) -> None:
-        rid = self.storage.insert_result(row)
+    def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict, recorder: RunRecorder | None) -> None:
+        rid = self._insert_result(row, recorder)
         self.broker.publish("sweep.point", {"sweep_id": sweep_id, "operating_point": op.model_dump(),
                                             "state": row["status"],
                                             "result": result_public(self.storage.get_result(rid), with_traces=False).model_dump()})
@@ -496,6 +517,12 @@ class Engine:
         self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "state": s["state"], "done": s["done_points"],
                                                "total": s["total_points"], "map_id": s["map_id"],
                                                "pause_reason": s["pause_reason"]})
+
+
+def _discard(recorder: RunRecorder | None) -> None:
+    """A run that leaves no result (cancelled, refused) leaves no recording either."""
+    if recorder is not None:
+        recorder.close()
 
 
 def _error_text(exc: BaseException) -> str:

@@ -38,10 +38,12 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
 
 def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
                 prior: Prior | None = None, cancel: threading.Event | None = None,
-                progress: Callable[[Window], None] | None = None) -> IdentificationResult:
+                progress: Callable[[Window], None] | None = None, recorder=None) -> IdentificationResult:
     """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe.
     `cancel` is the run's cancel token: set, the run stops at its next DAQ read. `progress` is called
-    with every accepted window (plant time, residual) while the method runs."""
+    with every accepted window (plant time, residual) while the method runs. `recorder`
+    (service.recordings.RunRecorder) receives the DAQ samples and setpoints from the method's first
+    read to its last (the move to the operating point is not part of the identification)."""
     h = settings.identification.harmonic_order
     gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
     ident = settings.identification
@@ -54,6 +56,7 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
                                      resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
         conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
                                 current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=decoupling)
+        session.recorder = recorder
         try:
             result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
         except MeasurementError as exc:
@@ -63,6 +66,8 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
             distance_hz = abs(conditions.harmonic_frequency_hz - mode.frequency_hz)
             raise MeasurementError(f"{exc} (harmonic at {conditions.harmonic_frequency_hz:.0f} Hz, {distance_hz:.0f} Hz "
                                    f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)", over_range=True) from exc
+        finally:
+            session.recorder = None
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured

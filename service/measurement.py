@@ -10,6 +10,9 @@ Plant time is counted on the DAQ clock from the sample at which each setpoint to
 end of the last window measured under it; samples that were buffered before a setpoint took effect
 are not the method's time (on a real bench they correspond to CAN latency, in the emulator's fast
 mode to buffered data) and are reported separately as `stale_samples`.
+
+A `recorder` (service.recordings.RunRecorder), while set, receives every sample the session consumes,
+marked counted or stale as above, and each theta setpoint with the sample at which it took effect.
 """
 from __future__ import annotations
 
@@ -110,6 +113,11 @@ class OperatingPointSession:
         self.windows_discarded = 0
         self.speed_rpm_measured: float | None = None
         self.on_window = on_window      # each accepted window, for progress (CLI, SSE job.progress)
+        self.recorder = None            # set for the method's duration by identify_at (raw recording)
+
+    def _record(self, samples: DecodedSamples, counted: bool) -> None:
+        if self.recorder is not None:
+            self.recorder.samples(samples, counted)
 
     # --- the DAQ stream, in order --------------------------------------------------------------
     def _next(self, n: int) -> DecodedSamples:
@@ -119,8 +127,11 @@ class OperatingPointSession:
             take = self._pending.slice(0, n)
             rest = self._pending.slice(n)
             self._pending = rest if len(rest) else None
-            return take
-        return self.cursor.read(n).samples
+        else:
+            take = self.cursor.read(n).samples
+        # what is consumed once a setpoint has taken effect is counted as plant time (skip, _valid_window)
+        self._record(take, counted=self._segment_start is not None)
+        return take
 
     def _next_exact(self, n: int) -> DecodedSamples:
         """Exactly the next n samples (pending leftovers first, then the stream)."""
@@ -144,6 +155,7 @@ class OperatingPointSession:
             # pending samples were already seen by the cursor: their toggles are counted; they
             # predate every write made since, so they are stale
             self.stale_samples += len(self._pending)
+            self._record(self._pending, counted=False)
             self._pending = None
         if not self.sync_input:
             return self._settle_on_data(max_plant_s)
@@ -156,6 +168,7 @@ class OperatingPointSession:
             if len(chunk.toggle_offsets) >= missing > 0:
                 offset = int(chunk.toggle_offsets[missing - 1])
                 self.stale_samples += offset
+                self._record(chunk.samples.slice(0, offset), counted=False)
                 self._push_back(chunk.samples.slice(offset))
                 self._segment_start = int(chunk.samples.index[offset])
                 return self._segment_start
@@ -163,6 +176,7 @@ class OperatingPointSession:
                 raise MeasurementError("sync accounting error: more sync toggles seen than setpoints written")
             consumed += len(chunk.samples)
             self.stale_samples += len(chunk.samples)
+            self._record(chunk.samples, counted=False)
             if consumed > budget:
                 raise MeasurementError(
                     f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
@@ -181,6 +195,7 @@ class OperatingPointSession:
         self._discard_stale()
         first = self.cursor.read(1).samples
         self._segment_start = int(first.index[0])
+        self._record(first, counted=True)
         self.skip(self.no_sync_settle_s)
         periods = self.harmonic_order                       # one electrical turn
         previous = self.measure(periods)
@@ -209,7 +224,9 @@ class OperatingPointSession:
     # --- MeasurementSession ----------------------------------------------------------------------
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         self._send_theta(theta_cos_rad, theta_sin_rad)
-        self.wait_for_effect()
+        effect_index = self.wait_for_effect()
+        if self.recorder is not None:
+            self.recorder.setpoint(effect_index, theta_cos_rad, theta_sin_rad)
         self.skip(self.settle_after_theta_s)
 
     def apply_injection_mode(self, mode: str) -> None:

@@ -18,6 +18,7 @@ from pydantic import BaseModel, Field
 from service import __version__, map_quality
 from service.identification import IdentificationResult
 from service.operating_point import OperatingPoint
+from service.recordings import recording_record, unavailable_reason
 from service.schedules import iso, next_runs
 from service.secondary_path import gamma_delta
 from service.storage import Storage, now_iso
@@ -38,6 +39,20 @@ class ComplexGainPublic(BaseModel):
     im: float
     gain: float = Field(description="|S|, full scale per rad")
     phase_deg: float
+
+
+class RecordingPublic(BaseModel):
+    """The raw recording of one identification (DAQ samples and theta setpoints, MF4)."""
+    available: bool = Field(description="the file can be downloaded (url)")
+    format: str = Field("mf4", description="mf4: ASAM MDF 4.10")
+    url: str | None = Field(None, description="GET it here while available")
+    bytes: int | None = None
+    samples: int | None = Field(None, description="DAQ samples in the file: those counted in plant_time_s "
+                                "(samples = plant_time_s x sample_rate_hz when the DAQ lost none)")
+    stale_samples: int | None = Field(None, description="samples read before a setpoint took effect: counted, not in the file")
+    setpoints: int | None = Field(None, description="theta setpoints, each with the sample at which it took effect")
+    sample_rate_hz: float | None = None
+    error: str | None = Field(None, description="why it is not available: the write failed (and why), or retention deleted it")
 
 
 class ResultPublic(BaseModel):
@@ -70,6 +85,7 @@ class ResultPublic(BaseModel):
     started_at: str
     finished_at: str
     traces: dict[str, Any] = Field(default_factory=dict, description="data to redraw the result's plots")
+    recording: RecordingPublic | None = Field(None, description="its raw recording (null: none was attempted)")
 
 
 class JobPublic(BaseModel):
@@ -366,7 +382,19 @@ def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
         s_model=detail.get("s_model"), s_measured=detail.get("s_measured"), details=detail.get("details"),
         options=json.loads(row["options_json"]), bench_identity=row["bench_identity"],
         software_version=row["software_version"], started_at=row["started_at"], finished_at=row["finished_at"],
-        traces=json.loads(row.get("traces_json") or "{}") if with_traces else {})
+        traces=json.loads(row.get("traces_json") or "{}") if with_traces else {}, recording=_recording(row))
+
+
+def _recording(row: dict) -> RecordingPublic | None:
+    record = recording_record(row)
+    if record is None:
+        return None
+    why = unavailable_reason(record)
+    fmt = record.get("format", "mf4")
+    return RecordingPublic(available=why is None, format=fmt, error=why,
+                           url=f"/api/v1/results/{row['id']}/recording?format={fmt}" if why is None else None,
+                           **{k: record.get(k) for k in ("bytes", "samples", "stale_samples", "setpoints",
+                                                         "sample_rate_hz")})
 
 
 # --- jobs, sweeps, maps -----------------------------------------------------------------------------

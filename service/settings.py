@@ -128,6 +128,15 @@ class SchedulesSettings(_Section):
     tick_s: float = Field(1.0, gt=0, le=60, description="how often the scheduler looks for due firings")
 
 
+class RecordingsSettings(_Section):
+    """Raw recordings of every identification (MF4, service/recordings.py) and their retention."""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    enabled: bool = Field(True, description="keep the raw DAQ samples and theta setpoints of every identification")
+    directory: str | None = Field(None, description="where the MF4 files go (default: 'recordings' next to the database)")
+    keep_gb: float = Field(20.0, gt=0, description="keep the newest recordings up to this many GB (1e9 bytes); "
+                           "older ones are deleted after each write (the newest one is always kept)")
+
+
 class EmulatorSettings(_Section):
     scenario: str = "paper-bench"
     seed: int | None = None
@@ -165,6 +174,7 @@ class Settings(_Section):
     interlocks: InterlockSettings = InterlockSettings()
     engine: EngineSettings = EngineSettings()
     schedules: SchedulesSettings = SchedulesSettings()
+    recordings: RecordingsSettings = RecordingsSettings()
     emulator: EmulatorSettings = EmulatorSettings()
     server: ServerSettings = Field(default_factory=ServerSettings)   # the db default read when loaded, not at import
 

@@ -201,6 +201,16 @@ class Storage:
             return {r["id"]: dict(r) for r in conn.execute(
                 f"SELECT * FROM results WHERE id IN ({', '.join('?' for _ in ids)})", ids)}
 
+    def set_result_recording(self, result_id: int, record: dict) -> None:
+        """What became of the result's raw recording (service/recordings.py)."""
+        _update(self, "results", result_id, {"recording_json": json.dumps(record)})
+
+    def mark_recordings_deleted(self, result_ids: list[int], reason: str) -> None:
+        """Their recordings were deleted (retention): the results say so, and when."""
+        with self.transaction() as conn:
+            conn.executemany("UPDATE results SET recording_json = json_set(recording_json, '$.deleted', ?) "
+                             "WHERE id = ? AND recording_json IS NOT NULL", [(reason, rid) for rid in result_ids])
+
     def sweep_results(self, sweep_id: int) -> list[dict]:
         """The sweep's current results: one per operating point measured (earlier attempts left out)."""
         with self.connect() as conn:

@@ -1,0 +1,372 @@
+"""Raw recordings: the DAQ samples and theta setpoints of every identification, as ASAM MDF 4 files.
+
+A `RunRecorder` is handed to one identification (engine -> identify_at -> the measurement session).
+The session gives it every sample it consumes from the DAQ stream between the method's first and
+last read, in stream order, each marked counted (part of the result's plant_time_s: the settling
+after each setpoint and every window, discarded ones included) or stale (read while waiting for a
+setpoint to take effect), and each theta setpoint with the DAQ sample at which it took effect (its
+sync-line toggle, service/measurement.py). The file holds the counted samples; stale ones are only
+counted (`stale_samples` in the header): on a real bench they are the few samples of CAN latency,
+in the emulator's fast mode the 1-2 s per setpoint that the DAQ path had buffered, which would make
+a recording 60 times its plant time. So, per recording:
+
+    samples = plant_time_s * sample_rate_hz   (exactly, when the DAQ lost no sample: plant time is
+                                               counted over sample indices, see `gap_before`)
+
+and a setpoint's `effect_sample_index` is the first sample of its segment (sample_index jumps there
+by the stale samples left out).
+
+Memory stays bounded: samples are kept as their wire integers (13 bytes each) and handed to asammdf
+every CHUNK_SAMPLES, which writes them to its temporary file in the recordings directory; only the
+setpoints (tens to a few thousand per identification) stay in memory until the file is written: at
+most CHUNK_SAMPLES x 13 B plus the session's largest single read (one window) is held.
+
+`RecordingStore` writes the file once the result row exists (its id names the file and goes into the
+header), records in the row whether the recording exists (`results.recording_json`), and applies the
+retention (`[recordings] keep_gb`: the newest recordings up to that many GB are kept, older ones are
+deleted after each write; the one just written is always kept). No storage error (directory not
+writable, disk full, asammdf failing) ever reaches the measurement or loses the result: the row is
+stored and says why its recording failed.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from drivers.daq_protocol import (ACCEL_FULL_SCALE_COUNTS, ANGLE_COUNTS_PER_TURN, FLAG_OVER_RANGE, FLAG_SENSOR_FAULT,
+                                  FLAG_SYNC_INPUT, DecodedSamples)
+from service import __version__
+from service.secondary_path import gamma_delta
+from service.storage import Storage, now_iso
+
+log = logging.getLogger(__name__)
+
+RECORDING_FORMATS = {"mf4": "ASAM MDF 4.10 (asammdf, CANape, the asammdf GUI)"}
+CHUNK_SAMPLES = 65536          # samples handed to asammdf at once (4 s at 16 kHz, about 0.9 MB)
+BYTES_PER_GB = 1e9
+_FILE_NAME = re.compile(r"^result-(\d+)\.mf4$")
+
+# channel names, read back by tests and tools
+DAQ_GROUP, SETPOINT_GROUP = "daq", "theta_setpoints"
+DAQ_CHANNELS = ("sample_index", "angle", "alpha", "flags", "gap_before")
+SETPOINT_CHANNELS = ("effect_sample_index", "theta_cos", "theta_sin", "gamma", "delta")
+
+
+def recordings_directory(directory: str | None, db_path: str) -> Path:
+    """The configured directory, or `recordings` next to the database; made absolute once, at start
+    (as the database path: a relative one is taken against the working directory)."""
+    path = Path(directory).expanduser() if directory else Path(db_path).expanduser().parent / "recordings"
+    return path.absolute()
+
+
+class RecordingUnavailable(LookupError):
+    """A result has no raw recording to hand out; the message says why."""
+
+
+@dataclass
+class _Setpoint:
+    effect_index: int
+    theta_cos_rad: float
+    theta_sin_rad: float
+
+
+class RunRecorder:
+    """What one identification read from the DAQ, and its theta setpoints. Never raises into the
+    measurement: a failure is kept in `error` and recording stops there."""
+
+    def __init__(self, directory: Path, sample_rate_hz: float, accel_full_scale_rad_s2: float,
+                 chunk_samples: int = CHUNK_SAMPLES):
+        self.directory = directory
+        self.sample_rate_hz = sample_rate_hz
+        self.accel_full_scale_rad_s2 = accel_full_scale_rad_s2
+        self.chunk_samples = chunk_samples
+        self.error: str | None = None
+        self.samples_recorded = 0
+        self.stale_samples = 0          # read before a setpoint took effect: counted, not kept
+        self.started_at: datetime | None = None
+        self.setpoints: list[_Setpoint] = []
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._buffered = 0
+        self._mdf = None
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            if not directory.is_dir():
+                raise NotADirectoryError(f"{directory} is not a directory")
+            from asammdf import MDF    # imported on first use: it pulls pandas, which CLI commands need not load
+            # asammdf keeps appended data in a temporary file: there, so that it counts on the same disk
+            self._mdf = MDF(version="4.10", temporary_folder=str(directory))
+        except Exception as exc:  # noqa: BLE001 - any storage problem is the recording's, not the run's
+            self._fail(f"recordings directory {directory} unusable", exc)
+
+    # --- fed by the measurement session -----------------------------------------------------------
+    def samples(self, s: DecodedSamples, counted: bool) -> None:
+        """Samples the session consumed, in stream order; `counted`: part of the plant time (kept),
+        else read before a setpoint took effect (counted only)."""
+        if not counted:
+            self.stale_samples += len(s)
+            return
+        if self.error is not None or not len(s):
+            return
+        if self.started_at is None:
+            self.started_at = datetime.now(timezone.utc)
+        n = len(s)
+        # back to the wire integers (exact: the decoder scaled them by these constants)
+        self._parts.append((
+            s.index.astype(np.int64),
+            np.rint(s.angle_rad * (ANGLE_COUNTS_PER_TURN / (2.0 * math.pi))).astype(np.int64).astype(np.uint16),
+            np.rint(s.accel_fs * ACCEL_FULL_SCALE_COUNTS).astype(np.int16),
+            s.flags.astype(np.uint16),
+            s.gap_before.astype(np.uint8)))
+        self._buffered += n
+        self.samples_recorded += n
+        if self._buffered >= self.chunk_samples:
+            self._flush()
+
+    def setpoint(self, effect_index: int, theta_cos_rad: float, theta_sin_rad: float) -> None:
+        """A theta setpoint and the DAQ sample at which it took effect."""
+        if self.error is None:
+            self.setpoints.append(_Setpoint(int(effect_index), float(theta_cos_rad), float(theta_sin_rad)))
+
+    # --- to the file ----------------------------------------------------------------------------------
+    def _flush(self) -> None:
+        if not self._parts or self.error is not None:
+            return
+        index, angle, alpha, flags, gap = (np.concatenate(cols) for cols in zip(*self._parts))
+        self._parts, self._buffered = [], 0
+        t = index / self.sample_rate_hz
+        try:
+            if not self._mdf.groups:
+                self._mdf.append(self._daq_signals(t, index, angle, alpha, flags, gap), acq_name=DAQ_GROUP,
+                                 comment="DAQ samples the identification counted as plant time, in stream order; "
+                                         "time = sample_index / sample rate")
+            else:
+                self._mdf.extend(0, [(t, None), *((x, None) for x in (index, angle, alpha, flags, gap))])
+        except Exception as exc:  # noqa: BLE001 - disk full, asammdf refusing: the run goes on without it
+            self._fail("writing the DAQ samples failed", exc)
+
+    def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
+        from asammdf import Signal
+        return [
+            Signal(index, t, name="sample_index", unit="sample",
+                   comment="DAQ sample counter (unwrapped); the measurement clock"),
+            Signal(angle, t, name="angle", unit="rad", conversion={"a": 2.0 * math.pi / ANGLE_COUNTS_PER_TURN, "b": 0.0},
+                   comment="electrical rotor angle phi_e (encoder), 65536 counts per turn"),
+            Signal(alpha, t, name="alpha", unit="rad/s^2",
+                   conversion={"a": self.accel_full_scale_rad_s2 / ACCEL_FULL_SCALE_COUNTS, "b": 0.0},
+                   comment=f"angular acceleration, +-{ACCEL_FULL_SCALE_COUNTS} counts = +-sensor full scale "
+                           f"({self.accel_full_scale_rad_s2:g} rad/s^2, daq.accel_full_scale_rad_s2)"),
+            Signal(flags, t, name="flags", unit="",
+                   comment=f"DAQ status bits (values): {FLAG_OVER_RANGE} over range, {FLAG_SENSOR_FAULT} sensor fault, "
+                           f"{FLAG_SYNC_INPUT} drive sync line (toggles once per applied setpoint)"),
+            Signal(gap, t, name="gap_before", unit="",
+                   comment="1: samples were lost or a bad frame skipped just before this sample"),
+        ]
+
+    def _setpoint_signals(self) -> list:
+        from asammdf import Signal
+        effect = np.array([p.effect_index for p in self.setpoints], np.int64)
+        t = effect / self.sample_rate_hz
+        tc = np.array([p.theta_cos_rad for p in self.setpoints])
+        ts = np.array([p.theta_sin_rad for p in self.setpoints])
+        gd = np.array([gamma_delta(c, s) for c, s in zip(tc, ts)]).reshape(-1, 2)
+        return [
+            Signal(effect, t, name="effect_sample_index", unit="sample",
+                   comment="DAQ sample at which the setpoint took effect (its sync-line toggle)"),
+            Signal(tc, t, name="theta_cos", unit="rad", comment="theta_cos = gamma cos(delta) (eq. 21-22)"),
+            Signal(ts, t, name="theta_sin", unit="rad", comment="theta_sin = -gamma sin(delta) (eq. 21-22)"),
+            Signal(np.degrees(gd[:, 0]), t, name="gamma", unit="deg", comment="|theta| (eq. 21)"),
+            Signal(np.degrees(gd[:, 1]), t, name="delta", unit="deg", comment="phase of theta, 0..360 (eq. 22)"),
+        ]
+
+    def write(self, path: Path, header: dict[str, Any], description: str) -> int:
+        """The MF4 file at `path` (written beside it, then renamed: never half a file under its name);
+        returns its size in bytes. Raises on a storage error."""
+        if self.error is not None:
+            raise RuntimeError(self.error)
+        self._flush()
+        if self.error is not None:
+            raise RuntimeError(self.error)
+        if self.setpoints:
+            self._mdf.append(self._setpoint_signals(), acq_name=SETPOINT_GROUP,
+                             comment="theta setpoints; time = effect_sample_index / sample rate")
+        self._mdf.header.start_time = self.started_at or datetime.now(timezone.utc)
+        self._mdf.header.comment = _header_xml(description, header)
+        partial = path.with_name(path.stem + ".partial.mf4")       # asammdf insists on the .mf4 suffix
+        try:
+            self._mdf.save(partial, overwrite=True, compression=2)     # 2: transposed deflate (MDF 4.10 DZ blocks)
+            os.replace(partial, path)
+        finally:
+            partial.unlink(missing_ok=True)
+            self.close()
+        return path.stat().st_size
+
+    def close(self) -> None:
+        """Drop what is held (asammdf's temporary file too). Idempotent."""
+        self._parts, self._buffered = [], 0
+        mdf, self._mdf = self._mdf, None
+        if mdf is not None:
+            try:
+                mdf.close()
+            except Exception:  # noqa: BLE001 - its temporary file may already be gone
+                log.debug("closing the recording failed", exc_info=True)
+
+    def _fail(self, what: str, exc: BaseException) -> None:
+        self.error = f"{what}: {type(exc).__name__}: {exc}"
+        log.warning("raw recording stopped: %s", self.error)
+        self.close()
+
+
+def _header_xml(description: str, properties: dict[str, Any]) -> str:
+    """MDF 4 HDcomment: a description and named properties (shown by CANape and the asammdf GUI)."""
+    root = ET.Element("HDcomment")
+    ET.SubElement(root, "TX").text = description
+    common = ET.SubElement(root, "common_properties")
+    for name, value in properties.items():
+        ET.SubElement(common, "e", name=name).text = "" if value is None else str(value)
+    return ET.tostring(root, encoding="unicode")
+
+
+def header_properties(comment: str) -> dict[str, str]:
+    """The named properties of an HDcomment (the inverse of what `RecordingStore.keep` writes)."""
+    root = ET.fromstring(re.sub(r""" xmlns=["'][^"']*["']""", "", comment))
+    return {e.attrib["name"]: e.text or "" for e in root.iter("e")}
+
+
+class RecordingStore:
+    """The recordings directory, its retention, and each result's record of its recording."""
+
+    def __init__(self, storage: Storage, directory: Path, keep_gb: float, sample_rate_hz: float,
+                 accel_full_scale_rad_s2: float, enabled: bool = True):
+        self.storage = storage
+        self.directory = directory
+        self.keep_gb = keep_gb
+        self.sample_rate_hz = sample_rate_hz
+        self.accel_full_scale_rad_s2 = accel_full_scale_rad_s2
+        self.enabled = enabled
+
+    def recorder(self) -> RunRecorder | None:
+        """A recorder for one identification (None: recordings are switched off)."""
+        if not self.enabled:
+            return None
+        return RunRecorder(self.directory, self.sample_rate_hz, self.accel_full_scale_rad_s2)
+
+    def path(self, result_id: int) -> Path:
+        return self.directory / f"result-{result_id}.mf4"
+
+    def keep(self, recorder: RunRecorder | None, result_id: int, row: dict) -> None:
+        """Write the recording of stored result `result_id` (its row as stored), note in the row
+        whether it exists, then apply the retention. Never raises: the result is already stored."""
+        if recorder is None:
+            return
+        record: dict[str, Any] = {"format": "mf4", "samples": recorder.samples_recorded,
+                                  "stale_samples": recorder.stale_samples, "setpoints": len(recorder.setpoints),
+                                  "sample_rate_hz": self.sample_rate_hz}
+        try:
+            if recorder.error is None and not recorder.samples_recorded:
+                recorder.close()
+                record["error"] = "no DAQ samples: the run ended before the identification read any"
+            else:
+                path = self.path(result_id)
+                record["bytes"] = recorder.write(path, self._header(recorder, result_id, row),
+                                                 f"ripplecal raw recording of result {result_id}: {row['method']} at "
+                                                 f"{row['torque_nm']:g} Nm, {row['speed_rpm']:g} rpm, {row['udc_v']:g} V")
+                record["path"] = str(path)
+                record["written_at"] = now_iso()
+        except Exception as exc:  # noqa: BLE001 - the recording failed, the result stands
+            recorder.close()
+            record["error"] = recorder.error or f"writing {self.path(result_id)} failed: {type(exc).__name__}: {exc}"
+            log.warning("result %s: raw recording failed: %s", result_id, record["error"])
+        try:
+            self.storage.set_result_recording(result_id, record)
+        except Exception:  # noqa: BLE001
+            log.exception("result %s: could not store its recording's record", result_id)
+        if "path" in record:
+            self.apply_retention(keep=Path(record["path"]))
+
+    def _header(self, recorder: RunRecorder, result_id: int, row: dict) -> dict[str, Any]:
+        return {"result_id": result_id, "status": row.get("status"), "method": row["method"],
+                "options": row.get("options_json"), "torque_nm": row["torque_nm"], "speed_rpm": row["speed_rpm"],
+                "udc_v": row["udc_v"], "harmonic_order": row.get("harmonic_order"),
+                "plant_time_s": row.get("plant_time_s"), "samples": recorder.samples_recorded,
+                "stale_samples": recorder.stale_samples, "setpoints": len(recorder.setpoints),
+                "sample_rate_hz": self.sample_rate_hz, "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
+                "bench_identity": row.get("bench_identity"), "software_version": row.get("software_version", __version__),
+                "started_at": row.get("started_at"), "finished_at": row.get("finished_at"), "sweep_id": row.get("sweep_id"),
+                "job_id": row.get("job_id")}
+
+    def apply_retention(self, keep: Path | None = None) -> list[int]:
+        """Delete the oldest recordings until the rest fit in keep_gb (`keep` is never deleted); the
+        results whose recordings went say so. Returns their ids."""
+        files = []
+        for entry in os.scandir(self.directory):
+            m = _FILE_NAME.match(entry.name)
+            if m and entry.is_file():
+                st = entry.stat()
+                files.append((st.st_mtime_ns, int(m.group(1)), Path(entry.path), st.st_size))
+        files.sort()                                           # oldest first (ties: lower result id first)
+        total = sum(f[3] for f in files)
+        limit = self.keep_gb * BYTES_PER_GB
+        deleted: list[int] = []
+        for _, result_id, path, size in files:
+            if total <= limit:
+                break
+            if keep is not None and path == keep:
+                continue
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                log.warning("retention could not delete %s: %s", path, exc)
+                continue
+            total -= size
+            deleted.append(result_id)
+        if deleted:
+            reason = (f"deleted by retention at {now_iso()}: the newest recordings are kept up to "
+                      f"recordings.keep_gb = {self.keep_gb:g} GB")
+            try:
+                self.storage.mark_recordings_deleted(deleted, reason)
+            except Exception:  # noqa: BLE001
+                log.exception("could not mark recordings %s as deleted", deleted)
+        return deleted
+
+    def open(self, result_id: int) -> BinaryIO:
+        """The recording of a stored result, open for reading (retention may delete it while it is sent:
+        an open file stays readable), or RecordingUnavailable saying why there is none."""
+        row = self.storage.get_result(result_id)
+        if row is None:
+            raise RecordingUnavailable(f"result {result_id} does not exist")
+        record = recording_record(row)
+        if record is None:
+            raise RecordingUnavailable(f"result {result_id} has no raw recording (it was measured while recordings "
+                                       "were switched off, or before they were kept)")
+        why = unavailable_reason(record)
+        if why is not None:
+            raise RecordingUnavailable(f"result {result_id} has no raw recording: {why}")
+        path = Path(record["path"])
+        try:
+            return path.open("rb")
+        except OSError as exc:
+            raise RecordingUnavailable(f"the raw recording of result {result_id} cannot be read ({path}: "
+                                       f"{exc.strerror or exc})") from None
+
+
+def recording_record(row: dict) -> dict | None:
+    """What a result row says about its recording (None: none was attempted)."""
+    text = row.get("recording_json")
+    return json.loads(text) if text else None
+
+
+def unavailable_reason(record: dict) -> str | None:
+    """Why a recording that was attempted cannot be had (None: it was written and is kept)."""
+    return record.get("deleted") or record.get("error") or (None if record.get("path") else "not written")
