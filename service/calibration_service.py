@@ -71,6 +71,11 @@ class CalibrationService:
             settings = settings_with_emulator(settings, endpoints)
             identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (f":seed={em.seed}" if em.seed is not None else "")
         self.settings = settings
+        rec = settings.recordings
+        # before the bench connects: loading asammdf takes seconds that must not starve the CANopen heartbeat
+        self.recordings = RecordingStore(self.storage, recordings_directory(rec.directory, settings.server.db_path),
+                                         rec.keep_gb, settings.daq.sample_rate_hz, settings.daq.accel_full_scale_rad_s2,
+                                         enabled=rec.enabled)
         try:
             self.bench = Bench(settings, identity, on_trip=self._on_trip)
             try:
@@ -79,10 +84,6 @@ class CalibrationService:
                 if self.emulator is not None:    # our own emulator not answering is a bug, not a bench to check
                     raise
                 log.error("%s", exc)
-            rec = settings.recordings
-            self.recordings = RecordingStore(self.storage, recordings_directory(rec.directory, settings.server.db_path),
-                                             rec.keep_gb, settings.daq.sample_rate_hz,
-                                             settings.daq.accel_full_scale_rad_s2, enabled=rec.enabled)
             self.engine = Engine(self.storage, self.bench, settings, self.broker, recordings=self.recordings)
             self.engine.start(recover=run_schedules)
             if run_schedules:

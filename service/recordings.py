@@ -16,10 +16,10 @@ a recording 60 times its plant time. So, per recording:
 and a setpoint's `effect_sample_index` is the first sample of its segment (sample_index jumps there
 by the stale samples left out).
 
-Memory stays bounded: samples are kept as their wire integers (13 bytes each) and handed to asammdf
+Memory stays bounded: samples are kept as their wire integers (15 bytes each) and handed to asammdf
 every CHUNK_SAMPLES, which writes them to its temporary file in the recordings directory; only the
 setpoints (tens to a few thousand per identification) stay in memory until the file is written: at
-most CHUNK_SAMPLES x 13 B plus the session's largest single read (one window) is held.
+most CHUNK_SAMPLES x 15 B (1 MB) plus the session's largest single read (one window) is held.
 
 `RecordingStore` writes the file once the result row exists (its id names the file and goes into the
 header), records in the row whether the recording exists (`results.recording_json`), and applies the
@@ -52,7 +52,7 @@ from service.storage import Storage, now_iso
 log = logging.getLogger(__name__)
 
 RECORDING_FORMATS = {"mf4": "ASAM MDF 4.10 (asammdf, CANape, the asammdf GUI)"}
-CHUNK_SAMPLES = 65536          # samples handed to asammdf at once (4 s at 16 kHz, about 0.9 MB)
+CHUNK_SAMPLES = 65536          # samples handed to asammdf at once (4 s at 16 kHz, about 1 MB)
 BYTES_PER_GB = 1e9
 _FILE_NAME = re.compile(r"^result-(\d+)\.mf4$")
 
@@ -102,9 +102,8 @@ class RunRecorder:
             directory.mkdir(parents=True, exist_ok=True)
             if not directory.is_dir():
                 raise NotADirectoryError(f"{directory} is not a directory")
-            from asammdf import MDF    # imported on first use: it pulls pandas, which CLI commands need not load
             # asammdf keeps appended data in a temporary file: there, so that it counts on the same disk
-            self._mdf = MDF(version="4.10", temporary_folder=str(directory))
+            self._mdf = _asammdf().MDF(version="4.10", temporary_folder=str(directory))
         except Exception as exc:  # noqa: BLE001 - any storage problem is the recording's, not the run's
             self._fail(f"recordings directory {directory} unusable", exc)
 
@@ -155,7 +154,7 @@ class RunRecorder:
             self._fail("writing the DAQ samples failed", exc)
 
     def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
-        from asammdf import Signal
+        Signal = _asammdf().Signal
         return [
             Signal(index, t, name="sample_index", unit="sample",
                    comment="DAQ sample counter (unwrapped); the measurement clock"),
@@ -173,7 +172,7 @@ class RunRecorder:
         ]
 
     def _setpoint_signals(self) -> list:
-        from asammdf import Signal
+        Signal = _asammdf().Signal
         effect = np.array([p.effect_index for p in self.setpoints], np.int64)
         t = effect / self.sample_rate_hz
         tc = np.array([p.theta_cos_rad for p in self.setpoints])
@@ -226,6 +225,13 @@ class RunRecorder:
         self.close()
 
 
+def _asammdf():
+    """asammdf, imported on first use: it pulls pandas (1-4 s), which CLI commands that never record
+    need not load; RecordingStore loads it when the service starts, before the bench connects."""
+    import asammdf
+    return asammdf
+
+
 def _header_xml(description: str, properties: dict[str, Any]) -> str:
     """MDF 4 HDcomment: a description and named properties (shown by CANape and the asammdf GUI)."""
     root = ET.Element("HDcomment")
@@ -253,6 +259,8 @@ class RecordingStore:
         self.sample_rate_hz = sample_rate_hz
         self.accel_full_scale_rad_s2 = accel_full_scale_rad_s2
         self.enabled = enabled
+        if enabled:
+            _asammdf()
 
     def recorder(self) -> RunRecorder | None:
         """A recorder for one identification (None: recordings are switched off)."""

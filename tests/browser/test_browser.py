@@ -356,6 +356,15 @@ def test_identify_panel_runs_probe_and_shows_result(service, browser, tmp_path):
         for xt, yt in titles:
             assert "(" in xt and "(" in yt, titles
 
+        # the raw recording (issue 11): a download link, and what it links to is an MDF 4 file
+        link = page.locator('[data-testid="result-recording-link"]')
+        assert link.inner_text() == "raw recording (MF4)"
+        href = link.get_attribute("href")
+        assert re.fullmatch(r"/api/v1/results/\d+/recording\?format=mf4", href), href
+        magic = page.evaluate("""(href) => fetch(href).then((r) => r.arrayBuffer())
+            .then((b) => String.fromCharCode(...new Uint8Array(b.slice(0, 8))))""", href)
+        assert magic == "MDF     ", magic
+
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         assert not rec["console"], f"console errors: {rec['console']}"
         page.screenshot(path=str(tmp_path / "identify.png"), full_page=True)

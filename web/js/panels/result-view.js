@@ -129,6 +129,20 @@ function renderFacts(r, d, message) {
     if (unit) dd.appendChild(el("span", { class: "unit" }, unit));
     dl.append(dt, dd);
   }
+  renderRecording(dl, r.recording);
+}
+
+// The raw recording (DAQ samples and θ setpoints, MF4): a download link, or why there is none.
+function renderRecording(dl, rec) {
+  if (!rec) return;
+  const dd = el("dd", { "data-testid": "result-recording" });
+  if (rec.available) {
+    dd.appendChild(el("a", { href: rec.url, download: "", "data-testid": "result-recording-link" }, "raw recording (MF4)"));
+    dd.appendChild(el("span", { class: "unit" }, `${sig(rec.bytes / 1e3, 3)} kB · ${rec.samples} samples · ${rec.setpoints} θ setpoints`));
+  } else {
+    dd.appendChild(el("span", null, `none: ${rec.error || "not written"}`));
+  }
+  dl.append(el("dt", { title: "DAQ samples counted as plant time and the θ setpoints, as ASAM MDF 4" }, "raw recording"), dd);
 }
 
 // Each figure's box is shown with its figure and hidden (its plot freed) without one; the boxes
