@@ -72,7 +72,6 @@ class CalibrationService:
             identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (f":seed={em.seed}" if em.seed is not None else "")
         self.settings = settings
         rec = settings.recordings
-        # before the bench connects: loading asammdf takes seconds that must not starve the CANopen heartbeat
         self.recordings = RecordingStore(self.storage, recordings_directory(rec.directory, settings.server.db_path),
                                          rec.keep_gb, settings.daq.sample_rate_hz, settings.daq.accel_full_scale_rad_s2,
                                          enabled=rec.enabled)

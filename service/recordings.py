@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+from asammdf import MDF, Signal
 
 from drivers.daq_protocol import (ACCEL_FULL_SCALE_COUNTS, ANGLE_COUNTS_PER_TURN, FLAG_OVER_RANGE, FLAG_SENSOR_FAULT,
                                   FLAG_SYNC_INPUT, DecodedSamples)
@@ -103,7 +104,7 @@ class RunRecorder:
             if not directory.is_dir():
                 raise NotADirectoryError(f"{directory} is not a directory")
             # asammdf keeps appended data in a temporary file: there, so that it counts on the same disk
-            self._mdf = _asammdf().MDF(version="4.10", temporary_folder=str(directory))
+            self._mdf = MDF(version="4.10", temporary_folder=str(directory))
         except Exception as exc:  # noqa: BLE001 - any storage problem is the recording's, not the run's
             self._fail(f"recordings directory {directory} unusable", exc)
 
@@ -154,7 +155,6 @@ class RunRecorder:
             self._fail("writing the DAQ samples failed", exc)
 
     def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
-        Signal = _asammdf().Signal
         return [
             Signal(index, t, name="sample_index", unit="sample",
                    comment="DAQ sample counter (unwrapped); the measurement clock"),
@@ -172,7 +172,6 @@ class RunRecorder:
         ]
 
     def _setpoint_signals(self) -> list:
-        Signal = _asammdf().Signal
         effect = np.array([p.effect_index for p in self.setpoints], np.int64)
         t = effect / self.sample_rate_hz
         tc = np.array([p.theta_cos_rad for p in self.setpoints])
@@ -225,13 +224,6 @@ class RunRecorder:
         self.close()
 
 
-def _asammdf():
-    """asammdf, imported on first use: it pulls pandas (1-4 s), which CLI commands that never record
-    need not load; RecordingStore loads it when the service starts, before the bench connects."""
-    import asammdf
-    return asammdf
-
-
 def _header_xml(description: str, properties: dict[str, Any]) -> str:
     """MDF 4 HDcomment: a description and named properties (shown by CANape and the asammdf GUI)."""
     root = ET.Element("HDcomment")
@@ -259,8 +251,6 @@ class RecordingStore:
         self.sample_rate_hz = sample_rate_hz
         self.accel_full_scale_rad_s2 = accel_full_scale_rad_s2
         self.enabled = enabled
-        if enabled:
-            _asammdf()
 
     def recorder(self) -> RunRecorder | None:
         """A recorder for one identification (None: recordings are switched off)."""
