@@ -11,6 +11,7 @@ from drivers.daq_protocol import ACCEL_FULL_SCALE_COUNTS, FrameDecoder, encode_f
 from service.operating_point import OperatingPoint
 from service.public import result_public, result_row
 from service.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
+from service.settings import SettingsError, load_settings
 from service.storage import Storage, now_iso
 
 RATE_HZ, FULL_SCALE = 16_000.0, 500.0
@@ -109,3 +110,9 @@ def test_the_newest_recording_is_kept_even_alone_over_the_limit(tmp_path):
     store.path(rid).write_bytes(b"x" * 100)
     assert store.apply_retention(keep=store.path(rid)) == []
     assert store.path(rid).exists()
+
+
+@pytest.mark.parametrize("value", [0, -1.0, float("nan"), float("inf"), "lots"])
+def test_keep_gb_must_be_a_positive_finite_number(value):
+    with pytest.raises(SettingsError, match="recordings.keep_gb"):
+        load_settings(environ={}, overrides={"recordings.keep_gb": value})
