@@ -90,6 +90,7 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
     pairs = [(k, other, a, math.hypot(theta[other][0] - theta[k][0], theta[other][1] - theta[k][1]) / dx)
              for k, around in near.items() for other, a, dx in around if other > k]
     flagged: set[Key] = set()
+    why: dict[Key, CellQuality] = {}           # each outlier as it was when flagged (its fit may lose references later)
     fits = {k: _fit(theta[k], near[k], theta) for k in theta}
     # more outliers than a quarter of the cells: a noisy map, not a few bad points; the cells then
     # over the factor are all flagged at once instead of one by one
@@ -103,15 +104,18 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
             break
         if len(flagged) >= one_by_one:
             flagged.update(k for _, k in over)
+            why.update((k, evaluated[k]) for _, k in over)
             break
         worst = over[0][1]
         flagged.add(worst)
+        why[worst] = evaluated[worst]
         for other, _, _ in near[worst]:        # only the worst's neighbours lose a reference
             fits[other] = _fit(theta[other], [n for n in near[other] if n[0] not in flagged], theta)
     if len(flagged) > one_by_one:              # flagged at once: the fits without all of them
         fits = {k: _fit(theta[k], [n for n in near[k] if n[0] not in flagged], theta) for k in theta}
         evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
     for k in flagged:
+        evaluated[k] = why[k]
         evaluated[k].quality = "outlier"
         evaluated[k].reason = _reason(theta[k], evaluated[k], gradients)
     return MapQuality(evaluated, gradients)

@@ -168,3 +168,21 @@ def test_past_the_one_by_one_share_every_cell_over_the_factor_is_flagged(storage
     assert {(c["torque_nm"], c["speed_rpm"], c["udc_v"]) for c in m["cells"] if c["quality"] == "outlier"} == planted_at
     q = map_quality.assess(m["cells"], m["axes"])
     assert all(c.score <= map_quality.OUTLIER_FACTOR for c in q.cells.values() if c.quality == "consistent")
+
+
+def test_every_outlier_of_a_noisy_map_keeps_the_reason_it_was_flagged_for():
+    """A third of the cells spoiled at random, some cells not ok: an outlier whose neighbours are
+    flagged after it has no fit left; it keeps the one that flagged it (such a map once gave a 500)."""
+    import random
+    rnd = random.Random(23)
+    cells = []
+    for t in GRID["torque_nm"]:
+        for n in GRID["speed_rpm"]:
+            spoiled = rnd.random() < 0.35
+            cells.append({"torque_nm": t, "speed_rpm": n, "udc_v": 12.0,
+                          "status": "ok" if rnd.random() < 0.9 else "failed",
+                          "theta_cos": 0.05 + 0.001 * t + (rnd.gauss(0, 0.02) if spoiled else 0.0),
+                          "theta_sin": 0.02 - 1e-5 * n + (rnd.gauss(0, 0.02) if spoiled else 0.0)})
+    q = map_quality.assess(cells, GRID)
+    outliers = [c for c in q.cells.values() if c.quality == "outlier"]
+    assert outliers and all(c.fit is not None and "deg from the median" in c.reason for c in outliers)
