@@ -59,8 +59,9 @@ def test_cancel_during_a_grid_search_leaves_the_bench_safe(svc):
 
 
 def test_pause_resume_and_a_failing_point(svc):
-    # 2685 rpm puts the 6th harmonic on the shaft resonance (1074 Hz): the sensor goes over range there
-    grid = Grid(torque_nm=[2.5], speed_rpm=[1500, 2000, 2685], udc_v=[12])
+    # the DAQ stream corrupted while the sweep is paused: every window of the next point is refused
+    # (DESIGN 5), that point fails with its reason, the sweep goes on and builds its map
+    grid = Grid(torque_nm=[2.5], speed_rpm=[1500, 2000, 2300], udc_v=[12])
     sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
     svc.engine.pause_sweep(sweep_id)
@@ -69,13 +70,20 @@ def test_pause_resume_and_a_failing_point(svc):
     time.sleep(1.0)
     assert svc.storage.get_sweep(sweep_id)["done_points"] == held     # nothing runs while paused
     assert bench_is_safe(svc)
-    svc.engine.resume_sweep(sweep_id)
+    assert control(svc, {"fault": "daq_corrupt", "rate": 1e-3})["ok"]
+    try:
+        svc.engine.resume_sweep(sweep_id)
+        wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] > held)
+    finally:
+        assert control(svc, {"fault": "clear"})["ok"]
     sweep = wait_for(lambda: (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed") and s)
-    assert sweep["state"] == "done" and sweep["done_points"] == 3 and sweep["failed_points"] == 1
+    assert sweep["state"] == "done" and sweep["done_points"] == 3 and sweep["failed_points"] >= 1
     rows = {r["speed_rpm"]: r for r in svc.storage.sweep_results(sweep_id)}
-    assert rows[2685.0]["status"] == "failed" and "over-range" in rows[2685.0]["error"]
-    assert rows[1500.0]["status"] == "ok" and rows[2000.0]["status"] == "ok"
-    assert rows[2000.0]["suppression_db"] >= 40
+    failed = [r for r in rows.values() if r["status"] == "failed"]
+    # the bad frames spoil the windows or, before them, the speed read off the angle
+    assert failed and all("DAQ gap or bad frame" in r["error"] or "did not settle" in r["error"] for r in failed), [
+        r["error"] for r in failed]
+    assert rows[1500.0]["status"] == "ok" and rows[1500.0]["suppression_db"] >= 40
     assert sweep["map_id"] is not None
     assert bench_is_safe(svc)
 
