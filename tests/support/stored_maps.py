@@ -7,13 +7,14 @@ from __future__ import annotations
 import math
 
 from service import __version__
+from service.engine import SweepState
 from service.harmonic import Phasor
 from service.identification.adaptive import AdaptiveOptions
 from service.identification.result import IdentificationResult
 from service.maps import build_map_from_sweep
 from service.operating_point import OperatingPoint
 from service.public import result_row
-from service.storage import Storage
+from service.storage import Storage, now_iso
 
 GRID = {"torque_nm": [1.0, 2.5], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0]}
 CELLS = [(t, n) for n in GRID["speed_rpm"] for t in GRID["torque_nm"]]      # in map order
@@ -41,5 +42,9 @@ def sweep_with_results(storage: Storage, failing=(), gamma_offset_deg: float = 0
 
 
 def stored_map(storage: Storage, failing=(), gamma_offset_deg: float = 0.0) -> int:
-    """The id of a new map built from a new sweep_with_results."""
-    return build_map_from_sweep(storage, sweep_with_results(storage, failing, gamma_offset_deg))
+    """The id of a new map built from a new sweep_with_results, which then reads done (as the engine
+    leaves a finished sweep: a running service shows it as any other)."""
+    sweep_id = sweep_with_results(storage, failing, gamma_offset_deg)
+    map_id = build_map_from_sweep(storage, sweep_id)
+    storage.update_sweep(sweep_id, state=SweepState.DONE.value, started_at=now_iso(), finished_at=now_iso(), map_id=map_id)
+    return map_id

@@ -9,6 +9,7 @@ import * as events from "./events.js";
 import * as benchStatus from "./panels/bench-status.js";
 import * as sweeps from "./panels/sweeps.js";
 import * as maps from "./panels/maps.js";
+import * as mapDownload from "./panels/map-download.js";
 import * as identify from "./panels/identify.js";
 import * as resultView from "./panels/result-view.js";
 import * as schedules from "./panels/schedules.js";
@@ -39,7 +40,8 @@ async function init() {
     reportError(e);
   }
   sweeps.init({ openMapOf: maps.select });
-  maps.init({ openResultOf: resultView.openResult });
+  maps.init({ openResultOf: resultView.openResult, onShown: mapDownload.showFor });
+  mapDownload.init();
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
   schedules.init({});
   events.on("sweep.progress", schedules.onSweepProgress);

@@ -10,10 +10,12 @@ const PLOT_DIV = { gamma_deg: "plot-gamma", delta_deg: "plot-delta", suppression
 
 let currentMap = null;           // the full map shown, as GET /maps/{id} answers
 let openResult = () => {};
+let onShown = () => {};
 
-// openResultOf(resultId, source): what a click on a map cell does.
-export function init({ openResultOf }) {
+// openResultOf(resultId, source): what a click on a map cell does; onShown(map): told of each map shown.
+export function init({ openResultOf, onShown: shown }) {
   openResult = openResultOf;
+  if (shown) onShown = shown;
   $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
   $("udc-select").addEventListener("change", draw);
   if (!figures.plotlyLoaded()) {
@@ -74,6 +76,7 @@ async function show(id) {
     return;
   }
   currentMap = m;
+  onShown(m);
   const udcs = (m.axes && m.axes.udc_v) || [...new Set(m.cells.map((c) => c.udc_v))].sort((a, b) => a - b);
   const usel = $("udc-select");
   const prev = usel.value;
