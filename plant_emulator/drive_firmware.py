@@ -13,7 +13,8 @@ without a toggle: it only clamps |theta|.
 
 LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
-download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in force. In injection mode 2 the control loop asks `effective_theta` at every chunk (or
+download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
+force (0 without one). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
 block) start: theta interpolated in (torque command, measured speed, measured U_dc), clamped to
 gamma_max; the injection then runs at the LUT's harmonic order.
 
