@@ -265,18 +265,19 @@ class Bench:
         of its own (the interlock monitor reads the same way), so the view stays live while a run
         holds the bench. Only a LUT download or a fault reset (the run lock without a run) is waited
         out: the last readings are kept, with their age. The LUT the drive holds changes only by a
-        download (which publishes it), so its objects are read when idle, never during a run."""
+        download (which publishes it), so its objects are read when idle, never during a run, and not
+        while the drive does not answer (its status read says so, without three more timeouts)."""
         if self.connected:
             got = self._lock.acquire(timeout=0.05)
             try:
-                if got and not self.busy:
-                    self._read_device("lut", self.drive.lut_in_force, _lut_shape)
                 if got or self.busy:
                     self._read_device("drive", lambda: self.drive.read_status(), lambda d: {
                         "state": d.state.value, "torque_nm": d.torque_nm, "speed_rpm": d.speed_rpm, "udc_v": d.udc_v})
                     self._read_device("load", lambda: self.load.read_status(), lambda l: {
                         "state": l.state.value, "speed_rpm": l.speed_rpm})
                     self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
+                if got and not self.busy and self._devices["drive"].get("last_error") is None:
+                    self._read_device("lut", self.drive.lut_in_force, _lut_shape)
             finally:
                 if got:
                     self._lock.release()
