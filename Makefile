@@ -1,5 +1,6 @@
 # ripplecal: `make run` starts the service on the emulated bench (`make run PORT=8001 HOST=127.0.0.1`
-# to choose where it listens), `make test` runs the suite, `make bench` prints the performance figures.
+# to choose where it listens), `make test` runs the suite, `make bench` prints the performance figures,
+# `make paper` reproduces the paper's Fig. 8-12 into build/paper/ (report.html, results.json).
 # Each creates .venv and installs what is missing.
 PYTHON ?= python3
 # plain assignments: `make run PORT=...` overrides them, an exported HOST (the machine's name in
@@ -11,7 +12,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: run test bench venv chromium clean
+.PHONY: run test bench paper venv chromium clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,5 +36,8 @@ test: $(STAMP) chromium
 bench: $(STAMP)
 	@for script in tests/benchmarks/bench_*.py; do echo "== $$script"; $(PY) -m tests.benchmarks.$$(basename $$script .py) || exit 1; done
 
+paper: $(STAMP)
+	$(VENV)/bin/ripplecal paper --out build/paper
+
 clean:
-	rm -rf $(VENV) data .pytest_cache
+	rm -rf $(VENV) data .pytest_cache build

@@ -12,6 +12,7 @@ from typing import Any
 
 import can
 import canopen
+from threadpoolctl import threadpool_limits
 
 from drivers.errors import NotConnectedError
 
@@ -21,6 +22,14 @@ HEARTBEAT_COB_BASE = 0x700
 NOTIFIER_CYCLE_S = 0.1
 """Receive-thread wake-up period: disconnect() waits for it, and the safety path must not hang ~1 s
 (canopen's default) before the bus is really released."""
+
+
+def one_blas_thread() -> None:
+    """Run BLAS on one thread in this process, for good (call once at process start; both the
+    service and the emulated devices do). OpenBLAS workers spin while they wait for work: on a
+    loaded 2-core PC they kept the heartbeat thread off the CPU for over a second and the drive fell
+    safe (EMCY 0x8130). Our least-squares problems have tens of columns: one thread is as fast."""
+    threadpool_limits(limits=1)
 
 
 class CanBus:

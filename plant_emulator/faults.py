@@ -17,14 +17,17 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
     {"fault": "sdo_delay", "seconds": 1.0}       every SDO response of the emulator is held this long
     {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again
                                                  (a disconnected DAQ needs daq_reconnect)
+    {"scope": "arm", "samples": N}, {"scope": "read"}
+                                                 the bench's oscilloscope on u_dq*, i_dq, ... (plant_emulator/scope.py)
     {"status": true}                             the fault state: {"ok": true, "faults": {...}}, with the
-                                                 drive's state and `drive_power_off_at` (time.monotonic()
-                                                 when its power stage last went off)
+                                                 drive's state, injection mode and torque setpoint in force,
+                                                 and `drive_power_off_at` (time.monotonic() when its power
+                                                 stage last went off)
 
 Every reply carries `"at"`: time.monotonic() just before the command was carried out (CLOCK_MONOTONIC is
 system-wide, so a tool in another process can time fault -> safe against `drive_power_off_at`).
 
-The service never uses this socket; tests and reliability tools do. Only 127.0.0.1, ever.
+The service never uses this socket; tests, reliability tools and the paper report (its scope) do. Only 127.0.0.1, ever.
 """
 from __future__ import annotations
 
@@ -119,6 +122,8 @@ class FaultState:
             raise TypeError("a command is a JSON object")
         if cmd.get("status"):
             return {"ok": True, "faults": self.snapshot()}
+        if "scope" in cmd:
+            return self.emu.scope.command(cmd)
         fault = cmd.get("fault")
         if fault == "daq_drop_bytes":
             self.drop_rate = _rate(cmd)
@@ -165,6 +170,8 @@ class FaultState:
                 "daq_disconnected": self.daq_disconnected, "bytes_dropped": self.bytes_dropped,
                 "bytes_corrupted": self.bytes_corrupted, "pending_events": len(self.events),
                 "drive_state": self.emu.drive.state.value, "drive_power_off_at": self.emu.drive.power_off_at,
+                "drive_injection_mode": self.emu.drive.inj_mode, "drive_torque_nm": self.emu.drive.torque_nm,
+                "drive_theta_rad": list(self.emu.drive.effective_theta()), "drive_speed_rpm": self.emu.drive.speed_rpm,
                 "load_state": self.emu.load.state.value}
 
     def sdo_delay_for(self, can_id: int) -> float:

@@ -31,6 +31,7 @@ import canopen
 import numpy as np
 
 from drivers import DRIVE_EDS, LOAD_EDS
+from drivers.canopen_bus import one_blas_thread
 
 from . import physics as ph
 from . import scenario as scn
@@ -38,6 +39,7 @@ from .daq_stream import DaqPty
 from .drive_firmware import DriveFirmware
 from .faults import ControlServer, FaultState
 from .load_machine import LoadMachineFirmware
+from .scope import Scope
 from .scpi_supply import DcSupply, ScpiServer
 from .socketcand_server import SocketcandServer
 
@@ -78,6 +80,7 @@ class Emulator:
         self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS),
                                         ramp_rpm_per_s=float(self.params[ph.P_LOAD_RAMP]) * 60.0 / (2.0 * math.pi))
         self.daq = DaqPty()
+        self.scope = Scope(self.sample_rate_hz)
         self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)
         self.control = ControlServer(self.faults, port=control_port)
         self.can_server.delay_for = self.faults.sdo_delay_for
@@ -179,7 +182,11 @@ class Emulator:
             self.load.chunk_setpoints(sp)
             k = m * n
             noise = rng.standard_normal(k) if noise_on else zeros[:k]
-            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], no_trace)
+            scoping = self.scope.recording      # the oscilloscope wants this block's samples
+            trace = np.zeros((k, ph.N_TRACE)) if scoping else no_trace
+            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], trace)
+            if scoping:
+                self.scope.feed(trace)
             self.samples += k
             # publish the firmware's measurements (read by SDO)
             for row in range(max(0, m - n_mean), m):
@@ -258,6 +265,7 @@ def _watch_parent_pipe(stop: threading.Event) -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    one_blas_thread()
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stop = threading.Event()

@@ -342,6 +342,11 @@ class Bench:
         self._guard()
         self.drive.set_injection(theta_cos_rad, theta_sin_rad)
 
+    def send_injection_mode(self, mode: str) -> None:
+        """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
+        self._guard()
+        self.drive.set_injection_mode(mode)
+
     def download_lut(self, image: bytes) -> LutInForce:
         """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns what the
         drive now holds (map id, CRC, status), which /bench/status shows from then on. Refused while
@@ -364,9 +369,11 @@ class Bench:
     @contextlib.contextmanager
     def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
                         settle_s: float = 0.25, cancel: threading.Event | None = None,
-                        on_window: Callable | None = None) -> Iterator[OperatingPointSession]:
+                        on_window: Callable | None = None,
+                        decoupling: bool | None = None) -> Iterator[OperatingPointSession]:
         """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
         gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps.
+        decoupling (default: settings) is the drive's 0x2000:6 for this run.
         Refused (InterlockTripped, nothing commanded) while an interlock is tripped. A run that an
         interlock stopped ends in InterlockTripped even if the method finished: its data are not good."""
         check_limits(op, self.settings)
@@ -386,10 +393,12 @@ class Bench:
                                                 s.daq.sample_rate_hz, s.motor.pole_pairs, sync_input=s.daq.sync_input,
                                                 no_sync_settle_s=s.daq.no_sync_settle_s,
                                                 guard=lambda: self._guard(cancel), resonance=self.resonance,
-                                                observe=self.live.publisher("run"), on_window=on_window)
+                                                observe=self.live.publisher("run"), on_window=on_window,
+                                                send_injection_mode=self.send_injection_mode)
                 self.live.publish("run", operating_point=op.model_dump(),
                                   speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
-                self._go_to(op, harmonic_order)
+                self._go_to(op, harmonic_order,
+                            self.settings.identification.decoupling if decoupling is None else decoupling)
                 session.settle_operating_point(op.speed_rpm, settle_s)
                 session.reset_plant_time()
                 yield session
@@ -449,7 +458,7 @@ class Bench:
             log.warning("drive commit counter %d, expected %d: setpoint count re-established from the drive",
                         report["commits_reported"], report["commits_expected"])
 
-    def _go_to(self, op: OperatingPoint, harmonic_order: int) -> None:
+    def _go_to(self, op: OperatingPoint, harmonic_order: int, decoupling: bool) -> None:
         self.supply.set_voltage(op.udc_v)
         self.supply.output(True)
         self._wait_supply(op.udc_v)
@@ -461,7 +470,7 @@ class Bench:
         self.drive.enable()
         self.drive.set_gamma_max_rad(self._gamma_max_rad)
         self.drive.set_harmonic_order(harmonic_order)
-        self.drive.set_decoupling(self.settings.identification.decoupling)
+        self.drive.set_decoupling(decoupling)
         self.drive.set_injection(0.0, 0.0)
         self.drive.set_injection_mode("manual")
         self._require_clear()

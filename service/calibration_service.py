@@ -11,6 +11,7 @@ import threading
 import time
 from typing import Any
 
+from drivers.canopen_bus import one_blas_thread
 from service import __version__
 from service.bench import Bench, BenchUnreachable
 from service.emulator_process import EmulatorProcess
@@ -58,6 +59,7 @@ class CalibrationService:
         still comes up (dashboard, stored results, the reason in /bench/status) and refuses runs.
         `run_schedules`: fire due schedules and recover what a previous server left unfinished (the
         server does; a CLI run of one sweep does neither: a server may be running on the same database)."""
+        one_blas_thread()
         settings = self.settings
         identity = settings.bench_name
         if settings.bench_mode == "emulate":

@@ -1,4 +1,4 @@
-"""`ripplecal` command line: serve, identify, sweep, export, token, schedule, maps, sweeps.
+"""`ripplecal` command line: serve, identify, sweep, export, token, schedule, maps, sweeps, paper.
 
 identify, sweep and `maps download` run in this process against the bench (emulated unless --bench
 names a bench settings file), through the same engine the REST API uses, and store into the database.
@@ -422,6 +422,25 @@ def cmd_sweeps(args) -> int:
     return 0
 
 
+def cmd_paper(args) -> int:
+    """The paper's Fig. 8-12 on emulated benches of its own (service/paper); never a real bench."""
+    from service.paper.report import run
+    command = "ripplecal paper --out " + args.out + (" --quick" if args.quick else "")
+    print(f"ripplecal paper: measuring Fig. 8-12 on the emulated bench into {args.out} ...", file=sys.stderr, flush=True)
+    results = run(args.out, quick=args.quick, command=command)
+    f8, f9, f11, f12 = (results[k] for k in ("fig8", "fig9", "fig11", "fig12"))
+    print(f"fig8  grid minimum {f8['grid_min']['gamma_deg']:g} deg / {f8['grid_min']['delta_deg']:g} deg, "
+          f"fit {f8['fit']['gamma_deg']:.2f} deg / {f8['fit']['delta_deg']:.1f} deg (paper 3 / 280)")
+    print(f"fig9  adaptive {f9['gamma_deg']:.2f} deg / {f9['delta_deg']:.2f} deg (paper 2.84 / 279.17)")
+    print(f"fig10 suppression {results['fig10']['suppression_db']:.1f} dB, peak |u*| "
+          f"{results['fig10']['u_max_increase_pct']:+.3f} %")
+    print(f"fig11 time to 40 dB coupled {f11['coupled']['time_to_40db_s']} s, decoupled {f11['decoupled']['time_to_40db_s']} s")
+    print(f"fig12 coupled {f12['coupled']['suppression_db']} dB (gamma limited: {f12['coupled']['gamma_limited']}), "
+          f"decoupled {f12['decoupled']['suppression_db']} dB, i_d harmonic {f12['decoupled']['i_d_harmonic_a']} A")
+    print(f"wrote {Path(args.out) / 'report.html'} and results.json in {results['meta']['wall_time_s']:.1f} s wall")
+    return 0
+
+
 # --- the parser: one small function per command (each keeps its options to itself) --------------------
 def _db_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH", help="SQLite database file (default: RIPPLECAL_SERVER__DB_PATH, "
@@ -546,8 +565,15 @@ def _parser_sweeps(sub) -> None:
     p.set_defaults(func=cmd_sweeps, bench=None)
 
 
+def _parser_paper(sub) -> None:
+    p = sub.add_parser("paper", help="reproduce the paper's Fig. 8-12 on the emulated bench (report.html, results.json)")
+    p.add_argument("--out", default="build/paper", help="output directory (default build/paper)")
+    p.add_argument("--quick", action="store_true", help="coarser grid and shorter records (the test's run)")
+    p.set_defaults(func=cmd_paper, bench=None)
+
+
 COMMANDS = (_parser_serve, _parser_identify, _parser_sweep, _parser_export, _parser_token, _parser_schedule,
-            _parser_maps, _parser_sweeps)
+            _parser_maps, _parser_sweeps, _parser_paper)
 
 
 def build_parser() -> argparse.ArgumentParser:

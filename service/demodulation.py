@@ -34,9 +34,8 @@ import numpy as np
 from service.harmonic import Phasor
 
 RING_SNR_TO_LEARN = 30.0      # learn the mode only from windows whose ring stands this far above its noise
-SEARCH_SCALE_WIDE = 0.15      # first search: +-15 % around the settings' pole (covers a +-10 % bench spread)
-SEARCH_SCALE_NARROW = 0.02    # later searches around the learned value
-LEARN_WINDOWS = 8             # strongly ringing windows after which the estimate is kept as it is
+SEARCH_SCALE = 0.15           # every search: +-15 % around the estimate so far (covers a +-10 % bench spread)
+LEARNED_STD_HZ = 0.3          # the mode is known once its frequency's standard deviation is below this
 LEARN_SAMPLES_MAX = 2400      # samples of a window the search uses: 150 ms at 16 kHz, three tau of the paper's mode
 
 
@@ -153,17 +152,23 @@ def _noise_density(residual: np.ndarray, turns: float, harmonic_order: int) -> f
     return float(np.median(spectrum[usable]) / math.log(2.0))
 
 
+def _electrical_hz(angle_rad: np.ndarray, sample_rate_hz: float) -> float:
+    """Mean electrical frequency over a record of angles (the DAQ's angle wraps at 2 pi)."""
+    turns_rad = np.unwrap(angle_rad)
+    return abs(float(turns_rad[-1] - turns_rad[0])) / (2 * math.pi) * sample_rate_hz / max(len(angle_rad) - 1, 1)
+
+
 def best_mode_scale(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
                     nominal: ResonanceMode, center: float, half_width: float) -> tuple[float, float]:
     """Variable projection: the scale k of the nominal pole that minimises the LS residual, searched on
     [center - half_width, center + half_width] (coarse grid, then a parabola through the best three).
-    Returns (k, residual sum of squares)."""
+    Returns (k, precision of k = 1/var(k)): near its minimum rss(k) ~ rss_min + rss'' (k - k_min)^2 / 2,
+    and a least-squares parameter then has var(k) = 2 sigma^2 / rss'' with sigma^2 = rss_min / (n - p)."""
     n = min(len(alpha_fs), LEARN_SAMPLES_MAX)          # the ring lives in the first few tau
     t_s = np.arange(n) / sample_rate_hz
     alpha = np.asarray(alpha_fs[:n], dtype=float)
     angle = angle_rad[:n]
-    electrical_hz = abs(angle[-1] - angle[0]) / (2 * math.pi) * sample_rate_hz / max(n - 1, 1)
-    orders = nuisance_orders(harmonic_order, electrical_hz, nominal.scaled(center))
+    orders = nuisance_orders(harmonic_order, _electrical_hz(angle, sample_rate_hz), nominal.scaled(center))
     # the columns that do not depend on k are projected out once; each k then costs a 2-column fit
     q_fixed, _ = np.linalg.qr(_design(angle, t_s, harmonic_order, None, orders))
     r0 = alpha - q_fixed @ (q_fixed.T @ alpha)
@@ -186,8 +191,11 @@ def best_mode_scale(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz:
     y0, y1, y2 = fine_values[j - 1:j + 2]
     denom = y0 - 2 * y1 + y2
     offset = 0.5 * (y0 - y2) / denom if denom > 0 else 0.0
-    k = float(fine[j] + np.clip(offset, -1, 1) * (fine[1] - fine[0]))
-    return k, rss(k)
+    step = fine[1] - fine[0]
+    k = float(fine[j] + np.clip(offset, -1, 1) * step)
+    sigma2 = rss(k) / max(n - q_fixed.shape[1] - 2, 1)
+    curvature = denom / step ** 2
+    return k, (curvature / (2.0 * sigma2) if curvature > 0 and sigma2 > 0 else 0.0)
 
 
 class ResonanceTracker:
@@ -198,6 +206,7 @@ class ResonanceTracker:
         self.nominal = nominal
         self._lock = threading.Lock()
         self._scale = 1.0
+        self._precision = 0.0           # sum of the windows' 1/var(k)
         self._learned_from = 0          # windows that contributed
 
     @property
@@ -213,8 +222,15 @@ class ResonanceTracker:
     def snapshot(self) -> dict:
         with self._lock:
             mode = self.nominal.scaled(self._scale)
+            std_hz = self._std_hz()
             return {"frequency_hz": round(mode.frequency_hz, 2), "sigma_rad_s": round(mode.sigma_rad_s, 3),
-                    "scale_to_settings": round(self._scale, 5), "learned_from_windows": self._learned_from}
+                    "scale_to_settings": round(self._scale, 5), "learned_from_windows": self._learned_from,
+                    "frequency_std_hz": None if std_hz is None else round(std_hz, 3)}
+
+    def _std_hz(self) -> float | None:
+        if self._precision <= 0:
+            return None
+        return self.nominal.frequency_hz / math.sqrt(self._precision)
 
     def fit(self, alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
             periods: int, usable: np.ndarray | None = None) -> HarmonicFit:
@@ -226,18 +242,23 @@ class ResonanceTracker:
         with self._lock:
             center = self._scale
             learned = self._learned_from > 0
+            known = learned and self._std_hz() < LEARNED_STD_HZ
         # until learned, every window is searched (a mode at the wrong frequency hides its own ring);
-        # afterwards only a strong ring refines it, up to LEARN_WINDOWS windows (the shaft does not change)
-        if learned and (result.ring_fs <= RING_SNR_TO_LEARN * max(result.ring_std_fs, 1e-12)
-                        or self._learned_from >= LEARN_WINDOWS):
+        # afterwards only a strong ring refines it, until the frequency is known (the shaft does not change)
+        if known or (learned and result.ring_fs <= RING_SNR_TO_LEARN * max(result.ring_std_fs, 1e-12)):
             return result
-        half_width = SEARCH_SCALE_NARROW if learned else SEARCH_SCALE_WIDE
-        k, _ = best_mode_scale(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, self.nominal, center, half_width)
+        # always the wide search: a first estimate off by more than a narrow search would lock in
+        k, precision = best_mode_scale(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, self.nominal, center,
+                                       SEARCH_SCALE)
+        if precision <= 0:
+            return result
         refit = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.nominal.scaled(k))
         if refit.ring_fs > RING_SNR_TO_LEARN * max(refit.ring_std_fs, 1e-12):
             with self._lock:
-                # a running mean over the windows that saw a strong ring (each an unbiased estimate)
+                # each window an estimate with its own precision: the strong rings next to the
+                # resonance outweigh the faint ones of low speed
                 self._learned_from += 1
-                self._scale += (k - self._scale) / self._learned_from
+                self._precision += precision
+                self._scale += (k - self._scale) * precision / self._precision
             return refit
         return result

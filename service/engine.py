@@ -28,8 +28,10 @@ from service import __version__
 from service.limits import check_limits
 from service.interlocks import InterlockTripped
 from service.identify import check_plant_time, identify_at, parse_options
-from service.public import result_public, result_row
+from service.public import map_public, result_public, result_row
 from service.maps import build_map_from_sweep
+from service.map_validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
+                                    store_validation)
 from service.neighbours import prior_from_neighbours
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
@@ -202,6 +204,22 @@ class Engine:
         self._queue_sweep(sweep_id)
         return sweep_id
 
+    def submit_validation(self, map_id: int, force: bool, options: ValidationOptions) -> int:
+        """Queue the validation of a map in the drive's LUT mode (service.map_validation). Refused before
+        anything is queued: KeyError (no such map), ValidationRefused (no valid cell, partial without
+        force), LimitError (a point outside the bench's limits)."""
+        m = map_public(self.storage, map_id)
+        if m is None:
+            raise KeyError(map_id)
+        check_validatable(m.model_dump(), force)
+        check_points(m.model_dump(), self.settings)
+        job_id = self.storage.create_job("validation", {"map_id": map_id, "force": force,
+                                                        "options": options.model_dump()})
+        self._job_cancel[job_id] = threading.Event()
+        self._queue.put(job_id)
+        self._publish_job(job_id)
+        return job_id
+
     def _queue_sweep(self, sweep_id: int) -> None:
         job_id = self.storage.create_job("sweep", {"sweep_id": sweep_id}, sweep_id=sweep_id)
         self._controls[sweep_id] = _SweepControl()
@@ -311,6 +329,8 @@ class Engine:
         try:
             if job["kind"] == "identification":
                 self._run_identification(job_id, job)
+            elif job["kind"] == "validation":
+                self._run_validation(job_id, job)
             else:
                 self._run_sweep(job_id, job["sweep_id"])
             final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
@@ -348,6 +368,23 @@ class Engine:
         rid = self.storage.insert_result(result_row(op, req["method"], options, self.bench.identity, started, result,
                                                     job_id=job_id, harmonic_order=result.harmonic_order))
         self.storage.update_job(job_id, result_id=rid)
+
+    def _run_validation(self, job_id: int, job: dict) -> None:
+        """Download, then every point; the validation is stored however it ends (the map keeps its
+        latest). An interlock trip or a point's stop fails the job with the reason; a cancel cancels it.
+        The bench is made safe after every point (bench.operating_point)."""
+        req = json.loads(job["request_json"])
+        options = ValidationOptions.model_validate(req["options"])
+
+        def on_cell(cell: dict, total: int) -> None:
+            self.broker.publish("job.progress", {"job_id": job_id, "kind": "validation", "total": total, "cell": cell})
+        run = run_validation(self.storage, self.bench, self.settings, req["map_id"], req["force"], options,
+                             self._job_cancel[job_id], on_cell=on_cell)
+        store_validation(self.storage, job_id, run, self.bench.identity)
+        if run.state == "cancelled":
+            raise Cancelled()
+        if run.state == "failed":
+            raise ValidationStopped(run.error)
 
     def _run_sweep(self, job_id: int, sweep_id: int) -> None:
         sweep = self.storage.get_sweep(sweep_id)

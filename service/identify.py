@@ -45,14 +45,15 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
     h = settings.identification.harmonic_order
     gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
     ident = settings.identification
-    closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not ident.decoupling)
-    with bench.operating_point(op, h, gamma_max, cancel=cancel, on_window=progress) as session:
+    decoupling = ident.decoupling if options.decoupling is None else options.decoupling
+    closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not decoupling)
+    with bench.operating_point(op, h, gamma_max, cancel=cancel, on_window=progress, decoupling=decoupling) as session:
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
         mode = bench.resonance.mode
         s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,
                                      resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
         conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
-                                current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=ident.decoupling)
+                                current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=decoupling)
         try:
             result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
         except MeasurementError as exc:
@@ -66,5 +67,6 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
         result.details["stale_samples"] = session.stale_samples
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
+        result.details["decoupling"] = decoupling      # the drive must run the LUT with the same setting
         result.details["resonance"] = bench.resonance.snapshot()
     return result

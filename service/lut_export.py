@@ -13,7 +13,7 @@ import json
 import re
 
 from drivers import lut_image as lut_codec
-from service import __version__
+from service import __version__, map_quality
 
 
 
@@ -40,6 +40,47 @@ def _counts_text(m: dict) -> str:
     return ", ".join(f"{n} {status}" for status, n in counts.items() if n) or "none"
 
 
+def _quality_text(m: dict) -> str:
+    """One comment line: the map's outlier and smoothed cells (GET /maps/{id} has each reason)."""
+    q = m.get("quality") or {}
+
+    def where(quality: str) -> str:
+        cells = [f"{c['torque_nm']:g} Nm / {c['speed_rpm']:g} rpm / {c['udc_v']:g} V" for c in m["cells"]
+                 if c.get("quality") == quality]
+        return f" ({'; '.join(cells)})" if cells else ""
+    text = (f"quality: {q.get('outliers', 0)} outlier(s){where('outlier')}, {q.get('unchecked', 0)} unchecked, "
+            f"theta against the median of its ok neighbours, outlier beyond {q.get('outlier_factor', 0):g}x the expected step")
+    if m.get("smoothed"):
+        text += f"; SMOOTHED view: {q.get('smoothed', 0)} outlier cell(s) carry their neighbours' median theta{where('smoothed')}"
+    return text
+
+
+def _quality_json(m: dict) -> dict:
+    marked = [{key: c.get(key) for key in ("torque_nm", "speed_rpm", "udc_v", *map_quality.CELL_FIELDS)}
+              for c in m["cells"] if c.get("quality") in ("outlier", "smoothed")]
+    return {**(m.get("quality") or {}), "smoothed_view": bool(m.get("smoothed")), "cells": marked}
+
+
+def _validation_text(m: dict) -> str:
+    """The latest validation in the drive's LUT mode, one line (every export carries it)."""
+    v = m.get("validation")
+    if not v:
+        return "not validated in the drive's LUT mode"
+
+    def part(kind: str) -> str:
+        k = v[kind]
+        if k["median_db"] is None:
+            return f"{kind} none measured of {k['cells']}"
+        return (f"{kind} median {k['median_db']:.1f} dB, min {k['min_db']:.1f} dB "
+                f"({k['measured']} of {k['cells']} measured)")
+    worst = v.get("worst")
+    where = "" if not worst else (f"; worst {worst['suppression_db']:.1f} dB at {worst['operating_point']['torque_nm']:g} Nm, "
+                                  f"{worst['operating_point']['speed_rpm']:g} rpm, {worst['operating_point']['udc_v']:g} V "
+                                  f"({worst['kind']})")
+    return (f"validated in the drive's LUT mode (job {v['job_id']}, {v['finished_at']}, {v['state']}): "
+            f"{part('grid')}; {part('midpoint')}{where}")
+
+
 def export_csv(m: dict) -> str:
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
@@ -47,6 +88,8 @@ def export_csv(m: dict) -> str:
     buf.write(f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n")
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
     buf.write(f"# cells: {_counts_text(m)}; only ok cells carry theta (valid), the others are 0\n")
+    buf.write(f"# {_quality_text(m)}\n")
+    buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
                 "suppression_db", "status"])
@@ -67,7 +110,10 @@ def export_json(m: dict) -> str:
         "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
         "axes": m["axes"], "index_order": ["udc_v", "speed_rpm", "torque_nm"],
         "theta_cos_rad": _grid_values(m, "theta_cos"), "theta_sin_rad": _grid_values(m, "theta_sin"),
-        "valid": _grid_values(m, "valid"), "status_counts": m.get("status_counts"), "cells": m["cells"],
+        "valid": _grid_values(m, "valid"), "status_counts": m.get("status_counts"),
+        "cells": [{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS} for c in m["cells"]],
+        "quality": _quality_json(m),
+        "validation": m.get("validation"),
     }, indent=1)
 
 
@@ -98,6 +144,8 @@ def export_c(m: dict) -> str:
         " * rotation (|u_dq*| = |u_dq|). Interpolate theta_cos and theta_sin (never gamma/delta across",
         " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
         f" * Cells: {_counts_text(m)}. Names carry the map id ({macro}_*, {array}_*).",
+        f" * {_quality_text(m)}.",
+        f" * {_validation_text(m)}.",
         " */",
         f"#ifndef {guard}", f"#define {guard}", "",
         "#include <stdint.h>", "",
@@ -127,6 +175,8 @@ def export_dcm(m: dict) -> str:
     out = [f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
            f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
            f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok)",
+           f"* {_quality_text(m)}",
+           f"* {_validation_text(m)}",
            "KONSERVIERUNG_FORMAT 2.0", ""]
     for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid")):
         for k, udc in enumerate(axes["udc_v"]):

@@ -15,10 +15,11 @@ from zoneinfo import ZoneInfo
 
 from pydantic import BaseModel, Field
 
-from service import __version__
+from service import __version__, map_quality
 from service.identification import IdentificationResult
 from service.operating_point import OperatingPoint
 from service.schedules import iso, next_runs
+from service.secondary_path import gamma_delta
 from service.storage import Storage, now_iso
 
 # every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
@@ -82,6 +83,8 @@ class JobPublic(BaseModel):
     started_at: str | None = None
     finished_at: str | None = None
     result: ResultPublic | None = None
+    validation: "ValidationPublic | None" = Field(None, description="kind validation: the map's LUT measured in "
+                                                                   "the drive's LUT mode, every cell")
 
 
 class SweepPointPublic(BaseModel):
@@ -127,6 +130,24 @@ class MapCellPublic(BaseModel):
     target_db: float | None = None
     noise_floor_db: float | None = None
     error: str | None = None
+    quality: str | None = Field(None, description="ok cells only: consistent | outlier | unchecked (fewer than 2 ok "
+                                "neighbours) | smoothed (a smoothed view replaced the measured theta); "
+                                "service/map_quality.py")
+    outlier_reason: str | None = Field(None, description="outlier or smoothed: how far theta is from its neighbours'")
+    smoothed_from: str | None = Field(None, description="smoothed: where the theta shown comes from")
+
+
+class MapQualityPublic(BaseModel):
+    """Each ok cell's theta against its grid neighbours' (service/map_quality.py has the statistic)."""
+    consistent: int
+    outliers: int
+    unchecked: int = Field(description="ok cells with fewer than 2 ok neighbours to compare with")
+    smoothed: int = Field(0, description="outliers replaced by their neighbours' fit in this (smoothed) view")
+    outlier_factor: float = Field(description="an outlier is this many times further from its neighbours' "
+                                  "median than the step the map's median gradient expects")
+    min_step_deg: float = Field(description="the expected step is never taken below this")
+    gradient_deg_per_unit: dict[str, float | None] = Field(
+        description="median |delta theta| between ok neighbours per Nm, per rpm, per V (null: no pair on that axis)")
 
 
 class MapPublic(BaseModel):
@@ -140,6 +161,11 @@ class MapPublic(BaseModel):
     axes: dict[str, list[float]]
     status_counts: dict[str, int]
     cells: list[MapCellPublic]
+    quality: MapQualityPublic | None = None
+    smoothed: bool = Field(False, description="true: a view whose outlier cells carry their neighbours' fit "
+                           "(?smooth=outliers); the stored map is never changed")
+    validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation in the drive's "
+                                                                         "LUT mode (cells: GET /maps/{id}/validation)")
 
 
 class MapSummaryPublic(BaseModel):
@@ -180,6 +206,108 @@ class SchedulePreviewPublic(BaseModel):
     cron: str
     timezone: str
     runs: list[str] = Field(description="the firings after `start`, ISO 8601 with the zone's offset")
+
+
+
+class MapCompareCellPublic(BaseModel):
+    """One operating point present in both maps (service/map_compare.py)."""
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    status_a: str
+    status_b: str
+    compared: bool = Field(description="both cells ok (each carries theta)")
+    gamma_a_deg: float | None = None
+    gamma_b_deg: float | None = None
+    delta_a_deg: float | None = None
+    delta_b_deg: float | None = None
+    delta_gamma_deg: float | None = Field(None, description="gamma_b - gamma_a")
+    delta_delta_deg: float | None = Field(None, description="delta_b - delta_a wrapped to (-180, 180]")
+    delta_theta_deg: float | None = Field(None, description="|theta_b - theta_a| (theta in rad, shown in deg)")
+    suppression_a_db: float | None = Field(None, description="what map a's result measured at its own theta")
+    predicted_suppression_db: float | None = Field(
+        None, description="20 log10(|a_uncompensated| / |a_residual + S_ss (theta_b - theta_a)|) with map a's "
+                          "measured S, residual and uncompensated phasor (affine model, eq. 15)")
+    s_measured_a: ComplexGainPublic | None = None
+    note: str | None = Field(None, description="why a cell is not compared, or has no prediction")
+
+
+class MapCompareSummaryPublic(BaseModel):
+    compared: int
+    not_compared: int = Field(description="in both maps, but not ok in one of them")
+    only_in_a: int
+    only_in_b: int
+    without_s: int = Field(description="compared cells whose map-a result stored no measured S (no prediction)")
+    median_delta_theta_deg: float | None = None
+    max_delta_theta_deg: float | None = None
+    median_abs_delta_gamma_deg: float | None = None
+    max_abs_delta_gamma_deg: float | None = None
+    median_abs_delta_delta_deg: float | None = None
+    max_abs_delta_delta_deg: float | None = None
+    worst_cell: OperatingPoint | None = Field(None, description="the compared cell with the largest delta theta")
+    median_predicted_suppression_db: float | None = None
+    min_predicted_suppression_db: float | None = None
+    worst_predicted_cell: OperatingPoint | None = Field(None, description="the cell with the lowest predicted suppression")
+
+
+class MapComparisonPublic(BaseModel):
+    """`GET /maps/{a}/compare/{b}`: map b's theta against map a's, at the operating points both hold."""
+    map_a: int
+    map_b: int
+    harmonic_order: int
+    same_axes: bool = Field(description="false: compared on the intersection of the grids; the rest is listed")
+    summary: MapCompareSummaryPublic
+    cells: list[MapCompareCellPublic]
+    only_in_a: list[OperatingPoint]
+    only_in_b: list[OperatingPoint]
+
+
+class ValidationCellPublic(BaseModel):
+    """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
+    operating_point: OperatingPoint
+    kind: str = Field(description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated)")
+    status: str = Field(description="measured | failed (error says why) | not_measured (the run stopped first)")
+    error: str | None = None
+    suppression_db: float | None = Field(None, description="20 log10(|uncompensated| / |residual|), only if measured")
+    uncompensated: PhasorPublic | None = Field(None, description="injection off")
+    residual: PhasorPublic | None = Field(None, description="the drive's own LUT feedforward (injection mode 2)")
+    noise_floor_db: float | None = Field(None, description="rms noise phasor of the LUT window against |uncompensated|")
+    at_noise_floor: bool | None = Field(None, description="the residual is within 3 noise rms of zero: "
+                                                          "suppression_db is a lower bound")
+    plant_time_s: float | None = None
+    speed_rpm_measured: float | None = None
+    harmonic_frequency_hz: float | None = None
+    map_cell_status: str | None = Field(None, description="grid points: the map cell's status (only ok cells carry "
+                                                          "injection in the LUT)")
+
+
+class ValidationSummaryPublic(BaseModel):
+    """A validation's figures: per kind (grid, midpoint) the cells, how many were measured, failed or
+    not measured, and the median / minimum suppression of the measured ones (dB); the worst cell."""
+    id: int
+    job_id: int
+    map_id: int
+    state: str = Field(description="done | failed (interlock or error: see error) | cancelled")
+    error: str | None = None
+    finished_at: str
+    download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
+    grid: dict[str, Any]
+    midpoint: dict[str, Any]
+    worst: dict[str, Any] | None = None
+    plant_time_s: float
+
+
+class ValidationPublic(ValidationSummaryPublic):
+    harmonic_order: int
+    options: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    cells: list[ValidationCellPublic]
+
+
+JobPublic.model_rebuild()       # their `validation` fields name the models defined above
+MapPublic.model_rebuild()
 
 
 # --- results: domain -> row -> public ---------------------------------------------------------------
@@ -244,10 +372,26 @@ def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
 # --- jobs, sweeps, maps -----------------------------------------------------------------------------
 def job_public(storage: Storage, job: dict) -> JobPublic:
     row = storage.get_result(job["result_id"]) if job.get("result_id") else None
+    validation = storage.validation_of_job(job["id"]) if job["kind"] == "validation" else None
     return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
                      sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
                      started_at=job["started_at"], finished_at=job["finished_at"],
-                     result=result_public(row) if row else None)
+                     result=result_public(row) if row else None,
+                     validation=validation_public(validation) if validation else None)
+
+
+def validation_summary_public(row: dict) -> ValidationSummaryPublic:
+    summary = json.loads(row["summary_json"])
+    return ValidationSummaryPublic(id=row["id"], job_id=row["job_id"], map_id=row["map_id"], state=row["state"],
+                                   error=row["error"], finished_at=row["finished_at"],
+                                   download=json.loads(row["download_json"]), **summary)
+
+
+def validation_public(row: dict) -> ValidationPublic:
+    return ValidationPublic(**validation_summary_public(row).model_dump(), harmonic_order=row["harmonic_order"],
+                            options=json.loads(row["options_json"]), bench_identity=row["bench_identity"],
+                            software_version=row["software_version"], started_at=row["started_at"],
+                            cells=json.loads(row["cells_json"]))
 
 
 def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> SweepPublic:
@@ -269,7 +413,9 @@ def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> Sw
         finished_at=sweep["finished_at"], schedule_id=sweep.get("schedule_id"), points=points)
 
 
-def map_public(storage: Storage, map_id: int) -> MapPublic | None:
+def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic | None:
+    """The stored map with each ok cell's quality; `smooth`: the view whose outlier cells carry their
+    neighbours' fit instead of the measured theta (marked `smoothed`, the stored map is not changed)."""
     row = storage.get_map(map_id)
     if row is None:
         return None
@@ -286,9 +432,36 @@ def map_public(storage: Storage, map_id: int) -> MapPublic | None:
     counts = {status: 0 for status in CELL_STATUSES}
     for c in cells:
         counts[c.status] = counts.get(c.status, 0) + 1
+    axes = json.loads(row["axes_json"])
+    validation = storage.latest_validation(map_id)
+    quality = map_quality.assess([c.model_dump() for c in cells], axes)
+    smoothed = {}
+    if smooth:
+        smoothed = map_quality.smoothing(quality, map_id, {map_quality.cell_key(c.model_dump()): c.result_id
+                                                           for c in cells})
+        for c in cells:
+            key = map_quality.cell_key(c.model_dump())
+            if key in smoothed:
+                (c.theta_cos, c.theta_sin), c.smoothed_from = smoothed[key]
+                c.outlier_reason, c.quality = quality.cells[key].reason, "smoothed"
+                c.gamma_deg, c.delta_deg = (math.degrees(v) for v in gamma_delta(c.theta_cos, c.theta_sin))
+                c.suppression_db = None        # measured at the replaced theta, not at this one
+        quality = map_quality.assess([c.model_dump() for c in cells], axes)
+    for c in cells:
+        q = quality.cells.get(map_quality.cell_key(c.model_dump()))
+        if q is not None and c.quality is None:
+            c.quality, c.outlier_reason = q.quality, q.reason
+    summary = MapQualityPublic(
+        consistent=sum(1 for c in cells if c.quality == "consistent"),
+        outliers=sum(1 for c in cells if c.quality == "outlier"),
+        unchecked=sum(1 for c in cells if c.quality == "unchecked"), smoothed=len(smoothed),
+        outlier_factor=map_quality.OUTLIER_FACTOR, min_step_deg=map_quality.MIN_STEP_DEG,
+        gradient_deg_per_unit={a: None if g is None else math.degrees(g) for a, g in quality.gradient_rad_per_unit.items()})
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
-                     created_at=row["created_at"], axes=json.loads(row["axes_json"]), status_counts=counts, cells=cells)
+                     created_at=row["created_at"], axes=axes, status_counts=counts, cells=cells,
+                     quality=summary, smoothed=smooth,
+                     validation=validation_summary_public(validation) if validation else None)
 
 
 def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_count: int = 20) -> SchedulePublic:

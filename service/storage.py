@@ -192,6 +192,15 @@ class Storage:
             row = conn.execute("SELECT * FROM results WHERE id = ?", (result_id,)).fetchone()
             return dict(row) if row else None
 
+    def results_by_id(self, result_ids: list[int]) -> dict[int, dict]:
+        """The result rows of these ids (ids with no row left out), in one query."""
+        ids = sorted({int(i) for i in result_ids})
+        if not ids:
+            return {}
+        with self.connect() as conn:
+            return {r["id"]: dict(r) for r in conn.execute(
+                f"SELECT * FROM results WHERE id IN ({', '.join('?' for _ in ids)})", ids)}
+
     def sweep_results(self, sweep_id: int) -> list[dict]:
         """The sweep's current results: one per operating point measured (earlier attempts left out)."""
         with self.connect() as conn:
@@ -248,6 +257,24 @@ class Storage:
         with self.connect() as conn:
             return [dict(r) for r in conn.execute(
                 "SELECT id, sweep_id, harmonic_order, method, created_at FROM maps ORDER BY id DESC LIMIT ?", (limit,))]
+
+    # --- map validations (the LUT measured in the drive's LUT mode) ---------------------------------
+    def insert_validation(self, row: dict) -> int:
+        cols = ", ".join(row)
+        marks = ", ".join("?" for _ in row)
+        with self.transaction() as conn:
+            return conn.execute(f"INSERT INTO map_validations ({cols}) VALUES ({marks})", tuple(row.values())).lastrowid
+
+    def latest_validation(self, map_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM map_validations WHERE map_id = ? ORDER BY id DESC LIMIT 1",
+                               (map_id,)).fetchone()
+            return dict(row) if row else None
+
+    def validation_of_job(self, job_id: int) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM map_validations WHERE job_id = ?", (job_id,)).fetchone()
+            return dict(row) if row else None
 
     # --- schedules ---------------------------------------------------------------------------------
     def create_schedule(self, name: str, cron: str, timezone_name: str, sweep: dict, enabled: bool,

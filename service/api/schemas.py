@@ -11,6 +11,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
 
 from service.identification.registry import METHODS
+from service.map_validation import ValidationOptions
 from service.operating_point import OperatingPoint
 from service.plans import Grid
 from service.schedules import check_cron, check_timezone
@@ -92,6 +93,13 @@ class ScheduleUpdate(_ScheduleFields):
     timezone: str = Field(None, min_length=1, max_length=64, description="IANA time zone")
     sweep: SweepCreate = None
     enabled: bool = None
+
+
+class ValidationCreate(BaseModel):
+    """Validate a map in the drive's LUT mode: its LUT is downloaded first (CRC-32 read back)."""
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"force": False, "options": {}}]})
+    force: bool = Field(False, description="validate a partial map (cells not ok carry no injection)")
+    options: ValidationOptions = Field(default_factory=ValidationOptions)
 
 
 class ErrorPublic(BaseModel):

@@ -36,6 +36,10 @@ class MethodOptions(BaseModel):
     max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
     settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
                             "(the shaft mode a step excites is fitted, not waited out)")
+    decoupling: bool | None = Field(None, description="drive decoupling of nominal control and injection (0x2000:6, "
+                                    "sec. 3.1) for this run; at low speed the nominal current loop counteracts the "
+                                    "injection without it (sec. 2.4). Default: the settings' identification.decoupling. "
+                                    "A map is valid in the drive only with the decoupling it was measured with")
 
 
 @dataclass(frozen=True)
@@ -122,9 +126,14 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
     limit = target_amplitude(uncompensated_fs, target_db)
     if meets(final, limit):
         return "ok", f"{suppression_db:.1f} dB, target {target_db:g} dB met"
+    counteracts = None
+    if (conditions is not None and conditions.current_bandwidth_hz and not conditions.decoupling
+            and conditions.harmonic_frequency_hz < CURRENT_LOOP_NEAR * conditions.current_bandwidth_hz):
+        counteracts = (f"the nominal current loop ({conditions.current_bandwidth_hz:.0f} Hz) counteracts at "
+                       f"{conditions.harmonic_frequency_hz:.0f} Hz: enable decoupling (option decoupling = true)")
     if limited:
         return "no_authority", (f"gamma_max reached at {suppression_db:.1f} dB: the injection cannot cancel the "
-                                "harmonic here (sec. 2.4)")
+                                "harmonic here (sec. 2.4)" + (f"; {counteracts}" if counteracts else ""))
     reasons = []
     floor = noise_floor_db(final, uncompensated_fs)
     if floor is not None and final.phasor.amplitude <= 3.0 * math.sqrt(2.0) * final.noise_std_fs:
@@ -134,10 +143,8 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
             distance = abs(conditions.harmonic_frequency_hz - conditions.resonance_hz)
             if distance < RESONANCE_NEAR_HZ:
                 reasons.append(f"harmonic {distance:.0f} Hz from the shaft resonance ({conditions.resonance_hz:.0f} Hz)")
-        if (conditions.current_bandwidth_hz and not conditions.decoupling
-                and conditions.harmonic_frequency_hz < CURRENT_LOOP_NEAR * conditions.current_bandwidth_hz):
-            reasons.append(f"the nominal current loop ({conditions.current_bandwidth_hz:.0f} Hz) counteracts at "
-                           f"{conditions.harmonic_frequency_hz:.0f} Hz: enable decoupling")
+        if counteracts:
+            reasons.append(counteracts)
     if not reasons:
         reasons.append("the residual stopped falling")
     return "below_target", f"{suppression_db:.1f} dB, below the {target_db:g} dB target: " + "; ".join(reasons)

@@ -710,5 +710,113 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
         assert not rec["pageerrors"], rec["pageerrors"]
         # the refused POSTs are the only console errors (Chromium logs every failed fetch)
         assert all("409" in m or "422" in m for m in rec["console"]), rec["console"]
+
+
+def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp_path):
+    """Two maps put into the service's database from stored results (no sweep: tests/support/maps.py):
+    the Map panel rings map a's planted outlier and gives its reason; the Compare panel, with map b
+    picked, shows |delta theta| and the predicted suppression of every cell, the outlier the worst."""
+    from service.storage import Storage
+    from tests.support.maps import make_map, theta_of
+
+    grid = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
+    outlier = (2.5, 2000.0, 12.0)
+
+    def smooth(p):
+        return theta_of(2.0 + 0.2 * p[0], 270.0 + p[1] / 200.0)
+
+    storage = Storage(service["log"].parent / "ripplecal.db")     # the service's own database
+    map_a = make_map(storage, grid, lambda p: theta_of(6.0, 200.0) if p == outlier else smooth(p))
+    map_b = make_map(storage, grid, smooth)
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.wait_for_function(f"""() => [...document.querySelectorAll('[data-testid="map-select"] option')]
+                                          .some((o) => o.value === '{map_a}')""", timeout=15_000)
+        page.select_option('[data-testid="map-select"]', str(map_a))
+        quality = page.locator('[data-testid="map-quality"]')
+        quality.wait_for(state="visible", timeout=10_000)
+        assert "T* 2.5 N·m, n 2000 rpm" in quality.inner_text()
+        assert "from the median of its 4 ok neighbours" in quality.inner_text()
+        assert "1 outlier(s)" in page.inner_text('[data-testid="map-meta"]')
+        page.wait_for_function("""() => { const d = document.querySelector('[data-testid="plot-gamma"]');
+                                          return d.data && d.data.some((t) => t.name === 'outlier'); }""",
+                               timeout=10_000)
+        assert page.inner_text('[data-testid="compare-a"]') == f"a: map {map_a}"
+
+        page.select_option('[data-testid="compare-b"]', str(map_b))
+        rows = page.locator('[data-testid="compare-row"][data-compared="1"]')
+        page.wait_for_function("""() => document.querySelectorAll('[data-testid="compare-row"]').length === 9""",
+                               timeout=10_000)
+        assert rows.count() == 9
+        assert "9 cells compared" in page.inner_text('[data-testid="compare-summary"]')
+        assert "at 2.5 N·m / 2000 rpm" in page.inner_text('[data-testid="compare-summary"]')
+        page.wait_for_function("""() => ['plot-compare-theta', 'plot-compare-supp'].every((id) =>
+                                          document.getElementById(id).classList.contains('js-plotly-plot'))""",
+                               timeout=10_000)
+        moved = [r for r in rows.all_inner_texts() if r.startswith("2.5\t2000")]
+        assert len(moved) == 1 and float(moved[0].split("\t")[5]) > 1.0, moved
+        page.screenshot(path=str(tmp_path / "map_compare.png"), full_page=True)
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+    finally:
+        context.close()
+
+
+def test_validate_on_drive_draws_the_suppression_over_grid_points_and_midpoints(service, browser, tmp_path):
+    """A 2 x 1 map (made through the API): "Validate on drive" starts the job; when it ends the panel
+    draws the suppression measured in the drive's LUT mode over the finer grid (3 torques x 1 speed:
+    2 grid points marked, 1 midpoint) with the summary line."""
+    sweep = _api(service, "POST", "/sweeps", {"grid": {"torque_nm": [2.0, 3.0], "speed_rpm": [1500], "udc_v": [12]},
+                                              "method": "probe"})
+    sweep = _wait_api(service, f"/sweeps/{sweep['id']}", lambda s: s["state"] not in ("queued", "running", "paused"))
+    assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
+    map_id = sweep["map_id"]
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
+        page.select_option('[data-testid="map-select"]', str(map_id))
+        page.wait_for_function(
+            """() => /Not validated/.test(document.querySelector('[data-testid="validation-meta"]').textContent)""",
+            timeout=10_000)
+        # without a token the refusal is shown, nothing runs
+        page.fill('[data-testid="token"]', "")
+        page.click('[data-testid="validate-btn"]')
+        page.wait_for_function(
+            """() => !document.querySelector('[data-testid="validation-note"]').hidden
+                && /refused/i.test(document.querySelector('[data-testid="validation-note"]').textContent)""",
+            timeout=10_000)
+        page.fill('[data-testid="token"]', service["token"])
+        page.check('[data-testid="validate-force"]')     # whatever the sweep reached, validate it
+        page.click('[data-testid="validate-btn"]')
+        try:
+            page.wait_for_function(
+                """() => document.querySelector('[data-testid="map-validation"]').dataset.validated === '1'
+                    && document.querySelector('[data-testid="plot-validation"]').classList.contains('js-plotly-plot')""",
+                timeout=SWEEP_TIMEOUT_MS)
+        except Exception:
+            page.screenshot(path=str(tmp_path / "validation_failure.png"), full_page=True)
+            raise AssertionError("validation not drawn: note=%r meta=%r\nservice log:\n%s"
+                                 % (page.text_content('[data-testid="validation-note"]'),
+                                    page.text_content('[data-testid="validation-meta"]'), _log_tail(service["log"])))
+        v = _api(service, "GET", f"/maps/{map_id}/validation")
+        meta = page.inner_text('[data-testid="validation-meta"]')
+        assert f"job {v['job_id']}" in meta and "grid" in meta and "midpoints" in meta, meta
+        drawn = page.evaluate("""() => {
+            const d = document.getElementById('plot-validation').data;
+            return {x: d[0].x, y: d[0].y, z: d[0].z, gridX: d[1].x, text: d[0].text};
+        }""")
+        assert drawn["x"] == [2.0, 2.5, 3.0] and drawn["y"] == [1500.0]
+        assert drawn["gridX"] == [2.0, 3.0]         # the grid points are marked, the midpoint is not
+        measured = {c["operating_point"]["torque_nm"]: c["suppression_db"] for c in v["cells"]}
+        for j, t in enumerate(drawn["x"]):
+            if measured[t] is None:
+                assert drawn["z"][0][j] is None
+            else:
+                assert drawn["z"][0][j] == pytest.approx(measured[t])
+        assert "midpoint (interpolated)" in drawn["text"][0][1] and "grid point" in drawn["text"][0][0]
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not [c for c in rec["console"] if "401" not in c], f"console errors: {rec['console']}"
+        page.screenshot(path=str(tmp_path / "map_validation.png"), full_page=True)
     finally:
         context.close()

@@ -79,7 +79,7 @@ def test_no_server_errors(live, mode):
                 assert gone.status_code == 204, gone.text
             if response.status_code == 202:     # a run was accepted: stop it before it occupies the bench
                 TALLY["runs accepted and cancelled"] += 1
-                kind = "jobs" if case.path.endswith("identifications") else "sweeps"
+                kind = "sweeps" if case.path.endswith("sweeps") else "jobs"    # identifications, map validations
                 cancel = client.post(f"/api/v1/{kind}/{response.json()['id']}/cancel", headers=operator)
                 assert cancel.status_code in (200, 409), cancel.text
 

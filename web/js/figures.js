@@ -45,6 +45,21 @@ export const MAP_QUANTITIES = [
     sym: "suppression", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
 ];
 
+// Map b against map a (GET /maps/{a}/compare/{b}), drawn by mapHeatmap over compareCells().
+export const COMPARE_QUANTITIES = [
+  { key: "delta_theta_deg", title: "|Δθ| — map b against map a", unit: "deg", cbar: "|Δθ| (°)", sym: "|Δθ|",
+    scale: [[0, "#fff5eb"], [0.5, "#fd8d3c"], [1, "#a63603"]], range: "zero", digits: 2 },
+  { key: "predicted_suppression_db", title: "suppression b's θ would reach on a's bench", unit: "dB", cbar: "dB",
+    sym: "predicted", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
+];
+
+// A comparison's cells as map cells: compared cells count as ok, the others carry why not.
+export function compareCells(comparison) {
+  return comparison.cells.map((c) => Object.assign({}, c, {
+    status: c.compared ? "ok" : "not compared", result_id: null, quality: null,
+  }));
+}
+
 // The cells of `map` at one DC-link voltage: torque on x, speed on y.
 export function mapSlice(map, udc) {
   const cells = map.cells.filter((c) => Number(c.udc_v) === udc);
@@ -66,7 +81,8 @@ export function mapHeatmap(slice, q) {
     const j = xi.get(Number(c.torque_nm));
     if (i === undefined || j === undefined) continue;
     const head = `T* ${fmt(c.torque_nm)} N·m<br>n ${fmt(c.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(c.udc_v)} V<br>`;
-    const click = c.result_id ? "<br><i>click: result details</i>" : "";
+    const click = (c.quality === "outlier" ? `<br><b>outlier</b>: ${escapeHtml(String(c.outlier_reason).split(" (")[0])}` : "") +
+      (c.result_id ? "<br><i>click: result details</i>" : "");
     const v = c[q.key];
     if (c.status === "ok" && v !== null && v !== undefined) {
       z[i][j] = v;
@@ -107,7 +123,14 @@ export function mapHeatmap(slice, q) {
     yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
-  return { data: [trace], layout, config: CONFIG };
+  // outliers of the map quality (service/map_quality.py) get a ring; hover and clicks stay the heatmap's
+  const marked = cells.filter((c) => c.quality === "outlier");
+  const rings = {
+    type: "scatter", mode: "markers", x: marked.map((c) => c.torque_nm), y: marked.map((c) => c.speed_rpm),
+    marker: { symbol: "circle-open", size: 30, color: "#d1495b", line: { width: 2 } },
+    hoverinfo: "skip", showlegend: false, name: "outlier",
+  };
+  return { data: marked.length ? [trace, rings] : [trace], layout, config: CONFIG };
 }
 
 // ------------------------------------------------------------------ one result (paper Fig. 8, 9, 10)
@@ -291,4 +314,59 @@ export function gridSurface(r) {
       }),
     config: CONFIG,
   };
+}
+
+// ------------------------------------------------------------------ validation in the drive's LUT mode
+// Suppression measured with the drive's own LUT feedforward over the finer grid (grid values and
+// the midpoints between them) at one U_dc: grid points carry a ring marker, midpoints none; a
+// cell that failed or was not measured stays blank with its reason on hover.
+export function validationHeatmap(cells, udc) {
+  const mine = cells.filter((c) => Number(c.operating_point.udc_v) === udc);
+  const axis = (key) => [...new Set(mine.map((c) => Number(c.operating_point[key])))].sort((a, b) => a - b);
+  const xs = axis("torque_nm");
+  const ys = axis("speed_rpm");
+  const xi = new Map(xs.map((v, i) => [v, i]));
+  const yi = new Map(ys.map((v, i) => [v, i]));
+  const z = ys.map(() => xs.map(() => null));
+  const text = ys.map(() => xs.map(() => ""));
+  const grid = { x: [], y: [] };
+  for (const c of mine) {
+    const op = c.operating_point;
+    const i = yi.get(Number(op.speed_rpm));
+    const j = xi.get(Number(op.torque_nm));
+    const untrained = c.kind === "grid" && c.map_cell_status && c.map_cell_status !== "ok" ?
+      ` — map cell ${escapeHtml(String(c.map_cell_status))}: no injection in the LUT` : "";
+    const head = `<b>${c.kind === "grid" ? "grid point (trained)" : "midpoint (interpolated)"}</b>${untrained}<br>` +
+      `T* ${fmt(op.torque_nm)} N·m<br>n ${fmt(op.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(op.udc_v)} V<br>`;
+    if (c.kind === "grid") {
+      grid.x.push(xs[j]);
+      grid.y.push(ys[i]);
+    }
+    if (c.status === "measured" && c.suppression_db !== null && c.suppression_db !== undefined) {
+      z[i][j] = c.suppression_db;
+      const floor = c.noise_floor_db === null || c.noise_floor_db === undefined ? "" :
+        `<br>noise floor ${Number(c.noise_floor_db).toFixed(0)} dB${c.at_noise_floor ? " (at the floor: a lower bound)" : ""}`;
+      text[i][j] = head + `<b>suppression = ${Number(c.suppression_db).toFixed(1)} dB</b>${floor}`;
+    } else {
+      text[i][j] = head + `<b>${escapeHtml(String(c.status))}</b>: ${escapeHtml(String(c.error || "no value"))}`;
+    }
+  }
+  const heat = {
+    type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>", hoverongaps: true,
+    colorscale: "Cividis", zmin: 0, zmax: 60, xgap: 1, ygap: 1, texttemplate: "%{z:.1f}", textfont: { size: 11 },
+    colorbar: { title: { text: "dB (fixed 0…60)", side: "right" }, thickness: 12, len: 0.9 }, name: "suppression",
+  };
+  const marks = {
+    type: "scatter", mode: "markers", x: grid.x, y: grid.y, name: "grid point (trained)", hoverinfo: "skip",
+    marker: { symbol: "square-open", size: 30, color: "#d1495b", line: { width: 2 } },
+  };
+  const layout = {
+    title: { text: `suppression in the drive's LUT mode (dB) @ U<sub>dc</sub> = ${udc} V · ◻ grid point, else midpoint`,
+      font: { size: 13 }, x: 0.02, xanchor: "left" },
+    margin: { l: 58, r: 10, t: 36, b: 44 }, showlegend: false,
+    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
+    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
+    font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
+  };
+  return { data: [heat, marks], layout, config: CONFIG };
 }

@@ -8,13 +8,21 @@ from fastapi.responses import PlainTextResponse
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
-from service.api.refusals import unprocessable
+from service.api.refusals import refused_at, unprocessable
+from service.api.schemas import ValidationCreate
 from service.bench import BenchError
 from service import lut_download
 from service.lut_export import EXPORT_FORMATS, export_map
-from service.public import LutDownloadPublic, MapPublic, MapSummaryPublic, map_public, map_summaries
+from service.map_compare import MapCompareError, compare_maps
+from service.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
+                            ValidationPublic, job_public, map_public, map_summaries, validation_public)
 
 router = APIRouter(prefix="/api/v1", tags=["maps"])
+
+# a view, never a change of the stored map: outlier cells carry their neighbours' fit (service/map_quality.py)
+SmoothQuery = Query("none", description="outliers: outlier cells carry their ok neighbours' median theta, "
+                                        "marked smoothed with their source (the stored map is not changed)")
+Smooth = Literal["none", "outliers"]
 
 
 @router.get("/maps", response_model=list[MapSummaryPublic])
@@ -23,8 +31,8 @@ def list_maps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> lis
 
 
 @router.get("/maps/{map_id}", response_model=MapPublic, responses=error_responses(404))
-def get_map(map_id: ResourceId, service: ServiceDep) -> MapPublic:
-    m = map_public(service.storage, map_id)
+def get_map(map_id: ResourceId, service: ServiceDep, smooth: Smooth = SmoothQuery) -> MapPublic:
+    m = map_public(service.storage, map_id, smooth=smooth == "outliers")
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m
@@ -39,11 +47,26 @@ ExportFormatName = Literal[tuple(EXPORT_FORMATS)]
             responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)})
 def export(map_id: ResourceId, service: ServiceDep,
            format: ExportFormatName = Query("csv", description=" | ".join(
-               f"{f.name}: {f.display_name}" for f in EXPORT_FORMATS.values()))) -> PlainTextResponse:
-    m = _map_dict(service, map_id)
+               f"{f.name}: {f.display_name}" for f in EXPORT_FORMATS.values())),
+           smooth: Smooth = SmoothQuery) -> PlainTextResponse:
+    m = _map_dict(service, map_id, smooth=smooth == "outliers")
     fmt = EXPORT_FORMATS[format]
+    name = f"ripplecal_map{map_id}{'_smoothed' if smooth == 'outliers' else ''}.{fmt.extension}"
     return PlainTextResponse(export_map(m, format), media_type=fmt.media_type,
-                             headers={"Content-Disposition": f'attachment; filename="ripplecal_map{map_id}.{fmt.extension}"'})
+                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+@router.get("/maps/{map_id}/compare/{other_id}", response_model=MapComparisonPublic, responses=error_responses(404))
+def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> MapComparisonPublic:
+    """Map `other_id` (b) against map `map_id` (a) at the operating points both hold: delta gamma, delta
+    delta, delta theta, and the suppression b's theta would reach on a's bench (a's measured S).
+    A map compared with itself is allowed (zero deltas; the prediction is its measured suppression)."""
+    try:
+        return compare_maps(service.storage, map_id, other_id)
+    except KeyError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, exc.args[0]) from None
+    except MapCompareError as exc:
+        raise unprocessable(validation_error(["path", "other_id"], str(exc))) from None
 
 
 @router.post("/maps/{map_id}/download", response_model=LutDownloadPublic,
@@ -66,9 +89,35 @@ def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
         raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"drive refused the LUT: {exc}") from None
 
 
-def _map_dict(service, map_id: int) -> dict:
+@router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
+             responses=error_responses(400, 401, 403, 404, 413))
+def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
+                 body: ValidationCreate | None = None) -> JobPublic:
+    """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
+    grid point and at the midpoints between them (uncompensated and with the drive's own feedforward)."""
+    body = body or ValidationCreate()
+    try:
+        with refused_at(["path", "map_id"]):
+            job_id = service.engine.submit_validation(map_id, body.force, body.options)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
+    return job_public(service.storage, service.storage.get_job(job_id))
+
+
+@router.get("/maps/{map_id}/validation", response_model=ValidationPublic, responses=error_responses(404))
+def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
+    """The map's latest validation with every cell."""
+    if service.storage.get_map(map_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
+    row = service.storage.latest_validation(map_id)
+    if row is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} has not been validated: POST /maps/{map_id}/validate")
+    return validation_public(row)
+
+
+def _map_dict(service, map_id: int, smooth: bool = False) -> dict:
     """The map as the exporters read it (its Public shape, as a dict)."""
-    m = map_public(service.storage, map_id)
+    m = map_public(service.storage, map_id, smooth=smooth)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m.model_dump()

@@ -11,8 +11,10 @@ export function init() {
   $("map-download").addEventListener("click", () => download(false));
 }
 
-// maps.js calls this for every map it shows (m: GET /maps/{id}).
+// main.js calls this for every map the Map panel draws (m: GET /maps/{id}); a redraw of the same
+// map (another U_dc slice) keeps the last download's message.
 export function showFor(m) {
+  if (shown && shown.id === m.id) return;
   const ok = m.cells.filter((c) => c.status === "ok").length;
   shown = { id: m.id, cells: m.cells.length, ok };
   $("map-download").dataset.mapId = String(m.id);

@@ -10,11 +10,14 @@ const PLOT_DIV = { gamma_deg: "plot-gamma", delta_deg: "plot-delta", suppression
 
 let currentMap = null;           // the full map shown, as GET /maps/{id} answers
 let openResult = () => {};
+let mapShown = () => {};
 let onShown = () => {};
 
-// openResultOf(resultId, source): what a click on a map cell does; onShown(map): told of each map shown.
-export function init({ openResultOf, onShown: shown }) {
+// openResultOf(resultId, source): what a click on a map cell does; onMapShown(id): a map is shown;
+// shown(map, udc): the map and U_dc slice drawn (the validation panel follows it).
+export function init({ openResultOf, onMapShown, shown }) {
   openResult = openResultOf;
+  if (onMapShown) mapShown = onMapShown;
   if (shown) onShown = shown;
   $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
   $("udc-select").addEventListener("change", draw);
@@ -76,7 +79,6 @@ async function show(id) {
     return;
   }
   currentMap = m;
-  onShown(m);
   const udcs = (m.axes && m.axes.udc_v) || [...new Set(m.cells.map((c) => c.udc_v))].sort((a, b) => a - b);
   const usel = $("udc-select");
   const prev = usel.value;
@@ -85,12 +87,19 @@ async function show(id) {
   const counts = {};
   for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
   const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
+  const q = m.quality || {};
   setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · sweep ${m.sweep_id} · ` +
-    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText})`);
+    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${q.outliers || 0} outlier(s)`);
+  // outliers (ringed in the plots) with the reason to act on
+  const outliers = m.cells.filter((c) => c.quality === "outlier").map((c) =>
+    `T* ${fmt(c.torque_nm)} N·m, n ${fmt(c.speed_rpm)} rpm, U_dc ${fmt(c.udc_v)} V: ${c.outlier_reason}`);
+  showMsg("map-quality", outliers.length ? outliers : null, outliers.length ? "Outliers against their neighbours" : undefined);
   draw();
+  mapShown(id);
 }
 
 function draw() {
+  if (currentMap) onShown(currentMap, Number($("udc-select").value));
   if (!figures.plotlyLoaded() || !currentMap) return;
   const slice = figures.mapSlice(currentMap, Number($("udc-select").value));
   for (const q of figures.MAP_QUANTITIES) {

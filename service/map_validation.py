@@ -1,0 +1,238 @@
+"""A map proven in the drive's own LUT mode (issue 11): download its LUT, switch the drive to LUT
+mode (0x2000:2 = 2) and measure, at every grid point and at the midpoints between neighbouring grid
+points, how much of the h-th harmonic the drive's own feedforward leaves.
+
+Points: per axis of length n > 1 the finer axis with 2n-1 values (the grid values and the midpoint
+between each neighbouring pair); a single-valued axis stays as it is. Every point of the finer grid
+is measured; `kind` is `grid` where all its coordinates are grid values, else `midpoint` (the drive
+interpolates theta multilinearly there: untrained points).
+
+At each point (bench.operating_point: move, settle on the DAQ clock, always leave safe):
+  1. injection mode off, the uncompensated phasor A_0 (identification.common.measure_reference,
+     known to 1 % of itself);
+  2. injection mode LUT (no theta from the service), the residual phasor A_lut, its window extended
+     until the noise floor sqrt(2) sigma sits `floor_db` below |A_0| (or max_window_s is reached);
+  3. suppression_db = 20 log10(|A_0| / |A_lut|) (the same figure as an identification's,
+     service.identification.common), with noise_floor_db = 20 log10(sqrt(2) sigma / |A_0|) of the
+     LUT window. A residual within 3 sqrt(2) sigma of zero is `at_noise_floor`: the figure is then
+     a lower bound, not the LUT's true suppression.
+A point that faulted or could not be measured carries its reason and no number. An interlock trip
+or a cancel stops the run (the points not reached say so); the bench is made safe after every
+point and after the run (torque 0, injection mode off, drive disabled).
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import threading
+from dataclasses import dataclass, field
+from itertools import product
+from typing import Any, Callable
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service import __version__, lut_download
+from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
+from service.interlocks import InterlockTripped
+from service.limits import check_limits
+from service.measurement import RunCancelled
+from service.operating_point import OperatingPoint
+from service.public import map_public
+from service.settings import Settings
+from service.storage import Storage, now_iso
+
+AT_FLOOR_SIGMAS = 3.0       # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
+
+
+class ValidationOptions(BaseModel):
+    """How finely each point is measured. Every field bounded."""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    floor_db: float = Field(55.0, ge=20, le=80, description="the LUT window is extended until its noise floor is this "
+                                                            "far below the uncompensated amplitude, dB")
+    max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window at one point, plant s")
+    settle_s: float = Field(0.02, ge=0, le=2.0, description="plant time after the injection mode switch before "
+                                                           "measuring, s")
+
+
+class ValidationRefused(ValueError):
+    """The map cannot be validated as asked (no valid cell; a partial map without force)."""
+
+
+class ValidationStopped(RuntimeError):
+    """An interlock trip stopped the validation (the cells measured before it are stored)."""
+
+
+def finer_axis(values: list[float]) -> list[tuple[float, bool]]:
+    """(value, is_grid_value) along an axis: the grid values and their neighbours' midpoints."""
+    out = []
+    for a, b in zip(values, values[1:]):
+        out += [(float(a), True), ((float(a) + float(b)) / 2.0, False)]
+    return out + [(float(values[-1]), True)]
+
+
+def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint, str]]:
+    """Every point of the finer grid, in the order measured (U_dc, then speed, then torque, so the
+    load machine moves least), with its kind: grid | midpoint."""
+    points = []
+    for (u, ug), (n, ng), (t, tg) in product(finer_axis(axes["udc_v"]), finer_axis(axes["speed_rpm"]),
+                                             finer_axis(axes["torque_nm"])):
+        points.append((OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u), "grid" if ug and ng and tg else "midpoint"))
+    return points
+
+
+def check_validatable(m: dict, force: bool) -> None:
+    """A map without a valid (ok) cell is refused; a partial one needs `force` (its invalid cells
+    carry no injection, the drive interpolates towards theta = 0 there)."""
+    ok = sum(1 for c in m["cells"] if c["status"] == "ok")
+    if ok == 0:
+        raise ValidationRefused(f"map {m['id']} has no valid (ok) cell: there is no LUT to validate")
+    if ok < len(m["cells"]) and not force:
+        raise ValidationRefused(f"map {m['id']} is partial: {len(m['cells']) - ok} of {len(m['cells'])} cells are not "
+                                "ok and carry no injection; pass force=true to validate it anyway")
+
+
+def download_into_drive(storage: Storage, bench, map_id: int, force: bool) -> dict:
+    """The map's LUT into the drive, CRC-32 and map id read back (service.lut_download.download_map,
+    the one way a map goes into the drive): the receipt."""
+    return lut_download.download_map(storage, bench, map_id, force).model_dump()
+
+
+@dataclass
+class ValidationRun:
+    """What a validation job found so far (stored as it ends, whatever ends it)."""
+    map_id: int
+    harmonic_order: int
+    options: dict
+    cells: list[dict] = field(default_factory=list)
+    download: dict | None = None
+    state: str = "done"            # done | failed | cancelled
+    error: str | None = None
+    started_at: str = field(default_factory=now_iso)
+
+    def summary(self) -> dict:
+        return summarize(self.cells)
+
+
+def _phasor(p) -> dict:
+    return {"a_c": p.a_c, "a_s": p.a_s, "amplitude": p.amplitude}
+
+
+def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
+    """The drive decoupling (0x2000:6) the map's ok cells were measured with: the LUT holds only with
+    it. Cells stored before results recorded it count as the settings' default. A map mixing both
+    cannot be validated as one LUT."""
+    used = set()
+    for row in storage.results_by_id([c.result_id for c in m.cells if c.status == "ok" and c.result_id]).values():
+        details = json.loads(row.get("detail_json") or "{}").get("details") or {}
+        used.add(bool(details.get("decoupling", settings.identification.decoupling)))
+    if len(used) > 1:
+        raise ValueError(f"map {m.id} mixes cells measured with and without drive decoupling: "
+                         "validate maps measured one way")
+    return used.pop() if used else settings.identification.decoupling
+
+
+def measure_point(bench, settings: Settings, op: OperatingPoint, h: int, options: ValidationOptions,
+                  cancel: threading.Event | None = None, decoupling: bool | None = None) -> dict:
+    """One point: uncompensated (injection off), then the drive's own LUT feedforward (module doc),
+    with the drive decoupling the map was measured with."""
+    with bench.operating_point(op, h, cancel=cancel, decoupling=decoupling) as session:
+        session.settle_after_theta_s = options.settle_s
+        max_periods = periods_for(session, options.max_window_s)      # >= MIN_PERIODS
+        session.apply_injection_mode("off")
+        reference = measure_reference(session, MIN_PERIODS, max_periods)
+        a0 = reference.phasor.amplitude
+        session.apply_injection_mode("lut")
+        # noise floor sqrt(2) sigma at floor_db below |A_0|
+        sigma_fs = a0 * 10.0 ** (-options.floor_db / 20.0) / math.sqrt(2.0)
+        residual = session.measure(MIN_PERIODS, max_noise_std_fs=sigma_fs, max_periods=max_periods)
+        plant_time_s = session.plant_time_s
+        speed_rpm = session.speed_rpm_measured
+        f_h = session.harmonic_frequency_hz
+    a = residual.phasor.amplitude
+    if a0 <= 0 or a <= 0:
+        raise ValueError(f"a phasor of zero amplitude (uncompensated {a0:g}, LUT {a:g} fs): nothing to compare")
+    return {"suppression_db": 20.0 * math.log10(a0 / a), "uncompensated": _phasor(reference.phasor),
+            "residual": _phasor(residual.phasor), "noise_floor_db": noise_floor_db(residual, a0),
+            "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
+            "plant_time_s": plant_time_s, "speed_rpm_measured": speed_rpm, "harmonic_frequency_hz": f_h}
+
+
+def run_validation(storage: Storage, bench, settings: Settings, map_id: int, force: bool, options: ValidationOptions,
+                   cancel: threading.Event, on_cell: Callable[[dict, int], None] | None = None,
+                   download: Callable[..., dict] = download_into_drive) -> ValidationRun:
+    """The whole job: download, then every point. Never raises for a point: a failed point is a cell
+    with its reason; an interlock trip or a cancel ends the run with state failed / cancelled and the
+    remaining cells marked not measured. Errors before the first point (download) do raise."""
+    m = map_public(storage, map_id)
+    if m is None:
+        raise KeyError(f"map {map_id} does not exist")
+    h = m.harmonic_order
+    run = ValidationRun(map_id=map_id, harmonic_order=h, options=options.model_dump())
+    decoupling = measured_decoupling(storage, m, settings)
+    run.options["decoupling"] = decoupling
+    run.download = download(storage, bench, map_id, force)
+    points = validation_points(m.axes)
+    # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
+    map_status = {(c.torque_nm, c.speed_rpm, c.udc_v): c.status for c in m.cells}
+    for op, kind in points:
+        cell: dict[str, Any] = {"operating_point": op.model_dump(), "kind": kind}
+        if kind == "grid":
+            cell["map_cell_status"] = map_status.get((op.torque_nm, op.speed_rpm, op.udc_v), "missing")
+        if run.state != "done":
+            cell.update(status="not_measured", error=f"not measured: the validation stopped ({run.error})")
+        elif cancel.is_set():
+            run.state, run.error = "cancelled", "cancelled by the operator"
+            cell.update(status="not_measured", error="not measured: the validation was cancelled")
+        else:
+            try:
+                cell.update(status="measured", error=None,
+                            **measure_point(bench, settings, op, h, options, cancel, decoupling))
+            except RunCancelled:
+                run.state, run.error = "cancelled", "cancelled by the operator"
+                cell.update(status="not_measured", error="not measured: the validation was cancelled")
+            except InterlockTripped as exc:
+                run.state, run.error = "failed", f"interlock tripped at {op.label()}: {exc}"
+                cell.update(status="failed", error=f"InterlockTripped: {exc}")
+            except Exception as exc:  # noqa: BLE001 - one point that cannot be measured is that point's result
+                cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+        run.cells.append(cell)
+        if on_cell is not None:
+            on_cell(cell, len(points))
+    return run
+
+
+def summarize(cells: list[dict]) -> dict:
+    """Median and minimum suppression of the grid and of the midpoint cells measured, the worst cell,
+    and the counts (failed and not measured cells count apart, never as a number)."""
+    out: dict[str, Any] = {}
+    for kind in ("grid", "midpoint"):
+        mine = [c for c in cells if c["kind"] == kind]
+        values = [c["suppression_db"] for c in mine if c["status"] == "measured"]
+        out[kind] = {"cells": len(mine), "measured": len(values),
+                     "failed": sum(1 for c in mine if c["status"] == "failed"),
+                     "not_measured": sum(1 for c in mine if c["status"] == "not_measured"),
+                     "at_noise_floor": sum(1 for c in mine if c.get("at_noise_floor")),
+                     "median_db": statistics.median(values) if values else None,
+                     "min_db": min(values) if values else None}
+    measured = [c for c in cells if c["status"] == "measured"]
+    worst = min(measured, key=lambda c: c["suppression_db"]) if measured else None
+    out["worst"] = None if worst is None else {"operating_point": worst["operating_point"], "kind": worst["kind"],
+                                               "suppression_db": worst["suppression_db"]}
+    out["plant_time_s"] = sum(c.get("plant_time_s") or 0.0 for c in measured)
+    return out
+
+
+def store_validation(storage: Storage, job_id: int, run: ValidationRun, bench_identity: str) -> int:
+    return storage.insert_validation({
+        "map_id": run.map_id, "job_id": job_id, "state": run.state, "error": run.error,
+        "harmonic_order": run.harmonic_order, "options_json": json.dumps(run.options),
+        "download_json": json.dumps(run.download), "summary_json": json.dumps(run.summary()),
+        "cells_json": json.dumps(run.cells), "bench_identity": bench_identity, "software_version": __version__,
+        "started_at": run.started_at, "finished_at": now_iso()})
+
+
+def check_points(m: dict, settings: Settings) -> None:
+    """Every point of the finer grid within the bench's limits (before anything is queued)."""
+    for op, _kind in validation_points(m["axes"]):
+        check_limits(op, settings)

@@ -1,0 +1,53 @@
+"""Maps built in storage from stored results with chosen thetas (no bench): a sweep, one result per
+grid point (through result_row, as the engine stores them) and the map the engine would build."""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+from service import __version__
+from service.harmonic import Phasor
+from service.identification.adaptive import AdaptiveOptions
+from service.identification.result import IdentificationResult
+from service.maps import build_map_from_sweep
+from service.operating_point import OperatingPoint
+from service.public import result_row
+from service.storage import Storage, now_iso
+
+Point = tuple[float, float, float]
+
+RESIDUAL = (2e-4, -1e-4)          # [a_c, a_s] left at the cell's own theta, full scale
+UNCOMPENSATED = (0.06, 0.03)      # [a_c, a_s] with theta = 0, full scale
+S_MEASURED = complex(0.8, -0.6)   # full scale per rad
+
+
+def theta_of(gamma_deg: float, delta_deg: float) -> tuple[float, float]:
+    """theta (rad) of gamma, delta (eq. 21-22: theta_cos = gamma cos delta, theta_sin = -gamma sin delta)."""
+    g, d = math.radians(gamma_deg), math.radians(delta_deg)
+    return g * math.cos(d), -g * math.sin(d)
+
+
+def make_map(storage: Storage, grid: dict[str, list[float]], theta: Callable[[Point], tuple[float, float]],
+             status: dict[Point, str] | None = None, s_measured: complex | None = S_MEASURED,
+             harmonic_order: int = 6) -> int:
+    """A map over `grid` whose ok cells carry theta(point) (rad); `status` names the cells that are not
+    ok ("failed" stores an error row without theta)."""
+    status = status or {}
+    points = [(t, n, u) for u in grid["udc_v"] for n in grid["speed_rpm"] for t in grid["torque_nm"]]
+    sweep_id = storage.create_sweep("adaptive", harmonic_order, grid, {}, len(points), "test-bench", __version__)
+    for p in points:
+        op = OperatingPoint(torque_nm=p[0], speed_rpm=p[1], udc_v=p[2])
+        state = status.get(p, "ok")
+        if state == "failed":
+            row = result_row(op, "adaptive", AdaptiveOptions(), "test-bench", "t0", error="MeasurementError: boom",
+                             sweep_id=sweep_id, harmonic_order=harmonic_order)
+        else:
+            tc, ts = theta(p)
+            result = IdentificationResult("adaptive", harmonic_order, state, tc, ts, Phasor(*RESIDUAL, 1600, 6),
+                                          Phasor(*UNCOMPENSATED, 1600, 6), 0.5, 8, s_measured=s_measured,
+                                          message="" if state == "ok" else "residual at the noise floor")
+            row = result_row(op, "adaptive", AdaptiveOptions(), "test-bench", "t0", result, sweep_id=sweep_id,
+                             harmonic_order=harmonic_order)
+        storage.insert_result(row)
+    storage.update_sweep(sweep_id, state="done", started_at=now_iso(), finished_at=now_iso())   # a finished sweep, as its map implies
+    return build_map_from_sweep(storage, sweep_id)

@@ -1,0 +1,170 @@
+"""Map quality (service/map_quality.py) on closed-form maps: a map linear in the operating point has
+no outlier, one planted outlier is flagged alone with the numbers its reason gives, non-ok cells are
+never references, and the smoothed view replaces only the outlier (the stored map stays as measured)."""
+import csv
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from service import map_quality
+from service.lut_export import export_map
+from service.public import map_public
+from service.storage import Storage
+from tests.support.maps import make_map, theta_of
+
+# non-uniform speed axis: the expected step scales with the grid spacing
+GRID = {"torque_nm": [1.0, 2.0, 3.0, 4.0], "speed_rpm": [1000.0, 1500.0, 2500.0, 3000.0], "udc_v": [12.0]}
+THETA0 = np.array(theta_of(3.0, 280.0))
+G_T = np.array([0.004, -0.002])          # rad per Nm
+G_N = np.array([-1.0e-5, 1.5e-5])        # rad per rpm
+
+
+def linear(p):
+    t = THETA0 + G_T * (p[0] - 2.5) + G_N * (p[1] - 2000.0)
+    return float(t[0]), float(t[1])
+
+
+def planted(at, offset):
+    def theta(p):
+        tc, ts = linear(p)
+        return (tc + offset[0], ts + offset[1]) if p == at else (tc, ts)
+    return theta
+
+
+OFFSET = np.array(theta_of(1.5, 40.0))    # 1.5 deg, in some direction
+
+
+@pytest.fixture
+def storage(tmp_path):
+    return Storage(tmp_path / "q.db")
+
+
+def _cell(m, t, n, u=12.0):
+    return next(c for c in m["cells"] if (c["torque_nm"], c["speed_rpm"], c["udc_v"]) == (t, n, u))
+
+
+def test_linear_map_has_no_outlier_and_its_gradients_are_the_slopes(storage):
+    m = map_public(storage, make_map(storage, GRID, linear)).model_dump()
+    assert {c["quality"] for c in m["cells"]} == {"consistent"}
+    q = m["quality"]
+    assert (q["outliers"], q["unchecked"], q["consistent"]) == (0, 0, 16)
+    assert q["gradient_deg_per_unit"]["torque_nm"] == pytest.approx(math.degrees(np.hypot(*G_T)), rel=1e-9)
+    assert q["gradient_deg_per_unit"]["speed_rpm"] == pytest.approx(math.degrees(np.hypot(*G_N)), rel=1e-9)
+    assert q["gradient_deg_per_unit"]["udc_v"] is None        # one voltage: no pair on that axis
+
+
+def test_planted_interior_outlier_is_flagged_alone_with_closed_form_numbers(storage):
+    at = (2.0, 1500.0, 12.0)
+    m = map_public(storage, make_map(storage, GRID, planted(at, OFFSET))).model_dump()
+    flagged = [c for c in m["cells"] if c["quality"] == "outlier"]
+    assert [(c["torque_nm"], c["speed_rpm"]) for c in flagged] == [(2.0, 1500.0)]
+    assert m["quality"]["outliers"] == 1
+    # independently: the median of the 4 neighbours of an interior cell of a linear map is the
+    # linear value, so the deviation is the planted offset; the expected step is the median of the
+    # neighbour distances times the slopes (torque 1 Nm both sides, speed 500 and 1000 rpm)
+    deviation_deg = math.degrees(np.hypot(*OFFSET))
+    steps = sorted([np.hypot(*G_T) * 1.0, np.hypot(*G_T) * 1.0, np.hypot(*G_N) * 500.0, np.hypot(*G_N) * 1000.0])
+    expected_deg = math.degrees((steps[1] + steps[2]) / 2)
+    reason = flagged[0]["outlier_reason"]
+    assert f"theta {deviation_deg:.2f} deg from the median of its 4 ok neighbours" in reason
+    assert f"{deviation_deg / expected_deg:.1f}x the step expected to them ({expected_deg:.2f} deg" in reason
+    assert "measure this point again" in reason
+
+
+def test_planted_corner_outlier_does_not_spoil_its_neighbours(storage):
+    at = (1.0, 1000.0, 12.0)
+    m = map_public(storage, make_map(storage, GRID, planted(at, 2 * OFFSET))).model_dump()
+    assert [(c["torque_nm"], c["speed_rpm"]) for c in m["cells"] if c["quality"] == "outlier"] == [(1.0, 1000.0)]
+    assert "of its 2 ok neighbours" in _cell(m, 1.0, 1000.0)["outlier_reason"]
+
+
+def test_a_step_within_the_factor_is_not_an_outlier(storage):
+    # half the expected step off: well inside 3x (no threshold within a hair)
+    small = OFFSET / np.hypot(*OFFSET) * 0.5 * np.hypot(*G_T)
+    m = map_public(storage, make_map(storage, GRID, planted((2.0, 1500.0, 12.0), small))).model_dump()
+    assert m["quality"]["outliers"] == 0
+
+
+def test_non_ok_cells_are_never_references():
+    axes = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
+    cells = []
+    for n in axes["speed_rpm"]:
+        for t in axes["torque_nm"]:
+            tc, ts = linear((t, n, 12.0))
+            cells.append({"torque_nm": t, "speed_rpm": n, "udc_v": 12.0, "status": "ok", "theta_cos": tc, "theta_sin": ts})
+    # a below_target cell with a wild theta next to the centre: not a reference, not judged
+    cells[1].update(status="below_target", theta_cos=1.0, theta_sin=-1.0)
+    q = map_quality.assess(cells, axes)
+    assert (1.0, 2000.0, 12.0) not in [k for k, c in q.cells.items() if c.quality == "outlier"]
+    assert (2.0, 1000.0, 12.0) not in q.cells
+    assert q.count("outlier") == 0
+    assert (2.0, 1000.0, 12.0) not in q.cells[(2.0, 2000.0, 12.0)].neighbours
+    # a line whose middle failed: each end has no ok neighbour left to compare with
+    line = [c for c in cells if c["speed_rpm"] == 1000.0]
+    q = map_quality.assess(line, {**axes, "speed_rpm": [1000.0]})
+    assert {c.quality for c in q.cells.values()} == {"unchecked"}
+
+
+def test_smoothed_view_replaces_only_the_outlier_and_leaves_the_stored_map(storage):
+    at = (3.0, 2500.0, 12.0)
+    map_id = make_map(storage, GRID, planted(at, OFFSET))
+    measured = map_public(storage, map_id).model_dump()
+    smooth = map_public(storage, map_id, smooth=True).model_dump()
+    assert smooth["smoothed"] and smooth["quality"]["smoothed"] == 1 and smooth["quality"]["outliers"] == 0
+    cell = _cell(smooth, 3.0, 2500.0)
+    assert cell["quality"] == "smoothed" and cell["status"] == "ok"
+    # the neighbours' median is the linear value here (interior cell of a linear map)
+    assert (cell["theta_cos"], cell["theta_sin"]) == pytest.approx(linear(at), abs=1e-12)
+    assert cell["suppression_db"] is None                      # nothing was measured at this theta
+    assert f"result {cell['result_id']}" in cell["smoothed_from"] and "3.0x" not in cell["smoothed_from"]
+    assert cell["outlier_reason"] == _cell(measured, 3.0, 2500.0)["outlier_reason"]
+    others = [(c["theta_cos"], c["suppression_db"]) for c in smooth["cells"] if c is not cell]
+    assert others == [(c["theta_cos"], c["suppression_db"]) for c in measured["cells"]
+                      if (c["torque_nm"], c["speed_rpm"]) != (3.0, 2500.0)]
+    # the stored map is still the measured one
+    again = map_public(storage, map_id).model_dump()
+    assert _cell(again, 3.0, 2500.0)["theta_cos"] == pytest.approx(linear(at)[0] + OFFSET[0], abs=1e-12)
+    assert _cell(again, 3.0, 2500.0)["quality"] == "outlier"
+
+
+def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(storage):
+    map_id = make_map(storage, GRID, planted((2.0, 1500.0, 12.0), OFFSET))
+    m = map_public(storage, map_id).model_dump()
+    text = export_map(m, "csv")
+    comments = [line for line in text.splitlines() if line.startswith("#")]
+    assert any("quality: 1 outlier(s) (2 Nm / 1500 rpm / 12 V)" in line for line in comments)
+    rows = list(csv.reader(io.StringIO("\n".join(line for line in text.splitlines() if not line.startswith("#")))))
+    assert rows[0] == ["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
+                       "suppression_db", "status"]
+    doc = json.loads(export_map(m, "json"))
+    assert set(doc["cells"][0]) == {"torque_nm", "speed_rpm", "udc_v", "status", "result_id", "gamma_deg", "delta_deg",
+                                    "theta_cos", "theta_sin", "suppression_db", "target_db", "noise_floor_db", "error"}
+    assert doc["format_version"] == 1 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
+    assert doc["quality"]["cells"][0]["outlier_reason"].startswith("theta ")
+    assert "quality: 1 outlier(s)" in export_map(m, "c") and "quality: 1 outlier(s)" in export_map(m, "dcm")
+    # the smoothed export: same columns, one row changed, said in the header
+    smooth = export_map(map_public(storage, map_id, smooth=True).model_dump(), "csv")
+    assert "SMOOTHED view: 1 outlier cell(s)" in smooth
+    plain_rows = [line for line in text.splitlines() if not line.startswith("#")]
+    smooth_rows = [line for line in smooth.splitlines() if not line.startswith("#")]
+    assert len(plain_rows) == len(smooth_rows)
+    changed = [a for a, b in zip(plain_rows, smooth_rows) if a != b]
+    assert len(changed) == 1 and changed[0].startswith("2.0,1500.0,12.0,")
+
+
+def test_past_the_one_by_one_share_every_cell_over_the_factor_is_flagged(storage, monkeypatch):
+    """After ONE_BY_ONE_SHARE of the cells the rest over the factor are flagged at once (a read stays
+    fast on a noisy map): no cell called consistent is then further than the factor from its fit."""
+    monkeypatch.setattr(map_quality, "ONE_BY_ONE_SHARE", 0.0)      # one by one for the first only
+    planted_at = {(1.0, 1000.0, 12.0), (4.0, 1500.0, 12.0), (2.0, 3000.0, 12.0)}   # no two share a neighbour
+
+    def theta(p):
+        tc, ts = linear(p)
+        return (tc + 2 * OFFSET[0], ts + 2 * OFFSET[1]) if p in planted_at else (tc, ts)
+    m = map_public(storage, make_map(storage, GRID, theta)).model_dump()
+    assert {(c["torque_nm"], c["speed_rpm"], c["udc_v"]) for c in m["cells"] if c["quality"] == "outlier"} == planted_at
+    q = map_quality.assess(m["cells"], m["axes"])
+    assert all(c.score <= map_quality.OUTLIER_FACTOR for c in q.cells.values() if c.quality == "consistent")
