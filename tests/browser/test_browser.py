@@ -710,6 +710,8 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
         assert not rec["pageerrors"], rec["pageerrors"]
         # the refused POSTs are the only console errors (Chromium logs every failed fetch)
         assert all("409" in m or "422" in m for m in rec["console"]), rec["console"]
+    finally:
+        context.close()
 
 
 def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp_path):
