@@ -8,10 +8,9 @@ goes out, so a refused value never reaches the bench half-applied.
 from __future__ import annotations
 
 import math
-import zlib
 from dataclasses import dataclass
 
-from drivers import DRIVE_EDS
+from drivers import DRIVE_EDS, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import State402
 from drivers.cia402_master import Cia402Master
@@ -34,8 +33,11 @@ SUB_DECOUPLING = 6               # U8
 SUB_COMMIT = 7                   # U8: write 1 applies the staged pair; reads commits mod 256
 OD_LUT = 0x2001
 SUB_LUT_DATA = 1                 # DOMAIN
-SUB_LUT_CRC = 2                  # U32, CRC-32 of the LUT in force
-SUB_LUT_STATUS = 3               # U8
+SUB_LUT_CRC = 2                  # U32, CRC-32 of the LUT in force (lut_image.image_crc), 0: none
+SUB_LUT_STATUS = 3               # U8, LUT_STATUSES
+SUB_LUT_MAP_ID = 4               # U32, map id of the LUT in force (from the image header), 0: none
+# 0x2001:3; after a refused download the LUT before it stays in force (its map id and CRC still read)
+LUT_STATUSES = {0: "none", 1: "in_force", 2: "last_download_refused"}
 OD_VOLTAGE_REFERENCE = 0x2010
 SUB_UD_REF = 1                   # REAL32 V
 SUB_UQ_REF = 2                   # REAL32 V
@@ -61,6 +63,14 @@ class DriveStatus:
     udc_v: float
     ud_ref_v: float
     uq_ref_v: float
+
+
+@dataclass(frozen=True)
+class LutInForce:
+    """Which LUT the drive holds, as it reports it (0x2001:4, :2, :3)."""
+    map_id: int                # 0: no LUT
+    crc32: int                 # lut_image.image_crc of the image in force, 0: no LUT
+    status: str                # LUT_STATUSES
 
 
 class DriveClient(Cia402Master):
@@ -203,25 +213,27 @@ class DriveClient(Cia402Master):
         self.write(OD_INJECTION, SUB_DECOUPLING, 1 if on else 0)
 
     # -- LUT download -------------------------------------------------------------------------------
-    def download_lut(self, blob: bytes) -> int:
-        """Download a LUT image to 0x2001:1 (segmented SDO) and check the drive's CRC-32 read-back
-        (0x2001:2) against ours. Returns the CRC. The image format is defined by the LUT exporter."""
+    def download_lut(self, blob: bytes) -> LutInForce:
+        """Download a LUT image (drivers/lut_image.py) to 0x2001:1 (segmented SDO), then read back what
+        the drive holds and check its CRC against the image's own (lut_image.image_crc: CRC-32 of the
+        image without its CRC field). Returns the drive's report. A malformed image is the drive's to
+        refuse (SDO abort 0x08000020)."""
         if not blob:
             raise ValueError("LUT image is empty")
         self.download_domain(OD_LUT, SUB_LUT_DATA, blob)
-        expected = zlib.crc32(blob) & 0xFFFFFFFF
-        reported = int(self.read(OD_LUT, SUB_LUT_CRC))
-        if reported != expected:
+        expected = lut_image.image_crc(blob)
+        held = self.lut_in_force()
+        if held.crc32 != expected:
             raise SdoError(self.node_id, "read", OD_LUT, SUB_LUT_CRC, self._object_name(OD_LUT, SUB_LUT_CRC),
-                           f"LUT CRC-32 read-back 0x{reported:08X} != 0x{expected:08X} of the {len(blob)} bytes sent "
-                           f"(LUT status {self.lut_status()})")
-        return reported
+                           f"LUT CRC-32 read-back 0x{held.crc32:08X} != 0x{expected:08X} of the {len(blob)} bytes "
+                           f"sent (LUT status {held.status})")
+        return held
 
-    def lut_crc(self) -> int:
-        return int(self.read(OD_LUT, SUB_LUT_CRC))
-
-    def lut_status(self) -> int:
-        return int(self.read(OD_LUT, SUB_LUT_STATUS))
+    def lut_in_force(self) -> LutInForce:
+        """Three expedited SDO reads: map id, CRC and status of the drive's LUT."""
+        code = int(self.read(OD_LUT, SUB_LUT_STATUS))
+        return LutInForce(map_id=int(self.read(OD_LUT, SUB_LUT_MAP_ID)), crc32=int(self.read(OD_LUT, SUB_LUT_CRC)),
+                          status=LUT_STATUSES.get(code, f"unknown ({code})"))
 
     # -- readings -----------------------------------------------------------------------------------
     def read_status(self) -> DriveStatus:

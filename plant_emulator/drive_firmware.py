@@ -13,7 +13,8 @@ without a toggle: it only clamps |theta|.
 
 LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
-download refused). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
+download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
+force (0 without one). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
 block) start: theta interpolated in (torque command, measured speed, measured U_dc), clamped to
 gamma_max; the injection then runs at the LUT's harmonic order.
 
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import zlib
 from collections import deque
 
 import numpy as np
@@ -70,7 +70,6 @@ class DriveFirmware(Cia402Device):
         # LUT in force (None: no LUT)
         self.lut: lut_image.Lut | None = None
         self.lut_blob = b""
-        self.lut_crc = 0
         self.lut_status = 0
         self.lut_refused = 0
         # measurements published by the control loop
@@ -97,9 +96,11 @@ class DriveFirmware(Cia402Device):
             return self.commit_count & 0xFF
         if index == 0x2001:
             if subindex == 2:
-                return self.lut_crc
+                return self.lut.crc if self.lut is not None else 0
             if subindex == 3:
                 return self.lut_status
+            if subindex == 4:
+                return self.lut.map_id if self.lut is not None else 0
         return None
 
     def write_object(self, index: int, subindex: int, value) -> None:
@@ -120,7 +121,6 @@ class DriveFirmware(Cia402Device):
                 raise SdoAbortedError(ABORT_CANNOT_STORE) from None
             self.lut = lut
             self.lut_blob = blob
-            self.lut_crc = zlib.crc32(blob) & 0xFFFFFFFF
             self.lut_status = 1
 
     def _write_injection(self, subindex: int, value) -> None:

@@ -1,7 +1,7 @@
 """Firmware of the emulated load machine (node 6): CiA 402 profile velocity.
 
 Object dictionary: drivers/eds/load.eds. 0x60FF target velocity (rpm, mechanical) is followed through
-a ramp (scenario [load] ramp_rpm_per_s) and a PI speed loop (physics/mechanics.py) while OPERATION_ENABLED;
+a ramp (scenario [load] ramp_rpm_per_s, read back on 0x2000) and a PI speed loop (physics/mechanics.py) while OPERATION_ENABLED;
 otherwise the machine is torque-free (the shaft coasts). 0x606C velocity actual (rpm), 0x6077 torque
 actual in mNm (the load EDS has no rated torque; drivers.load_machine scales 0.001 Nm per count),
 positive in the direction of rotation, i.e. negative while it brakes a motoring drive.
@@ -25,8 +25,9 @@ STANDSTILL_RPM = 1.0
 class LoadMachineFirmware(Cia402Device):
     mode_of_operation = MODE_PROFILE_VELOCITY
 
-    def __init__(self, network, node_id: int, eds_path: str):
+    def __init__(self, network, node_id: int, eds_path: str, ramp_rpm_per_s: float):
         super().__init__(network, node_id, eds_path)
+        self.ramp_rpm_per_s = ramp_rpm_per_s
         self.speed_rpm = 0.0
         self.torque_nm = 0.0
 
@@ -35,6 +36,8 @@ class LoadMachineFirmware(Cia402Device):
             return int(round(self.speed_rpm))
         if index == 0x6077:
             return int(max(-32768, min(32767, round(self.torque_nm * 1000.0))))
+        if index == 0x2000:
+            return int(round(self.ramp_rpm_per_s))
         return None
 
     def heartbeat_lost(self) -> None:

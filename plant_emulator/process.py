@@ -77,7 +77,8 @@ class Emulator:
         self.network.connect(interface="virtual", channel=self.bus_channel, receive_own_messages=False)
         fw = sc.section("firmware")
         self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
-        self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS))
+        self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS),
+                                        ramp_rpm_per_s=float(self.params[ph.P_LOAD_RAMP]) * 60.0 / (2.0 * math.pi))
         self.daq = DaqPty()
         self.scope = Scope(self.sample_rate_hz)
         self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)

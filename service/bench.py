@@ -27,7 +27,8 @@ from drivers.canopen_bus import CanBus
 from drivers.cia402 import Command402
 from drivers.daq_reader import DaqReader
 from drivers.dc_supply import ScpiSupply
-from drivers.drive import DriveClient
+from drivers.drive import DriveClient, LutInForce
+from drivers.lut_image import crc_hex
 from drivers.errors import DaqError
 from drivers.load_machine import LoadClient
 from service.demodulation import ResonanceMode, ResonanceTracker
@@ -81,11 +82,12 @@ class Bench:
         # the shaft mode of G_Salpha: the settings' pole, learned from the windows of every run (sec. 2.3)
         self.resonance = ResonanceTracker(ResonanceMode(settings.mechanics.pole_re_rad_s, settings.mechanics.pole_im_rad_s))
         self._auto_resets: list[float] = []     # monotonic times of automatic fault resets (rate limit)
-        self._devices: dict[str, dict[str, Any]] = {"drive": {}, "load": {}, "supply": {}}   # link state, last error
+        # link state, last error; "lut" is the drive's LUT objects (0x2001), read apart from its status
+        self._devices: dict[str, dict[str, Any]] = {"drive": {}, "load": {}, "supply": {}, "lut": {}}
         self.live = LiveValues()                # every reading with its time (poller, the run's session, commands)
         self.unreachable: dict[str, str] | None = None   # {device, address, hint, error} when connect() failed
         self._status: dict[str, Any] = {"connected": False, "bench": identity, "busy": False,
-                                        "drive": None, "load": None, "daq": None, "supply": None,
+                                        "drive": None, "load": None, "daq": None, "supply": None, "lut": None,
                                         "updated_at": None, "error": None}
 
     # --- lifecycle ---------------------------------------------------------------------------------
@@ -262,7 +264,9 @@ class Bench:
         others). During a run the same reads go on without the run lock: each device's link has a lock
         of its own (the interlock monitor reads the same way), so the view stays live while a run
         holds the bench. Only a LUT download or a fault reset (the run lock without a run) is waited
-        out: the last readings are kept, with their age."""
+        out: the last readings are kept, with their age. The LUT the drive holds changes only by a
+        download (which publishes it), so its objects are read when idle, never during a run, and not
+        while the drive does not answer (its status read says so, without three more timeouts)."""
         if self.connected:
             got = self._lock.acquire(timeout=0.05)
             try:
@@ -272,6 +276,8 @@ class Bench:
                     self._read_device("load", lambda: self.load.read_status(), lambda l: {
                         "state": l.state.value, "speed_rpm": l.speed_rpm})
                     self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
+                if got and not self.busy and self._devices["drive"].get("last_error") is None:
+                    self._read_device("lut", self.drive.lut_in_force, _lut_shape)
             finally:
                 if got:
                     self._lock.release()
@@ -311,6 +317,7 @@ class Bench:
                                       "heartbeat_age_s": None if age is None else round(age, 2)})
         out["supply"] = device("supply", {"url": s.supply.url})
         out["supply"]["connected"] = out["supply"].get("last_error") is None and out["supply"]["age_s"] is not None
+        out["lut"] = device("lut", {})     # read when idle and at each download: its age says when
         c = self.daq.counters
         out["daq"] = {**self.daq.health(), "frames": c.frames, "crc_failures": c.crc_failures,
                       "sequence_gaps": c.sequence_gaps}
@@ -340,13 +347,18 @@ class Bench:
         self._guard()
         self.drive.set_injection_mode(mode)
 
-    def download_lut(self, image: bytes) -> int:
-        """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns the CRC.
-        Refused while a run holds the bench."""
+    def download_lut(self, image: bytes) -> LutInForce:
+        """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns what the
+        drive now holds (map id, CRC, status), which /bench/status shows from then on. Refused while
+        a run holds the bench."""
+        if not self.connected:
+            raise BenchError(self.interlock_refusal().reason)
         if not self._lock.acquire(timeout=1.0):
             raise BenchError("the bench is busy with a run; download the LUT when it is idle")
         try:
-            return self.drive.download_lut(image)
+            held = self.drive.download_lut(image)
+            self._read_device("lut", lambda: held, _lut_shape)      # the drive's own read-back
+            return held
         finally:
             self._lock.release()
 
@@ -518,3 +530,9 @@ class Bench:
                     return
                 time.sleep(0.02)
         raise BenchError(f"shaft still turning {timeout_plant_s} s (plant time) after the stop command")
+
+
+def _lut_shape(held: LutInForce) -> dict[str, Any]:
+    """The LUT the drive holds as /bench/status shows it: no map id and no CRC while it holds none."""
+    return {"map_id": held.map_id or None, "crc32": crc_hex(held.crc32) if held.map_id else None,
+            "status": held.status}

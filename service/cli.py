@@ -343,28 +343,27 @@ def cmd_maps(args) -> int:
 
 
 def _download_map(args) -> int:
-    """The map's LUT into the drive over the bench, as POST /maps/{id}/download does. It opens the bench
-    itself: run it with no `ripplecal serve` using the same bench (two masters on one bus and one DAQ
-    port would fight over it); without --bench it downloads into an emulator of its own."""
+    """The map's LUT into the drive over the bench, as POST /maps/{id}/download does (same rules: no ok
+    cell is refused, a partial map needs --force). It opens the bench itself: run it with no
+    `ripplecal serve` using the same bench (two masters on one bus and one DAQ port would fight over
+    it); without --bench it downloads into an emulator of its own."""
+    from service import lut_download
     from service.bench import BenchError
     from service.calibration_service import CalibrationService
-    from service.lut_export import lut_image
-    from service.public import map_public
     from service.storage import Storage
     settings = _settings(args)
-    m = map_public(Storage(settings.server.db_path), args.map_id)
-    if m is None:
-        print(f"ripplecal: map {args.map_id} does not exist in {settings.server.db_path}", file=sys.stderr)
+    try:                                       # refused before the bench is started
+        lut = lut_download.prepare(Storage(settings.server.db_path), args.map_id, args.force)
+    except lut_download.MapNotFound as exc:
+        print(f"ripplecal: {exc} in {settings.server.db_path}", file=sys.stderr)
         return 2
-    try:
-        image = lut_image(m.model_dump())      # refused before the bench is started
-    except ValueError as exc:
-        print(f"ripplecal: map {args.map_id} cannot become a LUT: {exc}", file=sys.stderr)
+    except (lut_download.LutRefused, lut_download.PartialMap) as exc:
+        print(f"ripplecal: {exc}", file=sys.stderr)
         return 2
     print(f"starting the {'bench ' + args.bench if args.bench else 'emulated bench'} ...", file=sys.stderr, flush=True)
     with CalibrationService(settings) as service:
         try:
-            crc = service.bench.download_lut(image)
+            receipt = lut_download.send(service.bench, lut)
         except BenchError as exc:
             print(f"ripplecal: {exc}", file=sys.stderr)
             return 1
@@ -372,13 +371,12 @@ def _download_map(args) -> int:
             print(f"ripplecal: drive refused the LUT: {exc}", file=sys.stderr)
             return 1
         identity = service.bench.identity
-    answer = {"map_id": m.id, "bytes": len(image), "crc32": f"0x{crc:08X}", "cells": len(m.cells),
-              "harmonic_order": m.harmonic_order, "bench": identity}
     if args.json:
-        print(json.dumps(answer, indent=1))
+        print(json.dumps({**receipt.model_dump(), "bench": identity}, indent=1))
     else:
-        print(f"map {m.id}: {len(image)} bytes ({len(m.cells)} cells, h = {m.harmonic_order}) in the drive of {identity}; "
-              f"CRC-32 read back {answer['crc32']}")
+        print(f"map {receipt.map_id}: {receipt.bytes} bytes ({receipt.valid_cells} of {receipt.cells} cells ok, "
+              f"h = {receipt.harmonic_order}{', forced' if receipt.forced else ''}) in the drive of {identity}; "
+              f"CRC-32 read back {receipt.crc32}")
     return 0
 
 
@@ -547,6 +545,7 @@ def _parser_maps(sub) -> None:
     t = msub.add_parser("download", help="the map's LUT into the drive (0x2001), CRC-32 read back; opens the bench "
                                          "itself: not while a `ripplecal serve` holds the same bench")
     t.add_argument("map_id", type=int)
+    t.add_argument("--force", action="store_true", help="load a partial map (some cells not ok: no injection there)")
     t.add_argument("--json", action="store_true")
     _add_bench_args(t)
     p.set_defaults(func=cmd_maps)

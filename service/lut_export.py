@@ -132,7 +132,9 @@ def _c_float(value: float) -> str:
 
 def export_c(m: dict) -> str:
     nt, nn, nu = (len(m["axes"][k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
-    guard = f"RIPPLECAL_LUT_MAP{m['id']}_H"
+    # every name carries the map id, so the headers of several maps go into one translation unit
+    macro, array = f"RIPPLECAL_LUT_MAP{int(m['id'])}", f"ripplecal_lut_map{int(m['id'])}"
+    guard = f"{macro}_H"
     version = re.sub(r"[^0-9A-Za-z.+-]", "", __version__)
     valid = [[[int(v) for v in row] for row in plane] for plane in _grid_values(m, "valid")]
     lines = [
@@ -141,23 +143,24 @@ def export_c(m: dict) -> str:
         " * v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e)  [rad], applied as a voltage-angle",
         " * rotation (|u_dq*| = |u_dq|). Interpolate theta_cos and theta_sin (never gamma/delta across",
         " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
-        f" * Cells: {_counts_text(m)}.",
+        f" * Cells: {_counts_text(m)}. Names carry the map id ({macro}_*, {array}_*).",
         f" * {_quality_text(m)}.",
         f" * {_validation_text(m)}.",
         " */",
         f"#ifndef {guard}", f"#define {guard}", "",
         "#include <stdint.h>", "",
-        f'#define RIPPLECAL_LUT_SOFTWARE_VERSION "{version}"',
-        f"#define RIPPLECAL_LUT_HARMONIC_ORDER {int(m['harmonic_order'])}u",
-        f"#define RIPPLECAL_LUT_N_TORQUE {nt}u",
-        f"#define RIPPLECAL_LUT_N_SPEED {nn}u",
-        f"#define RIPPLECAL_LUT_N_UDC {nu}u", "",
-        f"/* torque axis, Nm */\nstatic const float ripplecal_lut_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
-        f"/* speed axis, rpm (mechanical) */\nstatic const float ripplecal_lut_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
-        f"/* DC-link voltage axis, V */\nstatic const float ripplecal_lut_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};", "",
-        f"/* theta_cos, rad */\nstatic const float ripplecal_lut_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
-        f"/* theta_sin, rad */\nstatic const float ripplecal_lut_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
-        f"/* 1 where the cell holds an identified value */\nstatic const uint8_t ripplecal_lut_valid[{nu}][{nn}][{nt}] = "
+        f"#define {macro}_ID {int(m['id'])}u",
+        f'#define {macro}_SOFTWARE_VERSION "{version}"',
+        f"#define {macro}_HARMONIC_ORDER {int(m['harmonic_order'])}u",
+        f"#define {macro}_N_TORQUE {nt}u",
+        f"#define {macro}_N_SPEED {nn}u",
+        f"#define {macro}_N_UDC {nu}u", "",
+        f"/* torque axis, Nm */\nstatic const float {array}_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
+        f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
+        f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};", "",
+        f"/* theta_cos, rad */\nstatic const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
+        f"/* theta_sin, rad */\nstatic const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
+        f"/* 1 where the cell holds an identified value */\nstatic const uint8_t {array}_valid[{nu}][{nn}][{nt}] = "
         + "{" + ", ".join("{" + ", ".join("{" + ", ".join(str(v) for v in row) + "}" for row in plane) + "}" for plane in valid) + "};",
         "", f"#endif /* {guard} */", "",
     ]
@@ -189,13 +192,13 @@ def export_dcm(m: dict) -> str:
 
 
 def lut_image(m: dict) -> bytes:
-    """The binary image the drive takes on 0x2001:1 (docs/interfaces.md, "LUT image"; encoded by
-    drivers.lut_image, the one definition the drive firmware decodes with). Raises ValueError if
-    the map cannot become an image (too many cells, an axis not strictly increasing)."""
+    """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
+    image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). Raises
+    ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
     return lut_codec.encode(m["harmonic_order"], *(axes[key] for key in lut_codec.AXES),
                             _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin"),
-                            valid=_grid_values(m, "valid"))
+                            valid=_grid_values(m, "valid"), map_id=m["id"])
 
 
 @dataclass(frozen=True)

@@ -32,11 +32,10 @@ from typing import Any, Callable
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service import __version__
+from service import __version__, lut_download
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.interlocks import InterlockTripped
 from service.limits import check_limits
-from service.lut_export import lut_image
 from service.measurement import RunCancelled
 from service.operating_point import OperatingPoint
 from service.public import map_public
@@ -94,13 +93,9 @@ def check_validatable(m: dict, force: bool) -> None:
 
 
 def download_into_drive(storage: Storage, bench, map_id: int, force: bool) -> dict:
-    """The map's LUT into the drive, CRC-32 read back: the receipt. The one place this module downloads
-    (to be replaced by service.lut_download.download_map, same signature, once merged)."""
-    m = map_public(storage, map_id).model_dump()
-    check_validatable(m, force)
-    image = lut_image(m)
-    crc = bench.download_lut(image)
-    return {"map_id": map_id, "bytes": len(image), "crc32": f"0x{crc:08X}"}
+    """The map's LUT into the drive, CRC-32 and map id read back (service.lut_download.download_map,
+    the one way a map goes into the drive): the receipt."""
+    return lut_download.download_map(storage, bench, map_id, force).model_dump()
 
 
 @dataclass

@@ -509,3 +509,15 @@ def schedule_public(storage: Storage, row: dict, now, next_count: int = 5, run_c
 
 def map_summaries(storage: Storage, limit: int) -> list[MapSummaryPublic]:
     return [MapSummaryPublic(**row) for row in storage.list_maps(limit)]
+
+
+class LutDownloadPublic(BaseModel):
+    """What went into the drive (POST /maps/{id}/download, `ripplecal maps download`, a validation job)."""
+    map_id: int = Field(description="the map the drive now holds (it reports it on 0x2001:4)")
+    crc32: str = Field(description="CRC-32 (zlib) of the LUT image without its CRC field, as the drive read it "
+                                   "back (0x2001:2): 0x and 8 hex digits")
+    bytes: int = Field(description="size of the LUT image")
+    cells: int = Field(description="cells of the map")
+    valid_cells: int = Field(description="cells with status ok: the only ones the drive injects at")
+    harmonic_order: int
+    forced: bool = Field(description="true when a partial map (some cells not ok) went in on force=true")

@@ -665,6 +665,64 @@ def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_p
         context.close()
 
 
+def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive_holds(service, browser, tmp_path):
+    """Map panel, "Download to drive" (operator token): a complete map answers with the CRC the drive
+    read back and the Bench panel shows that map id and CRC; a map with no ok cell is refused with the
+    service's message and no way around; a partial map is refused until "download anyway" (force)."""
+    from drivers.lut_image import crc_hex, image_crc
+    from service.lut_export import lut_image
+    from service.public import map_public
+    from service.storage import Storage
+    from tests.support.stored_maps import CELLS, stored_map
+    storage = Storage(service["log"].parent / "ripplecal.db")      # the service's own database (WAL)
+    full, empty, partial = (stored_map(storage), stored_map(storage, failing=set(CELLS)),
+                            stored_map(storage, failing={CELLS[2]}))
+    crc = {i: crc_hex(image_crc(lut_image(map_public(storage, i).model_dump()))) for i in (full, partial)}
+    context, page, rec = _open(browser, service["base"])
+    msg = '[data-testid="map-download-msg"]'
+
+    def select(map_id: int) -> None:
+        page.select_option('[data-testid="map-select"]', str(map_id))
+        page.wait_for_selector(f'[data-testid="map-download"][data-map-id="{map_id}"]:not([disabled])', timeout=10_000)
+
+    def click(button: str, outcome: str) -> str:
+        page.click(f'[data-testid="{button}"]')
+        page.wait_for_selector(f'{msg}[data-outcome="{outcome}"]', timeout=30_000)
+        return page.inner_text(msg)
+
+    def download(map_id: int, outcome: str) -> str:
+        select(map_id)
+        return click("map-download", outcome)
+
+    try:
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000)
+        page.fill('[data-testid="token"]', service["token"])
+        # the newest map is shown first; then each is picked by hand
+        page.wait_for_selector(f'[data-testid="map-download"][data-map-id="{partial}"]', timeout=15_000)
+        text = download(full, "ok")
+        assert f"Map {full} is in the drive: CRC-32 {crc[full]} read back" in text and "4 of 4 cells ok" in text, text
+        page.wait_for_function(f"""() => document.querySelector('[data-testid="drive-lut"]').textContent
+                                   === 'map {full} · {crc[full]}'""", timeout=15_000)
+
+        text = download(empty, "refused")
+        assert f"Map {empty} not downloaded" in text and "no valid cell (0 of 4 ok)" in text, text
+        assert page.locator('[data-testid="map-download-force"]').count() == 0
+
+        text = download(partial, "refused")
+        assert "1 of 4 cells are not ok" in text, text
+        text = click("map-download-force", "ok")
+        assert f"CRC-32 {crc[partial]}" in text and "3 of 4 cells ok" in text and "forced" in text, text
+        page.wait_for_function(f"""() => document.querySelector('[data-testid="drive-lut"]').textContent
+                                   === 'map {partial} · {crc[partial]}'""", timeout=15_000)
+        page.screenshot(path=str(tmp_path / "map_download.png"), full_page=True)
+        assert not rec["pageerrors"], rec["pageerrors"]
+        # the refused POSTs are the only console errors (Chromium logs every failed fetch)
+        assert all("409" in m or "422" in m for m in rec["console"]), rec["console"]
+    finally:
+        context.close()
+
+
 def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp_path):
     """Two maps put into the service's database from stored results (no sweep: tests/support/maps.py):
     the Map panel rings map a's planted outlier and gives its reason; the Compare panel, with map b

@@ -139,13 +139,13 @@ def test_sweep_then_list_show_and_download_its_map(home):
     assert row[1] == str(sweep_id) and row[4].endswith("/2"), maps.stdout
 
     # the LUT goes into a drive (this command's own emulator); the CRC read back is the image's own, as
-    # POST /maps/{id}/download reports it (drivers.drive.download_lut: zlib CRC-32 of the whole image)
+    # POST /maps/{id}/download reports it (drivers.lut_image.image_crc: CRC-32 without the CRC field)
     down = run("map", "download", str(map_id), "--json", env=env, cwd=cwd)
     assert down.returncode == 0, down.stderr[-3000:]
     answer = json.loads(down.stdout)
     image = lut_image(map_public(Storage(db), map_id).model_dump())
-    assert answer["bytes"] == len(image) and answer["cells"] == 2
-    assert int(answer["crc32"], 16) == zlib.crc32(image) & 0xFFFFFFFF
+    assert answer["bytes"] == len(image) and answer["cells"] == 2 and answer["map_id"] == map_id
+    assert int(answer["crc32"], 16) == zlib.crc32(image[:-4])
 
 
 @pytest.mark.parametrize("args,needle", [
@@ -160,3 +160,17 @@ def test_bad_input_gives_one_clear_line(home, args, needle):
     proc = run(*args, env=_env(root / "xdg"), cwd=root / "a", timeout=120)
     assert proc.returncode == 2, proc
     assert needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_maps_download_refuses_an_empty_or_partial_map_before_starting_the_bench(tmp_path):
+    """The API's download rules (service/lut_download.py), before any bench is opened."""
+    from tests.support.stored_maps import CELLS, stored_map
+    db = tmp_path / "r.db"
+    storage = Storage(db)
+    empty, partial = stored_map(storage, failing=set(CELLS)), stored_map(storage, failing={CELLS[0]})
+    for map_id, needle in ((empty, f"map {empty} has no valid cell (0 of 4 ok)"),
+                           (partial, f"map {partial} is partial: 1 of 4 cells are not ok")):
+        proc = run("maps", "download", str(map_id), "--db", str(db), env=_env(tmp_path / "xdg"), cwd=tmp_path, timeout=120)
+        assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
+        assert "starting the" not in proc.stderr and "Traceback" not in proc.stderr
+    assert "--force" in proc.stderr

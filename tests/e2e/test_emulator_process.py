@@ -212,15 +212,15 @@ def test_lut_download_over_sdo_segmented(bench):
 
     from drivers import lut_image
     drive = bench["drive"]
-    good = lut_image.encode(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02))
+    good = lut_image.encode(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02), map_id=5)
     drive.sdo.download(0x2001, 1, good, force_segment=True)
-    assert drive.sdo[0x2001][2].raw == zlib.crc32(good)
-    assert drive.sdo[0x2001][3].raw == 1
+    assert drive.sdo[0x2001][2].raw == zlib.crc32(good[:-4])
+    assert drive.sdo[0x2001][3].raw == 1 and drive.sdo[0x2001][4].raw == 5
     with pytest.raises(canopen.SdoAbortedError) as exc:
         drive.sdo.download(0x2001, 1, good[:-1] + bytes([good[-1] ^ 0xFF]), force_segment=True)
     assert exc.value.code == 0x08000020
-    assert drive.sdo[0x2001][2].raw == zlib.crc32(good)
-    assert drive.sdo[0x2001][3].raw == 2
+    assert drive.sdo[0x2001][2].raw == zlib.crc32(good[:-4])
+    assert drive.sdo[0x2001][3].raw == 2 and drive.sdo[0x2001][4].raw == 5
 
 
 def test_control_socket_faults(emulator, bench):

@@ -125,17 +125,21 @@ def test_sweep_map_and_exports(service, tmp_path):
     csv_text = client.get(f"/api/v1/maps/{m['id']}/export", params={"format": "csv"}).text
     assert "harmonic order h = 6" in csv_text and "torque_nm" in csv_text and "software version" in csv_text
     header = client.get(f"/api/v1/maps/{m['id']}/export", params={"format": "c"}).text
-    assert "RIPPLECAL_LUT_HARMONIC_ORDER 6u" in header and "ripplecal_lut_speed_rpm" in header
+    n = m["id"]
+    assert f"RIPPLECAL_LUT_MAP{n}_HARMONIC_ORDER 6u" in header and f"ripplecal_lut_map{n}_speed_rpm" in header
     if shutil.which("gcc"):
         (tmp_path / "lut.h").write_text(header)
-        (tmp_path / "t.c").write_text('#include "lut.h"\nint main(void){return (int)RIPPLECAL_LUT_N_TORQUE - 3;}\n')
+        (tmp_path / "t.c").write_text(f'#include "lut.h"\nint main(void){{return (int)RIPPLECAL_LUT_MAP{n}_N_TORQUE - 3;}}\n')
         subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "t"), str(tmp_path / "t.c")],
                        check=True, cwd=tmp_path)
         assert subprocess.run([str(tmp_path / "t")]).returncode == 0
-    # the LUT goes into the drive (segmented SDO); the drive's CRC read-back matches the image
+    # the LUT goes into the drive (segmented SDO); the drive's CRC read-back matches the image, and the
+    # drive reports the map it holds
     r = client.post(f"/api/v1/maps/{m['id']}/download")
     assert r.status_code == 200, r.text
     assert r.json()["cells"] == 9 and r.json()["crc32"].startswith("0x")
+    lut = client.get("/api/v1/bench/status").json()["lut"]
+    assert (lut["map_id"], lut["crc32"]) == (m["id"], r.json()["crc32"])
     assert httpx.post(f"{service[0].base}/api/v1/maps/{m['id']}/download").status_code == 401
     # the CLI exports the same map from the same database
     out = cli("export", str(m["id"]), "--format", "csv", "--db", str(db)).stdout

@@ -102,7 +102,7 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert f"sweep {cli['SWEEP']}: done" in cli_out                                     # sweeps show
         assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)        # maps list
         assert "wrote ripplecal_lut.h" in cli_out
-        assert re.search(rf"^map {cli['MAP']}: \d+ bytes \(9 cells, h = 6\).*CRC-32 read back 0x", cli_out, re.M)
+        assert re.search(rf"^map {cli['MAP']}: \d+ bytes \(9 of 9 cells ok, h = 6\).*CRC-32 read back 0x", cli_out, re.M)
         assert (tmp_path / "lut1.h").read_text() == client.get(f"/maps/{cli['MAP']}/export", params={"format": "c"}).text
         # the API download of the CLI's map (the README's LUT paragraph)
         assert f'"map_id":{cli["MAP"]}' in download_out and '"crc32":"0x' in download_out

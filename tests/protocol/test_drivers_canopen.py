@@ -20,7 +20,7 @@ from canopen.sdo import SdoAbortedError
 from drivers import DRIVE_EDS, LOAD_EDS, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
-from drivers.drive import DriveClient, DriveStatus
+from drivers.drive import DriveClient, DriveStatus, LutInForce
 from drivers.errors import DriveFaultError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
 from tests.support.drivers_peers import EmulatedDevice, unique_channel
@@ -60,7 +60,7 @@ def drive(bus, drive_peer):
 
 @pytest.fixture
 def load_peer(channel):
-    peer = EmulatedDevice(LoadMachineFirmware, channel, LOAD_NODE, LOAD_EDS)
+    peer = EmulatedDevice(LoadMachineFirmware, channel, LOAD_NODE, LOAD_EDS, ramp_rpm_per_s=20000.0)
     yield peer
     peer.close()
 
@@ -305,20 +305,29 @@ def test_clients_need_a_connected_bus(channel):
 
 
 def test_lut_download_is_segmented_and_crc_checked(drive, drive_peer):
-    n_t, n_n, n_u = 8, 6, 3     # 144 cells: a 1505-byte image, many segments
+    n_t, n_n, n_u = 8, 6, 3     # 144 cells: a 1509-byte image, many segments
     cells = np.arange(n_t * n_n * n_u, dtype=float)
     blob = lut_image.encode(6, np.linspace(0.5, 4.0, n_t), np.linspace(500.0, 3000.0, n_n), [10.0, 12.0, 14.0],
-                            1e-4 * cells, -2e-4 * cells)
+                            1e-4 * cells, -2e-4 * cells, map_id=12)
     assert len(blob) > 1000
-    crc = drive.download_lut(blob)
-    assert crc == zlib.crc32(blob)
+    assert drive.lut_in_force() == LutInForce(map_id=0, crc32=0, status="none")
+    held = drive.download_lut(blob)
+    assert held == LutInForce(map_id=12, crc32=zlib.crc32(blob[:-4]), status="in_force")
     assert drive_peer.writes_to(0x2001, 1) == [blob]
-    assert drive.lut_status() == 1
-    assert drive_peer.device.lut.crc == crc            # the drive decoded it and holds it in force
+    assert drive_peer.device.lut.crc == held.crc32     # the drive decoded it and holds it in force
     # a malformed image is refused by the drive itself (SDO abort), and its LUT stays
     with pytest.raises(SdoAbortError, match="0x08000020"):
         drive.download_lut(blob[:-1] + bytes([blob[-1] ^ 1]))
-    assert drive.lut_status() == 2 and drive_peer.device.lut.crc == crc
+    assert drive.lut_in_force() == LutInForce(map_id=12, crc32=held.crc32, status="last_download_refused")
     drive_peer.node._write_callbacks.remove(drive_peer.device._on_write)  # the device stops updating its CRC
     with pytest.raises(SdoError, match="LUT CRC-32 read-back"):
         drive.download_lut(b"other table")
+
+
+def test_load_machine_reports_its_speed_ramp(load_peer, bus):
+    load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=0.5)
+    load.connect()
+    try:
+        assert load.read(0x2000) == 20000           # load.eds's manufacturer object, rpm/s
+    finally:
+        load.close()

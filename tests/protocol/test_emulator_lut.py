@@ -1,5 +1,5 @@
-"""Drive firmware (in process, no CAN): LUT download, CRC read-back, refusal of bad images, LUT-mode
-injection = interpolated theta, the eq. 11 switch 0x2000:8."""
+"""Drive firmware (in process, no CAN): LUT download, CRC and map id read-back, refusal of bad images,
+LUT-mode injection = interpolated theta, the eq. 11 switch 0x2000:8."""
 from __future__ import annotations
 
 import math
@@ -39,10 +39,10 @@ def read(d, index, sub):
     return od[index][sub].decode_raw(d.node.get_data(index, sub))
 
 
-def image(scale=1.0, valid=None, h=6):
+def image(scale=1.0, valid=None, h=6, map_id=3):
     tc = scale * np.arange(6, dtype=float).reshape(1, 2, 3) * 0.01
     ts = -scale * np.arange(6, dtype=float)[::-1].reshape(1, 2, 3) * 0.005
-    return lut_image.encode(h, T_AX, N_AX, U_AX, tc, ts, valid), tc, ts
+    return lut_image.encode(h, T_AX, N_AX, U_AX, tc, ts, valid, map_id=map_id), tc, ts
 
 
 def with_repeated_torque_value(blob: bytes) -> bytes:
@@ -55,20 +55,27 @@ def with_repeated_torque_value(blob: bytes) -> bytes:
 
 
 def test_download_crc_read_back_and_refusal_keeps_old_lut(drive):
-    good, _, _ = image()
+    assert [read(drive, 0x2001, sub) for sub in (2, 3, 4)] == [0, 0, 0]      # no LUT yet
+    good, _, _ = image(map_id=41)
     write(drive, 0x2001, 1, good)
-    assert read(drive, 0x2001, 2) == zlib.crc32(good)
+    assert read(drive, 0x2001, 2) == zlib.crc32(good[:-4]) == lut_image.image_crc(good)
     assert read(drive, 0x2001, 3) == 1
+    assert read(drive, 0x2001, 4) == 41
     for bad in (good[:-1] + bytes([good[-1] ^ 1]),                     # CRC
                 b"XCL1" + good[4:],                                     # magic
                 good[:40],                                              # length
-                with_repeated_torque_value(good)):                      # axis
+                with_repeated_torque_value(good),                       # axis
+                good[:4] + b"\x01\x00" + good[6:]):                      # format version 1
         with pytest.raises(canopen.SdoAbortedError) as exc:
             write(drive, 0x2001, 1, bad)
         assert exc.value.code == 0x08000020
-        assert read(drive, 0x2001, 2) == zlib.crc32(good)              # the old LUT stays in force
+        assert read(drive, 0x2001, 2) == lut_image.image_crc(good)      # the old LUT stays in force
+        assert read(drive, 0x2001, 4) == 41
         assert read(drive, 0x2001, 3) == 2
-    assert drive.lut is not None and drive.lut.crc == zlib.crc32(good)
+    assert drive.lut is not None and drive.lut.crc == lut_image.image_crc(good)
+    other, _, _ = image(scale=2.0, map_id=42)                           # another map: another CRC
+    write(drive, 0x2001, 1, other)
+    assert read(drive, 0x2001, 4) == 42 and read(drive, 0x2001, 2) == lut_image.image_crc(other) != lut_image.image_crc(good)
 
 
 def test_lut_mode_injects_the_interpolated_theta(drive):

@@ -14,7 +14,7 @@ from service.maps import build_map_from_sweep
 from service.operating_point import OperatingPoint
 from service.public import job_public, map_public, result_row
 from service.storage import MIGRATIONS_DIR, Storage, migrations
-from tests.unit.test_storage_export import _sweep_with_results
+from tests.support.stored_maps import sweep_with_results
 
 
 def test_finer_axis_holds_the_grid_values_and_their_midpoints():
@@ -65,21 +65,21 @@ def storage(tmp_path):
 
 
 def test_empty_and_partial_maps_are_refused_unless_forced(storage):
-    full = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage))).model_dump()
+    full = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
     check_validatable(full, force=False)
-    partial = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(
+    partial = map_public(storage, build_map_from_sweep(storage, sweep_with_results(
         storage, failing={(2.5, 1000.0)}))).model_dump()
     with pytest.raises(ValidationRefused, match="1 of 4 cells are not ok.*force=true"):
         check_validatable(partial, force=False)
     check_validatable(partial, force=True)
-    empty = map_public(storage, build_map_from_sweep(storage, _sweep_with_results(
+    empty = map_public(storage, build_map_from_sweep(storage, sweep_with_results(
         storage, failing={(1.0, 1000.0), (2.5, 1000.0), (1.0, 2000.0), (2.5, 2000.0)}))).model_dump()
     with pytest.raises(ValidationRefused, match="no valid"):
         check_validatable(empty, force=True)
 
 
 def _stored_validation(storage) -> tuple[int, int]:
-    map_id = build_map_from_sweep(storage, _sweep_with_results(storage))
+    map_id = build_map_from_sweep(storage, sweep_with_results(storage))
     job_id = storage.create_job("validation", {"map_id": map_id, "force": False, "options": {}})
     run = ValidationRun(map_id=map_id, harmonic_order=6, options={}, download={"map_id": map_id, "bytes": 98,
                                                                                "crc32": "0x12345678"})
@@ -101,7 +101,7 @@ def test_the_map_keeps_its_latest_validation_and_every_export_carries_it(storage
     assert f"* {line}\n" in export_map(m, "dcm")
     assert json.loads(export_map(m, "json"))["validation"]["midpoint"]["min_db"] == 27.5
     assert "not validated in the drive's LUT mode" in export_map(
-        map_public(storage, build_map_from_sweep(storage, _sweep_with_results(storage))).model_dump(), "csv")
+        map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump(), "csv")
 
 
 def test_migration_6_rebuilds_jobs_keeping_every_row(tmp_path):

@@ -9,6 +9,7 @@ import * as events from "./events.js";
 import * as benchStatus from "./panels/bench-status.js";
 import * as sweeps from "./panels/sweeps.js";
 import * as maps from "./panels/maps.js";
+import * as mapDownload from "./panels/map-download.js";
 import * as mapCompare from "./panels/map-compare.js";
 import * as mapValidation from "./panels/map-validation.js";
 import * as identify from "./panels/identify.js";
@@ -42,8 +43,11 @@ async function init() {
   }
   sweeps.init({ openMapOf: maps.select });
   mapCompare.init();
-  maps.init({ openResultOf: resultView.openResult, onMapShown: mapCompare.setMapA, shown: mapValidation.show });
+  // the drawn map goes to the validation panel (with its U_dc slice) and to the download button
+  maps.init({ openResultOf: resultView.openResult, onMapShown: mapCompare.setMapA,
+              shown: (m, udc) => { mapValidation.show(m, udc); mapDownload.showFor(m); } });
   mapValidation.init();
+  mapDownload.init();
   events.on("job.state", mapValidation.onJobState);
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
   schedules.init({});

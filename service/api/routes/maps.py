@@ -11,10 +11,11 @@ from service.api.errors import error_responses, validation_error
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import ValidationCreate
 from service.bench import BenchError
-from service.lut_export import EXPORT_FORMATS, export_map, lut_image
+from service import lut_download
+from service.lut_export import EXPORT_FORMATS, export_map
 from service.map_compare import MapCompareError, compare_maps
-from service.public import (JobPublic, MapComparisonPublic, MapPublic, MapSummaryPublic, ValidationPublic, job_public,
-                            map_public, map_summaries, validation_public)
+from service.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
+                            ValidationPublic, job_public, map_public, map_summaries, validation_public)
 
 router = APIRouter(prefix="/api/v1", tags=["maps"])
 
@@ -68,22 +69,24 @@ def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> Ma
         raise unprocessable(validation_error(["path", "other_id"], str(exc))) from None
 
 
-@router.post("/maps/{map_id}/download", responses=error_responses(401, 403, 404, 409, 502))
-def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep) -> dict:
-    """Build the map's LUT image and download it into the drive (0x2001), CRC read back."""
-    m = _map_dict(service, map_id)
+@router.post("/maps/{map_id}/download", response_model=LutDownloadPublic,
+             responses=error_responses(401, 403, 404, 409, 502))
+def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
+                 force: bool = Query(False, description="load a partial map (some cells not ok: no injection "
+                                                        "there); without it such a map is refused with 409")
+                 ) -> LutDownloadPublic:
+    """The map's LUT image into the drive (0x2001, segmented SDO), its CRC-32 and map id read back.
+    422: no ok cell (or not an image); 409: partial map without force, or the bench is busy / not reached."""
     try:
-        image = lut_image(m)
-    except ValueError as exc:
-        raise unprocessable(validation_error(["path", "map_id"], f"map {map_id} cannot become a LUT: {exc}")) from None
-    try:
-        crc = service.bench.download_lut(image)
-    except BenchError as exc:
+        return lut_download.download_map(service.storage, service.bench, map_id, force)
+    except lut_download.MapNotFound as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    except lut_download.LutRefused as exc:
+        raise unprocessable(validation_error(["path", "map_id"], str(exc))) from None
+    except (lut_download.PartialMap, BenchError) as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     except Exception as exc:   # SDO abort / timeout: the drive refused or did not answer
         raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"drive refused the LUT: {exc}") from None
-    return {"map_id": map_id, "bytes": len(image), "crc32": f"0x{crc:08X}", "cells": len(m["cells"]),
-            "harmonic_order": m["harmonic_order"]}
 
 
 @router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
@@ -113,7 +116,7 @@ def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
 
 
 def _map_dict(service, map_id: int, smooth: bool = False) -> dict:
-    """The map as the exporters and the LUT builder read it (its Public shape, as a dict)."""
+    """The map as the exporters read it (its Public shape, as a dict)."""
     m = map_public(service.storage, map_id, smooth=smooth)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")

@@ -9,7 +9,8 @@ const DEFAULT_STALE_S = 3;
 // element id -> [group of the status, field]; the group's `ages` say how old each field is
 const AGED = {
   "drive-state": ["drive", "state"], "drive-speed": ["drive", "speed_rpm"], "drive-torque": ["drive", "torque_nm"],
-  "drive-udc": ["drive", "udc_v"], "load-state": ["load", "state"], "load-speed": ["load", "speed_rpm"],
+  "drive-udc": ["drive", "udc_v"], "drive-lut": ["lut", "status"],
+  "load-state": ["load", "state"], "load-speed": ["load", "speed_rpm"],
   "run-speed": ["run", "speed_rpm"], "run-accel": ["run", "harmonic_amplitude_fs"],
 };
 
@@ -31,6 +32,7 @@ export function render(s) {
   setText("drive-torque", fmt(drive.torque_nm, 3));
   setText("drive-udc", fmt(drive.udc_v, 2));
   setFlag("drive-heartbeat", drive.heartbeat_ok, true, "ok", "lost");
+  setText("drive-lut", lutText(s.lut || {}));
   setDeviceState("load-state", load.state);
   setText("load-speed", fmt(load.speed_rpm, 1));
   setText("daq-frames", fmtInt(daq.frames));
@@ -58,6 +60,13 @@ export function render(s) {
     err.hidden = true;
   }
   tick();
+}
+
+// The LUT the drive reports it holds (0x2001): map id and CRC-32, or why there is none in force.
+function lutText(lut) {
+  if (!lut.status) return "—";
+  const held = lut.map_id ? `map ${lut.map_id} · ${lut.crc32}` : "none";
+  return lut.status === "last_download_refused" ? `${held} (last download refused)` : held;
 }
 
 // Every second (main.js) and on each status: ages counted on since the status came, stale marks.
