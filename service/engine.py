@@ -214,7 +214,7 @@ class Engine:
         m = map_public(self.storage, map_id)
         if m is None:
             raise KeyError(map_id)
-        check_validatable(m.model_dump(), force)
+        check_validatable(self.storage, map_id, force)
         check_points(m.model_dump(), self.settings)
         job_id = self.storage.create_job("validation", {"map_id": map_id, "force": force,
                                                         "options": options.model_dump()})

@@ -28,6 +28,10 @@ class LutRefused(ValueError):
 class PartialMap(ValueError):
     """Some cells are not ok: the map goes only with force."""
 
+    def __init__(self, map_id: int, not_ok: int, cells: int, how_to_force: str):
+        self.what = f"map {map_id} is partial: {not_ok} of {cells} cells are not ok and would inject nothing"
+        super().__init__(f"{self.what}; {how_to_force}")
+
 
 @dataclass(frozen=True)
 class PreparedLut:
@@ -51,8 +55,7 @@ def prepare(storage: Storage, map_id: int, force: bool = False) -> PreparedLut:
         raise LutRefused(f"map {map_id} has no valid cell (0 of {cells} ok): a LUT without one would inject "
                          f"nothing; measure the sweep again")
     if valid < cells and not force:
-        raise PartialMap(f"map {map_id} is partial: {cells - valid} of {cells} cells are not ok and would inject "
-                         f"nothing; load it anyway with force (API: ?force=true, CLI: --force)")
+        raise PartialMap(map_id, cells - valid, cells, "load it anyway with force (API: ?force=true, CLI: --force)")
     try:
         image = lut_image(m.model_dump())
     except ValueError as exc:

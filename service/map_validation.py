@@ -81,15 +81,15 @@ def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint
     return points
 
 
-def check_validatable(m: dict, force: bool) -> None:
-    """A map without a valid (ok) cell is refused; a partial one needs `force` (its invalid cells
-    carry no injection, the drive interpolates towards theta = 0 there)."""
-    ok = sum(1 for c in m["cells"] if c["status"] == "ok")
-    if ok == 0:
-        raise ValidationRefused(f"map {m['id']} has no valid (ok) cell: there is no LUT to validate")
-    if ok < len(m["cells"]) and not force:
-        raise ValidationRefused(f"map {m['id']} is partial: {len(m['cells']) - ok} of {len(m['cells'])} cells are not "
-                                "ok and carry no injection; pass force=true to validate it anyway")
+def check_validatable(storage: Storage, map_id: int, force: bool) -> None:
+    """The download rules (service/lut_download.py: no ok cell is refused, a partial map needs
+    `force`) checked before anything is queued."""
+    try:
+        lut_download.prepare(storage, map_id, force)
+    except lut_download.PartialMap as exc:
+        raise ValidationRefused(f'{exc.what}; validate it anyway with "force": true in the request') from None
+    except lut_download.LutRefused as exc:
+        raise ValidationRefused(str(exc)) from None
 
 
 def download_into_drive(storage: Storage, bench, map_id: int, force: bool) -> dict:

@@ -65,17 +65,16 @@ def storage(tmp_path):
 
 
 def test_empty_and_partial_maps_are_refused_unless_forced(storage):
-    full = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
-    check_validatable(full, force=False)
-    partial = map_public(storage, build_map_from_sweep(storage, sweep_with_results(
-        storage, failing={(2.5, 1000.0)}))).model_dump()
-    with pytest.raises(ValidationRefused, match="1 of 4 cells are not ok.*force=true"):
-        check_validatable(partial, force=False)
-    check_validatable(partial, force=True)
-    empty = map_public(storage, build_map_from_sweep(storage, sweep_with_results(
-        storage, failing={(1.0, 1000.0), (2.5, 1000.0), (1.0, 2000.0), (2.5, 2000.0)}))).model_dump()
+    full = build_map_from_sweep(storage, sweep_with_results(storage))
+    check_validatable(storage, full, force=False)
+    partial = build_map_from_sweep(storage, sweep_with_results(storage, failing={(2.5, 1000.0)}))
+    with pytest.raises(ValidationRefused, match="1 of 4 cells are not ok.*force"):
+        check_validatable(storage, partial, force=False)
+    check_validatable(storage, partial, force=True)
+    empty = build_map_from_sweep(storage, sweep_with_results(
+        storage, failing={(1.0, 1000.0), (2.5, 1000.0), (1.0, 2000.0), (2.5, 2000.0)}))
     with pytest.raises(ValidationRefused, match="no valid"):
-        check_validatable(empty, force=True)
+        check_validatable(storage, empty, force=True)
 
 
 def _stored_validation(storage) -> tuple[int, int]:
