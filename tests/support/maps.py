@@ -27,11 +27,13 @@ def theta_of(gamma_deg: float, delta_deg: float) -> tuple[float, float]:
     return g * math.cos(d), -g * math.sin(d)
 
 
-def make_map(storage: Storage, grid: dict[str, list[float]], theta: Callable[[Point], tuple[float, float]],
-             status: dict[Point, str] | None = None, s_measured: complex | None = S_MEASURED,
-             harmonic_order: int = 6) -> int:
-    """A map over `grid` whose ok cells carry theta(point) (rad); `status` names the cells that are not
-    ok ("failed" stores an error row without theta)."""
+def store_sweep(storage: Storage, grid: dict[str, list[float]], theta: Callable[[Point], tuple[float, float]],
+                status: dict[Point, str] | None = None, s_measured: complex | None = S_MEASURED,
+                harmonic_order: int = 6, residual: tuple[float, float] = RESIDUAL,
+                uncompensated: tuple[float, float] = UNCOMPENSATED) -> int:
+    """A sweep over `grid` with one stored result per point, as the engine stores them: ok cells carry
+    theta(point) (rad); `status` names the cells that are not ok ("failed" stores an error row
+    without theta). Returns the sweep id (the sweep is not marked done)."""
     status = status or {}
     points = [(t, n, u) for u in grid["udc_v"] for n in grid["speed_rpm"] for t in grid["torque_nm"]]
     sweep_id = storage.create_sweep("adaptive", harmonic_order, grid, {}, len(points), "test-bench", __version__)
@@ -43,11 +45,20 @@ def make_map(storage: Storage, grid: dict[str, list[float]], theta: Callable[[Po
                              sweep_id=sweep_id, harmonic_order=harmonic_order)
         else:
             tc, ts = theta(p)
-            result = IdentificationResult("adaptive", harmonic_order, state, tc, ts, Phasor(*RESIDUAL, 1600, 6),
-                                          Phasor(*UNCOMPENSATED, 1600, 6), 0.5, 8, s_measured=s_measured,
+            result = IdentificationResult("adaptive", harmonic_order, state, tc, ts, Phasor(*residual, 1600, 6),
+                                          Phasor(*uncompensated, 1600, 6), 0.5, 8, s_measured=s_measured,
                                           message="" if state == "ok" else "residual at the noise floor")
             row = result_row(op, "adaptive", AdaptiveOptions(), "test-bench", "t0", result, sweep_id=sweep_id,
                              harmonic_order=harmonic_order)
         storage.insert_result(row)
-    storage.update_sweep(sweep_id, state="done", started_at=now_iso(), finished_at=now_iso())   # a finished sweep, as its map implies
-    return build_map_from_sweep(storage, sweep_id)
+    return sweep_id
+
+
+def make_map(storage: Storage, grid: dict[str, list[float]], theta: Callable[[Point], tuple[float, float]],
+             status: dict[Point, str] | None = None, s_measured: complex | None = S_MEASURED,
+             harmonic_order: int = 6) -> int:
+    """The map of a finished store_sweep (the sweep reads done, as the engine leaves it)."""
+    sweep_id = store_sweep(storage, grid, theta, status, s_measured, harmonic_order)
+    map_id = build_map_from_sweep(storage, sweep_id)
+    storage.update_sweep(sweep_id, state="done", started_at=now_iso(), finished_at=now_iso(), map_id=map_id)
+    return map_id
