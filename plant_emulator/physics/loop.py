@@ -225,7 +225,10 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
             fw_gain = p[P_FW_BW] * ts / aw_l if (aw_l > 0.0 and power) else 0.0
             fw_did_min = -p[P_IMAX] - id_ff
             ld, lq, psi = machine.saturated_params(p, tab, imag_f)
-            d_x, d_y = machine.disturbance_phasor(p, tab, torque_ref, w_m)
+            # the harmonic is the currents' (flux and saturation harmonics times current): none while the
+            # power stage is off. Its phase map depends on speed, so applied to a coasting shaft it would
+            # drive it (a disabled bench crept at -6 rpm)
+            d_x, d_y = machine.disturbance_phasor(p, tab, torque_ref, w_m) if power else (0.0, 0.0)
             d_on = d_x != 0.0 or d_y != 0.0
             zoh_true = machine.zoh_dq(r, ld, lq, w_e, ts)
             zoh_nom = machine.zoh_dq(r_nom, ld_nom, lq_nom, w_e, ts)

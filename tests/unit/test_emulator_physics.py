@@ -181,3 +181,14 @@ def test_seed_perturbs_truth_within_ranges_not_firmware():
         assert 0.8 <= ratio <= 1.2
     assert a.data["firmware"] == base.data["firmware"]
     assert a.data["machine"] != base.data["machine"]
+
+
+def test_a_disabled_bench_stays_at_standstill(params, tab):
+    """Power stage and load machine off: no current, so no torque harmonic (it is the currents',
+    flux and saturation harmonics times current). The speed-dependent phase of the map applied to a
+    coasting shaft once drove it to a steady -6 rpm; now a shaft at rest stays at rest."""
+    plant = ph.Plant(params, tab)
+    sp = ph.new_setpoints(12.0)                       # S_POWER = S_LOAD_ON = 0
+    for _ in range(64):                               # 1 s of plant time
+        plant.run(sp, 256)
+    assert abs(plant.x[ph.X_OMEGA_M]) < 1e-9

@@ -6,7 +6,8 @@ decoupling, field weakening, dead time, saturation tables, disturbance map with 
 order, power stage off, load ramp, over-range clipping, sync flag) must give the recorded traces,
 final states and per-chunk summaries to float rounding, and the recorded DAQ frame bytes exactly.
 The recording is tests/data/physics_trace_pinned.json (written by `record()` from the code at
-commit e535cf8, before the split).
+commit e535cf8, before the split). One deliberate physics change since: `power_off_load_ramp` was
+recorded again when the disturbance harmonic became the currents' (none with the power stage off).
 """
 from __future__ import annotations
 
