@@ -118,3 +118,31 @@ def test_identification_succeeds_through_occasional_bad_frames(svc):
         assert control(svc, {"fault": "clear"})["ok"]
     assert job["state"] == "done", job
     assert svc.storage.get_result(job["result_id"])["suppression_db"] >= 40
+
+
+def test_the_lut_objects_are_read_when_idle_never_during_a_run(svc):
+    """/bench/status reads the LUT the drive holds (0x2001:2-4) in idle rounds only: during a run the
+    drive's SDO channel is the run's, and the LUT changes only by a download."""
+    calls = []
+    original = svc.bench.drive.lut_in_force
+
+    def counted():
+        calls.append(time.monotonic())
+        return original()
+    svc.bench.drive.lut_in_force = counted
+    try:
+        with svc.bench.operating_point(OP1, 6) as session:
+            before = len(calls)
+            session.apply_theta(0.0, 0.0)
+            for _ in range(3):
+                svc.bench.refresh_status()
+                session.measure(12)
+            during = len(calls) - before
+        after_run = len(calls)
+        # read again once idle (by this refresh or the status poller's, whichever holds the bench)
+        wait_until(lambda: svc.bench.refresh_status() and len(calls) > after_run, timeout_s=30,
+                   what="the LUT objects read in an idle status round")
+    finally:
+        svc.bench.drive.lut_in_force = original
+    assert during == 0
+    assert bench_is_safe(svc)
