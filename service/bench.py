@@ -34,7 +34,7 @@ from drivers.load_machine import LoadClient
 from service.demodulation import ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm
 from service.interlocks import (DaqLost, DeviceFault, HeartbeatLost, InterlockMonitor, InterlockTripped,
-                                ServiceHeartbeatStopped, SupplyOutOfRange, Trip)
+                                ServiceHeartbeatStopped, SupplyOutOfRange, Trip, daq_disconnected_reason)
 from service import limits
 from service.limits import LimitError, check_limits
 from service.live_values import STALE_AFTER_S, LiveValues
@@ -329,6 +329,9 @@ class Bench:
         out["service_heartbeat_ok"] = self.bus.heartbeat_producing()
         out["interlocks"] = self.interlocks.snapshot()
         problems = [t["reason"] for t in out["interlocks"]["tripped"]]
+        if not out["daq"]["connected"] and not any(p.startswith("DAQ") for p in problems):
+            # the link is known lost before the interlock's next round names it
+            problems.append(daq_disconnected_reason(out["daq"]["url"], out["daq"]["last_error"]))
         problems += [f"{n}: {out[n]['last_error']}" for n in ("drive", "load", "supply") if out[n].get("last_error")]
         out["error"] = problems[0] if problems else None
         return out

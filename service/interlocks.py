@@ -202,8 +202,12 @@ class DaqLost(Interlock):
     def justification(self, value) -> str:
         connected, _, error = value
         if not connected:
-            return f"DAQ {self.reader.url} disconnected ({error})"
+            return daq_disconnected_reason(self.reader.url, error)
         return f"DAQ {self.reader.url}: sensor fault flag set"
+
+
+def daq_disconnected_reason(url: str, error: str | None) -> str:
+    return f"DAQ {url} disconnected ({error})"
 
 
 class SupplyOutOfRange(Interlock):
