@@ -10,8 +10,7 @@ import time
 
 import pytest
 
-from tests.support.bench_rig import Api, EmulatorRig
-from tests.support.service_process import ServiceProcess
+from tests.support.bench_rig import served_bench
 
 pytestmark = pytest.mark.e2e
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
@@ -19,18 +18,8 @@ OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    d = tmp_path_factory.mktemp("interlocks")
-    emu = EmulatorRig()
-    db = d / "i.db"
-    svc = ServiceProcess(db, "--bench", str(emu.bench_file(d)))
-    try:
-        svc.wait_ready()
-        api = Api(svc, db)
+    with served_bench(tmp_path_factory.mktemp("interlocks"), "i.db") as (emu, svc, api, db):
         yield emu, svc, api, db
-        api.close()
-    finally:
-        svc.stop()
-        emu.stop()
 
 
 def busy(api) -> bool:

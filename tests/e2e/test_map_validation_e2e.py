@@ -10,8 +10,7 @@ import math
 
 import pytest
 
-from tests.support.bench_rig import Api, EmulatorRig
-from tests.support.service_process import ServiceProcess
+from tests.support.bench_rig import served_bench
 
 pytestmark = pytest.mark.e2e
 GRID = {"torque_nm": [2.0, 3.0], "speed_rpm": [1200, 1600], "udc_v": [12]}
@@ -19,18 +18,8 @@ GRID = {"torque_nm": [2.0, 3.0], "speed_rpm": [1200, 1600], "udc_v": [12]}
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    d = tmp_path_factory.mktemp("validation")
-    emu = EmulatorRig()
-    db = d / "v.db"
-    svc = ServiceProcess(db, "--bench", str(emu.bench_file(d)))
-    try:
-        svc.wait_ready()
-        api = Api(svc, db)
+    with served_bench(tmp_path_factory.mktemp("validation"), "v.db") as (emu, _, api, _):
         yield emu, api
-        api.close()
-    finally:
-        svc.stop()
-        emu.stop()
 
 
 @pytest.fixture(scope="module")

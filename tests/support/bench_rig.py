@@ -3,6 +3,7 @@ bench (the interlock and crash end-to-end tests and tests/benchmarks/bench_fault
 emulator's control socket; the service never uses that socket."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -10,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Iterator
 
 import httpx
 
@@ -91,6 +93,23 @@ class Api:
 
     def close(self) -> None:
         self.http.close()
+
+
+@contextlib.contextmanager
+def served_bench(directory: Path, db_name: str) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
+    """An emulated bench and `ripplecal serve --bench` pointed at it, ready: (emulator, service, api, db);
+    both processes stopped on the way out."""
+    emu = EmulatorRig()
+    db = directory / db_name
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(directory)))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        yield emu, svc, api, db
+        api.close()
+    finally:
+        svc.stop()
+        emu.stop()
 
 
 def children_of(pid: int) -> list[int]:
