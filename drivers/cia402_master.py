@@ -35,6 +35,7 @@ from drivers.cia402 import (
 from drivers.emcy_codes import describe_emcy
 from drivers.errors import (
     DriveFaultError,
+    HeartbeatMissingError,
     NotConnectedError,
     SdoAbortError,
     SdoError,
@@ -98,6 +99,7 @@ class Cia402Master:
         self._network: canopen.Network | None = None
         self._heartbeat_lock = threading.Lock()
         self._heartbeat_seen_monotonic: float | None = None
+        self._heartbeat_first_seen = threading.Event()
         self._heartbeat_nmt_state: int | None = None
         self.heartbeat_period_ms: int | None = None
 
@@ -123,10 +125,18 @@ class Cia402Master:
                 self.write(OD_PRODUCER_HEARTBEAT, 0, DEFAULT_PRODUCER_HEARTBEAT_MS)
                 period_ms = DEFAULT_PRODUCER_HEARTBEAT_MS
             self.heartbeat_period_ms = period_ms
+            self._wait_first_heartbeat()
             self._after_connect()
         except BaseException:
             self.close()
             raise
+
+    def _wait_first_heartbeat(self) -> None:
+        # the heartbeat interlock trips on a device never heard; the bench is ready only once each was heard
+        timeout_s = max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, HEARTBEAT_ALIVE_MIN_S)
+        if not self._heartbeat_first_seen.wait(timeout_s):
+            raise HeartbeatMissingError(f"{self.device_kind} node {self.node_id}: answers SDO but sent no heartbeat "
+                                        f"within {timeout_s:g} s (producer period 0x1017 = {self.heartbeat_period_ms} ms)")
 
     def _after_connect(self) -> None:
         """Hook for subclasses: read constants the device reports (e.g. rated torque)."""
@@ -371,6 +381,7 @@ class Cia402Master:
         with self._heartbeat_lock:
             self._heartbeat_seen_monotonic = time.monotonic()
             self._heartbeat_nmt_state = data[0] & 0x7F if data else None
+        self._heartbeat_first_seen.set()
 
     def heartbeat_age_s(self) -> float | None:
         """Seconds since the device's last heartbeat (None: never seen)."""

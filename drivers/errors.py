@@ -51,6 +51,10 @@ class StateTransitionError(DriverError, TimeoutError):
     """A CiA 402 state change did not happen within its timeout."""
 
 
+class HeartbeatMissingError(DriverError, TimeoutError):
+    """The device answered on the bus but its heartbeat (0x700 + node id) was not heard in time."""
+
+
 class DriveFaultError(DriverError):
     """The device is in FAULT; the message names its error code. Only a fault reset clears it."""
 

@@ -21,7 +21,7 @@ from drivers import DRIVE_EDS, LOAD_EDS, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus, LutInForce
-from drivers.errors import DriveFaultError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
+from drivers.errors import DriveFaultError, HeartbeatMissingError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
 from tests.support.drivers_peers import EmulatedDevice, unique_channel
 from plant_emulator.drive_firmware import DriveFirmware
@@ -246,6 +246,17 @@ def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
     assert drive.state() is State402.FAULT
     drive_peer.device.shutdown()                       # the producer heartbeat stops
     assert wait_until(lambda: not drive.heartbeat_alive(), 5.0)      # at least HEARTBEAT_ALIVE_MIN_S
+
+
+def test_connect_waits_for_the_first_heartbeat_and_names_a_silent_device(bus, drive_peer):
+    drive_peer.node.nmt.stop_heartbeat()               # answers SDO, never heard on 0x705
+    client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.5)
+    with pytest.raises(HeartbeatMissingError, match=r"drive node 5: answers SDO but sent no heartbeat within"):
+        client.connect()
+    assert not client.connected                         # nothing half-open
+    drive_peer.node.nmt.start_heartbeat(100)
+    client.connect()
+    assert client.heartbeat_alive()                     # ready means heard: the interlock's first round passes
 
 
 def test_load_client_enables_and_sets_speed(bus, load_peer):
