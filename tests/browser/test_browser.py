@@ -253,18 +253,26 @@ def test_dashboard_loads_every_module_as_javascript_without_errors(service, brow
 
 
 def test_sweep_form_without_token_shows_auth_error(service, browser):
-    """POST /sweeps without a token is refused (nothing moves); the page says why."""
+    """A grid the form cannot read is named; POST /sweeps without a token is refused (nothing moves);
+    the page says why."""
     context, page, rec = _open(browser, service["base"])
     try:
         page.evaluate("localStorage.removeItem('ripplecal.token')")
         page.fill('[data-testid="token"]', "")
+        # a grid the form cannot read is named before anything is sent
+        page.fill('[data-testid="sweep-torque"]', "1, x")
+        page.fill('[data-testid="sweep-speed"]', "")
+        page.click('[data-testid="sweep-submit"]')
+        err = page.locator('[data-testid="sweep-error"]')
+        err.wait_for(state="visible", timeout=10_000)
+        assert 'torque: "x" is not a number' in err.inner_text() and "speed: enter at least one number" in err.inner_text()
         page.fill('[data-testid="sweep-torque"]', "1")
         page.fill('[data-testid="sweep-speed"]', "1000")
         page.fill('[data-testid="sweep-udc"]', "12")
         page.click('[data-testid="sweep-submit"]')
-        err = page.locator('[data-testid="sweep-error"]')
-        err.wait_for(state="visible", timeout=10_000)
-        assert "token missing or invalid" in err.inner_text()
+        page.wait_for_function("""() => document.querySelector('[data-testid="sweep-error"]')
+                                        .innerText.includes('token missing or invalid')""", timeout=10_000)
+        assert err.is_visible()
         assert page.is_hidden('[data-testid="sweep-ok"]')
         assert not rec["pageerrors"], rec["pageerrors"]
         # the refused POST is the only console error (Chromium logs every failed fetch)

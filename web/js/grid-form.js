@@ -1,5 +1,7 @@
 // The operating-point grid of a form (torque, speed, DC-link voltage as comma-separated numbers), read
 // the same way by every form that asks for one (a sweep, a schedule's sweep).
+import { showMsg } from "./dom.js";
+
 const GRID_FIELDS = [["torque_nm", "torque"], ["speed_rpm", "speed"], ["udc_v", "DC link voltage"]];
 
 function parseList(str, name) {
@@ -15,7 +17,7 @@ function parseList(str, name) {
 }
 
 // {grid, errors}: the grid the form's torque_nm / speed_rpm / udc_v fields give, or what is wrong.
-export function readGrid(form) {
+function readGrid(form) {
   const grid = {};
   const errors = [];
   for (const [key, label] of GRID_FIELDS) {
@@ -24,4 +26,17 @@ export function readGrid(form) {
     else grid[key] = r.vals;
   }
   return { grid, errors };
+}
+
+// The start of every grid form's submit: clear the form's messages, read its grid, show what is wrong.
+// Returns the grid, or null when the form said what to fix.
+export function submittedGrid(form, errorId, okId) {
+  showMsg(errorId, null);
+  showMsg(okId, null);
+  const { grid, errors } = readGrid(form);
+  if (errors.length) {
+    showMsg(errorId, errors, "Check the grid:");
+    return null;
+  }
+  return grid;
 }

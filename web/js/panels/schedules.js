@@ -4,7 +4,7 @@
 import * as api from "../api.js";
 import { $, el, showMsg } from "../dom.js";
 import { runLevel, shortTime } from "../format.js";
-import { readGrid } from "../grid-form.js";
+import { submittedGrid } from "../grid-form.js";
 
 const RELOAD_DEBOUNCE_MS = 300;
 const NEXT_SHOWN = 3;            // next runs per row
@@ -123,14 +123,9 @@ async function remove(id, name) {
 
 async function submit(ev) {
   ev.preventDefault();
-  showMsg("schedule-error", null);
-  showMsg("schedule-ok", null);
   const f = ev.target;
-  const { grid, errors: errs } = readGrid(f);
-  if (errs.length) {
-    showMsg("schedule-error", errs, "Check the grid:");
-    return;
-  }
+  const grid = submittedGrid(f, "schedule-error", "schedule-ok");
+  if (!grid) return;
   const body = { name: f.elements.name.value.trim(), cron: f.elements.cron.value.trim(),
     timezone: f.elements.timezone.value.trim(), sweep: { grid, method: f.elements.method.value } };
   const btn = $("schedule-submit");

@@ -2,7 +2,7 @@
 import * as api from "../api.js";
 import { $, el, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
-import { readGrid } from "../grid-form.js";
+import { submittedGrid } from "../grid-form.js";
 
 const RELOAD_DEBOUNCE_MS = 300;  // several events in a burst -> one GET /sweeps
 const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
@@ -268,14 +268,9 @@ async function control(id, action) {
 
 async function submit(ev) {
   ev.preventDefault();
-  showMsg("sweep-error", null);
-  showMsg("sweep-ok", null);
   const f = ev.target;
-  const { grid, errors: errs } = readGrid(f);
-  if (errs.length) {
-    showMsg("sweep-error", errs, "Check the grid:");
-    return;
-  }
+  const grid = submittedGrid(f, "sweep-error", "sweep-ok");
+  if (!grid) return;
   const btn = $("sweep-submit");
   btn.disabled = true;
   try {
