@@ -2,6 +2,7 @@
 // schedule with its next runs and its recent runs (the sweep each submitted and the outcome), turns
 // them on and off, deletes them, and creates one from the form.
 import * as api from "../api.js";
+import { coalesced } from "../coalesce.js";
 import { $, el, showMsg } from "../dom.js";
 import { runLevel, shortTime } from "../format.js";
 import { submittedGrid } from "../grid-form.js";
@@ -10,7 +11,6 @@ const RELOAD_DEBOUNCE_MS = 300;
 const NEXT_SHOWN = 3;            // next runs per row
 const RUNS_SHOWN = 5;            // recent runs per row
 let schedules = [];
-let reloadTimer = null;
 let openSweep = () => {};
 
 // openSweepOf(sweepId): what a run's "sweep N" link does.
@@ -36,13 +36,7 @@ export function onSweepProgress(p) {
   if (schedules.some((s) => s.runs.some((r) => r.sweep_id === p.sweep_id))) scheduleReload();
 }
 
-export function scheduleReload() {
-  if (reloadTimer) return;
-  reloadTimer = setTimeout(() => {
-    reloadTimer = null;
-    reload();
-  }, RELOAD_DEBOUNCE_MS);
-}
+export const scheduleReload = coalesced(() => reload(), RELOAD_DEBOUNCE_MS);
 
 function render() {
   $("schedule-empty").hidden = schedules.length > 0;

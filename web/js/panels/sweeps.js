@@ -1,5 +1,6 @@
 // Panel (2): start a sweep, list the sweeps with their progress, pause / resume / cancel them.
 import * as api from "../api.js";
+import { coalesced } from "../coalesce.js";
 import { $, el, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
 import { submittedGrid } from "../grid-form.js";
@@ -11,7 +12,6 @@ const pausing = new Set();       // sweep ids paused by us while their point in 
 const attention = new Map();     // sweep id -> {key, points}: its non-ok points with their reasons
 const attentionOpen = new Set(); // sweep ids whose list the reader opened
 const NOT_OK = ["failed", "below_target", "no_authority"];
-let reloadTimer = null;
 let openMap = () => {};
 
 // openMapOf(mapId): what the "map N" link of a row does.
@@ -31,13 +31,7 @@ export async function reload() {
   }
 }
 
-export function scheduleReload() {
-  if (reloadTimer) return;
-  reloadTimer = setTimeout(() => {
-    reloadTimer = null;
-    reload();
-  }, RELOAD_DEBOUNCE_MS);
-}
+export const scheduleReload = coalesced(() => reload(), RELOAD_DEBOUNCE_MS);
 
 // SSE sweep.progress {sweep_id, state, done, total, map_id}
 export function onProgress(p) {
