@@ -65,6 +65,10 @@ HEARTBEAT_ALIVE_MIN_S = 1.0
 machine, and a drive whose link is really down falls safe on its own (it consumes our heartbeat),
 so this check must not trip on scheduling jitter."""
 
+FIRST_HEARTBEAT_WAIT_MIN_S = 3.0
+"""connect() waits this long at least for the device's first heartbeat: it returns at the first one
+heard, so the wait costs a healthy bench nothing, and a loaded start-up is not called a dead device."""
+
 STATUS_POLL_INTERVAL_S = 0.002
 """Pause between statusword reads while waiting for a state change (each read is one SDO round trip)."""
 
@@ -133,7 +137,7 @@ class Cia402Master:
 
     def _wait_first_heartbeat(self) -> None:
         # the heartbeat interlock trips on a device never heard; the bench is ready only once each was heard
-        timeout_s = max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, HEARTBEAT_ALIVE_MIN_S)
+        timeout_s = max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, FIRST_HEARTBEAT_WAIT_MIN_S)
         if not self._heartbeat_first_seen.wait(timeout_s):
             raise HeartbeatMissingError(f"{self.device_kind} node {self.node_id}: answers SDO but sent no heartbeat "
                                         f"within {timeout_s:g} s (producer period 0x1017 = {self.heartbeat_period_ms} ms)")
