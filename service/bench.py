@@ -58,8 +58,8 @@ class RunError(BenchError):
 
 
 class Bench:
-    # Re-establishing the setpoint count: no toggle for this many samples means the drive has no setpoint
-    # pending. It must exceed what the DAQ path can still deliver from before the flush (data made
+    # Re-establishing the setpoint count (before a run, and after a DAQ gap hid toggles): no toggle for
+    # this many samples means the drive has no setpoint pending. It must exceed what the DAQ path can still deliver from before the flush (data made
     # before pending setpoints were applied): the emulator's writer holds up to 4 batches of 4096.
     SYNC_QUIET_SAMPLES = 20480     # 1.28 s of plant time at 16 kHz
     SYNC_MAX_SAMPLES = 131072      # give up after this much plant time (8 s)
@@ -397,7 +397,8 @@ class Bench:
                                                 no_sync_settle_s=s.daq.no_sync_settle_s,
                                                 guard=lambda: self._guard(cancel), resonance=self.resonance,
                                                 observe=self.live.publisher("run"), on_window=on_window,
-                                                send_injection_mode=self.send_injection_mode)
+                                                send_injection_mode=self.send_injection_mode,
+                                                sync_quiet_samples=self.SYNC_QUIET_SAMPLES)
                 self.live.publish("run", operating_point=op.model_dump(),
                                   speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
                 self._go_to(op, harmonic_order,

@@ -70,6 +70,8 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
             session.recorder = None
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
+        # setpoint toggles that fell into DAQ gaps and were counted once the line was quiet (measurement.py)
+        result.details["sync_toggles_hidden"] = session.cursor.toggles_hidden
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
         result.details["decoupling"] = decoupling      # the drive must run the LUT with the same setting

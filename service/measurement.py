@@ -47,15 +47,21 @@ class RunCancelled(RuntimeError):
 class Chunk:
     samples: DecodedSamples
     toggle_offsets: np.ndarray     # offsets within the chunk where the sync level changed
+    gap_offsets: np.ndarray        # offsets of samples with lost samples or a bad frame just before them
 
 
 class DaqCursor:
-    """In-order consumer of a DaqReader that counts sync toggles."""
+    """In-order consumer of a DaqReader that counts sync toggles.
+
+    Across a gap (samples lost: the reader fell behind a DAQ that cannot wait) only the level change is
+    seen, so the count stays exact in parity but misses toggles in pairs; `count_hidden_toggles` adds
+    them once the caller has shown they happened (OperatingPointSession.wait_for_effect)."""
 
     def __init__(self, reader, read_timeout_s: float):
         self.reader = reader
         self.read_timeout_s = read_timeout_s
         self.toggles_seen = 0
+        self.toggles_hidden = 0        # added by count_hidden_toggles: lost in gaps, for the log and the run
         self.last_index = -1
         self._level: int | None = None
 
@@ -73,7 +79,12 @@ class DaqCursor:
         self._level = int(level[-1])
         self.toggles_seen += len(toggles)
         self.last_index = int(samples.index[-1])
-        return Chunk(samples, toggles)
+        return Chunk(samples, toggles, np.flatnonzero(samples.gap_before))
+
+    def count_hidden_toggles(self, n: int) -> None:
+        """n toggles happened inside gaps of the stream (an even number: the parity was seen)."""
+        self.toggles_seen += n
+        self.toggles_hidden += n
 
 
 class OperatingPointSession:
@@ -88,7 +99,8 @@ class OperatingPointSession:
                  no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
                  resonance: ResonanceTracker | None = None, observe: Callable[..., None] | None = None,
                  on_window: Callable[[Window], None] | None = None,
-                 send_injection_mode: Callable[[str], None] | None = None):
+                 send_injection_mode: Callable[[str], None] | None = None,
+                 sync_quiet_samples: int = 20480):
         self._send_theta = send_theta                  # theta to the drive (checked against gamma_max there)
         self._send_injection_mode = send_injection_mode   # off / manual / lut (the LUT's validation)
         self._setpoints_written = setpoints_written    # setpoints the drive accepted: one sync toggle each
@@ -105,6 +117,8 @@ class OperatingPointSession:
         self.pole_pairs = pole_pairs
         self.settle_after_theta_s = settle_after_theta_s
         self.sync_input = sync_input
+        # after a gap: no toggle and no gap for this long means the drive has no setpoint pending
+        self.sync_quiet_samples = sync_quiet_samples
         self.no_sync_settle_s = no_sync_settle_s
         self._pending: DecodedSamples | None = None   # samples read past the point we needed
         self._segment_start: int | None = None
@@ -161,26 +175,49 @@ class OperatingPointSession:
             return self._settle_on_data(max_plant_s)
         budget = int(max_plant_s * self.sample_rate_hz)
         consumed = 0
+        gaps = 0
+        quiet = 0       # samples since the later of the last gap and the last toggle (once a gap was seen)
         while True:
             before = self.cursor.toggles_seen
             chunk = self.cursor.read(self.CHUNK_SAMPLES)
             missing = self._setpoints_written() - before
             if len(chunk.toggle_offsets) >= missing > 0:
                 offset = int(chunk.toggle_offsets[missing - 1])
-                self.stale_samples += offset
-                self._record(chunk.samples.slice(0, offset), counted=False)
-                self._push_back(chunk.samples.slice(offset))
-                self._segment_start = int(chunk.samples.index[offset])
-                return self._segment_start
+                return self._effect_at(chunk, offset)
             if missing <= 0:
                 raise MeasurementError("sync accounting error: more sync toggles seen than setpoints written")
+            gaps += len(chunk.gap_offsets)
+            if gaps:
+                last_event = max([-1, *chunk.gap_offsets[-1:], *chunk.toggle_offsets[-1:]])
+                quiet = len(chunk.samples) - 1 - last_event if last_event >= 0 else quiet + len(chunk.samples)
+                missing = self._setpoints_written() - self.cursor.toggles_seen
+                if quiet >= self.sync_quiet_samples:
+                    # the drive has nothing pending: what is missing toggled inside the gaps, in pairs (the
+                    # level across a gap shows one of a pair as nothing). The effect is before this sample.
+                    if missing % 2:
+                        raise MeasurementError(f"sync accounting error after a DAQ gap: {missing} toggle(s) "
+                                               "missing, an odd number, with the line quiet")
+                    self.cursor.count_hidden_toggles(missing)
+                    log.warning("%d sync toggle(s) lost in %d DAQ gap(s); setpoint effect taken after the gap",
+                                missing, gaps)
+                    return self._effect_at(chunk, len(chunk.samples) - 1)
             consumed += len(chunk.samples)
             self.stale_samples += len(chunk.samples)
             self._record(chunk.samples, counted=False)
             if consumed > budget:
+                hidden = (f"; the stream had {gaps} DAQ gap or bad frame(s) meanwhile, which can hide toggles, "
+                          "and the line was never quiet after them") if gaps else ""
                 raise MeasurementError(
                     f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
-                    f"({self._setpoints_written() - self.cursor.toggles_seen} toggle(s) missing)")
+                    f"({self._setpoints_written() - self.cursor.toggles_seen} toggle(s) missing{hidden})")
+
+    def _effect_at(self, chunk: Chunk, offset: int) -> int:
+        """The setpoint took effect at chunk sample `offset`: what precedes it is stale."""
+        self.stale_samples += offset
+        self._record(chunk.samples.slice(0, offset), counted=False)
+        self._push_back(chunk.samples.slice(offset))
+        self._segment_start = int(chunk.samples.index[offset])
+        return self._segment_start
 
     def _discard_stale(self) -> None:
         """Without the sync line nothing marks a setpoint's sample: drop what the reader and the port hold."""

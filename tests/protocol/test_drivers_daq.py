@@ -6,17 +6,16 @@ the pty master by a writer thread; the reader opens the slave by its /dev/pts pa
 from __future__ import annotations
 
 import math
-import os
 import socket
 import threading
 import time
-import tty
 
 import numpy as np
 import pytest
 
 from drivers.daq_protocol import FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, FRAME_BYTES, encode_frames
 from drivers.daq_reader import DaqDisconnected, DaqReader, DaqTimeout
+from tests.support.pty_writer import PtyWriter
 
 
 def make_stream(n: int, first_seq: int = 0, seed: int = 1) -> tuple[bytes, dict[str, np.ndarray]]:
@@ -27,48 +26,6 @@ def make_stream(n: int, first_seq: int = 0, seed: int = 1) -> tuple[bytes, dict[
     flags = np.where(np.arange(n) % 50 == 0, FLAG_SYNC_INPUT, 0)
     flags[n // 3] |= FLAG_SENSOR_FAULT
     return encode_frames(seq, angle, accel, flags), {"angle": angle, "accel": accel, "flags": flags}
-
-
-class PtyWriter:
-    """The pty master side: writes byte pieces from a thread (blocking writes, like the emulator)."""
-
-    def __init__(self):
-        self.master_fd, self.slave_fd = os.openpty()
-        tty.setraw(self.slave_fd)
-        self.path = os.ttyname(self.slave_fd)
-        self.bytes_written = 0
-        self.error: BaseException | None = None
-        self._thread: threading.Thread | None = None
-
-    def write_in_thread(self, data: bytes, piece_bytes: int = 4096) -> threading.Thread:
-        def run():
-            try:
-                view = memoryview(data)
-                for start in range(0, len(data), piece_bytes):
-                    piece = view[start:start + piece_bytes]
-                    while piece:
-                        written = os.write(self.master_fd, piece)
-                        self.bytes_written += written
-                        piece = piece[written:]
-            except OSError as exc:
-                self.error = exc
-
-        self._thread = threading.Thread(target=run, name="pty-writer", daemon=True)
-        self._thread.start()
-        return self._thread
-
-    def close_master(self) -> None:
-        if self.master_fd >= 0:
-            os.close(self.master_fd)
-            self.master_fd = -1
-
-    def close(self) -> None:
-        self.close_master()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        if self.slave_fd >= 0:
-            os.close(self.slave_fd)
-            self.slave_fd = -1
 
 
 @pytest.fixture

@@ -96,10 +96,11 @@ class Api:
 
 
 @contextlib.contextmanager
-def served_bench(directory: Path, db_name: str) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
+def served_bench(directory: Path, db_name: str,
+                 speedup: float = 0.0) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
     """An emulated bench and `ripplecal serve --bench` pointed at it, ready: (emulator, service, api, db);
-    both processes stopped on the way out."""
-    emu = EmulatorRig()
+    both processes stopped on the way out. speedup > 0: the emulator paced (see EmulatorRig)."""
+    emu = EmulatorRig(speedup=speedup)
     db = directory / db_name
     svc = ServiceProcess(db, "--bench", str(emu.bench_file(directory)))
     try:
