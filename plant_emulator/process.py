@@ -238,8 +238,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=None, help="perturb the truth within the scenario's [seed] ranges")
     ap.add_argument("--speedup", type=float, default=1.0,
                     help="X times real time, paced like a real DAQ: what the reader does not take in time is "
-                         "dropped (beyond about 5x a service cannot keep up and its runs fail naming the DAQ "
-                         "gaps); 0 = as fast as the DAQ reader consumes, the way to run faster than real time "
+                         "dropped (beyond about 5x a service on 2 cores does not keep up, and some runs fail "
+                         "naming the DAQ gaps); 0 = as fast as the DAQ reader consumes, the way to run faster than real time "
                          "(default 1)")
     ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
