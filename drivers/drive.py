@@ -225,8 +225,8 @@ class DriveClient(Cia402Master):
         held = self.lut_in_force()
         if held.crc32 != expected:
             raise SdoError(self.node_id, "read", OD_LUT, SUB_LUT_CRC, self._object_name(OD_LUT, SUB_LUT_CRC),
-                           f"LUT CRC-32 read-back 0x{held.crc32:08X} != 0x{expected:08X} of the {len(blob)} bytes "
-                           f"sent (LUT status {held.status})")
+                           f"LUT CRC-32 read-back {lut_image.crc_hex(held.crc32)} != {lut_image.crc_hex(expected)} "
+                           f"of the {len(blob)} bytes sent (LUT status {held.status})")
         return held
 
     def lut_in_force(self) -> LutInForce:

@@ -142,7 +142,7 @@ def decode(blob: bytes) -> Lut:
     (crc_stored,) = TRAILER.unpack_from(blob, len(blob) - TRAILER.size)
     crc = image_crc(blob)
     if crc != crc_stored:
-        raise LutImageError(f"CRC-32 mismatch: the trailer says 0x{crc_stored:08X}, the image is 0x{crc:08X}")
+        raise LutImageError(f"CRC-32 mismatch: the trailer says {crc_hex(crc_stored)}, the image is {crc_hex(crc)}")
     off = HEADER.size
     axes = []
     for n_ax, name in zip((nt, nn, nu), AXES):
