@@ -174,10 +174,8 @@ class Storage:
         same operating point (kept as history, results.superseded_by) and the sweep's progress
         counters are recounted from its current results, in the same transaction, so a crash between
         two statements cannot leave a point counted twice or a point with two current results."""
-        cols = ", ".join(row)
-        marks = ", ".join("?" for _ in row)
         with self.transaction() as conn:
-            rid = conn.execute(f"INSERT INTO results ({cols}) VALUES ({marks})", tuple(row.values())).lastrowid
+            rid = _insert(conn, "results", row)
             if row.get("sweep_id") is not None:
                 conn.execute("UPDATE results SET superseded_by = ? WHERE sweep_id = ? AND torque_nm = ? AND speed_rpm = ? "
                              "AND udc_v = ? AND superseded_by IS NULL AND id != ?",
@@ -270,10 +268,8 @@ class Storage:
 
     # --- map validations (the LUT measured in the drive's LUT mode) ---------------------------------
     def insert_validation(self, row: dict) -> int:
-        cols = ", ".join(row)
-        marks = ", ".join("?" for _ in row)
         with self.transaction() as conn:
-            return conn.execute(f"INSERT INTO map_validations ({cols}) VALUES ({marks})", tuple(row.values())).lastrowid
+            return _insert(conn, "map_validations", row)
 
     def latest_validation(self, map_id: int) -> dict | None:
         with self.connect() as conn:
@@ -348,12 +344,23 @@ _IDENT = re.compile(r"^[a-z_]+$")
 _COMMITTED = "sweep_id = ? AND superseded_by IS NULL AND json_extract(detail_json, '$.discarded') IS NULL"
 
 
-def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -> None:
-    if not fields:
-        return
+def _check_columns(fields: dict[str, Any]) -> None:
     for key in fields:
         if not _IDENT.match(key):
             raise StorageError(f"bad column name {key!r}")
+
+
+def _insert(conn: sqlite3.Connection, table: str, row: dict[str, Any]) -> int:
+    """One row from a {column: value} dict, in the caller's transaction; its id."""
+    _check_columns(row)
+    marks = ", ".join("?" for _ in row)
+    return conn.execute(f"INSERT INTO {table} ({', '.join(row)}) VALUES ({marks})", tuple(row.values())).lastrowid
+
+
+def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -> None:
+    if not fields:
+        return
+    _check_columns(fields)
     sets = ", ".join(f"{k} = ?" for k in fields)
     with storage.transaction() as conn:
         conn.execute(f"UPDATE {table} SET {sets} WHERE id = ?", (*fields.values(), row_id))
