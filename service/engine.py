@@ -28,7 +28,7 @@ from service import __version__
 from service.limits import check_limits
 from service.interlocks import InterlockTripped
 from service.identify import check_plant_time, identify_at, parse_options
-from service.public import map_public, result_public, result_row
+from service.public import result_public, result_row
 from service.maps import build_map_from_sweep
 from service.map_validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
                                     store_validation)
@@ -211,11 +211,11 @@ class Engine:
         """Queue the validation of a map in the drive's LUT mode (service.map_validation). Refused before
         anything is queued: KeyError (no such map), ValidationRefused (no valid cell, partial without
         force), LimitError (a point outside the bench's limits)."""
-        m = map_public(self.storage, map_id)
-        if m is None:
+        row = self.storage.get_map(map_id)
+        if row is None:
             raise KeyError(map_id)
         check_validatable(self.storage, map_id, force)
-        check_points(m.model_dump(), self.settings)
+        check_points(json.loads(row["axes_json"]), self.settings)
         job_id = self.storage.create_job("validation", {"map_id": map_id, "force": force,
                                                         "options": options.model_dump()})
         self._job_cancel[job_id] = threading.Event()

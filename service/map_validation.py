@@ -232,7 +232,7 @@ def store_validation(storage: Storage, job_id: int, run: ValidationRun, bench_id
         "started_at": run.started_at, "finished_at": now_iso()})
 
 
-def check_points(m: dict, settings: Settings) -> None:
-    """Every point of the finer grid within the bench's limits (before anything is queued)."""
-    for op, _kind in validation_points(m["axes"]):
+def check_points(axes: dict[str, list[float]], settings: Settings) -> None:
+    """Every point of the finer grid of the map's axes within the bench's limits (before anything is queued)."""
+    for op, _kind in validation_points(axes):
         check_limits(op, settings)
