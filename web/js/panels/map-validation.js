@@ -43,7 +43,7 @@ async function start() {
     showMsg("validation-note", [`Validation job ${job.id} queued: LUT download, then every grid point and midpoint ` +
       "in the drive's LUT mode."]);
   } catch (e) {
-    showMsg("validation-note", e.lines || [e.message], "Validation refused");
+    showMsg("validation-note", api.errorLines(e), "Validation refused");
   }
 }
 
