@@ -266,9 +266,7 @@ class RecordingStore:
         whether it exists, then apply the retention. Never raises: the result is already stored."""
         if recorder is None:
             return
-        record: dict[str, Any] = {"format": "mf4", "samples": recorder.samples_recorded,
-                                  "stale_samples": recorder.stale_samples, "setpoints": len(recorder.setpoints),
-                                  "sample_rate_hz": self.sample_rate_hz}
+        record: dict[str, Any] = {"format": "mf4", **self._counts(recorder)}
         try:
             if recorder.error is None and not recorder.samples_recorded:
                 recorder.close()
@@ -291,13 +289,17 @@ class RecordingStore:
         if "path" in record:
             self.apply_retention(keep=Path(record["path"]))
 
+    def _counts(self, recorder: RunRecorder) -> dict[str, Any]:
+        """What the recording holds, in the result's record and in the file's header alike."""
+        return {"samples": recorder.samples_recorded, "stale_samples": recorder.stale_samples,
+                "setpoints": len(recorder.setpoints), "sample_rate_hz": self.sample_rate_hz}
+
     def _header(self, recorder: RunRecorder, result_id: int, row: dict) -> dict[str, Any]:
         return {"result_id": result_id, "status": row.get("status"), "method": row["method"],
                 "options": row.get("options_json"), "torque_nm": row["torque_nm"], "speed_rpm": row["speed_rpm"],
                 "udc_v": row["udc_v"], "harmonic_order": row.get("harmonic_order"),
-                "plant_time_s": row.get("plant_time_s"), "samples": recorder.samples_recorded,
-                "stale_samples": recorder.stale_samples, "setpoints": len(recorder.setpoints),
-                "sample_rate_hz": self.sample_rate_hz, "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
+                "plant_time_s": row.get("plant_time_s"), **self._counts(recorder),
+                "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
                 "bench_identity": row.get("bench_identity"), "software_version": row.get("software_version", __version__),
                 "started_at": row.get("started_at"), "finished_at": row.get("finished_at"), "sweep_id": row.get("sweep_id"),
                 "job_id": row.get("job_id")}
