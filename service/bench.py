@@ -59,8 +59,9 @@ class RunError(BenchError):
 
 class Bench:
     # Re-establishing the setpoint count (before a run, and after a DAQ gap hid toggles): no toggle for
-    # this many samples means the drive has no setpoint pending. It must exceed what the DAQ path can still deliver from before the flush (data made
-    # before pending setpoints were applied): the emulator's writer holds up to 4 batches of 4096.
+    # this many samples means the drive has no setpoint pending. It must exceed what the DAQ path can
+    # still deliver from before the flush (data made before pending setpoints were applied): the
+    # emulator's writer holds up to 4 batches of 4096.
     SYNC_QUIET_SAMPLES = 20480     # 1.28 s of plant time at 16 kHz
     SYNC_MAX_SAMPLES = 131072      # give up after this much plant time (8 s)
 
