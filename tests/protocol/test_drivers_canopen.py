@@ -249,7 +249,13 @@ def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
 
 
 def test_connect_waits_for_the_first_heartbeat_and_names_a_silent_device(bus, drive_peer):
+    heard: list[float] = []
+    bus.network.subscribe(0x700 + DRIVE_NODE, lambda can_id, data, ts: heard.append(time.monotonic()))
     drive_peer.node.nmt.stop_heartbeat()               # answers SDO, never heard on 0x705
+    stopped_at = time.monotonic()
+    # a heartbeat sent just before the stop can still sit in the bus queue (late under load): wait until
+    # the line has been quiet for 5 producer periods, so the client's wait can only end by its timeout
+    assert wait_until(lambda: time.monotonic() - max([stopped_at, *heard]) > 0.5, 10.0)
     client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.5)
     with pytest.raises(HeartbeatMissingError, match=r"drive node 5: answers SDO but sent no heartbeat within"):
         client.connect()
