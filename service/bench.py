@@ -272,11 +272,7 @@ class Bench:
             got = self._lock.acquire(timeout=0.05)
             try:
                 if got or self.busy:
-                    self._read_device("drive", lambda: self.drive.read_status(), lambda d: {
-                        "state": d.state.value, "torque_nm": d.torque_nm, "speed_rpm": d.speed_rpm, "udc_v": d.udc_v})
-                    self._read_device("load", lambda: self.load.read_status(), lambda l: {
-                        "state": l.state.value, "speed_rpm": l.speed_rpm})
-                    self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
+                    self._read_devices()
                 if got and not self.busy and self._devices["drive"].get("last_error") is None:
                     self._read_device("lut", self.drive.lut_in_force, _lut_shape)
             finally:
@@ -284,6 +280,13 @@ class Bench:
                     self._lock.release()
         self._status["updated_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         return self.status()
+
+    def _read_devices(self) -> None:
+        self._read_device("drive", lambda: self.drive.read_status(), lambda d: {
+            "state": d.state.value, "torque_nm": d.torque_nm, "speed_rpm": d.speed_rpm, "udc_v": d.udc_v})
+        self._read_device("load", lambda: self.load.read_status(), lambda l: {
+            "state": l.state.value, "speed_rpm": l.speed_rpm})
+        self._read_device("supply", lambda: self.supply.measure_voltage(), lambda v: {"measured_v": v})
 
     def _read_device(self, name: str, read, shape) -> None:
         entry = self._devices[name]
@@ -429,6 +432,8 @@ class Bench:
         finally:
             self.busy = False
             self._gamma_max_rad = None
+            if self.connected:
+                self._read_devices()    # the status shows the state the run left, not the poller's last read
         outcome = "bench made safe" if safe_error is None else f"make_safe failed: {safe_error}"
         if trip is not None and not isinstance(first, GeneratorExit):
             err = InterlockTripped(trip, outcome=outcome)

@@ -44,6 +44,8 @@ def test_emcy_mid_sweep_pauses_until_fault_reset_then_resume_completes(rig):
     assert all(p["state"] == "failed" for p in faulted)
     assert sweep["progress"]["done"] == len([p for p in sweep["points"] if p not in faulted])
 
+    # the status shows the state the run left at once (read at the run's end, not at the next poll)
+    assert api.get("/bench/status")["drive"]["state"] == "fault"
     # the drive stays in FAULT: nothing resets it by itself, no run starts, resume is refused
     time.sleep(1.5)
     status = api.get("/bench/status")
