@@ -527,8 +527,11 @@ class Bench:
         try:
             for _ in range(int(timeout_plant_s / 0.02)):
                 chunk = self.cursor.read(block).samples
-                speed_rpm = mechanical_speed_rpm(chunk.angle_rad, self.settings.daq.sample_rate_hz,
-                                                 self.settings.motor.pole_pairs)
+                try:    # over the block's contiguous runs: the angle's step across a DAQ gap is unknown
+                    speed_rpm = mechanical_speed_rpm(chunk.angle_rad, self.settings.daq.sample_rate_hz,
+                                                     self.settings.motor.pole_pairs, chunk.gap_before)
+                except ValueError:
+                    continue
                 if abs(speed_rpm) < below_rpm:
                     return
         except DaqError as exc:

@@ -86,14 +86,27 @@ def amplitude_spectrum(alpha_fs: np.ndarray, angle_rad: np.ndarray, max_order: i
     return out
 
 
-def mechanical_speed_rpm(angle_rad: np.ndarray, sample_rate_hz: float, pole_pairs: int) -> float:
-    """Mechanical speed (rpm) seen by the encoder over a record of electrical angles."""
-    return electrical_frequency_hz(angle_rad, sample_rate_hz) * 60.0 / pole_pairs
+def mechanical_speed_rpm(angle_rad: np.ndarray, sample_rate_hz: float, pole_pairs: int,
+                         gap_before: np.ndarray | None = None) -> float:
+    """Mechanical speed (rpm) seen by the encoder over a record of electrical angles (see
+    electrical_frequency_hz for `gap_before`)."""
+    return electrical_frequency_hz(angle_rad, sample_rate_hz, gap_before) * 60.0 / pole_pairs
 
 
-def electrical_frequency_hz(angle_rad: np.ndarray, sample_rate_hz: float) -> float:
-    """Mean electrical frequency over a record, from the encoder angle (rad) sampled at sample_rate_hz."""
-    if len(angle_rad) < 2:
-        raise ValueError("need at least two samples to estimate the speed")
-    turns = (np.unwrap(angle_rad)[-1] - angle_rad[0]) / (2.0 * math.pi)
-    return float(turns * sample_rate_hz / (len(angle_rad) - 1))
+def electrical_frequency_hz(angle_rad: np.ndarray, sample_rate_hz: float, gap_before: np.ndarray | None = None) -> float:
+    """Mean electrical frequency (Hz) over a record of the encoder angle (rad) sampled at sample_rate_hz.
+
+    gap_before[i] (the DAQ decoder's flag) marks samples lost or a bad frame skipped just before
+    sample i. The angle's step across a gap is unknown (it may wrap by more than half a turn), so the
+    record is taken as its contiguous runs: f_e = fs * sum(advance of each run) / (2 pi * sum(len - 1
+    of each run)). Without gaps this is the record's unwrapped advance over its length."""
+    angle = np.asarray(angle_rad, dtype=float)
+    cuts = np.flatnonzero(np.asarray(gap_before)[1:]) + 1 if gap_before is not None else ()
+    turns, intervals = 0.0, 0
+    for run in np.split(angle, cuts):
+        if len(run) >= 2:
+            turns += (np.unwrap(run)[-1] - run[0]) / (2.0 * math.pi)
+            intervals += len(run) - 1
+    if intervals == 0:
+        raise ValueError("need at least two contiguous samples to estimate the speed")
+    return float(turns * sample_rate_hz / intervals)

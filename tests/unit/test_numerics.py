@@ -96,6 +96,27 @@ def test_phasor_whole_periods_exact(speed_rpm):
     assert electrical_frequency_hz(phi, fs) == pytest.approx(w_e / (2 * math.pi), rel=1e-9)
 
 
+def test_electrical_frequency_across_daq_gaps_uses_contiguous_runs_only():
+    # 6000 rpm, 4 pole pairs: 400 Hz electrical, 40 samples per turn at 16 kHz; gaps of 25 samples
+    # (more than half a turn) make the angle's step across them ambiguous
+    fs, f_e = 16000.0, 400.0
+    k = np.arange(2000)
+    keep = np.ones(len(k), bool)
+    for start in (300, 900, 1500):
+        keep[start:start + 25] = False          # frames lost or dropped for a bad CRC
+    index = k[keep]
+    phi = (2 * math.pi * f_e * index / fs + 1.0) % (2 * math.pi)
+    gap_before = np.zeros(len(index), bool)
+    gap_before[1:] = np.diff(index) > 1
+    assert gap_before.sum() == 3
+    assert electrical_frequency_hz(phi, fs, gap_before) == pytest.approx(f_e, rel=1e-9)
+    # naively joined, the lost time is missed and each step across a gap wraps the wrong way
+    assert abs(electrical_frequency_hz(phi, fs) - f_e) > 0.01 * f_e
+    # nothing contiguous: no speed, rather than a made-up one
+    with pytest.raises(ValueError, match="contiguous"):
+        electrical_frequency_hz(phi[:3], fs, np.array([False, True, True]))
+
+
 def test_phasor_refuses_short_record():
     phi = np.linspace(0, 1, 100)
     with pytest.raises(ValueError, match="fewer than"):
