@@ -111,10 +111,13 @@ def test_timeout_says_how_many_arrived_and_keeps_them(pty_writer):
     stream, _ = make_stream(100)
     with DaqReader(pty_writer.path) as reader:
         pty_writer.write_in_thread(stream).join(2.0)
+        deadline = time.monotonic() + 10.0       # the reader's thread may lag under load: all 100 in first
+        while reader.buffered_samples < 100 and time.monotonic() < deadline:
+            time.sleep(0.01)
         t0 = time.monotonic()
         with pytest.raises(DaqTimeout, match="only 100 of 200 samples arrived within 0.3 s"):
             reader.read(200, timeout_s=0.3)
-        assert 0.25 < time.monotonic() - t0 < 2.0
+        assert 0.25 < time.monotonic() - t0 < 5.0
         samples = reader.read(100, timeout_s=1.0)  # nothing was lost by the timeout
     np.testing.assert_array_equal(samples.index, np.arange(100))
 
