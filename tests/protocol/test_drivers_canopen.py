@@ -24,6 +24,7 @@ from drivers.drive import DriveClient, DriveStatus, LutInForce
 from drivers.errors import DriveFaultError, HeartbeatMissingError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
 from drivers.load_machine import LoadClient, LoadStatus
 from tests.support.drivers_peers import EmulatedDevice, unique_channel
+from tests.support.waiting import wait_until
 from plant_emulator.drive_firmware import DriveFirmware
 from plant_emulator.load_machine import LoadMachineFirmware
 
@@ -63,15 +64,6 @@ def load_peer(channel):
     peer = EmulatedDevice(LoadMachineFirmware, channel, LOAD_NODE, LOAD_EDS, ramp_rpm_per_s=20000.0)
     yield peer
     peer.close()
-
-
-def wait_until(predicate, timeout_s: float, interval_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval_s)
-    return predicate()
 
 
 def test_connect_configures_heartbeat_consumer_and_reads_rated_torque(drive, drive_peer):
@@ -245,7 +237,7 @@ def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
     assert drive.emcy_log[0].code == 0x8130
     assert drive.state() is State402.FAULT
     drive_peer.device.shutdown()                       # the producer heartbeat stops
-    assert wait_until(lambda: not drive.heartbeat_alive(), 5.0)      # at least HEARTBEAT_ALIVE_MIN_S
+    assert wait_until(lambda: not drive.heartbeat_alive(), 10.0)     # at least HEARTBEAT_ALIVE_MIN_S
 
 
 def test_connect_waits_for_the_first_heartbeat_and_names_a_silent_device(bus, drive_peer):

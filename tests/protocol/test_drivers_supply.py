@@ -10,6 +10,7 @@ import pytest
 from drivers.dc_supply import ScpiSupply
 from drivers.errors import ScpiError, ScpiTimeout
 from tests.support.drivers_peers import ScpiPeer
+from tests.support.waiting import wait_until
 
 
 @pytest.fixture
@@ -52,10 +53,9 @@ def test_silent_peer_times_out_with_a_clear_error():
             t0 = time.monotonic()
             with pytest.raises(ScpiTimeout, match=r"no reply to 'MEAS:VOLT\?' within 0.3 s"):
                 supply.measure_voltage()
-            assert 0.25 < time.monotonic() - t0 < 1.5
+            assert 0.25 < time.monotonic() - t0 < 5.0
             supply.output(True)  # commands without a reply still go out
-        time.sleep(0.1)
-        assert "OUTP ON" in server.commands
+        assert wait_until(lambda: "OUTP ON" in server.commands, 10.0)
     finally:
         server.close()
 
