@@ -147,7 +147,15 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
             reasons.append(counteracts)
     if not reasons:
         reasons.append("the residual stopped falling")
-    return "below_target", f"{suppression_db:.1f} dB, below the {target_db:g} dB target: " + "; ".join(reasons)
+    if suppression_db >= target_db:
+        # the figure is at target but a noise draw could have made it so: say what is confirmed
+        bound = final.phasor.amplitude + CONFIDENCE_SIGMAS * final.noise_std_fs
+        confirmed_db = 20.0 * math.log10(uncompensated_fs / bound) if bound > 0 and uncompensated_fs > 0 else math.nan
+        head = (f"{suppression_db:.1f} dB, not confirmed at the {target_db:g} dB target (with {CONFIDENCE_SIGMAS:g} "
+                f"sigma of the window's noise, {confirmed_db:.1f} dB)")
+    else:
+        head = f"{suppression_db:.1f} dB, below the {target_db:g} dB target"
+    return "below_target", f"{head}: " + "; ".join(reasons)
 
 
 def spectrum_traces(before: Window | None, after: Window) -> dict:

@@ -62,7 +62,9 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
     blocks = readme_blocks()
     assert len(blocks) == 3 and "curl" in blocks[0] and "ripplecal sweep" in blocks[1] and "download" in blocks[2]
     ripplecal = str(Path(sys.executable).parent / "ripplecal")
-    script = "set -eu\n"
+    # not -e: a download the service refuses (a partial map: one cell in a few dozen misses its target,
+    # issue 7's table) is an answer to check below, not the end of the examples
+    script = "set -u\n"
     for i, block in enumerate(blocks):
         block = block.replace("http://127.0.0.1:8000", svc.base).replace(".venv/bin/ripplecal", ripplecal)
         script += block + f'\necho; echo "{MARK} JOB=$JOB SWEEP=$SWEEP MAP=$MAP"; cp ripplecal_lut.h lut{i}.h\n'
@@ -90,8 +92,7 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert sweep["progress"]["done"] == sweep["progress"]["total"] == 9 and "'total': 9" in api_lines[3]
         assert int(api["MAP"]) == sweep["map_id"] > 1
         assert (tmp_path / "lut0.h").read_text() == client.get(f"/maps/{api['MAP']}/export", params={"format": "c"}).text
-        download = api_lines[5]
-        assert '"crc32":"0x' in download and f'"map_id":{api["MAP"]}' in download and '"cells":9' in download
+        assert_downloaded_or_refused_as_partial(client, int(api["MAP"]), api_lines[5])
 
         # the CLI block, into the same database: its own sweep and map, listed, shown, exported, downloaded
         assert re.search(r"^method +adaptive \(ok", cli_out, re.M) and re.search(r"^method +grid \(", cli_out, re.M)
@@ -102,7 +103,24 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert f"sweep {cli['SWEEP']}: done" in cli_out                                     # sweeps show
         assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)        # maps list
         assert "wrote ripplecal_lut.h" in cli_out
-        assert re.search(rf"^map {cli['MAP']}: \d+ bytes \(9 of 9 cells ok, h = 6\).*CRC-32 read back 0x", cli_out, re.M)
+        if ok_cells(client, int(cli["MAP"])) == 9:
+            assert re.search(rf"^map {cli['MAP']}: \d+ bytes \(9 of 9 cells ok, h = 6\).*CRC-32 read back 0x",
+                             cli_out, re.M)
+        else:
+            assert re.search(rf"map {cli['MAP']} is partial: \d of 9 cells are not ok", proc.stderr), proc.stderr[-2000:]
         assert (tmp_path / "lut1.h").read_text() == client.get(f"/maps/{cli['MAP']}/export", params={"format": "c"}).text
         # the API download of the CLI's map (the README's LUT paragraph)
-        assert f'"map_id":{cli["MAP"]}' in download_out and '"crc32":"0x' in download_out
+        assert_downloaded_or_refused_as_partial(client, int(cli["MAP"]), download_out)
+
+
+def ok_cells(client: httpx.Client, map_id: int) -> int:
+    return client.get(f"/maps/{map_id}").json()["status_counts"].get("ok", 0)
+
+
+def assert_downloaded_or_refused_as_partial(client: httpx.Client, map_id: int, answer: str) -> None:
+    """A map whose 9 cells are ok goes into the drive (its CRC read back); a partial one is refused,
+    naming how many cells are not ok (README: only with force)."""
+    if ok_cells(client, map_id) == 9:
+        assert '"crc32":"0x' in answer and f'"map_id":{map_id}' in answer and '"cells":9' in answer, answer
+    else:
+        assert "partial" in answer and "crc32" not in answer, answer

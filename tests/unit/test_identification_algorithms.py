@@ -141,3 +141,23 @@ def test_probe_starts_from_a_prior_without_probing():
     assert r.status == "ok" and r.details["probe_deg"] == 0.0
     assert r.gamma_deg == pytest.approx(3.0, abs=0.02) and r.delta_deg == pytest.approx(280.0, abs=0.5)
     assert len(session.sent) <= 4       # reference, prior theta, one or two Newton steps
+
+
+def test_verdict_is_ok_only_with_confidence_and_says_what_is_confirmed():
+    from service.harmonic import Phasor
+    from service.identification.common import verdict
+    from service.identification.session import Window
+
+    def window(amplitude_fs, noise_std_fs):
+        return Window(Phasor(amplitude_fs, 0.0, 1000, 12), np.zeros(0), np.zeros(0), 1.0, noise_std_fs)
+
+    # A_0 = 1 fs, 40 dB target: A_target = 0.01 fs. |a| = 0.008 fs (41.9 dB), sigma = 0.001 fs:
+    # |a| + 2 sigma = 0.010 <= 0.01 -> ok (the boundary, closed form)
+    assert verdict(20 * math.log10(1 / 0.008), 40.0, window(0.008, 0.00099), 1.0, None, False)[0] == "ok"
+    # same figure, sigma = 0.0015 fs: |a| + 2 sigma = 0.011 fs, confirmed only 20 log10(1/0.011) = 39.2 dB
+    status, reason = verdict(20 * math.log10(1 / 0.008), 40.0, window(0.008, 0.0015), 1.0, None, False)
+    assert status == "below_target"
+    assert reason.startswith("41.9 dB, not confirmed at the 40 dB target (with 2 sigma of the window's noise, 39.2 dB)")
+    # a figure under the target says so plainly
+    status, reason = verdict(20 * math.log10(1 / 0.02), 40.0, window(0.02, 0.0001), 1.0, None, False)
+    assert status == "below_target" and reason.startswith("34.0 dB, below the 40 dB target: ")
