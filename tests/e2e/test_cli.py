@@ -141,8 +141,14 @@ def test_sweep_then_list_show_and_download_its_map(home):
     # the LUT goes into a drive (this command's own emulator); the CRC read back is the image's own, as
     # POST /maps/{id}/download reports it (drivers.lut_image.image_crc: CRC-32 without the CRC field)
     down = run("map", "download", str(map_id), "--json", env=env, cwd=cwd)
+    not_ok = 2 - map_public(Storage(db), map_id).status_counts.get("ok", 0)
+    if not_ok:
+        # one cell in a few dozen misses its target on this bench: a partial map goes only with --force
+        assert down.returncode != 0 and f"{not_ok} of 2 cells are not ok" in down.stderr, down.stderr[-3000:]
+        down = run("map", "download", str(map_id), "--json", "--force", env=env, cwd=cwd)
     assert down.returncode == 0, down.stderr[-3000:]
     answer = json.loads(down.stdout)
+    assert answer["forced"] == bool(not_ok)
     image = lut_image(map_public(Storage(db), map_id).model_dump())
     assert answer["bytes"] == len(image) and answer["cells"] == 2 and answer["map_id"] == map_id
     assert int(answer["crc32"], 16) == zlib.crc32(image[:-4])

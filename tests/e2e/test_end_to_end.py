@@ -136,8 +136,13 @@ def test_sweep_map_and_exports(service, tmp_path):
     # the LUT goes into the drive (segmented SDO); the drive's CRC read-back matches the image, and the
     # drive reports the map it holds
     r = client.post(f"/api/v1/maps/{m['id']}/download")
+    not_ok = 9 - m["status_counts"].get("ok", 0)
+    if not_ok:
+        # one cell in a few dozen misses its target on this bench: a partial map goes only with force
+        assert r.status_code == 409 and f"{not_ok} of 9 cells are not ok" in r.text, r.text
+        r = client.post(f"/api/v1/maps/{m['id']}/download", params={"force": "true"})
     assert r.status_code == 200, r.text
-    assert r.json()["cells"] == 9 and r.json()["crc32"].startswith("0x")
+    assert r.json()["cells"] == 9 and r.json()["crc32"].startswith("0x") and r.json()["forced"] == bool(not_ok)
     lut = client.get("/api/v1/bench/status").json()["lut"]
     assert (lut["map_id"], lut["crc32"]) == (m["id"], r.json()["crc32"])
     assert httpx.post(f"{service[0].base}/api/v1/maps/{m['id']}/download").status_code == 401
