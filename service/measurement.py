@@ -392,12 +392,11 @@ class OperatingPointSession:
             self._discard_stale()
             self.skip(self.no_sync_settle_s)
         block = int(0.02 * self.sample_rate_hz)
-        steady, elapsed, blocks, gapped = 0, 0, 0, 0
+        steady, elapsed, gapped = 0, 0, 0
         speed = math.nan
         while steady < 3:
             s = self._next_exact(block)
             elapsed += len(s)
-            blocks += 1
             gapped += int(s.gap_before[1:].any())
             try:    # over the block's contiguous runs: a DAQ gap is no change of speed
                 speed = mechanical_speed_rpm(s.angle_rad, self.sample_rate_hz, self.pole_pairs, s.gap_before)
@@ -405,7 +404,7 @@ class OperatingPointSession:
             except ValueError:
                 pass    # nothing contiguous to judge: neither steady nor not
             if elapsed > max_plant_s * self.sample_rate_hz:
-                daq = f"; {gapped} of {blocks} blocks had DAQ gaps or bad frames" if gapped else ""
+                daq = f"; {gapped} of {elapsed // block} blocks had DAQ gaps or bad frames" if gapped else ""
                 raise MeasurementError(f"speed did not settle at {target_speed_rpm:g} rpm within {max_plant_s} s "
                                        f"of plant time (last {speed:.1f} rpm{daq})")
         self.speed_rpm_measured = speed

@@ -17,6 +17,7 @@ import pytest
 
 from service.storage import Storage
 from tests.support.service_process import REPO, ServiceProcess
+from tests.support.sweep_checks import cells_not_ok
 
 pytestmark = pytest.mark.e2e
 README = REPO / "README.md"
@@ -103,7 +104,7 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert f"sweep {cli['SWEEP']}: done" in cli_out                                     # sweeps show
         assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)        # maps list
         assert "wrote ripplecal_lut.h" in cli_out
-        if ok_cells(client, int(cli["MAP"])) == 9:
+        if cells_not_ok(client.get(f"/maps/{cli['MAP']}").json()) == 0:
             assert re.search(rf"^map {cli['MAP']}: \d+ bytes \(9 of 9 cells ok, h = 6\).*CRC-32 read back 0x",
                              cli_out, re.M)
         else:
@@ -113,14 +114,10 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert_downloaded_or_refused_as_partial(client, int(cli["MAP"]), download_out)
 
 
-def ok_cells(client: httpx.Client, map_id: int) -> int:
-    return client.get(f"/maps/{map_id}").json()["status_counts"].get("ok", 0)
-
-
 def assert_downloaded_or_refused_as_partial(client: httpx.Client, map_id: int, answer: str) -> None:
     """A map whose 9 cells are ok goes into the drive (its CRC read back); a partial one is refused,
     naming how many cells are not ok (README: only with force)."""
-    if ok_cells(client, map_id) == 9:
+    if cells_not_ok(client.get(f"/maps/{map_id}").json()) == 0:
         assert '"crc32":"0x' in answer and f'"map_id":{map_id}' in answer and '"cells":9' in answer, answer
     else:
         assert "partial" in answer and "crc32" not in answer, answer

@@ -21,3 +21,9 @@ def assert_points_measured_honestly(points: list[dict], min_ok: int) -> None:
     ok = sum(p["state"] == "ok" for p in points)
     assert ok >= min_ok, f"{ok} of {len(points)} points ok (expected >= {min_ok}): " + "; ".join(
         brief(p) for p in points if p["state"] != "ok")
+
+
+def cells_not_ok(m: dict) -> int:
+    """Cells of a map (as GET /maps/{id} answers) that are not ok: a download refuses the map unless
+    forced when there is one (status_counts has no key for a status no cell has)."""
+    return len(m["cells"]) - m["status_counts"].get("ok", 0)
