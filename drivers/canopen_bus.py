@@ -32,6 +32,12 @@ def one_blas_thread() -> None:
     threadpool_limits(limits=1)
 
 
+# python-can keyword arguments that suit a transport unless the settings say otherwise (can.options):
+# socketcand carries every frame as text over TCP; without tcp_tune (TCP_NODELAY and TCP_QUICKACK)
+# Nagle's algorithm and delayed ACKs hold an SDO answer back by ~40 ms now and then
+INTERFACE_DEFAULTS: dict[str, dict[str, Any]] = {"socketcand": {"tcp_tune": True}}
+
+
 class CanBus:
     """A python-can bus, a canopen.Network on it, and the periodic service heartbeat.
 
@@ -63,7 +69,8 @@ class CanBus:
     def bus_kwargs(self) -> dict[str, Any]:
         """Arguments for can.Bus: the interface string decides the transport; unset options are left out
         so that each interface applies its own defaults (virtual has no host, socketcan no bitrate)."""
-        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel,
+                                  **INTERFACE_DEFAULTS.get(self.interface, {})}
         for key in ("host", "port", "bitrate"):
             value = getattr(self, key)
             if value is not None:

@@ -135,6 +135,12 @@ class Cia402Master:
             self.close()
             raise
 
+    def disarm_heartbeat_consumer(self) -> None:
+        """Orderly stop: tell the device to stop consuming the service heartbeat (0x1016:1 = 0), so that
+        the service letting go of the bus is not a lost heartbeat (no FAULT, no reset needed at the next
+        start). Call it after disable(); connect() arms it again."""
+        self.write(OD_CONSUMER_HEARTBEAT, 1, 0)
+
     def _wait_first_heartbeat(self) -> None:
         # the heartbeat interlock trips on a device never heard; the bench is ready only once each was heard
         timeout_s = max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, FIRST_HEARTBEAT_WAIT_MIN_S)

@@ -14,6 +14,14 @@ works on whole byte chunks with numpy (no per-frame Python) so that decoding kee
 of samples per second; the emulator's numba frame writer (plant_emulator/physics/daq.py) takes the
 sync bytes, field offsets, CRC table, CRC step and flag bits below as compile-time constants, and
 `encode_frames` is the vectorised encoder for tools and tests.
+
+What the decoder counts (DecoderCounters) keeps line errors apart from the holes the reader makes
+or knows of: `crc_failures`, `sequence_gaps`, `samples_lost`, `bytes_skipped` and `resyncs` are line
+errors only. The reader tells the decoder when it flushed the port (`note_flush`: the realignment
+and sequence jump at the next valid frame are the flush's, counted as `flush_*`), when it paused for
+backpressure (`note_pause`: a DAQ that streams on overflows meanwhile, so whole frames missing with
+intact bytes around them in what follows are an `overrun`), and when it reopened a lost port
+(`note_reconnect`: the jump is the disconnect's, which the reader counts).
 """
 from __future__ import annotations
 
@@ -130,14 +138,30 @@ class DecodedSamples:
         return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, bool))
 
 
+OVERRUN_WINDOW_BYTES = 1 << 18
+"""After a backpressure pause, whole frames missing within this many bytes are an overrun: more
+than a serial port's OS buffers hold (tty flip buffers and line discipline, USB transfers), so the
+hole where the DAQ overflowed lies inside it."""
+
+
 @dataclass
 class DecoderCounters:
+    """Cumulative counts. Line errors: crc_failures, sequence_gaps (holes in the sequence with damaged
+    or missing bytes, or without a known cause), samples_lost (in those holes), bytes_skipped, resyncs.
+    Not line errors: flush_* (what the reader's own flush of the port discarded: the resync and jump
+    right after it), overruns (whole frames missing, bytes intact, after a backpressure pause: the
+    DAQ overflowed while nobody read) and overrun_samples_lost."""
     frames: int = 0
     crc_failures: int = 0
     sequence_gaps: int = 0
     samples_lost: int = 0
     bytes_skipped: int = 0
     resyncs: int = 0
+    flush_resyncs: int = 0
+    flush_bytes_skipped: int = 0
+    flush_samples_lost: int = 0
+    overruns: int = 0
+    overrun_samples_lost: int = 0
 
 
 @dataclass
@@ -148,8 +172,27 @@ class FrameDecoder:
     _last_seq: int | None = None
     _last_index: int = -1
     _bad_since_last: bool = False
+    _break: str | None = None       # "flush" / "reconnect": the next valid frame's hole is this one's
+    _overrun_bytes_left: int = 0    # bytes after a backpressure pause in which a clean jump is an overrun
+
+    def note_flush(self) -> None:
+        """The port's input buffer was just discarded: the resync and sequence jump before the next
+        valid frame are the flush's (flush_* counters), not line errors."""
+        self._break = "flush"
+
+    def note_reconnect(self) -> None:
+        """The port was reopened after it was lost: the hole before the next valid frame is the
+        disconnect's (the reader counts disconnects), not a line error."""
+        self._break = "reconnect"
+
+    def note_pause(self) -> None:
+        """The reader stopped reading for backpressure: a DAQ streams on and overflows meanwhile, so
+        whole frames missing in the next OVERRUN_WINDOW_BYTES are an overrun, not a line error."""
+        self._overrun_bytes_left = OVERRUN_WINDOW_BYTES
 
     def feed(self, chunk: bytes) -> DecodedSamples:
+        in_overrun_window = self._overrun_bytes_left > 0
+        self._overrun_bytes_left = max(0, self._overrun_bytes_left - len(chunk))
         buf = self._pending + chunk
         arr = np.frombuffer(buf, dtype=np.uint8)
         n = len(arr)
@@ -171,15 +214,26 @@ class FrameDecoder:
             inside = np.searchsorted(starts, bad_candidates, side="right") - 1
             covered = (inside >= 0) & (bad_candidates < starts[np.maximum(inside, 0)] + FRAME_BYTES)
             bad_candidates = bad_candidates[~covered]
-        self.counters.crc_failures += len(bad_candidates)
         end = int(starts[-1]) + FRAME_BYTES if len(starts) else 0
         keep_from = max(end, n - FRAME_BYTES + 1)
         self._pending = buf[keep_from:]
-        # bytes not covered by a frame (before, between, after frames) were skipped
+        # bytes not covered by a frame (before, between, after frames) were skipped; after a flush or
+        # a reconnect, what comes before the first valid frame is that break's, not the line's
         covered_bytes = len(starts) * FRAME_BYTES
         skipped = keep_from - covered_bytes
-        if skipped:
-            self.counters.bytes_skipped += skipped
+        broken = self._break
+        head = int(starts[0]) if len(starts) else keep_from
+        if broken is not None:
+            line_skipped = skipped - head
+            line_crc_failures = int(np.count_nonzero(bad_candidates >= head))
+            if broken == "flush":
+                self.counters.flush_bytes_skipped += head
+        else:
+            line_skipped = skipped
+            line_crc_failures = len(bad_candidates)
+        self.counters.crc_failures += line_crc_failures
+        if line_skipped:
+            self.counters.bytes_skipped += line_skipped
             self.counters.resyncs += 1
         if not len(starts):
             self._bad_since_last = self._bad_since_last or skipped > 0
@@ -199,12 +253,27 @@ class FrameDecoder:
         gap_before = gap | gap_bytes
         if self._last_seq is None:
             gap_before[0] = False
+            gap[0] = False
         index = self._last_index + np.cumsum(step)
         if self._last_seq is None:
             index = index - index[0]
-        lost = step[gap] - 1
-        self.counters.sequence_gaps += int(np.count_nonzero(gap & (self._last_seq is not None or np.arange(len(seq)) > 0)))
-        self.counters.samples_lost += int(lost[lost > 0].sum())
+        lost = np.where(gap, step - 1, 0)
+        line_gap = gap.copy()
+        if broken is not None:
+            # the first valid frame after a flush / reconnect: its hole is the break's
+            if broken == "flush":
+                self.counters.flush_samples_lost += int(lost[0])
+                self.counters.flush_resyncs += int(bool(gap_before[0]) or head > 0)
+            line_gap[0] = False
+            self._break = None
+        if in_overrun_window:
+            # whole frames missing with intact bytes around them: the DAQ dropped them (overflow)
+            clean = line_gap & ~gap_bytes
+            self.counters.overruns += int(np.count_nonzero(clean))
+            self.counters.overrun_samples_lost += int(lost[clean].sum())
+            line_gap &= ~clean
+        self.counters.sequence_gaps += int(np.count_nonzero(line_gap))
+        self.counters.samples_lost += int(lost[line_gap].sum())
         self.counters.frames += len(starts)
         self._last_seq = int(seq[-1])
         self._last_index = int(index[-1])

@@ -1,13 +1,23 @@
-"""DAQ stream reader: one thread reads the serial port, decodes whole chunks, and queues the samples.
+"""DAQ stream reader: one thread reads the serial port, decodes what arrived, and queues the samples.
 
 The DAQ sample counter is the clock of every measurement, so the reader must not lose or reorder
 samples and must say where the stream had a hole (gap_before). It also provides backpressure: the
 thread stops reading while `max_buffered_samples` are unconsumed. Against the emulator in
 `--speedup 0` the plant only advances when its pty write succeeds, so plant time stops while nobody
-measures, and memory stays bounded on a real DAQ too (the OS buffer then overflows, which shows up as
-sequence gaps instead of an ever-growing queue).
+measures, and memory stays bounded on a real DAQ too (the DAQ then overflows, which shows up as
+whole frames missing after the pause: counted as `overruns`, not as line errors).
 
-Decoding is vectorised in drivers.daq_protocol.FrameDecoder; the thread does per-chunk work only.
+Read discipline: the thread waits (up to SERIAL_READ_TIMEOUT_S) for the first byte, then takes what
+the port holds, and goes on taking while more is waiting, up to the room left in the queue and
+COALESCE_MAX_BYTES. In real time each small arrival (a USB transfer, an emulator write every ~2 ms)
+is decoded and handed over at once, so a sample reaches the consumer within a few ms of reaching the
+port; a backlog (the emulator at `--speedup 0` runs ~300x real time) is decoded in large batches,
+since decoding (vectorised in drivers.daq_protocol.FrameDecoder) has a fixed cost per call.
+
+Counters: `crc_failures` and `sequence_gaps` are line errors only. The thread knows when it flushed
+the port (discard_buffered(flush_port=True)) and when it paused for backpressure, and tells the
+decoder, which counts the resync and jump right after a flush as `flush_*` and whole frames missing
+after a pause as `overruns` (DecoderCounters; all of them in health()).
 
 Reconnect: when the port fails (EOF, EIO: the DAQ was unplugged) the thread closes it and reopens
 the same URL with backoff (as /dev/serial/by-id/... reappears when a USB DAQ comes back). While it
@@ -18,8 +28,11 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import fcntl
 import os
 import select
+import struct
+import termios
 import threading
 import time
 
@@ -32,7 +45,8 @@ from drivers.errors import DaqDisconnected, DaqTimeout
 __all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DecodedSamples", "DecoderCounters"]
 
 SERIAL_READ_TIMEOUT_S = 0.05
-"""pyserial read timeout: bounds how long the thread takes to notice close() or freed space."""
+"""pyserial read timeout: how long the thread waits for a first byte; bounds how long it takes to
+notice close() or freed space."""
 
 COALESCE_MAX_BYTES = 1 << 18
 """Most bytes decoded in one batch when the port has a backlog (about 22000 samples)."""
@@ -49,7 +63,8 @@ class DaqReader:
 
     max_buffered_samples: the thread pauses reading when this many samples wait unconsumed (a pending
     read(n) with a larger n raises the limit to n for its duration so it can complete).
-    read_chunk_bytes: the most bytes one serial read asks for; larger chunks decode faster.
+    read_chunk_bytes: the most bytes one serial read call asks for (a backlog is read in several
+    calls and decoded as one batch of up to COALESCE_MAX_BYTES).
     """
 
     def __init__(self, url: str, max_buffered_samples: int = 16384, read_chunk_bytes: int = 8192,
@@ -69,6 +84,7 @@ class DaqReader:
         self._blocks: collections.deque[DecodedSamples] = collections.deque()
         self._buffered = 0
         self._flush_requested = False
+        self._flushes = 0
         self._demand = 0
         self._stop = False
         self._running = False
@@ -142,6 +158,7 @@ class DaqReader:
                     self._close_port()
                     if not self.reconnect or not self._reopen_with_backoff():
                         return
+                    decoder.note_reconnect()                 # its hole is the disconnect's
         finally:
             with self._cond:
                 self._running = False
@@ -187,8 +204,10 @@ class DaqReader:
         cond = self._cond
         while True:
             with cond:
+                paused = False
                 while (not self._stop and not self._flush_requested
                        and self._buffered >= max(self.max_buffered_samples, self._demand)):
+                    paused = True
                     cond.wait(SERIAL_READ_TIMEOUT_S)
                     # paused by backpressure we read nothing, so look for an unplugged port directly
                     self._check_port(port)
@@ -196,24 +215,25 @@ class DaqReader:
                     return
                 flush_now = self._flush_requested
                 room = max(self.max_buffered_samples, self._demand) - self._buffered
+            if paused:
+                # a DAQ streams on while we do not read: whole frames missing next are an overrun
+                decoder.note_pause()
             if flush_now:
                 # done here, by the thread that reads: flushing under a blocked read breaks pyserial
                 try:
                     port.reset_input_buffer()
                 except (OSError, serial.SerialException, AttributeError):
                     pass    # not every pyserial URL type can flush
+                decoder.note_flush()    # the resync and jump at the next frame are this flush's
                 with cond:
                     self._flush_requested = False
+                    self._flushes += 1
                     cond.notify_all()
                 continue
             # never read more than fits: that is what lets the writer block (backpressure)
-            room_bytes = room * FRAME_BYTES
-            nbytes = min(self.read_chunk_bytes, room_bytes)
-            chunk = port.read(nbytes)
+            chunk = self._read_available(port, min(room * FRAME_BYTES, COALESCE_MAX_BYTES))
             if not chunk:
                 continue
-            if len(chunk) == nbytes and nbytes < room_bytes:
-                chunk = self._coalesce(port, chunk, min(room_bytes, COALESCE_MAX_BYTES))
             samples = decoder.feed(chunk)
             counters = dataclasses.replace(decoder.counters)
             sensor_faults = int(np.count_nonzero(samples.flags & FLAG_SENSOR_FAULT)) if len(samples) else 0
@@ -231,6 +251,28 @@ class DaqReader:
                 self._last_data_monotonic = time.monotonic()
                 cond.notify_all()
 
+    def _read_available(self, port: serial.SerialBase, cap_bytes: int) -> bytes:
+        """Wait up to SERIAL_READ_TIMEOUT_S for the first byte, then take what the port holds, and go
+        on while more is waiting (a backlog), up to cap_bytes. Returns b"" on timeout.
+
+        Never a read of more than is there: pyserial would block until all of it arrived (or its
+        timeout), holding back the samples that did."""
+        first = port.read(1)
+        if not first:
+            return first
+        parts = [first]
+        total = 1
+        while total < cap_bytes:
+            waiting = _bytes_waiting(port)
+            if waiting <= 0:
+                break
+            more = port.read(min(waiting, cap_bytes - total, self.read_chunk_bytes))
+            if not more:
+                break
+            parts.append(more)
+            total += len(more)
+        return b"".join(parts)
+
     def _check_port(self, port: serial.SerialBase) -> None:
         """Raise if the port has hung up (poll: POLLHUP/POLLERR) or its device path has gone."""
         if "://" not in self.url and not os.path.exists(self.url):
@@ -247,21 +289,6 @@ class DaqReader:
             return
         if any(ev & (select.POLLHUP | select.POLLERR | select.POLLNVAL) for _, ev in events):
             raise serial.SerialException(f"{self.url} hung up")
-
-    def _coalesce(self, port: serial.SerialBase, first: bytes, cap_bytes: int) -> bytes:
-        """While the port has a backlog, read more chunks and decode them as one: decoding has a fixed
-        cost per call, so a backlog (emulator faster than real time) is worked off in large batches,
-        while in real time (no backlog) the latency stays that of one chunk."""
-        parts = [first]
-        total = len(first)
-        while total < cap_bytes and port.in_waiting:
-            want = min(self.read_chunk_bytes, cap_bytes - total)
-            more = port.read(want)
-            parts.append(more)
-            total += len(more)
-            if len(more) < want:
-                break
-        return b"".join(parts) if len(parts) > 1 else first
 
     # -- consumer side ------------------------------------------------------------------------------
     def read(self, n: int, timeout_s: float) -> DecodedSamples:
@@ -293,6 +320,33 @@ class DaqReader:
             finally:
                 self._demand = 0
                 self._cond.notify_all()
+
+    def read_available(self, max_n: int, timeout_s: float) -> DecodedSamples:
+        """Between 1 and max_n samples in stream order: whatever is queued (at most max_n) as soon as
+        at least one sample is, waiting up to timeout_s for the first.
+
+        Raises DaqTimeout if none arrived within timeout_s, DaqDisconnected if the reader thread has
+        stopped or the port was lost (while waiting, or before) and nothing is queued.
+        """
+        if max_n < 1:
+            raise ValueError(f"max_n must be >= 1, got {max_n}")
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            if self._thread is None:
+                raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
+            disconnects = self._disconnects
+            while not self._buffered:
+                if not self._running or not self._connected or self._disconnects != disconnects:
+                    raise DaqDisconnected(self._disconnected_message(1))
+                remaining_s = deadline - time.monotonic()
+                if remaining_s <= 0:
+                    raise DaqTimeout(
+                        f"DAQ {self.url}: no sample arrived within {timeout_s:g} s "
+                        f"({self._bytes_read} bytes read so far, decoder {self._counters})")
+                self._cond.wait(remaining_s)
+            taken = self._take(min(max_n, self._buffered))
+            self._cond.notify_all()     # room freed: a reader thread paused for backpressure goes on
+            return taken
 
     def _disconnected_message(self, n: int) -> str:
         if self._error is not None:
@@ -329,7 +383,8 @@ class DaqReader:
     def discard_buffered(self, flush_port: bool = False) -> int:
         """Drop every queued sample (e.g. stale data from before a setpoint); returns how many.
         flush_port also drops what the OS holds for the port (the next frame then starts with a
-        resynchronisation, which marks a gap)."""
+        resynchronisation, which marks a gap; the counters count it as the flush's, flush_*, not as
+        a line error)."""
         with self._cond:
             if flush_port and self._running:
                 self._flush_requested = True
@@ -345,7 +400,8 @@ class DaqReader:
     # -- introspection ------------------------------------------------------------------------------
     @property
     def counters(self) -> DecoderCounters:
-        """Snapshot of the decoder's counters (CRC failures, gaps, ...), consistent with the queue."""
+        """Snapshot of the decoder's counters, consistent with the queue: line errors (crc_failures,
+        sequence_gaps, ...) apart from flush_* and overruns (see DecoderCounters)."""
         with self._cond:
             return dataclasses.replace(self._counters)
 
@@ -377,11 +433,16 @@ class DaqReader:
             return self._running and self._connected
 
     def health(self) -> dict:
-        """Per-device truth for the bench status: connected, last error, data age, reconnects."""
+        """Per-device truth for the bench status: connected, last error, data age, reconnects, and the
+        decoder's counters: line errors (crc_failures, sequence_gaps, samples_lost, bytes_skipped,
+        resyncs) apart from what the reader's own flushes discarded (flushes, flush_resyncs,
+        flush_bytes_skipped, flush_samples_lost) and overruns after a backpressure pause (overruns,
+        overrun_samples_lost)."""
         with self._cond:
             age = None if self._last_data_monotonic is None else time.monotonic() - self._last_data_monotonic
             err = self._error
-            return {"url": self.url, "connected": self._running and self._connected,
+            return {**dataclasses.asdict(self._counters), "flushes": self._flushes,
+                    "url": self.url, "connected": self._running and self._connected,
                     "last_error": None if err is None else f"{type(err).__name__}: {err}",
                     "data_age_s": None if age is None else round(age, 3),
                     # stale: room to read, yet nothing came for a second (a full buffer is backpressure, not staleness)
@@ -389,3 +450,13 @@ class DaqReader:
                                   and self._buffered < max(self.max_buffered_samples, self._demand)),
                     "reconnects": self._reconnects, "sensor_fault_samples": self._sensor_fault_samples,
                     "disconnects": self._disconnects, "buffered_samples": self._buffered}
+
+
+def _bytes_waiting(port: serial.SerialBase) -> int:
+    """Bytes the port holds now. FIONREAD on its descriptor where it has one (a tty, a socket: pyserial's
+    socket:// in_waiting only says 0 or 1), else pyserial's in_waiting (loop://)."""
+    try:
+        fd = port.fileno()
+    except (AttributeError, OSError, ValueError):
+        return port.in_waiting
+    return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]

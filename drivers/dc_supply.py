@@ -9,6 +9,7 @@ SCPI has no acknowledge, and a supply that clamps or ignores the value must not 
 from __future__ import annotations
 
 import math
+import socket
 import threading
 import time
 
@@ -18,6 +19,15 @@ from drivers.errors import ScpiError, ScpiTimeout
 
 TERMINATOR = b"\n"
 MAX_REPLY_BYTES = 256
+
+
+def _no_nagle(port) -> None:
+    """A supply on a TCP socket (socket://, e.g. LAN SCPI on port 5025): send each line at once. With
+    Nagle's algorithm a query right after a command ('VOLT 12' then 'VOLT?') waits for the supply's
+    delayed ACK of the first, ~40 ms. pyserial keeps the socket in `_socket`; other ports have none."""
+    sock = getattr(port, "_socket", None)
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
 class ScpiSupply:
@@ -33,6 +43,7 @@ class ScpiSupply:
         # short per-read timeout; the reply deadline is enforced in _readline
         self._port = serial.serial_for_url(url, timeout=min(0.05, timeout_s), write_timeout=timeout_s,
                                            baudrate=baudrate)
+        _no_nagle(self._port)
         self._lock = threading.Lock()
         self._rx = bytearray()
 

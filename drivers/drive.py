@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 from drivers import DRIVE_EDS, lut_image
 from drivers.canopen_bus import CanBus
@@ -89,6 +90,8 @@ class DriveClient(Cia402Master):
         self.rated_torque_nm: float | None = None
         self.setpoints_written = 0
         self.commits_expected: int | None = None   # the drive's commit counter as we expect it (mod 256)
+        # told the running number of every setpoint accepted (the service times its sync toggle)
+        self.on_setpoint: Callable[[int], None] | None = None
 
     def write(self, index: int, subindex: int, value) -> None:
         try:
@@ -97,12 +100,17 @@ class DriveClient(Cia402Master):
             # the request may have reached the drive and only the answer be late: for a commit the
             # counter tells (0x2000:7 read-back), so the sync-toggle count stays exact
             if (index, subindex) == (OD_INJECTION, SUB_COMMIT) and self._commit_went_through():
-                self.setpoints_written += 1
+                self._count_setpoint()
             raise
         if (index, subindex) in SETPOINT_OBJECTS:
-            self.setpoints_written += 1
+            self._count_setpoint()
         if (index, subindex) == (OD_INJECTION, SUB_COMMIT) and self.commits_expected is not None:
             self.commits_expected = (self.commits_expected + 1) & 0xFF
+
+    def _count_setpoint(self) -> None:
+        self.setpoints_written += 1
+        if self.on_setpoint is not None:
+            self.on_setpoint(self.setpoints_written)
 
     def _commit_went_through(self) -> bool:
         if self.commits_expected is None:

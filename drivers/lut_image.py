@@ -1,20 +1,43 @@
-"""The LUT image the drive takes on 0x2001:1 (docs/interfaces.md "LUT image"): encode and decode.
+"""The LUT image the drive takes on 0x2001:1 (docs/interfaces.md "LUT image"): encode, decode, interpolate.
 
 One definition for both ends of the wire: the service builds the image from a map
-(service/lut_export.py) and the emulated drive firmware decodes it (plant_emulator/drive_firmware.py).
+(service/lut_export.py) and the emulated drive firmware decodes it and interpolates with `Lut.theta`
+(plant_emulator/drive_firmware.py).
 
-Layout (little-endian):
-    magic "RCL1" | u16 format_version = 2 | u8 harmonic_order | u8 reserved |
-    u16 n_torque, n_speed, n_udc | u16 reserved | u32 map_id (>= 1) |
-    f32 torque_nm[n_torque], speed_rpm[n_speed], udc_v[n_udc]  (strictly increasing) |
-    f32 theta_cos_rad[n_udc][n_speed][n_torque] | f32 theta_sin_rad[...] | u8 valid[...] |
+Layout, format_version 3 (little-endian, 20-byte header):
+    magic "RCL1" | u16 format_version = 3 | u8 harmonic_order | u8 interpolation (0 cartesian, 1 polar) |
+    u16 n_torque, n_speed, n_udc | u16 reserved = 0 | u32 map_id (>= 1) |
+    f32 torque_nm[n_torque], speed_rpm[n_speed], udc_v[n_udc]  (each axis its own strictly increasing
+        breakpoints: non-uniform spacing is interpolated by position) |
+    f32 theta_cos_rad[n_udc][n_speed][n_torque] | f32 theta_sin_rad[...] |
+    u8 flag[...]  (0 no entry: theta 0, no injection; 1 ok: a result at its target; 2 filled: a fill,
+                   service/map_fill.py) |
     u32 crc32 (zlib) of every byte before it.
+Version 2 is the same layout with byte 7 reserved (0) and u8 valid[...] (0/1) for the flags; the drive
+decodes both: a version 2 image is flags = valid and cartesian interpolation. `encode` writes version 3.
 The image's CRC is that trailer: CRC-32 of the image WITHOUT its CRC field (`image_crc`). It is what
 the drive reports on 0x2001:2 and what the service compares; a CRC-32 over the whole image,
-trailer included, would be the constant residue 0x2144DF1C for every image.
-Version 2 added map_id (the drive reports it on 0x2001:4, so the bench knows which map it holds).
-The drive interpolates theta_cos and theta_sin separately, multilinearly in (torque command, measured
-speed, measured U_dc), clamped at the axis ends; invalid cells count as theta = 0. Never gamma/delta.
+trailer included, would be the constant residue 0x2144DF1C for every image. The map id (version 2 on)
+is what the drive reports on 0x2001:4.
+
+Interpolation (the drive, in injection mode 2; the paper's conventions: theta = [theta_cos, theta_sin],
+gamma = |theta|, delta = -atan2(theta_sin, theta_cos), so theta_cos = gamma cos delta and
+theta_sin = -gamma sin delta). The drive injects at flag 1 and 2 cells; a flag 0 cell has no entry.
+Per axis, x clamped to [x_0, x_last] (the axis ends); in the interval x_j <= x < x_j+1 the weights by
+position are f = (x - x_j) / (x_j+1 - x_j): w_j = 1 - f, w_j+1 = f (a one-value axis: weight 1).
+The corners c of the enclosing cell carry w_c = w_torque w_speed w_udc (sum 1; corners of weight 0 drop).
+- cartesian (mode 0): theta_cos = sum_c w_c theta_cos_c, theta_sin = sum_c w_c theta_sin_c, with
+  theta_c = 0 at corners without an entry (multilinear in theta, as version 2 did).
+- polar (mode 1): gamma = sum_c w_c gamma_c, with gamma_c = 0 at corners without an entry. The phase
+  is averaged over E, the corners with an entry and gamma_c > 0 (a zero theta has no phase): reference
+  r = the corner of E with the largest w_c (the first in [udc][speed][torque] index order on a tie);
+  each delta_c is unwrapped to within +-pi of delta_r (the shortest arc):
+      delta'_c = delta_r + ((delta_c - delta_r + pi) mod 2 pi) - pi
+  and delta = sum_{c in E} w_c delta'_c / sum_{c in E} w_c (weights renormalised over E);
+  theta_cos = gamma cos delta, theta_sin = -gamma sin delta. E empty: theta = 0.
+  E.g. gamma 3 deg at delta 0 and 90 deg, midway: cartesian gives gamma 3 cos 45 deg at 45 deg, polar
+  3 deg at 45 deg; delta 350 and 10 deg midway: polar 0 deg (not 180).
+The drive then clamps |theta| to gamma_max (0x2000:5).
 """
 from __future__ import annotations
 
@@ -22,16 +45,27 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 MAGIC = b"RCL1"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3                  # what encode writes
+SUPPORTED_VERSIONS = (2, 3)         # what the drive decodes
 HEADER = struct.Struct("<4sHBBHHHHI")
 TRAILER = struct.Struct("<I")      # CRC-32 (zlib) of every byte before it
 MAX_CELLS = 4096
 AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_MAP_ID = 0xFFFFFFFF    # u32; 0 is what the drive reports when it holds no LUT
+
+# per-cell flag byte
+FLAG_NONE, FLAG_OK, FLAG_FILLED = 0, 1, 2
+FLAGS = (FLAG_NONE, FLAG_OK, FLAG_FILLED)
+# the header's interpolation byte: the code is the index
+INTERPOLATIONS = ("cartesian", "polar")
+# what a download uses unless it names one (the service may flip it once measured across the
+# field-weakening turn which of the two holds better)
+DEFAULT_INTERPOLATION = "cartesian"
 
 
 class LutImageError(ValueError):
@@ -40,31 +74,70 @@ class LutImageError(ValueError):
 
 @dataclass(frozen=True)
 class Lut:
-    """A decoded image: map id, axes, theta per cell [udc][speed][torque] (0 where invalid), validity, CRC."""
+    """A decoded image: map id, axes, theta per cell [udc][speed][torque] (0 where flag 0), the flag per
+    cell, the interpolation mode, the image's format version and CRC."""
     map_id: int
     harmonic_order: int
     torque_nm: np.ndarray      # (n_t,)
     speed_rpm: np.ndarray      # (n_n,)
     udc_v: np.ndarray          # (n_u,)
-    theta_cos: np.ndarray      # (n_u, n_n, n_t), 0 where invalid
+    theta_cos: np.ndarray      # (n_u, n_n, n_t), rad, 0 where flag 0
     theta_sin: np.ndarray
-    valid: np.ndarray          # bool (n_u, n_n, n_t)
+    flags: np.ndarray          # uint8 (n_u, n_n, n_t): FLAG_NONE | FLAG_OK | FLAG_FILLED
     crc: int                   # image_crc: CRC-32 of the image without its CRC field
+    interpolation: str = DEFAULT_INTERPOLATION
+    format_version: int = FORMAT_VERSION
+
+    @property
+    def valid(self) -> np.ndarray:
+        """bool per cell: an ok entry (flag 1)."""
+        return self.flags == FLAG_OK
+
+    @property
+    def filled(self) -> np.ndarray:
+        """bool per cell: a filled entry (flag 2)."""
+        return self.flags == FLAG_FILLED
+
+    @property
+    def entry(self) -> np.ndarray:
+        """bool per cell: the drive injects there (flag 1 or 2)."""
+        return self.flags != FLAG_NONE
+
+    @cached_property
+    def _gamma_delta(self) -> tuple[np.ndarray, np.ndarray]:
+        # delta = -atan2(theta_sin, theta_cos) (eq. 22), rad
+        return np.hypot(self.theta_cos, self.theta_sin), -np.arctan2(self.theta_sin, self.theta_cos)
 
     def theta(self, torque_nm: float, speed_rpm: float, udc_v: float) -> tuple[float, float]:
-        """Multilinear interpolation of (theta_cos, theta_sin), clamped at the axis ends."""
-        tc, ts = 0.0, 0.0
-        for (iu, wu) in _weights(self.udc_v, udc_v):
-            for (i_n, wn) in _weights(self.speed_rpm, speed_rpm):
-                for (it, wt) in _weights(self.torque_nm, torque_nm):
-                    w = wu * wn * wt
-                    if w != 0.0:
-                        tc += w * float(self.theta_cos[iu, i_n, it])
-                        ts += w * float(self.theta_sin[iu, i_n, it])
-        return tc, ts
+        """(theta_cos, theta_sin) in rad at an operating point, interpolated by the image's mode and
+        clamped at the axis ends (module doc has the formulas); not yet clamped to gamma_max."""
+        corners = [((iu, i_n, it), wu * wn * wt)
+                   for (iu, wu) in _weights(self.udc_v, udc_v)
+                   for (i_n, wn) in _weights(self.speed_rpm, speed_rpm)
+                   for (it, wt) in _weights(self.torque_nm, torque_nm)
+                   if wu * wn * wt != 0.0]
+        if self.interpolation == "polar":
+            return self._polar(corners)
+        tc = sum(w * float(self.theta_cos[c]) for c, w in corners)    # 0 where flag 0 (decode)
+        ts = sum(w * float(self.theta_sin[c]) for c, w in corners)
+        return float(tc), float(ts)
+
+    def _polar(self, corners) -> tuple[float, float]:
+        gamma_c, delta_c = self._gamma_delta
+        with_phase = [(c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0]
+        if not with_phase:
+            return 0.0, 0.0
+        gamma = sum(w * float(gamma_c[c]) for c, w in with_phase)      # no entry: gamma 0
+        ref = float(delta_c[max(with_phase, key=lambda cw: cw[1])[0]])   # first of the largest weight
+        total = sum(w for _, w in with_phase)
+        # each corner's delta within +-pi of the reference's: the shortest arc
+        delta = sum(w * (ref + (float(delta_c[c]) - ref + math.pi) % (2.0 * math.pi) - math.pi)
+                    for c, w in with_phase) / total
+        return gamma * math.cos(delta), -gamma * math.sin(delta)
 
 
 def _weights(axis: np.ndarray, x: float) -> list[tuple[int, float]]:
+    """(index, weight) of the breakpoints around x, by position on a non-uniform axis; clamped."""
     n = len(axis)
     if n == 1 or not math.isfinite(x) or x <= axis[0]:
         return [(0, 1.0)]
@@ -89,14 +162,25 @@ def _crc32(body: bytes) -> int:
     return zlib.crc32(body) & 0xFFFFFFFF
 
 
-def encode(harmonic_order: int, torque_nm, speed_rpm, udc_v, theta_cos, theta_sin, valid=None, *,
-           map_id: int) -> bytes:
-    """An image of map `map_id` from the axes and [udc][speed][torque] arrays (nested lists or arrays
-    of that shape, or flat in that order). valid: 1/0 per cell (default all 1). Raises LutImageError
-    if the map has more than MAX_CELLS cells, an axis is not strictly increasing or map_id is not in
+def check_interpolation(interpolation: str | None) -> str:
+    """The mode named (None: DEFAULT_INTERPOLATION); LutImageError for a name not in INTERPOLATIONS."""
+    mode = DEFAULT_INTERPOLATION if interpolation is None else interpolation
+    if mode not in INTERPOLATIONS:
+        raise LutImageError(f"interpolation {mode!r} is not one of {', '.join(INTERPOLATIONS)}")
+    return mode
+
+
+def encode(harmonic_order: int, torque_nm, speed_rpm, udc_v, theta_cos, theta_sin, flags=None, *,
+           map_id: int, interpolation: str | None = None) -> bytes:
+    """A format_version 3 image of map `map_id` from the axes and [udc][speed][torque] arrays (nested
+    lists or arrays of that shape, or flat in that order). flags: FLAG_NONE / FLAG_OK / FLAG_FILLED per
+    cell (default all FLAG_OK); cells with flag 0 go in with theta 0. interpolation: "cartesian" or
+    "polar" (None: DEFAULT_INTERPOLATION). Raises LutImageError if the map has more than MAX_CELLS
+    cells, an axis is not strictly increasing, a flag or theta is not allowed, or map_id is not in
     1 .. MAX_MAP_ID."""
     if not 1 <= int(map_id) <= MAX_MAP_ID:
         raise LutImageError(f"map_id {map_id} is not in 1 .. {MAX_MAP_ID} (0 means no LUT)")
+    mode = check_interpolation(interpolation)
     axes = (torque_nm, speed_rpm, udc_v)
     nt, nn, nu = (len(a) for a in axes)
     if nt * nn * nu > MAX_CELLS:
@@ -105,34 +189,48 @@ def encode(harmonic_order: int, torque_nm, speed_rpm, udc_v, theta_cos, theta_si
         if any(b <= a for a, b in zip(axis, axis[1:])):
             raise LutImageError(f"axis {name} is not strictly increasing")
     shape = (nu, nn, nt)
-    tc = np.asarray(theta_cos, dtype="<f4").reshape(shape)
-    tsn = np.asarray(theta_sin, dtype="<f4").reshape(shape)
-    v = np.ones(shape, dtype=np.uint8) if valid is None else np.asarray(valid, dtype=np.uint8).reshape(shape)
-    body = HEADER.pack(MAGIC, FORMAT_VERSION, int(harmonic_order), 0, nt, nn, nu, 0, int(map_id))
+    f = np.full(shape, FLAG_OK, dtype=np.uint8) if flags is None else np.asarray(flags).reshape(shape)
+    if not np.all(np.isin(f, FLAGS)):
+        raise LutImageError(f"flags must be {FLAG_NONE} (no entry), {FLAG_OK} (ok) or {FLAG_FILLED} (filled)")
+    f = f.astype(np.uint8)
+    tc = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_cos, dtype=np.float64).reshape(shape)).astype("<f4")
+    tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape)).astype("<f4")
+    if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
+        raise LutImageError("theta values not finite")
+    body = HEADER.pack(MAGIC, FORMAT_VERSION, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0,
+                       int(map_id))
     for axis in axes:
         body += np.asarray(axis, dtype="<f4").tobytes()
-    body += tc.tobytes() + tsn.tobytes() + v.tobytes()
+    body += tc.tobytes() + tsn.tobytes() + f.tobytes()
     return body + TRAILER.pack(_crc32(body))
 
 
 def decode(blob: bytes) -> Lut:
-    """Check and decode an image; LutImageError says what is wrong."""
+    """Check and decode an image of format_version 2 or 3; LutImageError says what is wrong."""
     blob = bytes(blob)
     if len(blob) < 6:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
     magic, version = struct.unpack_from("<4sH", blob, 0)
     if magic != MAGIC:
         raise LutImageError(f"bad magic {magic!r}")
-    if version != FORMAT_VERSION:       # before the length: another version has another header
-        raise LutImageError(f"unsupported format_version {version}: this drive takes version {FORMAT_VERSION} "
-                            f"(its header carries the map id)")
+    if version not in SUPPORTED_VERSIONS:       # before the length: another version has another header
+        raise LutImageError(f"unsupported format_version {version}: this drive takes versions "
+                            f"{' and '.join(str(v) for v in SUPPORTED_VERSIONS)} (their header carries the map id)")
     if len(blob) < HEADER.size + TRAILER.size:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
-    _magic, _version, h, _r0, nt, nn, nu, _r1, map_id = HEADER.unpack_from(blob, 0)
+    _magic, _version, h, mode_code, nt, nn, nu, reserved, map_id = HEADER.unpack_from(blob, 0)
     if map_id == 0:
         raise LutImageError("map_id 0 is reserved (the drive reports 0 when it holds no LUT)")
     if h < 1:
         raise LutImageError("harmonic_order must be >= 1")
+    if version >= 3:
+        if mode_code >= len(INTERPOLATIONS):
+            raise LutImageError(f"interpolation {mode_code} unknown (0 cartesian, 1 polar)")
+        if reserved != 0:
+            raise LutImageError(f"reserved header field is {reserved}, not 0")
+        interpolation, allowed = INTERPOLATIONS[mode_code], FLAGS
+    else:       # version 2: byte 7 was reserved, the flags were valid 0/1; it interpolated cartesian
+        interpolation, allowed = "cartesian", (FLAG_NONE, FLAG_OK)
     if min(nt, nn, nu) < 1 or nt * nn * nu > MAX_CELLS:
         raise LutImageError(f"bad axis lengths {nt} x {nn} x {nu}")
     cells = nt * nn * nu
@@ -155,10 +253,11 @@ def decode(blob: bytes) -> Lut:
     off += 4 * cells
     tsn = np.frombuffer(blob, dtype="<f4", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt)
     off += 4 * cells
-    valid = np.frombuffer(blob, dtype=np.uint8, count=cells, offset=off).reshape(nu, nn, nt)
-    if np.any(valid > 1):
-        raise LutImageError("valid flags must be 0 or 1")
+    flags = np.frombuffer(blob, dtype=np.uint8, count=cells, offset=off).reshape(nu, nn, nt).copy()
+    if not np.all(np.isin(flags, allowed)):
+        raise LutImageError(f"flags must be one of {allowed} in a format_version {version} image")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
-    ok = valid == 1
-    return Lut(int(map_id), int(h), axes[0], axes[1], axes[2], np.where(ok, tc, 0.0), np.where(ok, tsn, 0.0), ok, crc)
+    entry = flags != FLAG_NONE
+    return Lut(int(map_id), int(h), axes[0], axes[1], axes[2], np.where(entry, tc, 0.0), np.where(entry, tsn, 0.0),
+               flags, crc, interpolation, int(version))

@@ -174,6 +174,11 @@ class Cia402Device:
         if node and ms:
             self.network.subscribe(0x700 + node, self._on_heartbeat)
 
+    @property
+    def heartbeat_consumer_ms(self) -> int:
+        """The consumer heartbeat time in force (0x1016:1 low 16 bits; 0: not consuming)."""
+        return int(round(self._hb_timeout_s * 1000)) if self._hb_node else 0
+
     def _on_heartbeat(self, can_id, data, timestamp) -> None:
         self._hb_last = time.monotonic()
 

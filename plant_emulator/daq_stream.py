@@ -8,9 +8,13 @@ reconnects. Two write disciplines:
 
 - blocking (`--speedup 0`): a chunk is written completely before the plant goes on; a reader that
   does not read fills the pty buffer, the write waits, and plant time stops (backpressure);
-- paced (`--speedup X > 0`): the plant runs on the wall clock like a real DAQ; what the pty cannot
-  take is kept up to `max_pending_bytes` (64 KiB, ~0.34 s at 16 kHz) and then dropped in whole
-  frames (the reader sees a sequence gap, as with a real overrun, and no stale backlog).
+- paced (`--speedup X > 0`): the plant runs on the wall clock like a real DAQ. `write_paced` writes
+  what the pty takes at once and queues the rest for a writer thread of its own that writes
+  continuously (select + write) as fast as the reader takes it, so nothing is lost while the reader
+  keeps up. The queue is the DAQ's FIFO: beyond `max_pending_bytes` (the emulator sizes it in wall
+  time: 0.25 s of stream at its speedup, at least 64 KiB) the oldest whole frames are dropped, as a
+  real DAQ's FIFO overflows when nobody reads (the reader sees a sequence gap, an overrun, and no
+  stale backlog). The stream stays frame aligned: a frame the pty has taken part of is never dropped.
 """
 from __future__ import annotations
 
@@ -27,6 +31,9 @@ from drivers.daq_protocol import FRAME_BYTES
 
 log = logging.getLogger(__name__)
 
+PACED_WRITE_MAX_BYTES = 1 << 16
+"""Most bytes one paced write offers the pty (it takes ~16 KiB when nobody reads)."""
+
 
 class DaqPty:
     def __init__(self, max_pending_bytes: int = 1 << 16):
@@ -35,7 +42,11 @@ class DaqPty:
         self.name = os.ttyname(self.slave_fd)
         os.set_blocking(self.master_fd, False)
         self.max_pending_bytes = max_pending_bytes
-        self._pending = bytearray()
+        self._pending = bytearray()          # blocking mode: what write_blocking still has to write
+        self._paced = threading.Condition()  # paced mode: guards _queued (plant thread in, writer thread out)
+        self._queued = bytearray()
+        self._paced_writer: threading.Thread | None = None
+        self._paced_stop = threading.Event()
         self.bytes_written = 0
         self.frames_dropped = 0
         self._closed = False
@@ -68,6 +79,8 @@ class DaqPty:
                 return
             self._hung = True
             self._pending.clear()
+            with self._paced:
+                self._queued.clear()
             self._remove_link()              # unplugged: the by-id path disappears too
             for fd in (self.master_fd, self.slave_fd):
                 try:
@@ -85,6 +98,8 @@ class DaqPty:
             self.name = os.ttyname(self.slave_fd)
             os.set_blocking(self.master_fd, False)
             self._pending.clear()
+            with self._paced:
+                self._queued.clear()
             self.bytes_written = 0
             self._hung = False
             self._point_link()
@@ -127,18 +142,57 @@ class DaqPty:
                 return
 
     def write_paced(self, data: bytes) -> None:
-        """Write what the pty takes now; keep the rest, dropping whole frames beyond the limit."""
-        self._pending += data
-        self._flush(timeout_s=0.0)
-        excess = len(self._pending) - self.max_pending_bytes
-        if excess > 0:
-            # keep the tail of a partly written frame so the stream stays frame aligned
-            partial = (FRAME_BYTES - self.bytes_written % FRAME_BYTES) % FRAME_BYTES
-            drop = ((excess + FRAME_BYTES - 1) // FRAME_BYTES) * FRAME_BYTES
-            drop = min(drop, ((len(self._pending) - partial) // FRAME_BYTES) * FRAME_BYTES)
-            if drop > 0:
-                del self._pending[partial:partial + drop]
-                self.frames_dropped += drop // FRAME_BYTES
+        """Write what the pty takes now and queue the rest for the paced writer thread (started on the
+        first call); never blocks. Beyond `max_pending_bytes` queued the oldest whole frames are
+        dropped (an overrun)."""
+        with self._fd_lock, self._paced:
+            self._queued += data
+            self._write_queued()
+            excess = len(self._queued) - self.max_pending_bytes
+            if excess > 0:
+                # keep the tail of a frame the pty has taken part of, so the stream stays frame aligned
+                partial = (FRAME_BYTES - self.bytes_written % FRAME_BYTES) % FRAME_BYTES
+                drop = ((excess + FRAME_BYTES - 1) // FRAME_BYTES) * FRAME_BYTES
+                drop = min(drop, ((len(self._queued) - partial) // FRAME_BYTES) * FRAME_BYTES)
+                if drop > 0:
+                    del self._queued[partial:partial + drop]
+                    self.frames_dropped += drop // FRAME_BYTES
+            if self._queued:
+                self._paced.notify()
+        if self._paced_writer is None:
+            self._paced_writer = threading.Thread(target=self._paced_loop, name="daq-paced-writer", daemon=True)
+            self._paced_writer.start()
+
+    def _paced_loop(self) -> None:
+        """Write the queue as soon as the pty takes it (the reader reads)."""
+        while not self._paced_stop.is_set():
+            with self._paced:
+                if not self._queued:
+                    self._paced.wait(0.1)
+                    continue
+            try:
+                _, writable, _ = select.select([], [self.master_fd], [], 0.05)
+            except (OSError, ValueError):
+                writable = [True]       # the fd went with a hang-up: _write_queued drops the queue
+            if writable:
+                with self._fd_lock, self._paced:
+                    self._write_queued()
+
+    def _write_queued(self) -> None:
+        """One non-blocking write of the queue's head (the caller holds _fd_lock and _paced)."""
+        if self._closed or self._hung:
+            self._queued.clear()        # unplugged: what the DAQ produces meanwhile is lost
+            return
+        try:
+            n = os.write(self.master_fd, self._queued[:PACED_WRITE_MAX_BYTES])
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            log.warning("DAQ pty write failed: %s", exc)
+            self._queued.clear()
+            return
+        del self._queued[:n]
+        self.bytes_written += n
 
     def _flush(self, timeout_s: float) -> None:
         if self._closed or self._hung:
@@ -168,6 +222,11 @@ class DaqPty:
         writer = getattr(self, "_writer", None)
         if writer is not None and writer.is_alive():
             writer.join(timeout=2.0)
+        self._paced_stop.set()
+        with self._paced:
+            self._paced.notify_all()
+        if self._paced_writer is not None:
+            self._paced_writer.join(timeout=2.0)
         with self._fd_lock:
             was_hung = self._hung
             self._closed = True

@@ -2,21 +2,27 @@
 
 Object dictionary: drivers/eds/drive.eds, semantics: docs/interfaces.md. The fast control loop
 (current control, injection, delay) is in physics/firmware.py; this module is the slow firmware around it:
-it validates SDO writes, stages setpoints, and hands them to the control loop at a chunk boundary.
+it validates SDO writes, stages setpoints, and hands them to the control loop at a piece boundary
+(a 256-sample chunk when the plant runs as fast as the DAQ is read; in paced mode a piece of a few ms,
+cut where the setpoint was written: `setpoint_written` wakes the plant thread on every event).
 
 Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
 commit (0x2000:7), injection mode (0x2000:2), harmonic order (0x2000:1), decoupling (0x2000:6) or
-voltage estimate (0x2000:8, eq. 11) becomes one event. At each chunk start the control loop takes at most ONE event, applies it from the
-chunk's first sample on and toggles the sync level there, so each event is exactly one visible
-toggle (two at the same sample would cancel). gamma_max (0x2000:5) takes effect at the next chunk
+voltage estimate (0x2000:8, eq. 11) becomes one event. At each piece start the control loop takes at most ONE event, applies it from the
+piece's first sample on and toggles the sync level there, so each event is exactly one visible
+toggle (two at the same sample would cancel). gamma_max (0x2000:5) takes effect at the next piece
 without a toggle: it only clamps |theta|.
 
 LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
 download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
-force (0 without one). In injection mode 2 the control loop asks `effective_theta` at every chunk (or
-block) start: theta interpolated in (torque command, measured speed, measured U_dc), clamped to
-gamma_max; the injection then runs at the LUT's harmonic order.
+force (0 without one). The drive takes format_version 3 and 2 images (a version 2 image: its valid
+cells as flag 1, cartesian interpolation). In injection mode 2 the control loop asks `effective_theta`
+at every chunk (or block) start: theta interpolated by the image's own mode (`Lut.theta`: cartesian
+theta or polar gamma/delta along the shortest arc, by position on the non-uniform axes) in (torque
+command, measured speed, measured U_dc), clamped at the axis ends; entries at flag 1 (ok) and 2
+(filled) cells, nothing at flag 0; then |theta| clamped to gamma_max; the injection runs at the LUT's
+harmonic order.
 
 Safety: power (torque, injection) only in OPERATION_ENABLED with U_dc >= udc_min_v; heartbeat loss
 -> FAULT, EMCY 0x8130, target torque 0 and injection mode off (applied at once, without toggles:
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections import deque
 
 import numpy as np
@@ -67,6 +74,7 @@ class DriveFirmware(Cia402Device):
         self.commit_count = 0
         self.events_applied = 0
         self._events: deque[tuple[str, object]] = deque()
+        self.setpoint_written = threading.Event()   # set with every event: wakes the paced plant thread
         # LUT in force (None: no LUT)
         self.lut: lut_image.Lut | None = None
         self.lut_blob = b""
@@ -107,7 +115,7 @@ class DriveFirmware(Cia402Device):
         if index == 0x6071:
             if abs(int(value)) > 1000:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-            self._events.append(("torque", int(value) / PER_MILLE * self.rated_torque_nm))
+            self._queue_event("torque", int(value) / PER_MILLE * self.rated_torque_nm)
         elif index == 0x2000:
             self._write_injection(subindex, value)
         elif index == 0x2001 and subindex == 1:
@@ -122,16 +130,19 @@ class DriveFirmware(Cia402Device):
             self.lut = lut
             self.lut_blob = blob
             self.lut_status = 1
+            log.info("drive: LUT of map %d in force (format_version %d, %s interpolation, %d ok and %d filled "
+                     "entries of %d cells)", lut.map_id, lut.format_version, lut.interpolation,
+                     int(lut.valid.sum()), int(lut.filled.sum()), lut.flags.size)
 
     def _write_injection(self, subindex: int, value) -> None:
         if subindex == 1:
             if not 1 <= int(value) <= MAX_HARMONIC_ORDER:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-            self._events.append(("harmonic_order", int(value)))
+            self._queue_event("harmonic_order", int(value))
         elif subindex == 2:
             if int(value) not in (INJ_OFF, INJ_MANUAL, INJ_LUT):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-            self._events.append(("inj_mode", int(value)))
+            self._queue_event("inj_mode", int(value))
         elif subindex in (3, 4):
             if not math.isfinite(float(value)) or abs(float(value)) > math.pi:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
@@ -143,18 +154,22 @@ class DriveFirmware(Cia402Device):
         elif subindex == 6:
             if int(value) not in (0, 1):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-            self._events.append(("decoupling", int(value)))
+            self._queue_event("decoupling", int(value))
         elif subindex == 8:
             if int(value) not in (0, 1):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-            self._events.append(("voltage_estimate", int(value)))
+            self._queue_event("voltage_estimate", int(value))
         elif subindex == 7:
             if int(value) == 1:
                 staged = (float(self.stored(0x2000, 3)), float(self.stored(0x2000, 4)))
-                self._events.append(("theta", staged))
+                self._queue_event("theta", staged)
                 self.commit_count += 1
             elif int(value) != 0:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
+
+    def _queue_event(self, kind: str, value) -> None:
+        self._events.append((kind, value))
+        self.setpoint_written.set()
 
     # -- state machine hooks -----------------------------------------------------------------------
     def state_changed(self, old: State402, new: State402) -> None:
@@ -168,8 +183,8 @@ class DriveFirmware(Cia402Device):
     # -- control loop interface (physics thread) ---------------------------------------------------
     def effective_theta(self) -> tuple[float, float]:
         """Theta the control loop uses: mode manual: the committed pair; mode LUT: the LUT
-        interpolated at (torque command, measured speed, measured U_dc); off (or LUT mode without a
-        LUT): zero. Clamped to gamma_max."""
+        interpolated by its own mode at (torque command, measured speed, measured U_dc)
+        (drivers.lut_image.Lut.theta); off (or LUT mode without a LUT): zero. Clamped to gamma_max."""
         if self.inj_mode == INJ_MANUAL:
             c, s = self.theta
         elif self.inj_mode == INJ_LUT and self.lut is not None:
@@ -186,13 +201,14 @@ class DriveFirmware(Cia402Device):
         """True while setpoint events wait (the plant then runs single chunks)."""
         return bool(self._events)
 
-    def chunk_setpoints(self, sp: np.ndarray, udc_v: float) -> bool:
-        """Fill the control loop's setpoints for the next chunk. Applies at most one pending event
-        and toggles the sync level for it; returns True if it did."""
+    def chunk_setpoints(self, sp: np.ndarray, udc_v: float, take_event: bool = True) -> bool:
+        """Fill the control loop's setpoints for the next piece. Applies at most one pending event
+        and toggles the sync level for it; returns True if it did. take_event False: none (the paced
+        plant simulates the samples before the write with the setpoints before it)."""
         with self.lock:
             self.udc_v = udc_v
             applied = False
-            if self._events:
+            if self._events and take_event:
                 kind, value = self._events.popleft()
                 if kind == "torque":
                     self.torque_nm = float(value)

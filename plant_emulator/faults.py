@@ -21,8 +21,9 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
                                                  the bench's oscilloscope on u_dq*, i_dq, ... (plant_emulator/scope.py)
     {"status": true}                             the fault state: {"ok": true, "faults": {...}}, with the
                                                  drive's state, injection mode and torque setpoint in force,
-                                                 and `drive_power_off_at` (time.monotonic() when its power
-                                                 stage last went off)
+                                                 `drive_power_off_at` (time.monotonic() when its power
+                                                 stage last went off), the load's state, and each
+                                                 device's heartbeat consumer time (0x1016, ms; 0: off)
 
 Every reply carries `"at"`: time.monotonic() just before the command was carried out (CLOCK_MONOTONIC is
 system-wide, so a tool in another process can time fault -> safe against `drive_power_off_at`).
@@ -172,7 +173,10 @@ class FaultState:
                 "drive_state": self.emu.drive.state.value, "drive_power_off_at": self.emu.drive.power_off_at,
                 "drive_injection_mode": self.emu.drive.inj_mode, "drive_torque_nm": self.emu.drive.torque_nm,
                 "drive_theta_rad": list(self.emu.drive.effective_theta()), "drive_speed_rpm": self.emu.drive.speed_rpm,
-                "load_state": self.emu.load.state.value}
+                "load_state": self.emu.load.state.value,
+                # whose heartbeat each device consumes, and how long it waits (0: it does not)
+                "drive_heartbeat_consumer_ms": self.emu.drive.heartbeat_consumer_ms,
+                "load_heartbeat_consumer_ms": self.emu.load.heartbeat_consumer_ms}
 
     def sdo_delay_for(self, can_id: int) -> float:
         """Delay for a frame the emulator sends (SDO responses 0x580 + node of its nodes)."""

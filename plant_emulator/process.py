@@ -1,22 +1,35 @@
 """The emulator process: wires physics, firmware, CAN, DAQ pty and supply together and runs them.
 
-Threads: the plant thread (blocks of physics + frame encoding in one numba call -> pty, setpoints
-taken at block starts), the DAQ writer (fast mode), the canopen notifier (SDO server, NMT, heartbeats
-of the two LocalNodes), the socketcand server (accept/read + virtual-bus pump), the SCPI server, the
-fault control socket, and a heartbeat watchdog. The main thread waits for SIGTERM/SIGINT and then
-closes everything; the exit code is 0.
+Threads: the plant thread (pieces of physics + frame encoding in one numba call -> pty, setpoints
+taken at piece starts), the DAQ writer (blocking in fast mode, continuous from the DAQ's FIFO in
+paced mode: plant_emulator/daq_stream.py), the canopen notifier (SDO server, NMT, heartbeats of the
+two LocalNodes), the socketcand server (accept/read + virtual-bus pump), the SCPI server, the fault
+control socket, and a heartbeat watchdog. The main thread waits for SIGTERM/SIGINT and then closes
+everything; the exit code is 0.
 
-Plant time is the DAQ sample counter. `speedup` 0: the plant runs as fast as the DAQ reader
-consumes (blocking pty writes); X > 0: paced to X times real time on the wall clock.
+Plant time is the DAQ sample counter. The drive takes at most one setpoint event per piece start
+(drive_firmware.py: each event is one toggle of the DAQ sync flag; two at one sample would cancel).
 
-Blocks: a setpoint is applied at a chunk start (256 samples) and each one is its own chunk. While no
-setpoint event waits (and when not paced slowly), up to BLOCK_CHUNKS chunks run in one numba call;
-an SDO write that arrives meanwhile is applied at the next block start, i.e. still at a chunk start
-and still one toggle per write. This keeps the Python work per simulated second small.
+`speedup` 0 (fast): the plant runs as fast as the DAQ reader consumes (blocking pty writes). A
+setpoint is applied at a chunk start (256 samples) and each one is its own chunk; while no setpoint
+event waits, FRAME_BATCH_CHUNKS chunks run in one numba call and one write, which keeps the Python
+work per simulated second small (an SDO write that arrives meanwhile is applied at the next block
+start, still at a chunk start and still one toggle per write).
+
+`speedup` X > 0 (paced, like a real drive and DAQ): the plant simulates the samples that are due by
+the wall clock (X times real time), behind it as a real DAQ delivers a sample after it happened, in
+pieces of about PACED_WAKE_S of wall time; the thread also wakes at once when a setpoint is written
+(`DriveFirmware.setpoint_written`). The samples due by then are simulated with the setpoints before
+the write, and the event applies from the next sample on, so a setpoint takes effect within about a
+ms of its write at 1x and each sample leaves within a few ms of its time. With several events
+pending, pieces of EVENT_PIECE_SAMPLES apply them one per piece start. The firmware's chunk-rate
+task runs at each piece start (and every chunk within a piece); the 0x2010 mean, the published speed,
+the fault tick and the scope take each piece's own length.
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import logging
 import math
@@ -49,8 +62,14 @@ DRIVE_NODE = 5
 LOAD_NODE = 6
 CHUNK_SAMPLES = 256           # physics chunk: setpoints are taken at chunk starts (16 ms at 16 kHz)
 FRAME_BATCH_CHUNKS = 16       # chunks per numba call + write when running fast (256 ms plant time)
-FAST_SPEEDUP = 8.0            # below this (paced, > 0) every chunk is written at once
 U_REF_MEAN_SAMPLES = 1024     # 0x2010: mean over the last 1024 periods
+PACED_WAKE_S = 0.002          # paced: the plant thread simulates what is due this often (wall time)
+EVENT_PIECE_SAMPLES = 16      # paced: piece length while setpoint events wait (one applies per piece start)
+PACED_MAX_PIECE_SAMPLES = 4096  # paced: most samples per numba call when catching up
+PACED_MAX_WAIT_S = 0.1        # paced: longest sleep (stop and very slow speedups)
+PACED_BEHIND_RESET_S = 1.0    # paced: this far behind the wall clock (machine busy), do not catch up
+DAQ_FIFO_S = 0.25             # paced: the DAQ's FIFO holds this much stream (wall time) before it overflows
+DAQ_FIFO_MIN_BYTES = 1 << 16
 WATCHDOG_PERIOD_S = 0.02
 RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
 
@@ -79,7 +98,9 @@ class Emulator:
         self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
         self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS),
                                         ramp_rpm_per_s=float(self.params[ph.P_LOAD_RAMP]) * 60.0 / (2.0 * math.pi))
-        self.daq = DaqPty()
+        # paced, the DAQ's FIFO is sized in wall time: what the reader may fall behind before frames drop
+        fifo_bytes = int(DAQ_FIFO_S * self.sample_rate_hz * self.speedup) * ph.FRAME_BYTES
+        self.daq = DaqPty(max_pending_bytes=max(DAQ_FIFO_MIN_BYTES, fifo_bytes))
         self.scope = Scope(self.sample_rate_hz)
         self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)
         self.control = ControlServer(self.faults, port=control_port)
@@ -151,76 +172,128 @@ class Emulator:
             self.stop_event.set()
 
     def _run_plant(self) -> None:
+        if self.speedup > 0.0:
+            self._run_paced()
+        else:
+            self._run_fast()
+
+    # -- one piece of plant: setpoints at its start, physics + frames, published measurements --------
+    def _alloc_pieces(self, max_samples: int) -> None:
         n = self.chunk
-        p, x, sp, tab = self.params, self.plant.x, self.sp, self.tab
-        fast = self.speedup <= 0.0 or self.speedup >= FAST_SPEEDUP
-        batch = FRAME_BATCH_CHUNKS if fast else 1
-        frames = np.empty(n * batch * ph.FRAME_BYTES, dtype=np.uint8)
-        summary = np.zeros((batch, ph.N_SUMMARY))
-        no_trace = np.zeros((0, ph.N_TRACE))
-        rng = self.plant.rng
-        noise_on = p[ph.P_NOISE] > 0.0
-        zeros = np.zeros(n * batch)
-        n_mean = max(1, int(math.ceil(U_REF_MEAN_SAMPLES / n)))
-        ud_hist = np.zeros(n_mean)
-        uq_hist = np.zeros(n_mean)
-        chunks_done = 0
+        self._frames = np.empty(max_samples * ph.FRAME_BYTES, dtype=np.uint8)
+        self._summary = np.zeros((-(-max_samples // n), ph.N_SUMMARY))
+        self._no_trace = np.zeros((0, ph.N_TRACE))
+        self._zeros = np.zeros(max_samples)
+        self._noise_on = self.params[ph.P_NOISE] > 0.0
+        # 0x2010: (u_d sum, u_q sum, samples) per summary row, the newest covering U_REF_MEAN_SAMPLES
+        self._uref_rows: collections.deque[tuple[float, float, int]] = collections.deque()
+        self._uref_samples = 0
+
+    def _piece_start(self) -> float:
+        """Supply voltage and the scenario's timed faults at the start of a piece; returns U_dc."""
+        udc = self.supply.actual_v()
+        self.faults.tick(self.samples / self.sample_rate_hz)
+        return udc
+
+    def _take_setpoints(self, udc: float, take_event: bool = True) -> bool:
+        """The drive's and the load's setpoints for the next piece (at most one event: True if one)."""
+        applied = self.drive.chunk_setpoints(self.sp, udc, take_event=take_event)
+        self.load.chunk_setpoints(self.sp)
+        return applied
+
+    def _advance(self, k: int, udc: float) -> bytes:
+        """Simulate k samples with the setpoints taken, publish the firmware's measurements, and return
+        the DAQ bytes as the wire delivers them."""
+        n = self.chunk
+        noise = self.plant.rng.standard_normal(k) if self._noise_on else self._zeros[:k]
+        scoping = self.scope.recording      # the oscilloscope wants this piece's samples
+        trace = np.zeros((k, ph.N_TRACE)) if scoping else self._no_trace
+        rows = -(-k // n)
+        frames, summary = self._frames[:k * ph.FRAME_BYTES], self._summary[:rows]
+        ph.simulate(self.plant.x, self.params, self.tab, self.sp, noise, n, self.samples, frames, summary, trace)
+        if scoping:
+            self.scope.feed(trace)
+        self.samples += k
+        # publish the firmware's measurements (read by SDO); rows hold n samples, the last one the rest
+        uref = self._uref_rows
+        for row in range(rows):
+            count = min(n, k - row * n)
+            uref.append((float(summary[row, ph.Y_UD_SUM]), float(summary[row, ph.Y_UQ_SUM]), count))
+            self._uref_samples += count
+            while self._uref_samples - uref[0][2] >= U_REF_MEAN_SAMPLES:
+                self._uref_samples -= uref.popleft()[2]
+        filled = self._uref_samples
+        last, last_count = summary[rows - 1], k - (rows - 1) * n
+        speed_rpm = float(last[ph.Y_OMEGA_SUM]) / last_count * RAD_S_TO_RPM
+        self.drive.publish(speed_rpm, float(last[ph.Y_TORQUE_EST_SUM]) / last_count, udc,
+                           sum(r[0] for r in uref) / filled, sum(r[1] for r in uref) / filled)
+        self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / last_count)
+        return self.faults.apply_daq(frames.tobytes())
+
+    # -- the two disciplines -------------------------------------------------------------------------
+    def _run_fast(self) -> None:
+        """--speedup 0: blocks of chunks as fast as the DAQ reader consumes (blocking writes)."""
+        n, batch = self.chunk, FRAME_BATCH_CHUNKS
+        self._alloc_pieces(n * batch)
         out = bytearray()
         out_limit = n * batch * ph.FRAME_BYTES
-        if self.speedup <= 0.0:
-            self.daq.start_writer(self.stop_event)
-        t0 = time.monotonic()
-        plant_t0 = 0
-        faults = self.faults
+        self.daq.start_writer(self.stop_event)
         while not self.stop_event.is_set():
-            udc = self.supply.actual_v()
-            faults.tick(self.samples / self.sample_rate_hz)
+            udc = self._piece_start()
             # one chunk while a setpoint event waits (it is applied at this chunk's start, the next one
             # at the next chunk's start); a whole block otherwise
-            m = 1 if (batch == 1 or self.drive.has_pending()) else batch
-            self.drive.chunk_setpoints(sp, udc)
-            self.load.chunk_setpoints(sp)
-            k = m * n
-            noise = rng.standard_normal(k) if noise_on else zeros[:k]
-            scoping = self.scope.recording      # the oscilloscope wants this block's samples
-            trace = np.zeros((k, ph.N_TRACE)) if scoping else no_trace
-            ph.simulate(x, p, tab, sp, noise, n, self.samples, frames[:k * ph.FRAME_BYTES], summary[:m], trace)
-            if scoping:
-                self.scope.feed(trace)
-            self.samples += k
-            # publish the firmware's measurements (read by SDO)
-            for row in range(max(0, m - n_mean), m):
-                slot = chunks_done % n_mean
-                ud_hist[slot] = summary[row, ph.Y_UD_SUM]
-                uq_hist[slot] = summary[row, ph.Y_UQ_SUM]
-                chunks_done += 1
-            filled = min(n_mean, chunks_done) * n
-            last = summary[m - 1]
-            speed_rpm = float(last[ph.Y_OMEGA_SUM]) / n * RAD_S_TO_RPM
-            self.drive.publish(speed_rpm, float(last[ph.Y_TORQUE_EST_SUM]) / n, udc,
-                               float(ud_hist.sum()) / filled, float(uq_hist.sum()) / filled)
-            self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / n)
-            out += faults.apply_daq(frames[:k * ph.FRAME_BYTES].tobytes())
+            m = 1 if self.drive.has_pending() else batch
+            self._take_setpoints(udc)
+            out += self._advance(m * n, udc)
             if len(out) < out_limit and self.drive.has_pending():
                 continue      # keep single event chunks together in one write
             data = bytes(out)
             out.clear()
-            if self.speedup <= 0.0:
-                if faults.daq_disconnected:
-                    # nobody can read: no backpressure, so run in real time (frames are lost anyway)
-                    self.stop_event.wait(len(data) / ph.FRAME_BYTES / self.sample_rate_hz)
-                    continue
-                if not self.daq.submit(data):
-                    break
+            if self.faults.daq_disconnected:
+                # nobody can read: no backpressure, so run in real time (frames are lost anyway)
+                self.stop_event.wait(len(data) / ph.FRAME_BYTES / self.sample_rate_hz)
+                continue
+            if not self.daq.submit(data):
+                break
+
+    def _run_paced(self) -> None:
+        """--speedup X > 0: the samples due by the wall clock, in pieces of ~PACED_WAKE_S, cut where a
+        setpoint is written; written to the DAQ's FIFO at once."""
+        rate = self.sample_rate_hz * self.speedup            # samples per wall second
+        wake_samples = max(1, int(round(PACED_WAKE_S * rate)))
+        self._alloc_pieces(PACED_MAX_PIECE_SAMPLES)
+        written = self.drive.setpoint_written
+        t0, plant_t0 = time.monotonic(), self.samples
+        event_from = None     # first sample the pending setpoint events may apply at (due when first seen)
+        while not self.stop_event.is_set():
+            written.clear()   # before looking: a write from now on wakes the wait below
+            now = time.monotonic()
+            due = plant_t0 + int((now - t0) * rate)
+            if due - self.samples > rate * PACED_BEHIND_RESET_S:
+                # fell behind (machine busy): do not catch up; pending setpoints apply from here on
+                t0, plant_t0, event_from = now, self.samples, None
+                continue
+            pending = self.drive.has_pending()
+            if not pending:
+                event_from = None
+            elif event_from is None:
+                event_from = max(due, self.samples)           # written by now: effective from the next sample
+            take = pending and self.samples >= event_from
+            if pending and not take:
+                end = event_from          # the samples before the write, with the setpoints before it
             else:
-                self.daq.write_paced(data)
-                target = t0 + (self.samples - plant_t0) / self.sample_rate_hz / self.speedup
-                delay = target - time.monotonic()
-                if delay > 0:
-                    self.stop_event.wait(delay)
-                elif delay < -1.0:   # fell behind (machine busy): do not try to catch up
-                    t0 = time.monotonic()
-                    plant_t0 = self.samples
+                want = EVENT_PIECE_SAMPLES if take else wake_samples
+                if due - self.samples < want:
+                    # not due yet: sleep until it is, or until a setpoint is written
+                    wait_s = t0 + (self.samples + want - plant_t0) / rate - now
+                    written.wait(min(max(wait_s, 0.0), PACED_MAX_WAIT_S))
+                    continue
+                end = due
+            k = min(end - self.samples, PACED_MAX_PIECE_SAMPLES)
+            udc = self._piece_start()
+            if self._take_setpoints(udc, take_event=take) and self.drive.has_pending():
+                k = min(k, EVENT_PIECE_SAMPLES)               # the next event at the next piece start, soon
+            self.daq.write_paced(self._advance(k, udc))
 
 
 def warm_up() -> None:
@@ -237,10 +310,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--scenario", default=scn.DEFAULT_SCENARIO, help="scenario name or TOML path (default paper-bench)")
     ap.add_argument("--seed", type=int, default=None, help="perturb the truth within the scenario's [seed] ranges")
     ap.add_argument("--speedup", type=float, default=1.0,
-                    help="X times real time, paced like a real DAQ: what the reader does not take in time is "
-                         "dropped (beyond about 5x a service on 2 cores does not keep up, and some runs fail "
-                         "naming the DAQ gaps); 0 = as fast as the DAQ reader consumes, the way to run faster than real time "
-                         "(default 1)")
+                    help="X times real time, paced like a real drive and DAQ: setpoints take effect at the next "
+                         "control period after their write, and what the reader leaves unread for more than "
+                         "0.25 s (the DAQ's FIFO) is dropped in whole frames. Measured on 2 cores with a DaqReader "
+                         "consuming as fast as it can: no frame lost at 1x, 5x, 10x or 20x (beyond about 170x the "
+                         "emulator itself falls behind); 0 = as fast as the DAQ reader consumes, the way to run "
+                         "faster than real time (default 1)")
     ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--control-port", type=int, default=0,

@@ -36,11 +36,13 @@ from service.harmonic import mechanical_speed_rpm
 from service.interlocks import (DaqLost, DeviceFault, HeartbeatLost, InterlockMonitor, InterlockTripped,
                                 ServiceHeartbeatStopped, SupplyOutOfRange, Trip, daq_disconnected_reason)
 from service import limits
-from service.limits import LimitError, check_limits
+from service.limits import LimitError
 from service.live_values import STALE_AFTER_S, LiveValues
-from service.measurement import DaqCursor, OperatingPointSession, RunCancelled
+from service.bench_run import BenchRun, gamma_max_for_run
+from service.measurement import OperatingPointSession, RunCancelled
 from service.operating_point import OperatingPoint
 from service.settings import Settings
+from service.setpoint_accounting import AccountingError, SetpointAccounting
 
 log = logging.getLogger(__name__)
 
@@ -58,13 +60,6 @@ class RunError(BenchError):
 
 
 class Bench:
-    # Re-establishing the setpoint count (before a run, and after a DAQ gap hid toggles): no toggle for
-    # this many samples means the drive has no setpoint pending. It must exceed what the DAQ path can
-    # still deliver from before the flush (data made before pending setpoints were applied): the
-    # emulator's writer holds up to 4 batches of 4096.
-    SYNC_QUIET_SAMPLES = 20480     # 1.28 s of plant time at 16 kHz
-    SYNC_MAX_SAMPLES = 131072      # give up after this much plant time (8 s)
-
     def __init__(self, settings: Settings, identity: str, on_trip: Callable[[Trip], None] | None = None):
         self.settings = settings
         self.identity = identity
@@ -75,11 +70,12 @@ class Bench:
         self.load: LoadClient | None = None
         self.daq: DaqReader | None = None
         self.supply: ScpiSupply | None = None
-        self.cursor: DaqCursor | None = None
+        self.accounting: SetpointAccounting | None = None   # the drive's setpoints against the DAQ sync line
         self.interlocks: InterlockMonitor | None = None
         self._supply_interlock: SupplyOutOfRange | None = None
         self.busy = False
         self._gamma_max_rad: float | None = None  # of the run in progress
+        self._run: BenchRun | None = None
         # the shaft mode of G_Salpha: the settings' pole, learned from the windows of every run (sec. 2.3)
         self.resonance = ResonanceTracker(ResonanceMode(settings.mechanics.pole_re_rad_s, settings.mechanics.pole_im_rad_s))
         self._auto_resets: list[float] = []     # monotonic times of automatic fault resets (rate limit)
@@ -119,14 +115,29 @@ class Bench:
                 raise BenchUnreachable(f"bench unreachable: {device} at {address} ({type(exc).__name__}: {exc}); "
                                        f"check that {hint}") from exc
         self.unreachable = None
-        self.cursor = DaqCursor(self.daq, s.daq.read_timeout_s)
+        self.accounting = SetpointAccounting(self.daq, s.daq.read_timeout_s, lambda: self.drive.setpoints_written,
+                                             self.drive.resync_setpoint_count)
+        self.drive.on_setpoint = self.accounting.note_write
         self._start_interlocks()
+        self._establish_accounting()
         self.refresh_status()
+
+    def _establish_accounting(self) -> None:
+        """Learn the DAQ sync line at connect, so the first run does not wait for it; a DAQ that does
+        not stream yet leaves it to the first run."""
+        if not self.settings.daq.sync_input:
+            return
+        with self._lock:
+            try:
+                self.accounting.establish(guard=lambda: None)
+            except (DaqError, AccountingError) as exc:
+                log.warning("setpoint accounting not established at connect (the first run does it): %s", exc)
 
     def _connect_bus(self) -> None:
         s = self.settings
         self.bus = CanBus(s.can.interface, s.can.channel, host=s.can.host, port=s.can.port, bitrate=s.can.bitrate,
-                          service_node_id=s.can.service_node_id, heartbeat_period_ms=s.can.heartbeat_period_ms)
+                          service_node_id=s.can.service_node_id, heartbeat_period_ms=s.can.heartbeat_period_ms,
+                          **s.can.options)
         # python-can logs every failed attempt as a warning; connect() says it once, with what to check
         can_log = logging.getLogger("can")
         level = can_log.level
@@ -168,10 +179,19 @@ class Bench:
         self.interlocks.start()
 
     def close(self) -> None:
+        """Orderly stop: drive and load disabled, then their heartbeat consumers disarmed (0x1016), then
+        the links closed (the service heartbeat stops last): the devices do not fault, and the next
+        start runs without a reset. connect() arms the consumers again."""
         if self.interlocks is not None:      # connected: leave it safe first
             with contextlib.suppress(Exception):
                 self.make_safe()
             self.interlocks.stop()
+            for device in (self.drive, self.load):
+                try:
+                    device.disarm_heartbeat_consumer()
+                except Exception as exc:  # noqa: BLE001 - the device may be gone; it then faults as it should
+                    log.warning("%s node %d: heartbeat consumer not disarmed (%s): it will fault when the "
+                                "service's heartbeat stops", device.device_kind, device.node_id, exc)
         for part in (self.daq, self.supply):
             with contextlib.suppress(Exception):
                 if part is not None:
@@ -341,18 +361,26 @@ class Bench:
         return out
 
     # --- running an operating point ------------------------------------------------------------------
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
         """Theta to the drive; refuses (before anything is sent) a gamma above the run's gamma_max."""
         gamma_max = self._gamma_max_rad or math.radians(self.settings.identification.gamma_max_deg)
         if math.hypot(theta_cos_rad, theta_sin_rad) > gamma_max * (1 + 1e-9):
             raise LimitError(f"gamma {math.degrees(math.hypot(theta_cos_rad, theta_sin_rad)):.3f} deg exceeds gamma_max")
-        self._guard()
+        self._guard(cancel)
         self.drive.set_injection(theta_cos_rad, theta_sin_rad)
 
-    def send_injection_mode(self, mode: str) -> None:
+    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None:
         """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
-        self._guard()
+        self._guard(cancel)
         self.drive.set_injection_mode(mode)
+
+    def set_dc_link(self, udc_v: float) -> None:
+        """The supply to udc_v and confirmed; the supply interlock watches the new band from then on."""
+        self._supply_interlock.expected_v = None     # not out of range while it changes
+        self.supply.set_voltage(udc_v)
+        self.supply.output(True)
+        self._wait_supply(udc_v)
+        self._supply_interlock.expected_v = udc_v
 
     def download_lut(self, image: bytes) -> LutInForce:
         """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns what the
@@ -374,45 +402,39 @@ class Bench:
         return self.drive.setpoints_written
 
     @contextlib.contextmanager
-    def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
-                        settle_s: float = 0.25, cancel: threading.Event | None = None,
-                        on_window: Callable | None = None,
-                        decoupling: bool | None = None) -> Iterator[OperatingPointSession]:
-        """Go to `op`, settle on the DAQ clock, yield a measurement session; always leave safe.
-        gamma_max_rad (default: settings) is enforced here and also set in the drive, which clamps.
-        decoupling (default: settings) is the drive's 0x2000:6 for this run.
-        Refused (InterlockTripped, nothing commanded) while an interlock is tripped. A run that an
-        interlock stopped ends in InterlockTripped even if the method finished: its data are not good."""
-        check_limits(op, self.settings)
-        s = self.settings
+    def run(self, harmonic_order: int, gamma_max_rad: float | None = None, decoupling: bool | None = None,
+            cancel: threading.Event | None = None) -> Iterator[BenchRun]:
+        """One continuous run (service/bench_run.py): the bench held, the interlocks armed throughout,
+        moves from point to point; make_safe when it ends, however it ends. gamma_max_rad (default:
+        settings) is enforced here and also set in the drive, which clamps; decoupling (default:
+        settings) is the drive's 0x2000:6 for the run. Refused (InterlockTripped, nothing commanded)
+        while an interlock is tripped. `cancel` set stops the run at its next DAQ read."""
         if not self.connected:
             raise InterlockTripped(self._unreachable_trip(), refused=True)
         with self._lock:
             self._refuse_or_auto_reset()
             self.busy = True
-            self._gamma_max_rad = min(gamma_max_rad or math.inf, limits.gamma_max_rad(None, self.settings))
+            self._gamma_max_rad = gamma_max_for_run(gamma_max_rad, limits.gamma_max_rad(None, self.settings))
+            run = BenchRun(self, harmonic_order, self._gamma_max_rad,
+                           self.settings.identification.decoupling if decoupling is None else decoupling, cancel)
+            self._run = run
             self.interlocks.arm()
             first: BaseException | None = None
             try:
-                self._resync_setpoints()
-                # the session gets what it needs passed in and never calls back into the bench
-                session = OperatingPointSession(self.cursor, self.send_theta, self.setpoints_written, harmonic_order,
-                                                s.daq.sample_rate_hz, s.motor.pole_pairs, sync_input=s.daq.sync_input,
-                                                no_sync_settle_s=s.daq.no_sync_settle_s,
-                                                guard=lambda: self._guard(cancel), resonance=self.resonance,
-                                                observe=self.live.publisher("run"), on_window=on_window,
-                                                send_injection_mode=self.send_injection_mode,
-                                                sync_quiet_samples=self.SYNC_QUIET_SAMPLES)
-                self.live.publish("run", operating_point=op.model_dump(),
-                                  speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None)
-                self._go_to(op, harmonic_order,
-                            self.settings.identification.decoupling if decoupling is None else decoupling)
-                session.settle_operating_point(op.speed_rpm, settle_s)
-                session.reset_plant_time()
-                yield session
+                self.accounting.start_run(run.guard)
+                yield run
             except BaseException as exc:
                 first = exc
             self._end_run(first)
+
+    @contextlib.contextmanager
+    def operating_point(self, op: OperatingPoint, harmonic_order: int, gamma_max_rad: float | None = None,
+                        cancel: threading.Event | None = None, on_window: Callable | None = None,
+                        decoupling: bool | None = None, target_db: float = 40.0) -> Iterator[OperatingPointSession]:
+        """A run of one point: go to `op`, settle, yield the session; the bench is left safe after it."""
+        with self.run(harmonic_order, gamma_max_rad, decoupling, cancel) as run:
+            with run.operating_point(op, target_db=target_db, on_window=on_window) as session:
+                yield session
 
     def _end_run(self, first: BaseException | None) -> None:
         """After a run (clean or not): learn whether an interlock is the first cause, make safe, and
@@ -422,6 +444,8 @@ class Bench:
             if first is not None and not isinstance(first, (RunCancelled, GeneratorExit)):
                 self.interlocks.check_now(force=True)     # an EMCY/FAULT may be why the run failed
             trip = self.interlocks.disarm()
+            if trip is not None:
+                self.accounting.doubt("an interlock tripped during the run")   # a faulted drive drops what it queued
             if self._supply_interlock is not None:
                 self._supply_interlock.expected_v = None
             safe_error: Exception | None = None
@@ -429,9 +453,11 @@ class Bench:
                 self.make_safe()
             except Exception as exc:
                 safe_error = exc
+            self.accounting.end_run()
         finally:
             self.busy = False
             self._gamma_max_rad = None
+            self._run = None
             if self.connected:
                 self._read_devices()    # the status shows the state the run left, not the poller's last read
         outcome = "bench made safe" if safe_error is None else f"make_safe failed: {safe_error}"
@@ -446,45 +472,6 @@ class Bench:
             raise RunError(f"{type(first).__name__}: {first}; then {outcome}") from first
         if safe_error is not None:
             raise BenchError(f"bench may not be safe: {safe_error}") from safe_error
-
-    def _resync_setpoints(self) -> None:
-        """Re-establish the setpoint/sync-toggle accounting before a run (the drive is disabled and
-        nothing is written now): drop what the DAQ path holds, count toggles on fresh data until the
-        line has been quiet for SYNC_QUIET_SAMPLES (the drive applies one pending setpoint per chunk,
-        so quiet means none is left), then take the count as the drive's (commit counter read back)."""
-        self.daq.discard_buffered(flush_port=True)
-        self.cursor = DaqCursor(self.daq, self.settings.daq.read_timeout_s)   # no toggle counted across the flush
-        block, quiet, seen = 256, 0, 0
-        while quiet < self.SYNC_QUIET_SAMPLES:
-            self._guard()
-            chunk = self.cursor.read(block)
-            seen += block
-            quiet = block - 1 - int(chunk.toggle_offsets[-1]) if len(chunk.toggle_offsets) else quiet + block
-            if seen > self.SYNC_MAX_SAMPLES:
-                raise BenchError(f"drive node {self.drive.node_id} keeps toggling the DAQ sync line "
-                                 f"({self.cursor.toggles_seen} toggles in {seen} samples): setpoints cannot be counted")
-        report = self.drive.resync_setpoint_count(self.cursor.toggles_seen)
-        if report["commits_expected"] is not None and report["commits_expected"] != report["commits_reported"]:
-            log.warning("drive commit counter %d, expected %d: setpoint count re-established from the drive",
-                        report["commits_reported"], report["commits_expected"])
-
-    def _go_to(self, op: OperatingPoint, harmonic_order: int, decoupling: bool) -> None:
-        self.supply.set_voltage(op.udc_v)
-        self.supply.output(True)
-        self._wait_supply(op.udc_v)
-        self._supply_interlock.expected_v = op.udc_v
-        self._require_clear()
-        self.load.enable()
-        self.load.set_speed_rpm(op.speed_rpm)
-        self._require_clear()
-        self.drive.enable()
-        self.drive.set_gamma_max_rad(self._gamma_max_rad)
-        self.drive.set_harmonic_order(harmonic_order)
-        self.drive.set_decoupling(decoupling)
-        self.drive.set_injection(0.0, 0.0)
-        self.drive.set_injection_mode("manual")
-        self._require_clear()
-        self.drive.set_torque_nm(op.torque_nm)
 
     def _wait_supply(self, udc_v: float, timeout_s: float = 5.0) -> None:
         deadline = time.monotonic() + timeout_s
@@ -506,7 +493,7 @@ class Bench:
             steps.append(self.drive.disable)    # target torque 0, injection off, disable voltage
         if self.load is not None:
             steps.append(lambda: self.load.set_speed_rpm(0.0))
-            if self.cursor is not None:
+            if self.accounting is not None:
                 # brake with the load's speed loop before disabling it (a disabled load coasts)
                 steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))
             steps.append(self.load.disable)
@@ -521,28 +508,33 @@ class Bench:
             raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
 
     def _wait_standstill(self, timeout_plant_s: float, below_rpm: float = 20.0) -> None:
-        """Consume the DAQ until the encoder shows the shaft below `below_rpm`; without a DAQ, poll
-        the load machine's velocity actual instead (wall clock, same bound)."""
-        block = int(0.02 * self.settings.daq.sample_rate_hz)
+        """Consume the DAQ until the encoder shows the shaft below `below_rpm` (bounded on the DAQ
+        clock); without a DAQ, poll the load machine's velocity actual instead (wall clock, same bound)."""
+        rate = self.settings.daq.sample_rate_hz
+        block = int(0.02 * rate)
+        cursor = self.accounting.cursor
         try:
-            for _ in range(int(timeout_plant_s / 0.02)):
-                chunk = self.cursor.read(block).samples
+            start = None
+            while start is None or cursor.last_index - start < timeout_plant_s * rate:
+                chunk = cursor.read(block).samples
+                start = int(chunk.index[0]) if start is None else start
                 try:    # over the block's contiguous runs: the angle's step across a DAQ gap is unknown
-                    speed_rpm = mechanical_speed_rpm(chunk.angle_rad, self.settings.daq.sample_rate_hz,
-                                                     self.settings.motor.pole_pairs, chunk.gap_before)
+                    speed_rpm = mechanical_speed_rpm(chunk.angle_rad, rate, self.settings.motor.pole_pairs,
+                                                     chunk.gap_before)
                 except ValueError:
                     continue
                 if abs(speed_rpm) < below_rpm:
                     return
         except DaqError as exc:
             log.warning("standstill judged on the load's speed: DAQ unavailable (%s)", exc)
+            self.accounting.doubt("the DAQ was unavailable at the end of a run")
             deadline = time.monotonic() + timeout_plant_s
             while time.monotonic() < deadline:
                 speed_rpm = self.load.read_status().speed_rpm
                 if abs(speed_rpm) < below_rpm:
                     return
                 time.sleep(0.02)
-        raise BenchError(f"shaft still turning {timeout_plant_s} s (plant time) after the stop command")
+        raise BenchError(f"shaft still turning {timeout_plant_s:g} s (plant time, DAQ sample clock) after the stop command")
 
 
 def _lut_shape(held: LutInForce) -> dict[str, Any]:

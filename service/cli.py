@@ -18,6 +18,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from drivers.lut_image import DEFAULT_INTERPOLATION, INTERPOLATIONS
 from service import __version__
 from service.identification.registry import METHODS
 from service.lut_export import EXPORT_FORMATS
@@ -46,7 +47,6 @@ def _settings(args) -> Settings:
     overrides = {"server.db_path": getattr(args, "db", None)}
     if getattr(args, "bench", None):
         overrides["bench_mode"] = "bench"
-        overrides["bench_name"] = Path(args.bench).stem
     elif getattr(args, "emulate", False) or hasattr(args, "scenario"):
         if getattr(args, "emulate", False):
             overrides["bench_mode"] = "emulate"
@@ -56,6 +56,9 @@ def _settings(args) -> Settings:
         if getattr(args, key, None) is not None:
             overrides[f"server.{key}"] = getattr(args, key)
     settings = load_settings(path, overrides=overrides)
+    if getattr(args, "bench", None) and "bench_name" not in settings.model_fields_set:
+        # a bench file without bench_name: the bench is called after its file
+        settings = settings.model_copy(update={"bench_name": Path(args.bench).stem})
     settings.server.db_path = resolve_db_path(settings.server.db_path)
     # stderr: stdout stays clean for the token's last line, --json and exports
     print(f"ripplecal: database {settings.server.db_path}", file=sys.stderr, flush=True)
@@ -344,7 +347,8 @@ def cmd_maps(args) -> int:
 
 def _download_map(args) -> int:
     """The map's LUT into the drive over the bench, as POST /maps/{id}/download does (same rules: no ok
-    cell is refused, a partial map needs --force). It opens the bench itself: run it with no
+    cell is refused, a map with cells that would inject nothing under the chosen fill needs --force;
+    --no-fill leaves the filled cells out, --interpolation names the drive's mode). It opens the bench itself: run it with no
     `ripplecal serve` using the same bench (two masters on one bus and one DAQ port would fight over
     it); without --bench it downloads into an emulator of its own."""
     from service import lut_download
@@ -353,7 +357,8 @@ def _download_map(args) -> int:
     from service.storage import Storage
     settings = _settings(args)
     try:                                       # refused before the bench is started
-        lut = lut_download.prepare(Storage(settings.server.db_path), args.map_id, args.force)
+        lut = lut_download.prepare(Storage(settings.server.db_path), args.map_id, args.force, fill=args.fill,
+                                   interpolation=args.interpolation)
     except lut_download.MapNotFound as exc:
         print(f"ripplecal: {exc} in {settings.server.db_path}", file=sys.stderr)
         return 2
@@ -372,11 +377,12 @@ def _download_map(args) -> int:
             return 1
         identity = service.bench.identity
     if args.json:
-        print(json.dumps({**receipt.model_dump(), "bench": identity}, indent=1))
+        print(json.dumps({**receipt.model_dump(), **lut.receipt_fields(), "bench": identity}, indent=1))
     else:
-        print(f"map {receipt.map_id}: {receipt.bytes} bytes ({receipt.valid_cells} of {receipt.cells} cells ok, "
-              f"h = {receipt.harmonic_order}{', forced' if receipt.forced else ''}) in the drive of {identity}; "
-              f"CRC-32 read back {receipt.crc32}")
+        filled = f", {lut.filled_cells} filled" if lut.fill else ", fill left out"
+        print(f"map {receipt.map_id}: {receipt.bytes} bytes ({receipt.valid_cells} of {receipt.cells} cells ok{filled}, "
+              f"{lut.interpolation} interpolation, h = {receipt.harmonic_order}{', forced' if receipt.forced else ''}) "
+              f"in the drive of {identity}; CRC-32 read back {receipt.crc32}")
     return 0
 
 
@@ -545,7 +551,12 @@ def _parser_maps(sub) -> None:
     t = msub.add_parser("download", help="the map's LUT into the drive (0x2001), CRC-32 read back; opens the bench "
                                          "itself: not while a `ripplecal serve` holds the same bench")
     t.add_argument("map_id", type=int)
-    t.add_argument("--force", action="store_true", help="load a partial map (some cells not ok: no injection there)")
+    t.add_argument("--force", action="store_true", help="load a partial map (cells without an entry under the "
+                                                             "chosen fill: no injection there)")
+    t.add_argument("--no-fill", dest="fill", action="store_false",
+                   help="leave the filled cells out (the drive then injects only at ok cells); default: with fill")
+    t.add_argument("--interpolation", choices=list(INTERPOLATIONS), default=None,
+                   help=f"what the drive interpolates between cells (default {DEFAULT_INTERPOLATION})")
     t.add_argument("--json", action="store_true")
     _add_bench_args(t)
     p.set_defaults(func=cmd_maps)

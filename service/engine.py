@@ -21,22 +21,30 @@ import queue
 import threading
 import traceback
 from dataclasses import dataclass, field
+from typing import Callable
 from enum import Enum
 
+from drivers.errors import DriverError
+from service.bench import BenchError
 from service.events import EventBroker
 from service import __version__
 from service.limits import check_limits
 from service.interlocks import InterlockTripped
-from service.identify import check_plant_time, identify_at, parse_options
-from service.public import result_public, result_row
-from service.maps import build_map_from_sweep
+from service.identification.common import LUT_MARGIN_DB
+from service.identification.session import MeasurementError
+from service.identify import check_plant_time, identify_at, identify_in_run, parse_options, run_settings
+from service.limits import LimitError
+from service.public import map_public, result_public, result_row
+from service.maps import build_map, build_map_from_sweep
 from service.map_validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
                                     store_validation)
 from service.neighbours import prior_from_neighbours
+from service.refinement import MAX_ROUNDS, RefineRequest, axes_with, check_request, plan_round
 from service.operating_point import OperatingPoint
-from service.plans import Grid, SweepPlan
+from service.plans import Grid, SweepPlan, plan_grid
 from service.recordings import RecordingStore, RunRecorder
 from service.settings import Settings
+from service.setpoint_accounting import AccountingError
 from service.storage import Storage, now_iso
 
 log = logging.getLogger(__name__)
@@ -75,6 +83,12 @@ SWEEP_TRANSITIONS: dict[SweepState, frozenset[SweepState]] = {
 }
 UNFINISHED_SWEEP_STATES = frozenset({W.QUEUED, W.RUNNING, W.PAUSED})
 del J, W
+
+
+# what a bench and its measurements answer in the normal course (a refusal, a trip, a point that cannot
+# be measured, a device that does not answer): logged in one line; anything else is a bug, with its traceback
+EXPECTED_FAILURES = (InterlockTripped, MeasurementError, LimitError, DriverError, BenchError, AccountingError,
+                     ValidationStopped)
 
 
 class TransitionError(RuntimeError):
@@ -197,7 +211,13 @@ class Engine:
         self._publish_job(job_id)
         return job_id
 
-    def submit_sweep(self, grid: Grid, method: str, options, schedule_id: int | None = None) -> int:
+    def submit_sweep(self, grid: Grid, method: str, options, schedule_id: int | None = None,
+                     regime=None) -> int:
+        """Queue a sweep over the planned grid: `grid` with the speeds `regime` (service.plans.RegimePlacement)
+        places around the predicted field-weakening onset (service.plans.plan_grid, the grid POST
+        /sweeps/preview shows). The planned grid is what the sweep stores, so its run and its map use the
+        real axes."""
+        grid = plan_grid(grid, regime, self.settings).grid
         plan = SweepPlan.from_grid(grid)
         check_plant_time(grid.speed_rpm, method, options, self.settings)
         plan.dry_run(self.settings)                         # every setpoint checked before the first frame
@@ -214,7 +234,7 @@ class Engine:
         row = self.storage.get_map(map_id)
         if row is None:
             raise KeyError(map_id)
-        check_validatable(self.storage, map_id, force)
+        check_validatable(self.storage, map_id, force, fill=options.fill)
         check_points(json.loads(row["axes_json"]), self.settings)
         job_id = self.storage.create_job("validation", {"map_id": map_id, "force": force,
                                                         "options": options.model_dump()})
@@ -223,12 +243,37 @@ class Engine:
         self._publish_job(job_id)
         return job_id
 
-    def _queue_sweep(self, sweep_id: int) -> None:
-        job_id = self.storage.create_job("sweep", {"sweep_id": sweep_id}, sweep_id=sweep_id)
+    def submit_refinement(self, map_id: int, request: RefineRequest) -> int:
+        """Queue the refinement of a map (service/refinement.py) as a sweep of kind `refinement`: its
+        cells, pause, resume, cancel and crash-resume are a sweep's. Refused before anything is
+        queued: KeyError (no such map), ValueError (method or options), LimitError (a validation point
+        outside the bench's limits). A partial map is accepted: its non-ok cells are measured first.
+        Returns the job's id."""
+        m = map_public(self.storage, map_id)
+        if m is None:
+            raise KeyError(map_id)
+        check_request(request)
+        options = parse_options(request.method, request.options)
+        check_points(m.axes, self.settings)
+        check_plant_time(m.axes["speed_rpm"], request.method, options, self.settings)
+        not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
+        state = {"target_db": request.target_db, "max_cells": request.max_cells,
+                 "validation": request.validation.model_dump(), "phase": "measure" if not_ok else "validate",
+                 "round": 0, "current_map_id": map_id, "axes": m.axes, "pending": not_ok, "cells_added": 0,
+                 "rounds": [], "stopped": None}
+        sweep_id = self.storage.create_sweep(request.method, m.harmonic_order, m.axes, options.model_dump(),
+                                             len(not_ok), self.bench.identity, __version__, kind="refinement",
+                                             source_map_id=map_id, refinement=state)
+        return self._queue_sweep(sweep_id)
+
+    def _queue_sweep(self, sweep_id: int) -> int:
+        kind = self.storage.get_sweep(sweep_id).get("kind") or "sweep"      # a refinement runs as a sweep of its kind
+        job_id = self.storage.create_job(kind, {"sweep_id": sweep_id}, sweep_id=sweep_id)
         self._controls[sweep_id] = _SweepControl()
         self._job_cancel[job_id] = self._controls[sweep_id].cancel
         self._queue.put(job_id)
         self._publish_sweep(sweep_id)
+        return job_id
 
     # --- controlling sweeps ---------------------------------------------------------------------------------
     def pause_sweep(self, sweep_id: int) -> None:
@@ -334,6 +379,8 @@ class Engine:
                 self._run_identification(job_id, job)
             elif job["kind"] == "validation":
                 self._run_validation(job_id, job)
+            elif job["kind"] == "refinement":
+                self._run_refinement(job_id, job["sweep_id"])
             else:
                 self._run_sweep(job_id, job["sweep_id"])
             final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
@@ -343,8 +390,11 @@ class Engine:
             self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso(),
                           error=self._shutdown_reason if self._shutdown.is_set() else None)
         except Exception as exc:
-            log.error("job %s failed: %s", job_id, traceback.format_exc())
             error = _error_text(exc)
+            if isinstance(exc, EXPECTED_FAILURES):
+                log.warning("job %s failed: %s", job_id, error)     # the bench said no: one line, no traceback
+            else:
+                log.error("job %s failed: %s", job_id, traceback.format_exc())
             self._set_job(job_id, JobState.FAILED, error=error, finished_at=now_iso())
             sweep = self.storage.get_sweep(job["sweep_id"]) if job["sweep_id"] is not None else None
             if sweep is not None and SweepState(sweep["state"]) not in (SweepState.CANCELLED, SweepState.DONE,
@@ -403,6 +453,13 @@ class Engine:
             raise ValidationStopped(run.error)
 
     def _run_sweep(self, job_id: int, sweep_id: int) -> None:
+        """The sweep as continuous bench runs (service/bench_run.py): the drive stays enabled and the
+        load turning from point to point; a run ends (bench made safe) on pause, cancel, an interlock
+        trip, a failure of the bench itself, and at the end. A point that cannot be measured is stored
+        failed and the run goes on; an interlock trip discards the point in flight and pauses.
+        Two passes: every point, then once more each point whose result is not ok, with what its
+        neighbours now know on every side (service/neighbours.py); a cell that stays non-ok gets the fill
+        rule's entry in the map (service/map_fill.py)."""
         sweep = self.storage.get_sweep(sweep_id)
         ctl = self._controls[sweep_id]
         grid = Grid.model_validate(json.loads(sweep["grid_json"]))
@@ -412,44 +469,14 @@ class Engine:
         if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
             raise Cancelled()       # cancelled as the worker took it: nothing was run
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
-        in_flight = None
-        points = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
-        i = 0
-        while i < len(points):
-            op = points[i]
-            self._hold_while_paused(sweep_id, ctl)
-            if ctl.cancel.is_set():
-                break
-            in_flight = op
-            started = now_iso()
-            recorder = self._new_recorder()
-            try:
-                prior = prior_from_neighbours(op, self.storage.sweep_results(sweep_id), grid.model_dump())
-                result = identify_at(self.bench, self.settings, op, sweep["method"], options, prior=prior,
-                                     cancel=ctl.cancel, recorder=recorder)
-                row = result_row(op, sweep["method"], options, self.bench.identity, started, result,
-                                 sweep_id=sweep_id, harmonic_order=result.harmonic_order)
-            except InterlockTripped as exc:
-                # the point is measured again after the operator resumes; its attempt (if any
-                # torque was commanded) is kept as a failed, discarded attempt, never ok
-                if not exc.refused:
-                    self._store_point(sweep_id, op, self._discarded_row(op, sweep, options, started, exc, sweep_id),
-                                      recorder)
-                else:
-                    _discard(recorder)
-                self._pause_for_interlock(sweep_id, ctl, op, exc)
-                continue
-            except Exception as exc:
-                if ctl.cancel.is_set():
-                    _discard(recorder)
-                    break
-                log.warning("sweep %s point %s failed: %s", sweep_id, op.label(), exc)
-                row = result_row(op, sweep["method"], options, self.bench.identity, started,
-                                 error=_error_text(exc), sweep_id=sweep_id,
-                                 harmonic_order=self.settings.identification.harmonic_order)
-            self._store_point(sweep_id, op, row, recorder)
-            in_flight = None
-            i += 1
+        first = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
+        in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
+        if in_flight is None and not ctl.cancel.is_set() and not self._shutdown.is_set():
+            again = second_pass_points(plan, self.storage.sweep_results(sweep_id))
+            if again:
+                log.info("sweep %s: %d point(s) not ok measured once more with their neighbours' priors",
+                         sweep_id, len(again))
+                in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, again, sweep_pass=2)
         if self._shutdown.is_set():
             s = self.storage.get_sweep(sweep_id)
             where = f" during point {in_flight.label()} (measured again on resume)" if in_flight is not None else ""
@@ -460,6 +487,194 @@ class Engine:
         map_id = build_map_from_sweep(self.storage, sweep_id)
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self._set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
+
+    def _measure_points(self, sweep_id: int, sweep: dict, ctl: "_SweepControl", grid: Grid, options,
+                        points: list[OperatingPoint], sweep_pass: int,
+                        neighbour_rows: Callable[[], list[dict]] | None = None,
+                        tags: dict | None = None) -> OperatingPoint | None:
+        """Measure `points` in continuous runs (see _run_sweep), holding while paused. Returns the point
+        in flight when a cancel or a shutdown stopped it (None when every point was measured or the
+        stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
+        results); `tags` go into every result's details."""
+        neighbour_rows = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
+        tags = {"sweep_pass": sweep_pass, **(tags or {})}
+        if options.stop_margin_db is None:      # a cell meant for a LUT: identified to a margin below its target
+            options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
+        point = _PointInFlight()
+        i = 0
+        while i < len(points):
+            self._hold_while_paused(sweep_id, ctl)
+            if ctl.cancel.is_set():
+                break
+            try:
+                with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
+                    while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
+                        point.start(points[i], self._new_recorder())
+                        try:
+                            prior = prior_from_neighbours(point.op, neighbour_rows(), grid.model_dump())
+                            result = identify_in_run(run, self.settings, point.op, sweep["method"], options, prior=prior,
+                                                     recorder=point.recorder)
+                            result.details.update(tags)
+                            row = result_row(point.op, sweep["method"], options, self.bench.identity, point.started,
+                                             result, sweep_id=sweep_id, harmonic_order=result.harmonic_order)
+                        except (MeasurementError, LimitError) as exc:
+                            # this point could not be measured; the bench is fine: the run goes on
+                            log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
+                            row = self._failed_row(point, sweep, options, exc, sweep_id, tags)
+                        self._store_point(sweep_id, point.op, row, point.recorder)
+                        point.clear()
+                        i += 1
+            except InterlockTripped as exc:
+                # the point is measured again after the operator resumes; its attempt (if any
+                # torque was commanded) is kept as a failed, discarded attempt, never ok
+                if point.op is not None and not exc.refused:
+                    self._store_point(sweep_id, point.op,
+                                      self._discarded_row(point.op, sweep, options, point.started, exc, sweep_id),
+                                      point.recorder)
+                else:
+                    _discard(point.recorder)
+                self._pause_for_interlock(sweep_id, ctl, point.op or points[min(i, len(points) - 1)], exc)
+                point.clear()
+                continue
+            except Exception as exc:
+                if ctl.cancel.is_set():
+                    _discard(point.recorder)
+                    return point.op
+                if point.op is None:
+                    raise       # the run itself could not start or end (bench not safe): the sweep fails
+                # the bench failed during this point (the run ended, bench made safe): stored failed, next point
+                log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
+                self._store_point(sweep_id, point.op, self._failed_row(point, sweep, options, exc, sweep_id, tags),
+                                  point.recorder)
+                point.clear()
+                i += 1
+        return None
+
+    def _failed_row(self, point: "_PointInFlight", sweep, options, exc: BaseException, sweep_id: int,
+                    tags: dict) -> dict:
+        row = result_row(point.op, sweep["method"], options, self.bench.identity, point.started,
+                         error=_error_text(exc), sweep_id=sweep_id,
+                         harmonic_order=self.settings.identification.harmonic_order)
+        row["detail_json"] = json.dumps({"message": _error_text(exc), "details": dict(tags)})
+        return row
+
+    # --- refinements ---------------------------------------------------------------------------------------
+    def _run_refinement(self, job_id: int, sweep_id: int) -> None:
+        """A refinement's rounds (service/refinement.py): measure the pending cells, build the refined map,
+        validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
+        so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
+        sweep = self.storage.get_sweep(sweep_id)
+        ctl = self._controls[sweep_id]
+        state = json.loads(sweep["refinement_json"])
+        options = parse_options(sweep["method"], json.loads(sweep["options_json"]))
+        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
+            raise Cancelled()
+        self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
+        source = self.storage.get_map(sweep["source_map_id"])
+        while state["phase"] != "done":
+            self._hold_while_paused(sweep_id, ctl)
+            if ctl.cancel.is_set():
+                break
+            if state["phase"] == "measure":
+                self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
+            else:
+                self._refinement_validate(job_id, sweep_id, ctl, state)
+            self._save_refinement(sweep_id, state)
+        if self._shutdown.is_set():
+            self._set_sweep(sweep_id, SweepState.INTERRUPTED,
+                            pause_reason=f"{self._shutdown_reason} during round {state['round']} ({state['phase']}); "
+                                         "resume to go on from there")
+            return
+        final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
+        self._set_sweep(sweep_id, final, finished_at=now_iso(), map_id=state["current_map_id"])
+
+    def _refinement_rows(self, sweep_id: int, source: dict) -> list[dict]:
+        """The source map's results, then the refinement's own (a later one for the same cell wins)."""
+        ids = [c["result_id"] for c in source["cells"] if c["result_id"] is not None]
+        return list(self.storage.results_by_id(ids).values()) + self.storage.sweep_results(sweep_id)
+
+    def _refinement_measure(self, sweep_id: int, sweep: dict, ctl: "_SweepControl", options, state: dict,
+                            source: dict) -> None:
+        """Identify the round's pending cells (those not yet measured in this round), then build the
+        refined map from every result and move on to its validation."""
+        measured = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in self.storage.sweep_results(sweep_id)
+                    if (json.loads(r.get("detail_json") or "{}").get("details") or {}).get("refinement_round")
+                    == state["round"]}
+        points = [OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u) for t, n, u in state["pending"]
+                  if (t, n, u) not in measured]
+        grid = Grid(**state["axes"])
+        self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
+        self._measure_points(sweep_id, sweep, ctl, grid, options, points, sweep_pass=1,
+                             neighbour_rows=lambda: self._refinement_rows(sweep_id, source),
+                             tags={"refinement_round": state["round"]})
+        if ctl.cancel.is_set():
+            return
+        state["cells_added"] += len(points)
+        provenance = {"refinement_id": sweep_id, "source_map_id": sweep["source_map_id"], "round": state["round"],
+                      "cells_added": state["cells_added"]}
+        state["current_map_id"] = build_map(
+            self.storage, state["axes"], self._refinement_rows(sweep_id, source), sweep_id, sweep["harmonic_order"],
+            sweep["method"], self.bench.identity, refined_from=sweep["source_map_id"], provenance=provenance)
+        state["phase"] = "validate"
+
+    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: "_SweepControl", state: dict) -> None:
+        """Validate the current map in the drive's LUT mode; plan the next round, or end."""
+        map_id = state["current_map_id"]
+        self._publish_refinement(sweep_id, state, f"validating map {map_id}")
+
+        def on_cell(cell: dict, total: int) -> None:
+            self.broker.publish("job.progress", {"job_id": job_id, "kind": "refinement", "round": state["round"],
+                                                 "total": total, "cell": cell})
+        run = run_validation(self.storage, self.bench, self.settings, map_id, True,
+                             ValidationOptions.model_validate(state["validation"]), ctl.cancel, on_cell=on_cell)
+        validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
+        if run.state == "cancelled":
+            return
+        if run.state == "failed":
+            # an interlock stopped it: pause like a sweep; on resume the map is validated again
+            with self._lock:
+                ctl.resumed.clear()
+                ctl.pause.set()
+                self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason=f"{run.error} (validating refined map "
+                                f"{map_id}); acknowledge with POST /api/v1/bench/fault-reset, then resume")
+            return
+        m = map_public(self.storage, map_id)
+        plan = plan_round(m.axes, [c.model_dump() for c in m.cells], run.cells, state["target_db"],
+                          state["max_cells"] - state["cells_added"])
+        summary = run.summary()
+        state["rounds"].append({"round": state["round"], "map_id": map_id, "validation_id": validation_id,
+                                "points": len(run.cells), "below_target": plan.failing,
+                                "grid_median_db": summary["grid"]["median_db"],
+                                "midpoint_median_db": summary["midpoint"]["median_db"],
+                                "min_db": min((x for x in (summary["grid"]["min_db"], summary["midpoint"]["min_db"])
+                                               if x is not None), default=None),
+                                "inserted": plan.inserted, "remeasured": len(plan.remeasure),
+                                "new_cells": len(plan.new_cells)})
+        if plan.failing == 0:
+            state["phase"], state["stopped"] = "done", None
+        elif not plan.cells:
+            state["phase"] = "done"
+            state["stopped"] = (f"{plan.failing} point(s) still below {state['target_db']:g} dB: "
+                                + ("; ".join(plan.reasons) or "nothing left to insert"))
+        elif state["round"] + 1 >= MAX_ROUNDS:
+            state["phase"] = "done"
+            state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB after {MAX_ROUNDS} rounds"
+        else:
+            state["axes"] = axes_with(m.axes, plan.inserted)
+            state["pending"] = [list(k) for k in plan.cells]
+            state["round"] += 1
+            state["phase"] = "measure"
+
+    def _save_refinement(self, sweep_id: int, state: dict) -> None:
+        self.storage.update_sweep(sweep_id, refinement_json=json.dumps(state), grid_json=json.dumps(state["axes"]),
+                                  map_id=state["current_map_id"])
+        self._publish_refinement(sweep_id, state, state["phase"])
+
+    def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
+        self.broker.publish("refinement.progress", {"sweep_id": sweep_id, "round": state["round"],
+                                                    "phase": state["phase"], "what": what,
+                                                    "map_id": state["current_map_id"],
+                                                    "cells_added": state["cells_added"]})
 
     def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict, recorder: RunRecorder | None) -> None:
         rid = self._insert_result(row, recorder)
@@ -517,6 +732,32 @@ class Engine:
         self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "state": s["state"], "done": s["done_points"],
                                                "total": s["total_points"], "map_id": s["map_id"],
                                                "pause_reason": s["pause_reason"]})
+
+
+def second_pass_points(plan: SweepPlan, current: list[dict]) -> list[OperatingPoint]:
+    """The plan's points, in its order, whose current result is not ok and was not itself measured in
+    the second pass (a resumed sweep does not measure a point a third time)."""
+    again = set()
+    for row in current:
+        details = (json.loads(row.get("detail_json") or "{}").get("details") or {})
+        if row["status"] != "ok" and details.get("sweep_pass") != 2:
+            again.add((row["torque_nm"], row["speed_rpm"], row["udc_v"]))
+    return [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) in again]
+
+
+class _PointInFlight:
+    """The sweep point being measured: its operating point, start time and raw recorder."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def start(self, op: OperatingPoint, recorder: RunRecorder | None) -> None:
+        self.op, self.recorder, self.started = op, recorder, now_iso()
+
+    def clear(self) -> None:
+        self.op: OperatingPoint | None = None
+        self.recorder: RunRecorder | None = None
+        self.started: str | None = None
 
 
 def _discard(recorder: RunRecorder | None) -> None:

@@ -36,22 +36,40 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
                              "choose fewer grid points, shorter windows or fewer steps")
 
 
+def run_settings(settings: Settings, options) -> dict[str, Any]:
+    """What a bench run needs from a method's options: harmonic order, gamma_max, drive decoupling."""
+    ident = settings.identification
+    return {"harmonic_order": ident.harmonic_order, "gamma_max_rad": gamma_max_rad(options.gamma_max_deg, settings),
+            "decoupling": ident.decoupling if options.decoupling is None else options.decoupling}
+
+
 def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
                 prior: Prior | None = None, cancel: threading.Event | None = None,
                 progress: Callable[[Window], None] | None = None, recorder=None) -> IdentificationResult:
-    """Go to `op`, run `method` (starting from `prior` where the method uses one), leave the bench safe.
-    `cancel` is the run's cancel token: set, the run stops at its next DAQ read. `progress` is called
-    with every accepted window (plant time, residual) while the method runs. `recorder`
+    """One identification as a run of its own: go to `op`, run `method`, leave the bench safe (see
+    identify_in_run). `cancel` is the run's cancel token: set, the run stops at its next DAQ read."""
+    with bench.run(cancel=cancel, **run_settings(settings, options)) as run:
+        result = identify_in_run(run, settings, op, method, options, prior=prior, progress=progress,
+                                 recorder=recorder)
+    return result
+
+
+def identify_in_run(run, settings: Settings, op: OperatingPoint, method: str, options,
+                    prior: Prior | None = None, progress: Callable[[Window], None] | None = None,
+                    recorder=None) -> IdentificationResult:
+    """Move the run (service.bench_run.BenchRun) to `op`, settle to the precision the method's target
+    needs, run `method` (starting from `prior` where the method uses one). `progress` is called with
+    every accepted window (plant time, residual) while the method runs. `recorder`
     (service.recordings.RunRecorder) receives the DAQ samples and setpoints from the method's first
     read to its last (the move to the operating point is not part of the identification)."""
-    h = settings.identification.harmonic_order
-    gamma_max = gamma_max_rad(options.gamma_max_deg, settings)
+    h = run.harmonic_order
+    gamma_max = run.gamma_max_rad
+    decoupling = run.decoupling
     ident = settings.identification
-    decoupling = ident.decoupling if options.decoupling is None else options.decoupling
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not decoupling)
-    with bench.operating_point(op, h, gamma_max, cancel=cancel, on_window=progress, decoupling=decoupling) as session:
+    with run.operating_point(op, target_db=options.target_db, on_window=progress) as session:
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
-        mode = bench.resonance.mode
+        mode = run.bench.resonance.mode
         s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,
                                      resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
         conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
@@ -71,9 +89,11 @@ def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, opti
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
         result.details["stale_samples"] = session.stale_samples
         # setpoint toggles that fell into DAQ gaps and were counted once the line was quiet (measurement.py)
-        result.details["sync_toggles_hidden"] = session.cursor.toggles_hidden
+        result.details["sync_toggles_hidden"] = session.stream.toggles_hidden
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
         result.details["decoupling"] = decoupling      # the drive must run the LUT with the same setting
-        result.details["resonance"] = bench.resonance.snapshot()
+        result.details["resonance"] = run.bench.resonance.snapshot()
+    # wall seconds of the point by what they were spent on (the run's end, make_safe, comes after)
+    result.details["bench_time_s"] = run.timing.public()
     return result

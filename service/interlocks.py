@@ -53,7 +53,9 @@ class InterlockTripped(RuntimeError):
         self.refused = refused
         self.outcome = outcome      # make_safe's outcome, added to (never substituted for) the cause
         prefix = "refused: interlock tripped: " if refused else "interlock tripped: "
-        super().__init__(prefix + trip.reason + (f"; {outcome}" if outcome else ""))
+        # only a person clears a latched trip: a refusal says how
+        hint = "; a person acknowledges it: POST /api/v1/bench/fault-reset" if refused and trip.latched else ""
+        super().__init__(prefix + trip.reason + hint + (f"; {outcome}" if outcome else ""))
 
 
 class Interlock(ABC):

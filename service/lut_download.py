@@ -1,18 +1,22 @@
 """A map into the drive's LUT (0x2001): what may go, the download, and the receipt.
 
-Only `ok` cells are valid in a LUT (DESIGN 6): the drive injects nothing at the others. A map
-without one ok cell is refused; a partial map goes only when asked with `force`, so a LUT with holes
-is never loaded by mistake. The image (drivers/lut_image.py) carries the map id; the drive reports
-map id and CRC back, and /bench/status shows them. Used by POST /maps/{id}/download, the CLI's
-`maps download` and the validation job (which calls `download_map`).
+The drive injects at the LUT's entries: `ok` cells (flag 1) and, when the download takes the fill
+(`fill`, default True), the filled cells (flag 2: a cell not ok that carries a fill, service/map_fill.py).
+Every other cell is a hole: the drive injects nothing there. A map without one ok cell is refused
+(whatever its fills: no cell met its target); a map with holes under the chosen fill goes only when
+asked with `force`, so a LUT with holes is never loaded by mistake. The interpolation mode goes into
+the image's header (None: drivers.lut_image.DEFAULT_INTERPOLATION). The image (drivers/lut_image.py)
+carries the map id; the drive reports map id and CRC back, and /bench/status shows them. Used by
+POST /maps/{id}/download, the CLI's `maps download` and the validation job (which calls `download_map`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from drivers import lut_image as lut_codec
 from drivers.lut_image import crc_hex
 from service.bench import Bench, BenchError
-from service.lut_export import lut_image
+from service.lut_export import cell_flag, lut_image
 from service.public import LutDownloadPublic, map_public
 from service.storage import Storage
 
@@ -26,10 +30,17 @@ class LutRefused(ValueError):
 
 
 class PartialMap(ValueError):
-    """Some cells are not ok: the map goes only with force."""
+    """Some cells would inject nothing under the chosen fill: the map goes only with force."""
 
-    def __init__(self, map_id: int, not_ok: int, cells: int, how_to_force: str):
-        self.what = f"map {map_id} is partial: {not_ok} of {cells} cells are not ok and would inject nothing"
+    def __init__(self, map_id: int, holes: int, cells: int, how_to_force: str, fill: bool = True,
+                 filled_left_out: int = 0):
+        if fill:
+            which = " and carry no fill"
+        elif filled_left_out:
+            which = f" ({filled_left_out} of them filled, left out without fill)"
+        else:
+            which = ""
+        self.what = f"map {map_id} is partial: {holes} of {cells} cells are not ok{which}: the drive would inject nothing there"
         super().__init__(f"{self.what}; {how_to_force}")
 
 
@@ -39,28 +50,53 @@ class PreparedLut:
     map_id: int
     image: bytes
     cells: int
-    valid_cells: int
+    valid_cells: int           # ok cells (flag 1)
     harmonic_order: int
-    forced: bool
+    forced: bool               # holes under the chosen fill, loaded on force
+    filled_cells: int = 0      # filled cells in the image (flag 2); 0 without fill
+    fill: bool = True
+    interpolation: str = lut_codec.DEFAULT_INTERPOLATION
+    format_version: int = lut_codec.FORMAT_VERSION
+
+    @property
+    def holes(self) -> int:
+        """Cells without an entry: the drive injects nothing there."""
+        return self.cells - self.valid_cells - self.filled_cells
+
+    def receipt_fields(self) -> dict:
+        """What the receipt says went in beyond LutDownloadPublic's first fields."""
+        return {"filled_cells": self.filled_cells, "fill": self.fill, "interpolation": self.interpolation,
+                "format_version": self.format_version}
 
 
-def prepare(storage: Storage, map_id: int, force: bool = False) -> PreparedLut:
+def prepare(storage: Storage, map_id: int, force: bool = False, fill: bool = True,
+            interpolation: str | None = None) -> PreparedLut:
     """Check the download rules and build the image. Raises MapNotFound, LutRefused, PartialMap."""
     m = map_public(storage, map_id)
     if m is None:
         raise MapNotFound(f"map {map_id} does not exist")
-    cells = len(m.cells)
-    valid = sum(1 for c in m.cells if c.status == "ok")
-    if valid == 0:
-        raise LutRefused(f"map {map_id} has no valid cell (0 of {cells} ok): a LUT without one would inject "
-                         f"nothing; measure the sweep again")
-    if valid < cells and not force:
-        raise PartialMap(map_id, cells - valid, cells, "load it anyway with force (API: ?force=true, CLI: --force)")
     try:
-        image = lut_image(m.model_dump())
+        mode = lut_codec.check_interpolation(interpolation)
+    except lut_codec.LutImageError as exc:
+        raise LutRefused(str(exc)) from None
+    cells = [c.model_dump() for c in m.cells]
+    flags = [cell_flag(c, fill) for c in cells]
+    valid = flags.count(lut_codec.FLAG_OK)
+    filled = flags.count(lut_codec.FLAG_FILLED)
+    holes = len(cells) - valid - filled
+    if valid == 0:
+        raise LutRefused(f"map {map_id} has no valid cell (0 of {len(cells)} ok): a LUT without one would inject "
+                         f"nothing at a measured target; measure the sweep again")
+    if holes and not force:
+        filled_left_out = 0 if fill else sum(1 for c in cells if cell_flag(c, True) == lut_codec.FLAG_FILLED)
+        raise PartialMap(map_id, holes, len(cells), "load it anyway with force (API: ?force=true, CLI: --force)",
+                         fill, filled_left_out)
+    try:
+        image = lut_image(m.model_dump(), fill=fill, interpolation=mode)
     except ValueError as exc:
         raise LutRefused(f"map {map_id} cannot become a LUT: {exc}") from None
-    return PreparedLut(map_id, image, cells, valid, m.harmonic_order, forced=valid < cells)
+    return PreparedLut(map_id, image, len(cells), valid, m.harmonic_order, forced=holes > 0, filled_cells=filled,
+                       fill=fill, interpolation=mode)
 
 
 def send(bench: Bench, lut: PreparedLut) -> LutDownloadPublic:
@@ -70,10 +106,14 @@ def send(bench: Bench, lut: PreparedLut) -> LutDownloadPublic:
     if held.map_id != lut.map_id:
         raise BenchError(f"the drive reports map {held.map_id} in force after map {lut.map_id} was downloaded "
                          f"(CRC {crc_hex(held.crc32)}, status {held.status})")
+    # the receipt's newer fields (filled_cells, fill, interpolation, format_version) where the model has them
+    extra = {k: v for k, v in lut.receipt_fields().items() if k in LutDownloadPublic.model_fields}
     return LutDownloadPublic(map_id=lut.map_id, crc32=crc_hex(held.crc32), bytes=len(lut.image), cells=lut.cells,
-                             valid_cells=lut.valid_cells, harmonic_order=lut.harmonic_order, forced=lut.forced)
+                             valid_cells=lut.valid_cells, harmonic_order=lut.harmonic_order, forced=lut.forced,
+                             **extra)
 
 
-def download_map(storage: Storage, bench: Bench, map_id: int, force: bool = False) -> LutDownloadPublic:
+def download_map(storage: Storage, bench: Bench, map_id: int, force: bool = False, fill: bool = True,
+                 interpolation: str | None = None) -> LutDownloadPublic:
     """Map `map_id` into the drive under the rules above; the receipt says what went in."""
-    return send(bench, prepare(storage, map_id, force))
+    return send(bench, prepare(storage, map_id, force, fill, interpolation))

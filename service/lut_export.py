@@ -1,7 +1,14 @@
-"""LUT export for firmware: CSV, JSON and a C header, each carrying the axes, units, harmonic order
-and software version. Values are stored as theta = (theta_cos, theta_sin) in rad, the space in
-which the drive interpolates (never across the 0/360 deg wrap of delta); gamma/delta in degrees
-are given for reading. Cells without a valid result export theta = 0 (no injection) and valid = 0."""
+"""LUT export for firmware: CSV, JSON, a C header and DCM, each carrying the axes, units, harmonic
+order and software version. Values are stored as theta = (theta_cos, theta_sin) in rad; gamma/delta
+in degrees are given for reading. The drive interpolates by the mode in the LUT image's header
+(drivers/lut_image.py: cartesian theta or polar gamma/delta along the shortest arc; each export names
+the mode a download would use). Each axis carries its own strictly increasing breakpoints (non-uniform
+spacing allowed: the drive interpolates by position).
+
+Cells: `ok` cells carry their result's theta (VALID = 1). A filled cell (status not ok, `filled`: the
+fill rule of service/map_fill.py) carries its fill, flagged FILLED = 1 and VALID = 0 in every export:
+exports always show the fill, only a LUT download chooses whether it goes into the drive (`fill`).
+Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,15 +17,30 @@ from typing import Callable
 import csv
 import io
 import json
+import math
 import re
 
 from drivers import lut_image as lut_codec
 from service import __version__, map_quality
 
+JSON_FORMAT_VERSION = 2     # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
 
 
-def _grid_values(m: dict, key: str) -> list[list[list[float]]]:
-    """[udc][speed][torque] array of a cell field (0 where the cell is not ok)."""
+def cell_flag(c: dict | None, fill: bool = True) -> int:
+    """The LUT flag of a map cell: FLAG_OK for ok, FLAG_FILLED for a filled cell that carries theta
+    (only with `fill`), FLAG_NONE otherwise (no entry: the drive injects nothing there)."""
+    if c is None:
+        return lut_codec.FLAG_NONE
+    if c["status"] == "ok":
+        return lut_codec.FLAG_OK
+    if fill and c.get("filled") and c.get("theta_cos") is not None and c.get("theta_sin") is not None:
+        return lut_codec.FLAG_FILLED
+    return lut_codec.FLAG_NONE
+
+
+def _grid_values(m: dict, key: str, fill: bool = True) -> list[list[list[float]]]:
+    """[udc][speed][torque] array of a cell field, or of its flag: key "flag" (0/1/2), "valid" (1 only
+    for ok), "filled" (1 only where a fill is carried); theta is 0 where the cell has no entry."""
     axes = m["axes"]
     by_op = {(c["torque_nm"], c["speed_rpm"], c["udc_v"]): c for c in m["cells"]}
     out = []
@@ -28,11 +50,36 @@ def _grid_values(m: dict, key: str) -> list[list[list[float]]]:
             row = []
             for t in axes["torque_nm"]:
                 c = by_op.get((t, n, u))
-                ok = c is not None and c["status"] == "ok"
-                row.append((1.0 if ok else 0.0) if key == "valid" else (c[key] if ok else 0.0))
+                flag = cell_flag(c, fill)
+                if key == "flag":
+                    row.append(flag)
+                elif key == "valid":
+                    row.append(1 if flag == lut_codec.FLAG_OK else 0)
+                elif key == "filled":
+                    row.append(1 if flag == lut_codec.FLAG_FILLED else 0)
+                else:
+                    row.append(float(c[key]) if flag != lut_codec.FLAG_NONE else 0.0)
             plane.append(row)
         out.append(plane)
     return out
+
+
+def _gamma_delta_deg(c: dict) -> tuple[float, float]:
+    """gamma = |theta|, delta = -atan2(theta_sin, theta_cos) in [0, 360) deg (eq. 21-22)."""
+    if c.get("gamma_deg") is not None and c.get("delta_deg") is not None:
+        return c["gamma_deg"], c["delta_deg"]
+    tc, ts = float(c["theta_cos"]), float(c["theta_sin"])
+    return math.degrees(math.hypot(tc, ts)), math.degrees(-math.atan2(ts, tc)) % 360.0
+
+
+def _interpolation_text(interpolation: str) -> str:
+    return {"cartesian": "cartesian: theta_cos and theta_sin multilinear",
+            "polar": "polar: gamma multilinear, delta multilinear along the shortest arc"}[interpolation]
+
+
+def _filled_text(m: dict) -> str:
+    n = sum(1 for c in m["cells"] if cell_flag(c) == lut_codec.FLAG_FILLED)
+    return f"{n} filled cell(s) (a LUT download takes them only with fill)" if n else "no filled cell"
 
 
 def _counts_text(m: dict) -> str:
@@ -81,37 +128,50 @@ def _validation_text(m: dict) -> str:
             f"{part('grid')}; {part('midpoint')}{where}")
 
 
-def export_csv(m: dict) -> str:
+def export_csv(m: dict, interpolation: str | None = None) -> str:
+    mode = lut_codec.check_interpolation(interpolation)
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
     buf.write(f"# software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}\n")
     buf.write(f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n")
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
-    buf.write(f"# cells: {_counts_text(m)}; only ok cells carry theta (valid), the others are 0\n")
+    buf.write(f"# cells: {_counts_text(m)}; ok cells carry their theta (valid), filled cells their fill "
+              f"(filled = 1, not valid), the others 0; {_filled_text(m)}\n")
+    buf.write(f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_codec.FORMAT_VERSION})\n")
     buf.write(f"# {_quality_text(m)}\n")
     buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
+    # filled and fill_source last: readers of the columns before them by position keep working
     w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
-                "suppression_db", "status"])
+                "suppression_db", "status", "filled", "fill_source"])
     for c in m["cells"]:
-        ok = c["status"] == "ok"
+        flag = cell_flag(c)
+        entry = flag != lut_codec.FLAG_NONE
+        gamma, delta = _gamma_delta_deg(c) if entry else ("", "")
         w.writerow([c["torque_nm"], c["speed_rpm"], c["udc_v"],
-                    repr(c["theta_cos"]) if ok else 0.0, repr(c["theta_sin"]) if ok else 0.0,
-                    c["gamma_deg"] if ok else "", c["delta_deg"] if ok else "",
-                    "" if c["suppression_db"] is None else round(c["suppression_db"], 2), c["status"]])
+                    repr(float(c["theta_cos"])) if entry else 0.0, repr(float(c["theta_sin"])) if entry else 0.0,
+                    gamma, delta,
+                    "" if c["suppression_db"] is None else round(c["suppression_db"], 2), c["status"],
+                    1 if flag == lut_codec.FLAG_FILLED else 0,
+                    (c.get("fill_source") or "") if flag == lut_codec.FLAG_FILLED else ""])
     return buf.getvalue()
 
 
-def export_json(m: dict) -> str:
+def export_json(m: dict, interpolation: str | None = None) -> str:
+    mode = lut_codec.check_interpolation(interpolation)
     return json.dumps({
-        "format": "ripplecal-lut", "format_version": 1, "software_version": __version__,
+        "format": "ripplecal-lut", "format_version": JSON_FORMAT_VERSION, "software_version": __version__,
         "map_id": m["id"], "harmonic_order": m["harmonic_order"], "method": m["method"],
         "bench": m["bench_identity"], "created_at": m["created_at"],
         "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
         "axes": m["axes"], "index_order": ["udc_v", "speed_rpm", "torque_nm"],
+        "interpolation": mode, "lut_format_version": lut_codec.FORMAT_VERSION,
         "theta_cos_rad": _grid_values(m, "theta_cos"), "theta_sin_rad": _grid_values(m, "theta_sin"),
-        "valid": _grid_values(m, "valid"), "status_counts": m.get("status_counts"),
-        "cells": [{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS} for c in m["cells"]],
+        "valid": _grid_values(m, "valid"), "filled": _grid_values(m, "filled"), "status_counts": m.get("status_counts"),
+        "cells": [{**{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
+                   "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
+                   "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None}
+                  for c in m["cells"]],
         "quality": _quality_json(m),
         "validation": m.get("validation"),
     }, indent=1)
@@ -123,6 +183,12 @@ def _c_array(values) -> str:
     return "{" + ", ".join(_c_float(v) for v in values) + "}"
 
 
+def _c_u8_array(values) -> str:
+    if isinstance(values, list) and values and isinstance(values[0], list):
+        return "{" + ", ".join(_c_u8_array(v) for v in values) + "}"
+    return "{" + ", ".join(f"{int(v)}u" for v in values) + "}"
+
+
 def _c_float(value: float) -> str:
     text = f"{float(value):.9g}"
     if not any(ch in text for ch in ".en"):
@@ -130,20 +196,23 @@ def _c_float(value: float) -> str:
     return text + "f"
 
 
-def export_c(m: dict) -> str:
+def export_c(m: dict, interpolation: str | None = None) -> str:
+    mode = lut_codec.check_interpolation(interpolation)
     nt, nn, nu = (len(m["axes"][k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
     # every name carries the map id, so the headers of several maps go into one translation unit
     macro, array = f"RIPPLECAL_LUT_MAP{int(m['id'])}", f"ripplecal_lut_map{int(m['id'])}"
     guard = f"{macro}_H"
     version = re.sub(r"[^0-9A-Za-z.+-]", "", __version__)
-    valid = [[[int(v) for v in row] for row in plane] for plane in _grid_values(m, "valid")]
     lines = [
         f"/* ripplecal LUT for harmonic injection: map {m['id']}, method {m['method']}.",
         f" * Bench: {m['bench_identity']}; created {m['created_at']}; software version {version}.",
         " * v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e)  [rad], applied as a voltage-angle",
-        " * rotation (|u_dq*| = |u_dq|). Interpolate theta_cos and theta_sin (never gamma/delta across",
-        " * the 0/360 deg wrap). Index order [udc][speed][torque]; cells with valid == 0 carry no injection.",
-        f" * Cells: {_counts_text(m)}. Names carry the map id ({macro}_*, {array}_*).",
+        " * rotation (|u_dq*| = |u_dq|); gamma = |theta|, delta = -atan2(theta_sin, theta_cos).",
+        " * Index order [udc][speed][torque]; each axis its own strictly increasing breakpoints (interpolate",
+        " * by position, clamp at the ends). valid == 1: an ok result; filled == 1: a fill (not a result at",
+        " * its target: inject there only if the fill is wanted); both 0: theta 0, no injection.",
+        f" * Interpolation ({macro}_INTERPOLATION): {_interpolation_text(mode)}.",
+        f" * Cells: {_counts_text(m)}; {_filled_text(m)}. Names carry the map id ({macro}_*, {array}_*).",
         f" * {_quality_text(m)}.",
         f" * {_validation_text(m)}.",
         " */",
@@ -154,51 +223,75 @@ def export_c(m: dict) -> str:
         f"#define {macro}_HARMONIC_ORDER {int(m['harmonic_order'])}u",
         f"#define {macro}_N_TORQUE {nt}u",
         f"#define {macro}_N_SPEED {nn}u",
-        f"#define {macro}_N_UDC {nu}u", "",
+        f"#define {macro}_N_UDC {nu}u",
+        "/* interpolation modes (the LUT image's header byte) and the one this LUT is meant for */",
+        f"#define {macro}_INTERPOLATION_CARTESIAN {lut_codec.INTERPOLATIONS.index('cartesian')}u",
+        f"#define {macro}_INTERPOLATION_POLAR {lut_codec.INTERPOLATIONS.index('polar')}u",
+        f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_{mode.upper()}",
+        f"#define {macro}_FILLED_CELLS {sum(1 for c in m['cells'] if cell_flag(c) == lut_codec.FLAG_FILLED)}u", "",
         f"/* torque axis, Nm */\nstatic const float {array}_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
         f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
         f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};", "",
-        f"/* theta_cos, rad */\nstatic const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
-        f"/* theta_sin, rad */\nstatic const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
-        f"/* 1 where the cell holds an identified value */\nstatic const uint8_t {array}_valid[{nu}][{nn}][{nt}] = "
-        + "{" + ", ".join("{" + ", ".join("{" + ", ".join(str(v) for v in row) + "}" for row in plane) + "}" for plane in valid) + "};",
+        f"/* theta_cos, rad (ok and filled cells; 0 elsewhere) */\n"
+        f"static const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
+        f"/* theta_sin, rad (ok and filled cells; 0 elsewhere) */\n"
+        f"static const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
+        f"/* 1 where the cell holds an identified value (ok) */\n"
+        f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
+        f"/* 1 where the cell holds a fill (not ok; service/map_fill.py) */\n"
+        f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'filled'))};",
         "", f"#endif /* {guard} */", "",
     ]
     return "\n".join(lines)
 
 
-def export_dcm(m: dict) -> str:
+def _dcm_number(x: float) -> str:
+    """The shortest text that reads back as the same double (distinct breakpoints stay distinct)."""
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def export_dcm(m: dict, interpolation: str | None = None) -> str:
     """DCM 2.0 (calibration data exchange format read by INCA / CANape): one KENNFELD per U_dc and
-    theta component, x = torque (Nm), y = speed (rpm)."""
+    theta component, VALID and FILLED, x = torque (Nm), y = speed (rpm), each with its axis points
+    (ST/X, ST/Y: the map's own breakpoints, non-uniform as they are)."""
+    mode = lut_codec.check_interpolation(interpolation)
     axes = m["axes"]
     nt, nn = len(axes["torque_nm"]), len(axes["speed_rpm"])
     out = [f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
            f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
-           f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok)",
+           f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok); "
+           f"FILLED = 1 where a cell not ok carries a fill (THETA holds it); {_filled_text(m)}",
+           f"* LUT interpolation: {_interpolation_text(mode)}",
            f"* {_quality_text(m)}",
            f"* {_validation_text(m)}",
            "KONSERVIERUNG_FORMAT 2.0", ""]
-    for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid")):
+    planes = {key: _grid_values(m, key) for key in ("theta_cos", "theta_sin", "valid", "filled")}
+    for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid"), ("FILLED", "filled")):
         for k, udc in enumerate(axes["udc_v"]):
-            plane = _grid_values(m, key)[k]
+            plane = planes[key][k]
             out += [f"KENNFELD RIPPLECAL_H{m['harmonic_order']}_{name}_U{udc:g}V".replace(".", "P") + f" {nt} {nn}",
                     f'   LANGNAME "{name.lower()} at U_dc = {udc:g} V"',
-                    '   EINHEIT_X "Nm"', '   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"-" if key == "valid" else "rad"}"',
-                    "   ST/X   " + "   ".join(f"{t:g}" for t in axes["torque_nm"])]
+                    '   EINHEIT_X "Nm"', '   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"rad" if key.startswith("theta") else "-"}"',
+                    "   ST/X   " + "   ".join(_dcm_number(t) for t in axes["torque_nm"])]
             for j, speed in enumerate(axes["speed_rpm"]):
-                out += [f"   ST/Y   {speed:g}", "   WERT   " + "   ".join(f"{v:.9g}" for v in plane[j])]
+                values = plane[j] if key.startswith("theta") else [int(v) for v in plane[j]]
+                out += [f"   ST/Y   {_dcm_number(speed)}",
+                        "   WERT   " + "   ".join(f"{v:.9g}" if key.startswith("theta") else str(v) for v in values)]
             out += ["END", ""]
     return "\n".join(out)
 
 
-def lut_image(m: dict) -> bytes:
+def lut_image(m: dict, fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
-    image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). Raises
+    image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
+    filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry);
+    interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
     return lut_codec.encode(m["harmonic_order"], *(axes[key] for key in lut_codec.AXES),
-                            _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin"),
-                            valid=_grid_values(m, "valid"), map_id=m["id"])
+                            _grid_values(m, "theta_cos", fill), _grid_values(m, "theta_sin", fill),
+                            _grid_values(m, "flag", fill), map_id=m["id"], interpolation=interpolation)
 
 
 @dataclass(frozen=True)
@@ -207,7 +300,7 @@ class ExportFormat:
     display_name: str
     media_type: str
     extension: str
-    render: Callable[[dict], str]
+    render: Callable[..., str]      # render(map_dict, interpolation=None) -> text
 
 
 # the one registry of export formats: the API's `format` parameter, the CLI's choices and the
@@ -220,7 +313,9 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {f.name: f for f in (
 )}
 
 
-def export_map(m: dict, fmt: str) -> str:
+def export_map(m: dict, fmt: str, interpolation: str | None = None) -> str:
+    """The map (MapPublic.model_dump()) as a file of format `fmt`; `interpolation`: the LUT mode the
+    export names (None: drivers.lut_image.DEFAULT_INTERPOLATION)."""
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"format {fmt!r} is not supported; choose one of {sorted(EXPORT_FORMATS)}")
-    return EXPORT_FORMATS[fmt].render(m)
+    return EXPORT_FORMATS[fmt].render(m, interpolation=interpolation)

@@ -12,6 +12,9 @@ map holds are listed). Where both cells are ok:
       predicted_suppression_db = 20 log10(|a_uncompensated| / |a_pred|)
   against the uncompensated amplitude of the same result. theta_b = theta_a gives back the measured
   suppression. A result that stored no measured S gets no prediction (said per cell), never a model's.
+A filled cell (status not ok, service/map_fill.py) carries a fill, not a measurement: it is not
+compared, and its note says it is filled and where the fill comes from. Axes may differ and be
+non-uniform (a refined map inserts breakpoints): the cells meet on their operating points only.
 """
 from __future__ import annotations
 
@@ -53,8 +56,15 @@ def compare_maps(storage: Storage, map_a: int, map_b: int) -> MapComparisonPubli
     if a.harmonic_order != b.harmonic_order:
         raise MapCompareError(f"map {map_a} is for harmonic h = {a.harmonic_order} and map {map_b} for "
                               f"h = {b.harmonic_order}: their thetas are not comparable")
-    cells_a, cells_b = _by_point(a), _by_point(b)
     results = storage.results_by_id([c.result_id for c in a.cells if c.result_id is not None])
+    return compare_public(a, b, results)
+
+
+def compare_public(a: MapPublic, b: MapPublic, results: dict) -> MapComparisonPublic:
+    """Map b against map a, both as the API shows them; `results`: map a's result rows by id (their
+    measured S, residual and uncompensated phasor)."""
+    map_a, map_b = a.id, b.id
+    cells_a, cells_b = _by_point(a), _by_point(b)
     cells = [_cell(map_a, cells_a[k], cells_b[k], results.get(cells_a[k].result_id)) for k in cells_a if k in cells_b]
     return MapComparisonPublic(
         map_a=map_a, map_b=map_b, harmonic_order=a.harmonic_order,
@@ -83,8 +93,9 @@ def _cell(map_a: int, ca, cb, row: dict | None) -> MapCompareCellPublic:
     out = MapCompareCellPublic(torque_nm=ca.torque_nm, speed_rpm=ca.speed_rpm, udc_v=ca.udc_v, status_a=ca.status,
                                status_b=cb.status, compared=False, suppression_a_db=ca.suppression_db)
     if ca.status != "ok" or cb.status != "ok":
-        which = " and ".join(f"map {side} has {c.status}" for side, c in (("a", ca), ("b", cb)) if c.status != "ok")
-        out.note = f"not compared: {which} here (only ok cells carry theta)"
+        which = " and ".join(f"map {side} has {c.status}" + (f" (filled: {c.fill_source or 'a fill'})" if c.filled else "")
+                             for side, c in (("a", ca), ("b", cb)) if c.status != "ok")
+        out.note = f"not compared: {which} here (only ok cells carry a measured theta; a fill is not compared)"
         return out
     theta_a, theta_b = (ca.theta_cos, ca.theta_sin), (cb.theta_cos, cb.theta_sin)
     out.compared = True

@@ -1,14 +1,23 @@
 """Map quality: each cell's theta against its grid neighbours', outliers flagged with a reason.
 
 Arithmetic in theta = (theta_cos, theta_sin), rad (DESIGN 3: never gamma/delta, which wrap at 0/360 deg).
-Only `ok` cells take part; a cell's neighbours are the cells one grid index away along each axis.
+Only `ok` cells take part (a filled cell, service/map_fill.py, carries a fill, not a measurement: it is
+neither judged nor a reference); a cell's neighbours are the cells one grid index away along each
+axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
+spacing, and the fit interpolates by position.
 
 The statistic (robust, scaled by the grid spacing):
 - typical gradient per axis k: g_k = median over adjacent reference pairs along k of
   |theta_a - theta_b| / |x_a - x_b| (rad per Nm, per rpm, per V); a median of absolute differences,
   so up to half the pairs along an axis may be spoiled without moving it;
-- a cell's fit: the component-wise median of its reference neighbours' theta (exact for an interior
-  cell of a map linear in the operating point);
+- a cell's fit: the component-wise median of its reference neighbours' theta, each pair across the
+  cell on one axis (at distances d_lo, d_hi) centred on its interpolation at the cell's position
+  I = w_lo theta_lo + w_hi theta_hi, w_lo = d_hi / (d_lo + d_hi), w_hi = d_lo / (d_lo + d_hi): both
+  shifted by I - (theta_lo + theta_hi) / 2 = (w_lo - 1/2) (theta_lo - theta_hi) (0 on a uniform axis;
+  on a non-uniform one the plain median would lean towards the farther neighbour). Each neighbour
+  stays one value of the median, and a bad one moves its partner's by |w_lo - 1/2| of its error at
+  most (none on a uniform axis), so one bad neighbour is still outvoted. Exact for an interior
+  cell of a map linear in the operating point, on any spacing (each pair is then symmetric about it);
 - its expected step: the median over those neighbours of g_k |x_neighbour - x_cell|, floored at
   MIN_STEP_DEG (a flat map's noise is not an outlier);
 - score = |theta - fit| / expected step; an outlier when score > OUTLIER_FACTOR.
@@ -71,8 +80,10 @@ def cell_key(cell: dict) -> Key:
 
 def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
     """Quality of every ok cell of a map (cells as MapCellPublic dicts, axes as the map's)."""
+    # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok
     theta = {cell_key(c): (float(c["theta_cos"]), float(c["theta_sin"])) for c in cells
-             if c["status"] == "ok" and c.get("theta_cos") is not None and c.get("theta_sin") is not None}
+             if c["status"] == "ok" and not c.get("filled")
+             and c.get("theta_cos") is not None and c.get("theta_sin") is not None}
     values = {a: sorted({float(x) for x in axes.get(a) or []}) for a in AXES}
     index = {a: {v: i for i, v in enumerate(values[a])} for a in AXES}
     # each ok cell's ok neighbours: (neighbour, axis, spacing), found once
@@ -91,7 +102,7 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
              for k, around in near.items() for other, a, dx in around if other > k]
     flagged: set[Key] = set()
     why: dict[Key, CellQuality] = {}           # each outlier as it was when flagged (its fit may lose references later)
-    fits = {k: _fit(theta[k], near[k], theta) for k in theta}
+    fits = {k: _fit(k, near[k], theta) for k in theta}
     # more outliers than a quarter of the cells: a noisy map, not a few bad points; the cells then
     # over the factor are all flagged at once instead of one by one
     one_by_one = max(1, int(len(theta) * ONE_BY_ONE_SHARE))
@@ -110,9 +121,9 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
         flagged.add(worst)
         why[worst] = evaluated[worst]
         for other, _, _ in near[worst]:        # only the worst's neighbours lose a reference
-            fits[other] = _fit(theta[other], [n for n in near[other] if n[0] not in flagged], theta)
+            fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta)
     if len(flagged) > one_by_one:              # flagged at once: the fits without all of them
-        fits = {k: _fit(theta[k], [n for n in near[k] if n[0] not in flagged], theta) for k in theta}
+        fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta) for k in theta}
         evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
     for k in flagged:
         evaluated[k] = why[k]
@@ -129,12 +140,27 @@ def _gradients(pairs, flagged: set[Key]) -> dict[str, float | None]:
     return {a: (statistics.median(g) if g else None) for a, g in per_axis.items()}
 
 
-def _fit(value: tuple[float, float], around: list[tuple[Key, str, float]],
+def _fit(key: Key, around: list[tuple[Key, str, float]],
          theta: dict[Key, tuple[float, float]]) -> tuple[list, tuple[float, float] | None, float | None]:
-    """(the reference neighbours, their component-wise median theta, this cell's distance to it)."""
+    """(the reference neighbours, the component-wise median of their theta with each pair across the
+    cell centred on its interpolation at the cell's position, this cell's distance to it)."""
     if len(around) < MIN_NEIGHBOURS:
         return around, None, None
-    fit = (statistics.median([theta[o][0] for o, _, _ in around]), statistics.median([theta[o][1] for o, _, _ in around]))
+    values: list[tuple[float, float]] = []
+    for pos, a in enumerate(AXES):
+        on_axis = [(o, dx) for o, ax, dx in around if ax == a]
+        below = [(o, dx) for o, dx in on_axis if o[pos] < key[pos]]
+        above = [(o, dx) for o, dx in on_axis if o[pos] > key[pos]]
+        if below and above:
+            (lo, d_lo), (hi, d_hi) = below[0], above[0]
+            # e.g. 1800 rpm between 1500 and 2000: w_lo = 2/5; the pair shifted by -(1/10) (theta_lo - theta_hi)
+            k = d_hi / (d_lo + d_hi) - 0.5
+            shift = (k * (theta[lo][0] - theta[hi][0]), k * (theta[lo][1] - theta[hi][1]))
+            values += [(theta[o][0] + shift[0], theta[o][1] + shift[1]) for o in (lo, hi)]
+        else:
+            values += [theta[o] for o, _ in on_axis]
+    fit = (statistics.median([v[0] for v in values]), statistics.median([v[1] for v in values]))
+    value = theta[key]
     return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1])
 
 
@@ -159,8 +185,8 @@ def _reason(value: tuple[float, float], c: CellQuality, gradients: dict[str, flo
 
 
 def smoothing(quality: MapQuality, map_id: int, result_ids: dict[Key, int | None]) -> dict[Key, tuple[tuple[float, float], str]]:
-    """The remedy for the outliers: each one's theta replaced by its neighbours' fit (the median
-    above), with where the value comes from. Outliers without a fit (their neighbours were flagged
+    """The remedy for the outliers: each one's theta replaced by its neighbours' fit (the median of
+    their estimates above, by position on the axes), with where the value comes from. Outliers without a fit (their neighbours were flagged
     too) keep their measured theta."""
     out = {}
     for key, c in quality.cells.items():

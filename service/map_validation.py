@@ -28,12 +28,13 @@ import statistics
 import threading
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from service import __version__, lut_download
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
+from service.identification.session import MeasurementError
 from service.interlocks import InterlockTripped
 from service.limits import check_limits
 from service.measurement import RunCancelled
@@ -53,6 +54,10 @@ class ValidationOptions(BaseModel):
     max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window at one point, plant s")
     settle_s: float = Field(0.02, ge=0, le=2.0, description="plant time after the injection mode switch before "
                                                            "measuring, s")
+    fill: bool = Field(True, description="the map's fills go into the drive too (the validation measures what the "
+                                         "drive does at filled cells)")
+    interpolation: Literal["cartesian", "polar"] | None = Field(None, description="what the drive interpolates "
+                                                                "between cells (default: the service's)")
 
 
 class ValidationRefused(ValueError):
@@ -81,21 +86,22 @@ def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint
     return points
 
 
-def check_validatable(storage: Storage, map_id: int, force: bool) -> None:
+def check_validatable(storage: Storage, map_id: int, force: bool, fill: bool = True) -> None:
     """The download rules (service/lut_download.py: no ok cell is refused, a partial map needs
     `force`) checked before anything is queued."""
     try:
-        lut_download.prepare(storage, map_id, force)
+        lut_download.prepare(storage, map_id, force, fill=fill)
     except lut_download.PartialMap as exc:
         raise ValidationRefused(f'{exc.what}; validate it anyway with "force": true in the request') from None
     except lut_download.LutRefused as exc:
         raise ValidationRefused(str(exc)) from None
 
 
-def download_into_drive(storage: Storage, bench, map_id: int, force: bool) -> dict:
+def download_into_drive(storage: Storage, bench, map_id: int, force: bool, fill: bool = True,
+                        interpolation: str | None = None) -> dict:
     """The map's LUT into the drive, CRC-32 and map id read back (service.lut_download.download_map,
     the one way a map goes into the drive): the receipt."""
-    return lut_download.download_map(storage, bench, map_id, force).model_dump()
+    return lut_download.download_map(storage, bench, map_id, force, fill=fill, interpolation=interpolation).model_dump()
 
 
 @dataclass
@@ -132,11 +138,10 @@ def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
     return used.pop() if used else settings.identification.decoupling
 
 
-def measure_point(bench, settings: Settings, op: OperatingPoint, h: int, options: ValidationOptions,
-                  cancel: threading.Event | None = None, decoupling: bool | None = None) -> dict:
-    """One point: uncompensated (injection off), then the drive's own LUT feedforward (module doc),
-    with the drive decoupling the map was measured with."""
-    with bench.operating_point(op, h, cancel=cancel, decoupling=decoupling) as session:
+def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
+    """One point of a validation run (service.bench_run.BenchRun): uncompensated (injection off),
+    then the drive's own LUT feedforward (module doc)."""
+    with run.operating_point(op) as session:
         session.settle_after_theta_s = options.settle_s
         max_periods = periods_for(session, options.max_window_s)      # >= MIN_PERIODS
         session.apply_injection_mode("off")
@@ -155,15 +160,19 @@ def measure_point(bench, settings: Settings, op: OperatingPoint, h: int, options
     return {"suppression_db": 20.0 * math.log10(a0 / a), "uncompensated": _phasor(reference.phasor),
             "residual": _phasor(residual.phasor), "noise_floor_db": noise_floor_db(residual, a0),
             "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
-            "plant_time_s": plant_time_s, "speed_rpm_measured": speed_rpm, "harmonic_frequency_hz": f_h}
+            "plant_time_s": plant_time_s, "speed_rpm_measured": speed_rpm, "harmonic_frequency_hz": f_h,
+            "bench_time_s": run.timing.public()}
 
 
 def run_validation(storage: Storage, bench, settings: Settings, map_id: int, force: bool, options: ValidationOptions,
                    cancel: threading.Event, on_cell: Callable[[dict, int], None] | None = None,
                    download: Callable[..., dict] = download_into_drive) -> ValidationRun:
-    """The whole job: download, then every point. Never raises for a point: a failed point is a cell
-    with its reason; an interlock trip or a cancel ends the run with state failed / cancelled and the
-    remaining cells marked not measured. Errors before the first point (download) do raise."""
+    """The whole job: download, then every point in one continuous bench run (service/bench_run.py:
+    the drive enabled and the load turning from point to point; a run that the bench itself broke
+    is made safe and a new one goes on from the next point). Never raises for a point: a failed point
+    is a cell with its reason; an interlock trip or a cancel ends the run with state failed /
+    cancelled and the remaining cells marked not measured. Errors before the first point (download)
+    do raise."""
     m = map_public(storage, map_id)
     if m is None:
         raise KeyError(f"map {map_id} does not exist")
@@ -171,34 +180,64 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
     run = ValidationRun(map_id=map_id, harmonic_order=h, options=options.model_dump())
     decoupling = measured_decoupling(storage, m, settings)
     run.options["decoupling"] = decoupling
-    run.download = download(storage, bench, map_id, force)
+    run.download = download(storage, bench, map_id, force, fill=options.fill, interpolation=options.interpolation)
     points = validation_points(m.axes)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
-    map_status = {(c.torque_nm, c.speed_rpm, c.udc_v): c.status for c in m.cells}
-    for op, kind in points:
+    map_cells = {(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
+
+    def new_cell(op: OperatingPoint, kind: str) -> dict[str, Any]:
         cell: dict[str, Any] = {"operating_point": op.model_dump(), "kind": kind}
         if kind == "grid":
-            cell["map_cell_status"] = map_status.get((op.torque_nm, op.speed_rpm, op.udc_v), "missing")
-        if run.state != "done":
-            cell.update(status="not_measured", error=f"not measured: the validation stopped ({run.error})")
-        elif cancel.is_set():
-            run.state, run.error = "cancelled", "cancelled by the operator"
-            cell.update(status="not_measured", error="not measured: the validation was cancelled")
-        else:
-            try:
-                cell.update(status="measured", error=None,
-                            **measure_point(bench, settings, op, h, options, cancel, decoupling))
-            except RunCancelled:
-                run.state, run.error = "cancelled", "cancelled by the operator"
-                cell.update(status="not_measured", error="not measured: the validation was cancelled")
-            except InterlockTripped as exc:
-                run.state, run.error = "failed", f"interlock tripped at {op.label()}: {exc}"
-                cell.update(status="failed", error=f"InterlockTripped: {exc}")
-            except Exception as exc:  # noqa: BLE001 - one point that cannot be measured is that point's result
-                cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+            c = map_cells.get((op.torque_nm, op.speed_rpm, op.udc_v))
+            cell["map_cell_status"] = c.status if c is not None else "missing"
+            cell["map_cell_filled"] = bool(c is not None and c.filled and options.fill)
+        return cell
+
+    def finish(cell: dict) -> None:
         run.cells.append(cell)
         if on_cell is not None:
             on_cell(cell, len(points))
+
+    i = 0
+    while i < len(points) and run.state == "done":
+        if cancel.is_set():
+            run.state, run.error = "cancelled", "cancelled by the operator"
+            break
+        cell = None
+        try:
+            with bench.run(h, decoupling=decoupling, cancel=cancel) as brun:
+                while i < len(points) and not cancel.is_set():
+                    cell = new_cell(*points[i])
+                    try:
+                        cell.update(status="measured", error=None, **measure_point(brun, points[i][0], options))
+                    except (MeasurementError, ValueError) as exc:
+                        # this point could not be measured; the bench is fine: the run goes on
+                        cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+                    finish(cell)
+                    cell = None
+                    i += 1
+        except RunCancelled:
+            run.state, run.error = "cancelled", "cancelled by the operator"
+        except InterlockTripped as exc:
+            run.state, run.error = "failed", f"interlock tripped at {points[min(i, len(points) - 1)][0].label()}: {exc}"
+            if cell is not None:
+                cell.update(status="failed", error=f"InterlockTripped: {exc}")
+                finish(cell)
+                i += 1
+        except Exception as exc:  # noqa: BLE001 - the bench failed at this point: the point's result, then a new run
+            if cancel.is_set():
+                run.state, run.error = "cancelled", "cancelled by the operator"
+            elif cell is None:
+                raise
+            else:
+                cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+                finish(cell)
+                i += 1
+    for op, kind in points[i:]:
+        cell = new_cell(op, kind)
+        why = "the validation was cancelled" if run.state == "cancelled" else f"the validation stopped ({run.error})"
+        cell.update(status="not_measured", error=f"not measured: {why}")
+        finish(cell)
     return run
 
 

@@ -1,15 +1,16 @@
 """Measuring at one operating point on the DAQ sample clock.
 
-`DaqCursor` consumes the DAQ stream in order and counts the drive's sync-flag toggles (bit 2, one
-per applied setpoint, DESIGN 5). `OperatingPointSession` implements the MeasurementSession of the
-identification methods: it knows the exact sample at which each setpoint took effect, settles on
-the data, and measures windows of whole harmonic periods, discarding any window that holds a gap,
-a bad frame, a fault flag or another setpoint change.
+`PointStream` consumes the DAQ stream of one operating point in order and keeps its clock: the exact
+sample at which each setpoint took effect (the drive's sync toggles, service/setpoint_accounting.py),
+which samples are stale (buffered before that: on a real bench CAN and DAQ latency, in the emulator
+run as fast as it is read its buffered data) and which count as plant time. Every duration is a
+difference of DAQ sample indices, so a gap in the stream (frames lost) counts as the plant time it
+was, never as less.
 
-Plant time is counted on the DAQ clock from the sample at which each setpoint took effect to the
-end of the last window measured under it; samples that were buffered before a setpoint took effect
-are not the method's time (on a real bench they correspond to CAN latency, in the emulator's fast
-mode to buffered data) and are reported separately as `stale_samples`.
+`OperatingPointSession` implements the MeasurementSession of the identification methods on top of
+it: it applies theta and the injection mode, settles the operating point by measurement (speed and
+the h-th phasor steady to the precision the method needs), and measures windows of whole harmonic
+periods, discarding any window that holds a gap, a bad frame, a fault flag or another setpoint change.
 
 A `recorder` (service.recordings.RunRecorder), while set, receives every sample the session consumes,
 marked counted or stale as above, and each theta setpoint with the sample at which it took effect.
@@ -19,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -27,6 +28,7 @@ from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_I
 from service.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm, whole_period_samples
 from service.identification.session import MeasurementError, Window
+from service.setpoint_accounting import Chunk, SetpointAccounting
 
 log = logging.getLogger(__name__)
 
@@ -38,103 +40,63 @@ BAD_FLAGS = FLAG_SENSOR_FAULT
 # exactly the case that needs it (the sensor reads the ring in range only near its zero crossings).
 MAX_CLIPPED_FRACTION = 0.9
 
+# Settling (OperatingPointSession.settle_operating_point): blocks of whole electrical turns at least
+# this long; the speed within SPEED_TOLERANCE of the target in the last two; the mean h-th phasor of
+# the last two blocks within the settling precision of the two before (or within their noise).
+SETTLE_BLOCK_MIN_S = 0.01
+SPEED_TOLERANCE = 0.005
+SETTLE_NOISE_SIGMAS = 3.0
+MIN_SETTLE_PRECISION = 0.002     # 0.2 % of |a|: finer than this is below what any window resolves
+
+
+def settle_precision(target_db: float) -> float:
+    """Relative phasor drift a method can live with: half its target residual (at 40 dB, 0.5 % of
+    |a|): the plant moving by that during the measurement costs at most a few dB of the target."""
+    return max(MIN_SETTLE_PRECISION, 0.5 * 10.0 ** (-target_db / 20.0))
+
 
 class RunCancelled(RuntimeError):
     """The operator cancelled the run; raised at the next DAQ read."""
 
 
-@dataclass
-class Chunk:
-    samples: DecodedSamples
-    toggle_offsets: np.ndarray     # offsets within the chunk where the sync level changed
-    gap_offsets: np.ndarray        # offsets of samples with lost samples or a bad frame just before them
+class PointStream:
+    """The DAQ stream of one operating point, in order, on the DAQ sample clock.
 
+    Plant time is counted from the sample at which each setpoint took effect (`wait_for_effect`) to
+    the end of the last sample consumed under it (`count_until`); a segment without a new setpoint
+    (`start_segment_at_next`) counts from the next sample read. What precedes an effect is stale."""
 
-class DaqCursor:
-    """In-order consumer of a DaqReader that counts sync toggles.
+    CHUNK_SAMPLES = 4096          # the most one read takes while looking for a toggle
 
-    Across a gap (samples lost: the reader fell behind a DAQ that cannot wait) only the level change is
-    seen, so the count stays exact in parity but misses toggles in pairs; `count_hidden_toggles` adds
-    them once the caller has shown they happened (OperatingPointSession.wait_for_effect)."""
-
-    def __init__(self, reader, read_timeout_s: float):
-        self.reader = reader
-        self.read_timeout_s = read_timeout_s
-        self.toggles_seen = 0
-        self.toggles_hidden = 0        # added by count_hidden_toggles: lost in gaps, for the log and the run
-        self.last_index = -1
-        self._level: int | None = None
-
-    def discard_buffered(self) -> int:
-        """Drop what the reader and the port hold (a bench without the sync line); returns the samples dropped."""
-        return self.reader.discard_buffered(flush_port=True)
-
-    def read(self, n: int) -> Chunk:
-        samples = self.reader.read(n, self.read_timeout_s)
-        level = (samples.flags & FLAG_SYNC_INPUT) != 0
-        prev = np.empty_like(level)
-        prev[1:] = level[:-1]
-        prev[0] = level[0] if self._level is None else bool(self._level)
-        toggles = np.flatnonzero(level != prev)
-        self._level = int(level[-1])
-        self.toggles_seen += len(toggles)
-        self.last_index = int(samples.index[-1])
-        return Chunk(samples, toggles, np.flatnonzero(samples.gap_before))
-
-    def count_hidden_toggles(self, n: int) -> None:
-        """n toggles happened inside gaps of the stream (an even number: the parity was seen)."""
-        self.toggles_seen += n
-        self.toggles_hidden += n
-
-
-class OperatingPointSession:
-    """MeasurementSession over the real wires (drive over CANopen, alpha over the DAQ)."""
-
-    CHUNK_SAMPLES = 256
-    MAX_WINDOW_ATTEMPTS = 5
-
-    def __init__(self, cursor: DaqCursor, send_theta: Callable[[float, float], None],
-                 setpoints_written: Callable[[], int], harmonic_order: int, sample_rate_hz: float,
-                 pole_pairs: int, settle_after_theta_s: float = 0.02, sync_input: bool = True,
-                 no_sync_settle_s: float = 0.4, guard: Callable[[], None] | None = None,
-                 resonance: ResonanceTracker | None = None, observe: Callable[..., None] | None = None,
-                 on_window: Callable[[Window], None] | None = None,
-                 send_injection_mode: Callable[[str], None] | None = None,
-                 sync_quiet_samples: int = 20480):
-        self._send_theta = send_theta                  # theta to the drive (checked against gamma_max there)
-        self._send_injection_mode = send_injection_mode   # off / manual / lut (the LUT's validation)
-        self._setpoints_written = setpoints_written    # setpoints the drive accepted: one sync toggle each
-        # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
-        self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
-        self.noise_rms_fs: float | None = None      # rms of alpha around the fitted model, last window
-        self.op_settle_plant_s: float | None = None # plant time the move to the operating point took
-        self.over_range_windows = 0             # windows refused: clipped over most of their samples
-        self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
-        self._observe = observe     # observe(**values): what the run sees, for the live status (one-way)
-        self.cursor = cursor
-        self.harmonic_order = harmonic_order
+    def __init__(self, accounting: SetpointAccounting, sample_rate_hz: float,
+                 guard: Callable[[], None] | None = None):
+        self.accounting = accounting
+        self.cursor = accounting.cursor
         self.sample_rate_hz = sample_rate_hz
-        self.pole_pairs = pole_pairs
-        self.settle_after_theta_s = settle_after_theta_s
-        self.sync_input = sync_input
-        # after a gap: no toggle and no gap for this long means the drive has no setpoint pending
-        self.sync_quiet_samples = sync_quiet_samples
-        self.no_sync_settle_s = no_sync_settle_s
+        self.guard = guard          # called before every DAQ read; raises to stop the run (cancel, interlock)
         self._pending: DecodedSamples | None = None   # samples read past the point we needed
         self._segment_start: int | None = None
+        self._segment_at_next = False
         self._plant_samples = 0
         self.stale_samples = 0
-        self.windows_discarded = 0
-        self.speed_rpm_measured: float | None = None
-        self.on_window = on_window      # each accepted window, for progress (CLI, SSE job.progress)
-        self.recorder = None            # set for the method's duration by identify_at (raw recording)
+        self._hidden_before = self.cursor.toggles_hidden
+        self.recorder = None        # set for the method's duration by identify_at (raw recording)
+
+    @property
+    def toggles_hidden(self) -> int:
+        """Setpoint toggles of this point that fell into DAQ gaps and were counted once the line was quiet."""
+        return self.cursor.toggles_hidden - self._hidden_before
+
+    def samples_for(self, seconds: float) -> int:
+        return int(round(seconds * self.sample_rate_hz))
 
     def _record(self, samples: DecodedSamples, counted: bool) -> None:
-        if self.recorder is not None:
+        if self.recorder is not None and len(samples):
             self.recorder.samples(samples, counted)
 
-    # --- the DAQ stream, in order --------------------------------------------------------------
-    def _next(self, n: int) -> DecodedSamples:
+    # --- in order --------------------------------------------------------------------------------
+    def next(self, n: int) -> DecodedSamples:
+        """Up to n samples (pending leftovers first, else exactly n from the stream)."""
         if self.guard is not None:
             self.guard()
         if self._pending is not None and len(self._pending):
@@ -143,135 +105,258 @@ class OperatingPointSession:
             self._pending = rest if len(rest) else None
         else:
             take = self.cursor.read(n).samples
-        # what is consumed once a setpoint has taken effect is counted as plant time (skip, _valid_window)
+        if self._segment_at_next:
+            self._segment_start = int(take.index[0])
+            self._segment_at_next = False
+        # what is consumed once a setpoint has taken effect is counted as plant time (skip, windows)
         self._record(take, counted=self._segment_start is not None)
         return take
 
-    def _next_exact(self, n: int) -> DecodedSamples:
+    def next_exact(self, n: int) -> DecodedSamples:
         """Exactly the next n samples (pending leftovers first, then the stream)."""
         parts, have = [], 0
         while have < n:
-            part = self._next(n - have)
+            part = self.next(n - have)
             parts.append(part)
             have += len(part)
         return DecodedSamples.concat(parts)
 
-    def _push_back(self, s: DecodedSamples) -> None:
+    def next_index(self) -> int:
+        """Index of the next sample this stream hands out."""
+        if self._pending is not None and len(self._pending):
+            return int(self._pending.index[0])
+        return self.cursor.last_index + 1
+
+    def push_back(self, s: DecodedSamples) -> None:
         self._pending = s if self._pending is None else DecodedSamples.concat([s, self._pending])
 
-    def wait_for_effect(self, max_plant_s: float = 10.0) -> int:
-        """Consume the stream up to the sample at which the last expected setpoint took effect.
-
-        Returns that sample's index. Samples before it are stale (buffered before the setpoint). The
-        budget must cover what the pty and the reader hold (about 1-2 s of plant time in the
-        emulator's fast mode) plus the drive's reaction."""
+    def drop_pending_as_stale(self) -> None:
+        """Samples read ahead predate every write made since: stale."""
         if self._pending is not None:
-            # pending samples were already seen by the cursor: their toggles are counted; they
-            # predate every write made since, so they are stale
             self.stale_samples += len(self._pending)
             self._record(self._pending, counted=False)
             self._pending = None
-        if not self.sync_input:
-            return self._settle_on_data(max_plant_s)
-        budget = int(max_plant_s * self.sample_rate_hz)
-        consumed = 0
+
+    def discard_buffered(self) -> None:
+        """Without the sync line nothing marks a setpoint's sample: drop what the reader and the port hold."""
+        self._pending = None
+        self.accounting.doubt("DAQ flushed without the sync line")
+        self.stale_samples += self.cursor.discard_buffered()
+
+    # --- plant time --------------------------------------------------------------------------------
+    def count_until(self, end_index: int) -> None:
+        if self._segment_start is not None and end_index >= self._segment_start:
+            self._plant_samples += end_index - self._segment_start + 1
+            self._segment_start = end_index + 1
+
+    def start_segment_at_next(self) -> None:
+        """Count plant time from the next sample read (a measurement under the setpoint in force)."""
+        self._segment_start = None
+        self._segment_at_next = True
+
+    def end_segment(self) -> None:
+        self._segment_start = None
+        self._segment_at_next = False
+
+    def start_segment(self, index: int) -> None:
+        self._segment_start = index
+        self._segment_at_next = False
+
+    @property
+    def plant_time_s(self) -> float:
+        return self._plant_samples / self.sample_rate_hz
+
+    def reset_plant_time(self) -> None:
+        self._plant_samples = 0
+
+    def skip(self, seconds: float) -> int:
+        """Let `seconds` of plant time pass (DAQ clock: a gap counts as the time it was). Returns the
+        index of the last sample consumed."""
+        first = None
+        last = None
+        n = self.samples_for(seconds)
+        while n > 0:
+            got = self.next(min(n, 4096))
+            first = int(got.index[0]) if first is None else first
+            last = int(got.index[-1])
+            self.count_until(last)
+            n = self.samples_for(seconds) - (last - first + 1)
+        return last if last is not None else self.cursor.last_index
+
+    # --- setpoints ---------------------------------------------------------------------------------
+    def wait_for_effect(self, max_plant_s: float = 10.0) -> int:
+        """Consume the stream up to the sample at which the last setpoint written took effect (its
+        sync toggle). Returns that sample's index; what precedes it is stale. `max_plant_s` bounds the
+        wait on the DAQ clock (it must cover what the DAQ path holds plus the drive's reaction).
+
+        Across a gap only the level is seen, so toggles go missing in pairs: once the line has then
+        been quiet (no toggle, no gap) for the accounting's quiet window, nothing is pending and the
+        missing ones are counted as hidden in the gaps (an odd number is an accounting error)."""
+        self.drop_pending_as_stale()
+        if self.accounting.pending() == 0:
+            # nothing written since the last effect (e.g. a move that changed nothing the drive applies)
+            self.start_segment_at_next()
+            return self.next_index()
+        budget = self.samples_for(max_plant_s)
+        first_index = None
         gaps = 0
-        quiet = 0       # samples since the later of the last gap and the last toggle (once a gap was seen)
+        last_event: int | None = None     # index of the last gap or toggle, once a gap was seen
         while True:
             before = self.cursor.toggles_seen
-            chunk = self.cursor.read(self.CHUNK_SAMPLES)
-            missing = self._setpoints_written() - before
-            if len(chunk.toggle_offsets) >= missing > 0:
-                offset = int(chunk.toggle_offsets[missing - 1])
-                return self._effect_at(chunk, offset)
+            chunk = self.cursor.read_available(self.CHUNK_SAMPLES)
+            index = chunk.samples.index
+            first_index = int(index[0]) if first_index is None else first_index
+            missing = self.accounting.pending() + (self.cursor.toggles_seen - before)
             if missing <= 0:
-                raise MeasurementError("sync accounting error: more sync toggles seen than setpoints written")
+                self.accounting.doubt("more sync toggles seen than setpoints written")
+                raise MeasurementError("sync accounting error: more sync toggles seen than setpoints written "
+                                       "(the count is established again before the next point)")
+            if len(chunk.toggle_offsets) >= missing:
+                return self._effect_at(chunk, int(chunk.toggle_offsets[missing - 1]))
             gaps += len(chunk.gap_offsets)
             if gaps:
-                last_event = max([-1, *chunk.gap_offsets[-1:], *chunk.toggle_offsets[-1:]])
-                quiet = len(chunk.samples) - 1 - last_event if last_event >= 0 else quiet + len(chunk.samples)
-                missing = self._setpoints_written() - self.cursor.toggles_seen
-                if quiet >= self.sync_quiet_samples:
-                    # the drive has nothing pending: what is missing toggled inside the gaps, in pairs (the
-                    # level across a gap shows one of a pair as nothing). The effect is before this sample.
-                    if missing % 2:
-                        raise MeasurementError(f"sync accounting error after a DAQ gap: {missing} toggle(s) "
-                                               "missing, an odd number, with the line quiet")
-                    self.cursor.count_hidden_toggles(missing)
-                    log.warning("%d sync toggle(s) lost in %d DAQ gap(s); setpoint effect taken after the gap",
-                                missing, gaps)
-                    return self._effect_at(chunk, len(chunk.samples) - 1)
-            consumed += len(chunk.samples)
+                events = np.union1d(chunk.gap_offsets, chunk.toggle_offsets)
+                if len(events):
+                    last_event = int(index[int(events[-1])])
+                elif last_event is None:
+                    last_event = int(index[0])
+                if int(index[-1]) - last_event >= self.accounting.quiet_samples():
+                    return self._effect_hidden_in_gaps(chunk, gaps)
             self.stale_samples += len(chunk.samples)
             self._record(chunk.samples, counted=False)
-            if consumed > budget:
+            if int(index[-1]) - first_index > budget:
                 hidden = (f"; the stream had {gaps} DAQ gap or bad frame(s) meanwhile, which can hide toggles, "
                           "and the line was never quiet after them") if gaps else ""
+                self.accounting.doubt("a setpoint was not confirmed")
                 raise MeasurementError(
-                    f"setpoint not confirmed on the DAQ sync line within {max_plant_s} s of plant time "
-                    f"({self._setpoints_written() - self.cursor.toggles_seen} toggle(s) missing{hidden})")
+                    f"setpoint not confirmed on the DAQ sync line within {max_plant_s:g} s of plant time "
+                    f"(DAQ sample clock; {self.accounting.pending()} toggle(s) missing{hidden})")
+
+    def _effect_hidden_in_gaps(self, chunk: Chunk, gaps: int) -> int:
+        """The line has been quiet since the last gap: the drive has nothing pending, so what is missing
+        toggled inside the gaps, in pairs (a pair across a gap shows as no change). The effect is at
+        the chunk's last sample at the latest."""
+        missing = self.accounting.pending()
+        if missing % 2:
+            self.accounting.doubt("an odd number of toggles missing after a DAQ gap")
+            raise MeasurementError(f"sync accounting error after a DAQ gap: {missing} toggle(s) missing, an odd "
+                                   "number, with the line quiet")
+        self.cursor.count_hidden_toggles(missing)
+        log.warning("%d sync toggle(s) lost in %d DAQ gap(s); setpoint effect taken after the gap", missing, gaps)
+        return self._effect_at(chunk, len(chunk.samples) - 1)
 
     def _effect_at(self, chunk: Chunk, offset: int) -> int:
         """The setpoint took effect at chunk sample `offset`: what precedes it is stale."""
         self.stale_samples += offset
         self._record(chunk.samples.slice(0, offset), counted=False)
-        self._push_back(chunk.samples.slice(offset))
-        self._segment_start = int(chunk.samples.index[offset])
+        self.push_back(chunk.samples.slice(offset))
+        self.start_segment(int(chunk.samples.index[offset]))
         return self._segment_start
 
-    def _discard_stale(self) -> None:
-        """Without the sync line nothing marks a setpoint's sample: drop what the reader and the port hold."""
-        self._pending = None
-        self.stale_samples += self.cursor.discard_buffered()
 
-    def _settle_on_data(self, max_plant_s: float) -> int:
-        """A bench without the sync line: drop what is buffered, let `no_sync_settle_s` of plant time
-        pass (it must exceed what the DAQ path can still hold, and the plant's settling), then wait
-        until two consecutive one-turn phasors agree. Returns the first sample counted as the
-        setpoint's time (the first sample read after the write: honest, if pessimistic)."""
-        self._discard_stale()
-        first = self.cursor.read(1).samples
-        self._segment_start = int(first.index[0])
-        self._record(first, counted=True)
-        self.skip(self.no_sync_settle_s)
-        periods = self.harmonic_order                       # one electrical turn
-        previous = self.measure(periods)
-        for _ in range(int(max_plant_s * self.sample_rate_hz / max(previous.phasor.samples, 1))):
-            current = self.measure(periods)
-            # agree within 5 % or within 3 standard deviations of a phasor of noise (std(alpha) sqrt(2/N))
-            noise = float(np.std(current.alpha_fs)) * math.sqrt(2.0 / len(current.alpha_fs))
-            if abs(current.phasor.complex - previous.phasor.complex) <= 0.05 * abs(current.phasor.complex) + 3 * noise:
-                return self._segment_start
-            previous = current
-        raise MeasurementError(f"the harmonic did not settle within {max_plant_s} s of plant time (no sync line)")
+class DriveCommands(Protocol):
+    """What a session may send to the drive while it measures (the bench checks every value)."""
+
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None: ...
+
+    def send_injection_mode(self, mode: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class Settled:
+    """How an operating point settled (DAQ clock)."""
+    plant_s: float              # from the move's effect to the end of the last block judged
+    speed_rpm: float
+    blocks: int
+    phasor_change: float        # relative change of the h-th phasor between the last two pairs of blocks
+
+
+class OperatingPointSession:
+    """MeasurementSession over the real wires (drive over CANopen, alpha over the DAQ)."""
+
+    MAX_WINDOW_ATTEMPTS = 5
+
+    def __init__(self, stream: PointStream, commands: DriveCommands, harmonic_order: int, pole_pairs: int,
+                 sync_input: bool = True, no_sync_settle_s: float = 0.4, resonance: ResonanceTracker | None = None,
+                 observe: Callable[..., None] | None = None, on_window: Callable[[Window], None] | None = None,
+                 theta_in_force: tuple[float, float] | None = None, settle_after_theta_s: float = 0.02):
+        self.stream = stream
+        self.commands = commands
+        # the bench's shaft mode (learned across runs); a session of its own starts from the paper's pole
+        self.resonance = resonance or ResonanceTracker(ResonanceMode(-19.6, 6746.2))
+        self.harmonic_order = harmonic_order
+        self.sample_rate_hz = stream.sample_rate_hz
+        self.pole_pairs = pole_pairs
+        self.sync_input = sync_input
+        self.no_sync_settle_s = no_sync_settle_s
+        self.settle_after_theta_s = settle_after_theta_s
+        self._observe = observe     # observe(**values): what the run sees, for the live status (one-way)
+        self.on_window = on_window  # each accepted window, for progress (CLI, SSE job.progress)
+        self.theta_in_force = theta_in_force   # (cos, sin) the drive applies now in manual mode, if known
+        self.noise_rms_fs: float | None = None      # rms of alpha around the fitted model, last window
+        self.settled: Settled | None = None
+        self.over_range_windows = 0             # windows refused: clipped over most of their samples
+        self.windows_discarded = 0
+        self.speed_rpm_measured: float | None = None
+
+    # --- the stream's bookkeeping, as the methods and the run read it ---------------------------
+    @property
+    def cursor(self):
+        return self.stream.cursor
+
+    @property
+    def recorder(self):
+        return self.stream.recorder
+
+    @recorder.setter
+    def recorder(self, recorder) -> None:
+        self.stream.recorder = recorder
+
+    @property
+    def stale_samples(self) -> int:
+        return self.stream.stale_samples
+
+    @property
+    def plant_time_s(self) -> float:
+        return self.stream.plant_time_s
+
+    @property
+    def op_settle_plant_s(self) -> float | None:
+        return None if self.settled is None else self.settled.plant_s
+
+    def reset_plant_time(self) -> None:
+        self.stream.reset_plant_time()
 
     def skip(self, seconds: float) -> None:
         """Let the plant settle for `seconds` of plant time (counted as the method's time)."""
-        n = int(round(seconds * self.sample_rate_hz))
-        while n > 0:
-            got = self._next(min(n, 4096))
-            n -= len(got)
-            self._count_until(int(got.index[-1]))
-
-    def _count_until(self, end_index: int) -> None:
-        if self._segment_start is not None and end_index >= self._segment_start:
-            self._plant_samples += end_index - self._segment_start + 1
-            self._segment_start = end_index + 1
+        self.stream.skip(seconds)
 
     # --- MeasurementSession ----------------------------------------------------------------------
+    def wait_for_effect(self, max_plant_s: float = 10.0) -> int:
+        if not self.sync_input:
+            return self._settle_on_data(max_plant_s)
+        return self.stream.wait_for_effect(max_plant_s)
+
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        self._send_theta(theta_cos_rad, theta_sin_rad)
+        theta = (float(theta_cos_rad), float(theta_sin_rad))
+        if theta == self.theta_in_force:
+            # already in force and settled (the move left it so): nothing to send, wait for or settle
+            self.stream.start_segment_at_next()
+            if self.recorder is not None:
+                self.recorder.setpoint(self.stream.next_index(), *theta)
+            return
+        self.commands.send_theta(*theta)
         effect_index = self.wait_for_effect()
+        self.theta_in_force = theta
         if self.recorder is not None:
-            self.recorder.setpoint(effect_index, theta_cos_rad, theta_sin_rad)
+            self.recorder.setpoint(effect_index, *theta)
         self.skip(self.settle_after_theta_s)
 
     def apply_injection_mode(self, mode: str) -> None:
         """Switch the drive's injection mode (0x2000:2: off / manual / lut; one setpoint, one sync toggle)
         and return once it is in effect and the plant has settled, as apply_theta does."""
-        if self._send_injection_mode is None:
-            raise MeasurementError("this session cannot switch the injection mode")
-        self._send_injection_mode(mode)
+        self.commands.send_injection_mode(mode)
+        self.theta_in_force = None if mode != "manual" else self.theta_in_force
         self.wait_for_effect()
         self.skip(self.settle_after_theta_s)
 
@@ -337,8 +422,8 @@ class OperatingPointSession:
                    "setpoint change inside the window": 0}
         for _ in range(self.MAX_WINDOW_ATTEMPTS):
             n = self._samples_for(periods)
-            s = self._next_exact(n)
-            self._count_until(int(s.index[-1]))
+            s = self.stream.next_exact(n)
+            self.stream.count_until(int(s.index[-1]))
             sync = (s.flags & FLAG_SYNC_INPUT) != 0
             setpoint_changed = (sync[1:] != sync[:-1]) if self.sync_input else np.zeros(len(s) - 1, bool)
             bad = np.flatnonzero(s.gap_before[1:] | ((s.flags & BAD_FLAGS) != 0)[1:] | setpoint_changed)
@@ -373,47 +458,133 @@ class OperatingPointSession:
             raise MeasurementError("speed unknown: settle the operating point first")
         return abs(speed) / 60.0 * self.pole_pairs * self.harmonic_order
 
-    @property
-    def plant_time_s(self) -> float:
-        return self._plant_samples / self.sample_rate_hz
-
-    def reset_plant_time(self) -> None:
-        self._plant_samples = 0
-
     # --- operating-point settling ----------------------------------------------------------------
-    def settle_operating_point(self, target_speed_rpm: float, settle_s: float, tolerance: float = 0.005,
-                               max_plant_s: float = 20.0) -> float:
-        """After the OP setpoints: wait for their effect, for the speed (from the encoder angle) to
-        hold within `tolerance` of the target for 3 consecutive 20 ms blocks, then `settle_s` more.
-        Returns the plant time (s) it took."""
+    def _settle_on_data(self, max_plant_s: float) -> int:
+        """A bench without the sync line: drop what is buffered, let `no_sync_settle_s` of plant time
+        pass (it must exceed what the DAQ path can still hold, and the plant's settling), then wait
+        until two consecutive one-turn phasors agree. Returns the first sample counted as the
+        setpoint's time (the first sample read after the write: honest, if pessimistic)."""
+        self.stream.discard_buffered()
+        self.stream.start_segment_at_next()
+        first = self.stream.next(1)
+        start = int(first.index[0])
+        self.stream.count_until(start)
+        self.stream.skip(self.no_sync_settle_s)
+        periods = self.harmonic_order                       # one electrical turn
+        previous = self.measure(periods)
+        deadline = start + self.stream.samples_for(max_plant_s)
+        while self.cursor.last_index <= deadline:
+            current = self.measure(periods)
+            # agree within 5 % or within 3 standard deviations of a phasor of noise (std(alpha) sqrt(2/N))
+            noise = float(np.std(current.alpha_fs)) * math.sqrt(2.0 / len(current.alpha_fs))
+            if abs(current.phasor.complex - previous.phasor.complex) <= 0.05 * abs(current.phasor.complex) + 3 * noise:
+                return start
+            previous = current
+        raise MeasurementError(f"the harmonic did not settle within {max_plant_s:g} s of plant time (no sync line)")
+
+    def _block_speed_rpm(self, s: DecodedSamples) -> float | None:
+        try:    # over the block's contiguous runs: a DAQ gap is no change of speed
+            return mechanical_speed_rpm(s.angle_rad, self.sample_rate_hz, self.pole_pairs, s.gap_before)
+        except ValueError:
+            return None     # nothing contiguous to judge: neither steady nor not
+
+    def settle_operating_point(self, target_speed_rpm: float, target_db: float = 40.0,
+                               max_plant_s: float = 20.0) -> Settled:
+        """After the move's setpoints: wait for their effect, then judge blocks of whole electrical
+        turns (>= SETTLE_BLOCK_MIN_S) until the encoder speed is within SPEED_TOLERANCE of the target in
+        the last two blocks and the h-th phasor is steady to the precision the method needs: the mean
+        phasor of the last two blocks within settle_precision(target_db) of the mean of the two before,
+        or within SETTLE_NOISE_SIGMAS of their noise (a drift below the noise is not seen, and does not
+        matter to a window of the same length). No fixed wait: a point that is steady at once costs
+        four blocks. Bounded by max_plant_s on the DAQ clock."""
+        on_window, self.on_window = self.on_window, None     # settling blocks are not the method's windows
+        try:
+            return self._settle(target_speed_rpm, target_db, max_plant_s)
+        finally:
+            self.on_window = on_window
+
+    def _settle(self, target_speed_rpm: float, target_db: float, max_plant_s: float) -> Settled:
         if self.sync_input:
-            self.wait_for_effect(max_plant_s)
+            effect = self.stream.wait_for_effect(max_plant_s)
         else:
-            self._discard_stale()
-            self.skip(self.no_sync_settle_s)
-        block = int(0.02 * self.sample_rate_hz)
-        steady, elapsed, gapped = 0, 0, 0
-        speed = math.nan
-        while steady < 3:
-            s = self._next_exact(block)
-            elapsed += len(s)
-            gapped += int(s.gap_before[1:].any())
-            try:    # over the block's contiguous runs: a DAQ gap is no change of speed
-                speed = mechanical_speed_rpm(s.angle_rad, self.sample_rate_hz, self.pole_pairs, s.gap_before)
-                steady = steady + 1 if abs(speed - target_speed_rpm) <= tolerance * abs(target_speed_rpm) else 0
-            except ValueError:
-                pass    # nothing contiguous to judge: neither steady nor not
-            if elapsed > max_plant_s * self.sample_rate_hz:
-                daq = f"; {gapped} of {elapsed // block} blocks had DAQ gaps or bad frames" if gapped else ""
-                raise MeasurementError(f"speed did not settle at {target_speed_rpm:g} rpm within {max_plant_s} s "
-                                       f"of plant time (last {speed:.1f} rpm{daq})")
-        self.speed_rpm_measured = speed
-        self._publish(speed_rpm=speed)
-        self._segment_start = None
-        skip_n = int(settle_s * self.sample_rate_hz)
-        while skip_n > 0:
-            got = self._next(min(skip_n, 4096))
-            skip_n -= len(got)
-            elapsed += len(got)
-        self.op_settle_plant_s = elapsed / self.sample_rate_hz
-        return self.op_settle_plant_s
+            # nothing marks the move's sample: drop what is buffered and let no_sync_settle_s pass
+            self.stream.discard_buffered()
+            effect = int(self.stream.next(1).index[0])
+            self.stream.skip(self.no_sync_settle_s)
+        self.stream.end_segment()           # the move's time is not the method's
+        deadline = effect + self.stream.samples_for(max_plant_s)
+        precision = settle_precision(target_db)
+        raw_block = self.stream.samples_for(SETTLE_BLOCK_MIN_S)
+        speeds: list[float] = []
+        phasors: list[complex | None] = []   # None: the block was over range (judged on its speed only)
+        noises: list[float] = []
+        gapped = 0
+        blocks = 0
+        change = math.inf
+        while True:
+            if self.speed_rpm_measured is None:
+                # the speed first, from raw blocks, so that blocks of whole turns can be cut
+                s = self.stream.next_exact(raw_block)
+            else:
+                turns = max(1, math.ceil(SETTLE_BLOCK_MIN_S * self.harmonic_frequency_hz / self.harmonic_order))
+                s = self.stream.next_exact(self._samples_for(turns * self.harmonic_order))
+            blocks += 1
+            sync = (s.flags & FLAG_SYNC_INPUT) != 0
+            if s.gap_before[1:].any() or (s.flags & FLAG_SENSOR_FAULT).any() or (self.sync_input and (sync[1:] != sync[:-1]).any()):
+                gapped += 1                 # a block with a hole or a fault judges nothing: start again
+                speeds.clear(), phasors.clear(), noises.clear()
+            else:
+                speed = self._block_speed_rpm(s)
+                if self.speed_rpm_measured is None:
+                    if speed is not None and abs(speed - target_speed_rpm) <= SPEED_TOLERANCE * abs(target_speed_rpm):
+                        self.speed_rpm_measured = speed
+                else:
+                    self.speed_rpm_measured = speed
+                    speeds.append(speed)
+                    clipped = float(np.mean((s.flags & FLAG_OVER_RANGE) != 0))
+                    if clipped > MAX_CLIPPED_FRACTION:
+                        phasors.append(None)
+                        noises.append(0.0)
+                    else:
+                        try:
+                            fit = self._fit(s, turns * self.harmonic_order)
+                        except ValueError:      # the speed moved more than the block's margin: judge again
+                            speeds.clear(), phasors.clear(), noises.clear()
+                            continue
+                        phasors.append(fit.phasor.complex)
+                        noises.append(fit.noise_std_fs)
+                    steady, change = self._steady(target_speed_rpm, speeds, phasors, noises, precision)
+                    if steady:
+                        break
+            if self.cursor.last_index > deadline:
+                last = f"{self.speed_rpm_measured:.1f} rpm" if self.speed_rpm_measured else "speed unknown"
+                drift = "" if not math.isfinite(change) else f", h-th phasor still moving {100 * change:.1f} %"
+                daq = f"; {gapped} block(s) had DAQ gaps or bad frames" if gapped else ""
+                raise MeasurementError(f"the operating point did not settle at {target_speed_rpm:g} rpm within "
+                                       f"{max_plant_s:g} s of plant time (DAQ sample clock; last {last}{drift}{daq})")
+        self.settled = Settled(plant_s=(self.cursor.last_index - effect + 1) / self.sample_rate_hz,
+                               speed_rpm=self.speed_rpm_measured, blocks=blocks, phasor_change=change)
+        self._publish(speed_rpm=self.speed_rpm_measured)
+        return self.settled
+
+    @staticmethod
+    def _steady(target_speed_rpm: float, speeds: list[float], phasors: list[complex | None], noises: list[float],
+                precision: float) -> tuple[bool, float]:
+        """(steady, relative change of the phasor): the last two blocks at the target speed, and the
+        mean phasor of the last two blocks within `precision` of the two before, or within their noise.
+        Over range (a harmonic next to the shaft resonance clips the sensor), the speed alone: the
+        mean speed of the last two blocks within a tenth of the tolerance of the two before."""
+        if len(speeds) < 4:
+            return False, math.inf
+        tolerance = SPEED_TOLERANCE * abs(target_speed_rpm)
+        at_speed = all(abs(v - target_speed_rpm) <= tolerance for v in speeds[-2:])
+        if any(p is None for p in phasors[-4:]):
+            change = abs((speeds[-1] + speeds[-2]) - (speeds[-3] + speeds[-4])) / 2.0
+            return at_speed and change <= 0.1 * tolerance, math.inf
+        recent = (phasors[-1] + phasors[-2]) / 2.0
+        before = (phasors[-3] + phasors[-4]) / 2.0
+        change = abs(recent - before) / max(abs(recent), 1e-12)
+        # noise of the difference of two two-block means: per component sigma, in magnitude sqrt(2) sigma
+        sigma = math.sqrt(sum(n * n for n in noises[-4:]) / 4.0)
+        noise = SETTLE_NOISE_SIGMAS * math.sqrt(2.0) * sigma
+        return at_speed and abs(recent - before) <= max(precision * abs(recent), noise), change

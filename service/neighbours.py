@@ -12,8 +12,13 @@ from __future__ import annotations
 import json
 import math
 
+from drivers import lut_image
 from service.identification.common import Prior
+from service.map_fill import interpolate_between
 from service.operating_point import OperatingPoint
+
+# the plane the LUT interpolates in: a prior between two cells is what the drive would inject there
+DEFAULT_INTERPOLATION = getattr(lut_image, "DEFAULT_INTERPOLATION", "cartesian")
 
 
 def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, list[float]]) -> Prior | None:
@@ -32,9 +37,17 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
                          + ((r["udc_v"] - op.udc_v) / span("udc_v")) ** 2)
 
     nearest = min(ok, key=distance)
+    theta = (float(nearest["theta_cos"]), float(nearest["theta_sin"]))
+    source = f"neighbour {nearest['torque_nm']:g} Nm / {nearest['speed_rpm']:g} rpm / {nearest['udc_v']:g} V"
+    # where ok cells lie on both sides along an axis (a second pass, a refinement), interpolate between them
+    between = interpolate_between((op.torque_nm, op.speed_rpm, op.udc_v),
+                                  {(r["torque_nm"], r["speed_rpm"], r["udc_v"]): (float(r["theta_cos"]),
+                                                                                 float(r["theta_sin"])) for r in ok},
+                                  _axes_with(axes, op), DEFAULT_INTERPOLATION)
+    if between is not None:
+        theta, source = (between.theta_cos, between.theta_sin), between.source
     same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
     s_matrix = None
-    source = f"neighbour {nearest['torque_nm']:g} Nm / {nearest['speed_rpm']:g} rpm / {nearest['udc_v']:g} V"
     if same_line:
         s_row = min(same_line, key=distance)
         details = json.loads(s_row.get("detail_json") or "{}").get("details") or {}
@@ -42,4 +55,10 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
         if matrix is not None:
             s_matrix = tuple(tuple(float(v) for v in row) for row in matrix)
             source += f", S from {s_row['torque_nm']:g} Nm"
-    return Prior(float(nearest["theta_cos"]), float(nearest["theta_sin"]), s_matrix, source)
+    return Prior(theta[0], theta[1], s_matrix, source)
+
+
+def _axes_with(axes: dict[str, list[float]], op: OperatingPoint) -> dict[str, list[float]]:
+    """The axes with op's own values in them (a refinement's new cell lies between the old values)."""
+    return {name: sorted(set(map(float, axes.get(name) or [])) | {float(getattr(op, name))})
+            for name in ("torque_nm", "speed_rpm", "udc_v")}

@@ -7,7 +7,8 @@ voltage equations in steady state (d/dt = 0 in eq. 18):
     u_d = R_s i_d - omega_e L_q i_q
     u_q = R_s i_q + omega_e (L_d i_d + psi_p)
 Above the voltage limit U_dc/sqrt(3), i_d < 0 is chosen so that |u_dq| sits on the limit (field
-weakening), as the firmware does.
+weakening), as the firmware does. `field_weakening_onset` gives the speed at which that sets in for a
+torque (closed form, with the firmware's voltage margin: settings control.voltage_margin).
 """
 from __future__ import annotations
 
@@ -78,3 +79,70 @@ def nominal_steady_state(op: OperatingPoint, motor: MotorSettings) -> SteadyStat
         i_d = lo
         u_d, u_q = _voltages(motor, i_d, i_q, omega_e)
     return SteadyState(i_d, i_q, u_d, u_q, omega_e, weakening)
+
+
+@dataclass(frozen=True)
+class FieldWeakeningOnset:
+    """Where field weakening sets in for one torque at one U_dc (see field_weakening_onset)."""
+    speed_rpm: float | None         # mechanical rpm; None: no onset (`reason` says why)
+    omega_e_rad_s: float | None     # the same as electrical angular speed, rad/s
+    i_q_a: float                    # the q current the torque needs below the onset, A (|T*| / k_T)
+    u_limit_v: float                # voltage_margin * U_dc / sqrt(3), V
+    reason: str | None = None
+
+
+def field_weakening_onset(torque_nm: float, udc_v: float, motor: MotorSettings,
+                          voltage_margin: float) -> FieldWeakeningOnset:
+    """The speed at which the drive's firmware leaves MTPA for field weakening at torque T* and U_dc,
+    from the NOMINAL motor parameters (settings, never the emulator's truth).
+
+    Below the onset the firmware runs i_d = 0 (surface magnets, MTPA) and i_q = |T*| / k_T with
+    k_T = 1.5 N_p psi_p (eq. 20; the firmware computes its references from |T*| and |omega_e|, so the
+    onset does not depend on the torque's sign). The steady-state dq voltages (eq. 18 with d/dt = 0,
+    eq. 19's back-EMF omega_e psi_p) are then
+        u_d = -omega_e L_q i_q,   u_q = R_s i_q + omega_e psi_p                        [V]
+        |u_dq|^2 = omega_e^2 (L_q^2 i_q^2 + psi_p^2) + 2 R_s i_q psi_p omega_e + R_s^2 i_q^2
+    which grows monotonically with omega_e >= 0. The firmware keeps |u_dq| at
+    U = voltage_margin U_dc / sqrt(3) (the rest is headroom for its PI), so the onset is the positive
+    root of a omega_e^2 + b omega_e + c = 0 with
+        a = L_q^2 i_q^2 + psi_p^2 [V^2 s^2],  b = 2 R_s i_q psi_p [V^2 s],  c = R_s^2 i_q^2 - U^2 [V^2]
+        omega_e = -2 c / (b + sqrt(b^2 - 4 a c))    (rad/s; the form without cancellation, c < 0)
+        n = omega_e / N_p * 60 / (2 pi)               (rpm, mechanical)
+    No onset (speed None, `reason` says why): i_q above motor.i_max_a (the firmware limits the
+    current: the torque is not reached at any speed), R_s i_q >= U (the limit is reached at
+    standstill), U_dc <= 0."""
+    k_t = 1.5 * motor.pole_pairs * motor.psi_p_vs              # Nm/A
+    i_q = abs(torque_nm) / k_t
+    u_lim = voltage_margin * udc_v / math.sqrt(3.0)
+    if not (math.isfinite(i_q) and math.isfinite(u_lim)) or udc_v <= 0:
+        return FieldWeakeningOnset(None, None, i_q, u_lim, f"no DC link to weaken the field against ({udc_v:g} V)")
+    if i_q > motor.i_max_a:
+        return FieldWeakeningOnset(None, None, i_q, u_lim,
+                                   f"{abs(torque_nm):g} Nm needs i_q = {i_q:.1f} A, above motor.i_max_a = "
+                                   f"{motor.i_max_a:g} A: the torque is not reached at any speed")
+    if motor.r_s_ohm * i_q >= u_lim:
+        return FieldWeakeningOnset(None, None, i_q, u_lim,
+                                   f"R_s i_q = {motor.r_s_ohm * i_q:.2f} V reaches the voltage limit {u_lim:.2f} V "
+                                   "at standstill: the torque is not reached at any speed")
+    l_iq, r_iq = motor.l_q_h * i_q, motor.r_s_ohm * i_q
+    a = l_iq * l_iq + motor.psi_p_vs * motor.psi_p_vs
+    b = 2.0 * r_iq * motor.psi_p_vs
+    c = r_iq * r_iq - u_lim * u_lim          # products, not **: an absurd U_dc gives inf here, not OverflowError
+    denominator = b + math.sqrt(b * b - 4.0 * a * c)
+    if denominator <= 0.0:      # U underflows to 0 (a DC link of 1e-300 V): the limit is there at standstill
+        return FieldWeakeningOnset(None, None, i_q, u_lim, f"the voltage limit {u_lim:g} V is reached at standstill")
+    omega_e = -2.0 * c / denominator
+    speed_rpm = omega_e / motor.pole_pairs * 60.0 / (2.0 * math.pi)
+    if not math.isfinite(speed_rpm):
+        return FieldWeakeningOnset(None, None, i_q, u_lim, "the onset lies beyond any finite speed")
+    return FieldWeakeningOnset(speed_rpm, omega_e, i_q, u_lim)
+
+
+def field_weakening_onset_rpm(torque_nm: float, udc_v: float, motor: MotorSettings, voltage_margin: float,
+                              max_speed_rpm: float | None = None) -> float | None:
+    """Mechanical speed (rpm) at which field weakening sets in (field_weakening_onset), or None when
+    there is none, or it lies above `max_speed_rpm` (beyond any speed of interest, e.g. safety.max_speed_rpm)."""
+    onset = field_weakening_onset(torque_nm, udc_v, motor, voltage_margin).speed_rpm
+    if onset is None or (max_speed_rpm is not None and onset > max_speed_rpm):
+        return None
+    return onset

@@ -98,9 +98,41 @@ class JobPublic(BaseModel):
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None
-    result: ResultPublic | None = None
+    result: "ResultPublic | RefinementPublic | None" = Field(None, description="kind identification: the result; kind "
+                                                           "refinement: the refined map, its rounds, the cells added "
+                                                           "and the final validation")
     validation: "ValidationPublic | None" = Field(None, description="kind validation: the map's LUT measured in "
                                                                    "the drive's LUT mode, every cell")
+
+
+class RefinementRoundPublic(BaseModel):
+    round: int = Field(description="0: the source map (its non-ok cells measured again first); k: after k insertions")
+    map_id: int = Field(description="the map validated in this round")
+    validation_id: int | None = None
+    points: int = Field(description="validation points (grid points and midpoints)")
+    below_target: int = Field(description="points below the target (or not measured)")
+    grid_median_db: float | None = None
+    midpoint_median_db: float | None = None
+    min_db: float | None = None
+    inserted: dict[str, list[float]] = Field(default_factory=dict, description="axis values inserted after it")
+    remeasured: int = Field(0, description="cells identified again after it (their LUT entry missed at the cell)")
+    new_cells: int = Field(0, description="cells the inserted values added")
+
+
+class RefinementPublic(BaseModel):
+    """A map refined on the drive until its LUT holds (service/refinement.py)."""
+    refinement_id: int = Field(description="its sweep (kind refinement): pause, resume, cancel there")
+    source_map_id: int
+    map_id: int = Field(description="the refined map (the latest round's)")
+    state: str
+    phase: str = Field(description="measure | validate | done")
+    target_db: float
+    max_cells: int
+    cells_added: int = Field(description="cells identified by the refinement (new and re-measured)")
+    holds: bool = Field(description="every point of the latest validation reached target_db")
+    stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds)")
+    rounds: list[RefinementRoundPublic]
+    validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation of map_id")
 
 
 class SweepPointPublic(BaseModel):
@@ -129,6 +161,8 @@ class SweepPublic(BaseModel):
     started_at: str | None = None
     finished_at: str | None = None
     schedule_id: int | None = Field(None, description="the schedule that submitted this sweep (none: started by hand)")
+    kind: str = Field("sweep", description="sweep | refinement (a map refined on the drive: see `refinement`)")
+    refinement: RefinementPublic | None = None
     points: list[SweepPointPublic] | None = None
 
 
@@ -151,6 +185,10 @@ class MapCellPublic(BaseModel):
                                 "service/map_quality.py")
     outlier_reason: str | None = Field(None, description="outlier or smoothed: how far theta is from its neighbours'")
     smoothed_from: str | None = Field(None, description="smoothed: where the theta shown comes from")
+    filled: bool = Field(False, description="a cell that is not ok but carries a LUT entry by the fill rule "
+                         "(service/map_fill.py): theta_cos/theta_sin are the fill, never a result at its target; "
+                         "every export flags it apart from valid, and a download takes it only with fill")
+    fill_source: str | None = Field(None, description="filled cells: where the theta comes from")
 
 
 class MapQualityPublic(BaseModel):
@@ -182,6 +220,10 @@ class MapPublic(BaseModel):
                            "(?smooth=outliers); the stored map is never changed")
     validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation in the drive's "
                                                                          "LUT mode (cells: GET /maps/{id}/validation)")
+    filled_cells: int = Field(0, description="cells not ok that carry a fill (service/map_fill.py)")
+    refined_from: int | None = Field(None, description="a refined map: the map it was refined from")
+    provenance: dict[str, Any] | None = Field(None, description="how a refined map was made: refinement, rounds, "
+                                              "cells added")
 
 
 class MapSummaryPublic(BaseModel):
@@ -293,8 +335,11 @@ class ValidationCellPublic(BaseModel):
     plant_time_s: float | None = None
     speed_rpm_measured: float | None = None
     harmonic_frequency_hz: float | None = None
-    map_cell_status: str | None = Field(None, description="grid points: the map cell's status (only ok cells carry "
-                                                          "injection in the LUT)")
+    map_cell_status: str | None = Field(None, description="grid points: the map cell's status")
+    map_cell_filled: bool | None = Field(None, description="grid points: the cell went into the LUT with its fill "
+                                         "(not ok, service/map_fill.py)")
+    bench_time_s: dict[str, float] | None = Field(None, description="wall seconds of the point by what they were "
+                                                  "spent on: move, accounting, settle, measurement")
 
 
 class ValidationSummaryPublic(BaseModel):
@@ -323,6 +368,8 @@ class ValidationPublic(ValidationSummaryPublic):
 
 
 JobPublic.model_rebuild()       # their `validation` fields name the models defined above
+RefinementPublic.model_rebuild()
+SweepPublic.model_rebuild()
 MapPublic.model_rebuild()
 
 
@@ -401,10 +448,12 @@ def _recording(row: dict) -> RecordingPublic | None:
 def job_public(storage: Storage, job: dict) -> JobPublic:
     row = storage.get_result(job["result_id"]) if job.get("result_id") else None
     validation = storage.validation_of_job(job["id"]) if job["kind"] == "validation" else None
+    result = result_public(row) if row else None
+    if job["kind"] == "refinement" and job["sweep_id"] is not None:
+        result = refinement_public(storage, storage.get_sweep(job["sweep_id"]))
     return JobPublic(id=job["id"], kind=job["kind"], state=job["state"], request=json.loads(job["request_json"]),
                      sweep_id=job["sweep_id"], error=job["error"], created_at=job["created_at"],
-                     started_at=job["started_at"], finished_at=job["finished_at"],
-                     result=result_public(row) if row else None,
+                     started_at=job["started_at"], finished_at=job["finished_at"], result=result,
                      validation=validation_public(validation) if validation else None)
 
 
@@ -438,7 +487,21 @@ def sweep_public(storage: Storage, sweep: dict, with_points: bool = False) -> Sw
         plant_time_s=outcome["plant_time_s"], map_id=sweep["map_id"], error=sweep["error"],
         pause_reason=sweep.get("pause_reason"), bench_identity=sweep["bench_identity"],
         software_version=sweep["software_version"], created_at=sweep["created_at"], started_at=sweep["started_at"],
-        finished_at=sweep["finished_at"], schedule_id=sweep.get("schedule_id"), points=points)
+        finished_at=sweep["finished_at"], schedule_id=sweep.get("schedule_id"), points=points,
+        kind=sweep.get("kind") or "sweep",
+        refinement=refinement_public(storage, sweep) if sweep.get("kind") == "refinement" else None)
+
+
+def refinement_public(storage: Storage, sweep: dict) -> RefinementPublic:
+    state = json.loads(sweep["refinement_json"])
+    latest = storage.latest_validation(state["current_map_id"])
+    rounds = [RefinementRoundPublic(**r) for r in state["rounds"]]
+    holds = bool(rounds) and rounds[-1].below_target == 0 and rounds[-1].map_id == state["current_map_id"]
+    return RefinementPublic(refinement_id=sweep["id"], source_map_id=sweep["source_map_id"],
+                            map_id=state["current_map_id"], state=sweep["state"], phase=state["phase"],
+                            target_db=state["target_db"], max_cells=state["max_cells"],
+                            cells_added=state["cells_added"], holds=holds, stopped=state.get("stopped"),
+                            rounds=rounds, validation=validation_summary_public(latest) if latest else None)
 
 
 def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic | None:
@@ -451,12 +514,17 @@ def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic
     for c in row["cells"]:
         status = c["status"] or "missing"
         ok = status == "ok"
-        cells.append(MapCellPublic(
+        cell = MapCellPublic(
             torque_nm=c["torque_nm"], speed_rpm=c["speed_rpm"], udc_v=c["udc_v"], status=status,
             result_id=c["result_id"], gamma_deg=c["gamma_deg"] if ok else None, delta_deg=c["delta_deg"] if ok else None,
             theta_cos=c["theta_cos"] if ok else None, theta_sin=c["theta_sin"] if ok else None,
             suppression_db=c["suppression_db"], target_db=c.get("target_db"), noise_floor_db=c.get("noise_floor_db"),
-            error=c["error"]))
+            error=c["error"])
+        if not ok and c.get("fill_theta_cos") is not None:      # the fill rule's entry (service/map_fill.py)
+            cell.theta_cos, cell.theta_sin = c["fill_theta_cos"], c["fill_theta_sin"]
+            cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(cell.theta_cos, cell.theta_sin))
+            cell.filled, cell.fill_source = True, c["fill_source"]
+        cells.append(cell)
     counts = {status: 0 for status in CELL_STATUSES}
     for c in cells:
         counts[c.status] = counts.get(c.status, 0) + 1
@@ -488,6 +556,8 @@ def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic
     return MapPublic(id=row["id"], sweep_id=row["sweep_id"], harmonic_order=row["harmonic_order"], method=row["method"],
                      bench_identity=row["bench_identity"], software_version=row["software_version"],
                      created_at=row["created_at"], axes=axes, status_counts=counts, cells=cells,
+                     filled_cells=sum(1 for c in cells if c.filled), refined_from=row.get("refined_from"),
+                     provenance=json.loads(row["provenance_json"]) if row.get("provenance_json") else None,
                      quality=summary, smoothed=smooth,
                      validation=validation_summary_public(validation) if validation else None)
 
@@ -518,6 +588,12 @@ class LutDownloadPublic(BaseModel):
                                    "back (0x2001:2): 0x and 8 hex digits")
     bytes: int = Field(description="size of the LUT image")
     cells: int = Field(description="cells of the map")
-    valid_cells: int = Field(description="cells with status ok: the only ones the drive injects at")
+    valid_cells: int = Field(description="cells with status ok (VALID)")
+    filled_cells: int = Field(0, description="cells not ok that went in with their fill (service/map_fill.py); "
+                              "the drive injects at ok and filled cells")
+    fill: bool = Field(True, description="whether the fills were chosen for this download")
+    interpolation: str = Field("cartesian", description="what the drive interpolates between cells: cartesian "
+                               "(theta_cos, theta_sin) or polar (gamma, delta along the shortest arc)")
+    format_version: int = Field(3, description="LUT image format version (drivers/lut_image.py)")
     harmonic_order: int
-    forced: bool = Field(description="true when a partial map (some cells not ok) went in on force=true")
+    forced: bool = Field(description="true when a map with holes (cells that inject nothing) went in on force=true")

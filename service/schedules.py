@@ -25,7 +25,7 @@ from zoneinfo import ZoneInfo, available_timezones
 from cronsim import CronSim, CronSimError
 
 from service.identify import check_plant_time, parse_options
-from service.plans import Grid, SweepPlan, check_sweep_size
+from service.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
 from service.settings import Settings
 from service.storage import Storage
 
@@ -127,9 +127,10 @@ def _walk(cron: str, zone: ZoneInfo, after: datetime, until: datetime, limit: in
 def check_sweep(settings: Settings, sweep) -> None:
     """The checks POST /sweeps makes before queueing (size, bench limits of every setpoint, plant time),
     made when the schedule is created, so a schedule cannot fail at 3 am on a request refused at 5 pm."""
-    check_sweep_size(sweep.grid, sweep.confirm_large, settings.safety)
-    SweepPlan.from_grid(sweep.grid).dry_run(settings)
-    check_plant_time(sweep.grid.speed_rpm, sweep.method, sweep.options, settings)
+    grid = plan_grid(sweep.grid, getattr(sweep, "regime", None), settings).grid   # the grid the sweep will measure
+    check_sweep_size(grid, sweep.confirm_large, settings.safety)
+    SweepPlan.from_grid(grid).dry_run(settings)
+    check_plant_time(grid.speed_rpm, sweep.method, sweep.options, settings)
 
 
 # --- the service side of the routes and the CLI ----------------------------------------------------
@@ -253,9 +254,10 @@ class Scheduler:
         busy = self.storage.bench_has_work()
         request = json.loads(schedule["sweep_json"])
         try:
+            regime = RegimePlacement.model_validate(request["regime"]) if request.get("regime") else None
             sweep_id = self.engine.submit_sweep(Grid.model_validate(request["grid"]), request["method"],
                                                 parse_options(request["method"], request.get("options") or {}),
-                                                schedule_id=sid)
+                                                schedule_id=sid, regime=regime)
         except Exception as exc:        # e.g. bench limits tightened since the schedule was made
             log.warning("schedule %s: sweep refused: %s", sid, exc)
             self._record(sid, due, now, "failed", note=f"sweep refused: {exc}")

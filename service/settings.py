@@ -31,6 +31,9 @@ class CanSettings(_Section):
     drive_node: int = Field(5, ge=1, le=127)
     load_node: int = Field(6, ge=1, le=127)
     sdo_timeout_s: float = Field(0.5, gt=0)
+    options: dict[str, str | int | float | bool] = Field(
+        default_factory=dict, description="further keyword arguments of the python-can interface (they override "
+                                          "drivers.canopen_bus.INTERFACE_DEFAULTS, e.g. tcp_tune for socketcand)")
 
 
 class DaqSettings(_Section):
@@ -59,10 +62,14 @@ class MotorSettings(_Section):
 
 
 class ControlSettings(_Section):
-    """Nominal current control: bandwidth, controller rate, total control delay (eq. 17)."""
+    """Nominal current control: bandwidth, controller rate, total control delay (eq. 17), and the voltage margin
+    of the firmware's field weakening."""
     bandwidth_hz: float = Field(160.0, gt=0)
     control_rate_hz: float = Field(16_000.0, gt=0)
     delay_periods: float = Field(1.5, ge=0)
+    voltage_margin: float = Field(0.95, gt=0.5, le=1.0, description="the firmware's field weakening keeps the nominal "
+                                  "steady |u_dq| at this fraction of U_dc/sqrt(3) (the rest is headroom for its PI); "
+                                  "the predicted field-weakening onset of a sweep plan uses it")
 
 
 class MechanicsSettings(_Section):
@@ -140,7 +147,8 @@ class RecordingsSettings(_Section):
 class EmulatorSettings(_Section):
     scenario: str = "paper-bench"
     seed: int | None = None
-    speedup: float = Field(0.0, ge=0)
+    speedup: float = Field(1.0, ge=0, le=1000, description="1: the emulator streams in real time, as a real bench "
+                           "(what a bench pays is measured there); 0: as fast as the DAQ is read (simulation)")
     start_timeout_s: float = Field(60.0, gt=0)
 
 

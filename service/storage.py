@@ -143,13 +143,17 @@ class Storage:
 
     # --- sweeps ------------------------------------------------------------------------------------
     def create_sweep(self, method: str, harmonic_order: int, grid: dict, options: dict, total: int,
-                     bench_identity: str, software_version: str, schedule_id: int | None = None) -> int:
+                     bench_identity: str, software_version: str, schedule_id: int | None = None,
+                     kind: str = "sweep", source_map_id: int | None = None, refinement: dict | None = None) -> int:
+        """A sweep, or (kind `refinement`) a map's refinement: its state in `refinement` (service/refinement.py)."""
         with self.transaction() as conn:
             return conn.execute(
                 "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
-                "software_version, created_at, schedule_id) VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "software_version, created_at, schedule_id, kind, source_map_id, refinement_json) "
+                "VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (method, harmonic_order, json.dumps(grid), json.dumps(options), total, bench_identity, software_version,
-                 now_iso(), schedule_id)).lastrowid
+                 now_iso(), schedule_id, kind, source_map_id,
+                 json.dumps(refinement) if refinement is not None else None)).lastrowid
 
     def update_sweep(self, sweep_id: int, **fields: Any) -> None:
         _update(self, "sweeps", sweep_id, fields)
@@ -238,14 +242,24 @@ class Storage:
 
     # --- maps --------------------------------------------------------------------------------------
     def create_map(self, sweep_id: int | None, harmonic_order: int, method: str, axes: dict,
-                   cells: list[tuple[int | None, float, float, float]], bench_identity: str, software_version: str) -> int:
+                   cells: list[tuple[int | None, float, float, float]], bench_identity: str, software_version: str,
+                   fills: dict | None = None, refined_from: int | None = None, provenance: dict | None = None) -> int:
+        """A map of `cells` [(result_id, torque, speed, udc)]; `fills` {(torque, speed, udc): Fill} the
+        fill rule's entries for cells that are not ok (service/map_fill.py)."""
+        fills = fills or {}
         with self.transaction() as conn:
             map_id = conn.execute(
-                "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, created_at) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (sweep_id, harmonic_order, method, json.dumps(axes), bench_identity, software_version, now_iso())).lastrowid
-            conn.executemany("INSERT INTO map_cells (map_id, result_id, torque_nm, speed_rpm, udc_v) VALUES (?, ?, ?, ?, ?)",
-                             [(map_id, *cell) for cell in cells])
+                "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, "
+                "created_at, refined_from, provenance_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (sweep_id, harmonic_order, method, json.dumps(axes), bench_identity, software_version, now_iso(),
+                 refined_from, json.dumps(provenance) if provenance is not None else None)).lastrowid
+            rows = []
+            for result_id, t, n, u in cells:
+                fill = fills.get((t, n, u))
+                rows.append((map_id, result_id, t, n, u, fill.theta_cos if fill else None,
+                             fill.theta_sin if fill else None, fill.source if fill else None))
+            conn.executemany("INSERT INTO map_cells (map_id, result_id, torque_nm, speed_rpm, udc_v, fill_theta_cos, "
+                             "fill_theta_sin, fill_source) VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
             if sweep_id is not None:
                 conn.execute("UPDATE sweeps SET map_id = ? WHERE id = ?", (map_id, sweep_id))
             return map_id
@@ -257,7 +271,8 @@ class Storage:
                 return None
             cells = conn.execute(
                 "SELECT c.torque_nm, c.speed_rpm, c.udc_v, r.id AS result_id, r.status, r.theta_cos, r.theta_sin, "
-                "r.gamma_deg, r.delta_deg, r.suppression_db, r.target_db, r.noise_floor_db, r.error FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
+                "r.gamma_deg, r.delta_deg, r.suppression_db, r.target_db, r.noise_floor_db, r.error, c.fill_theta_cos, "
+                "c.fill_theta_sin, c.fill_source FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
                 "WHERE c.map_id = ? ORDER BY c.udc_v, c.speed_rpm, c.torque_nm", (map_id,)).fetchall()
             return {**dict(row), "cells": [dict(c) for c in cells]}
 

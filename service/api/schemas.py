@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_mo
 from service.identification.registry import METHODS
 from service.map_validation import ValidationOptions
 from service.operating_point import OperatingPoint
-from service.plans import Grid
+from service.plans import Grid, RegimePlacement
 from service.schedules import check_cron, check_timezone
 
 MethodName = Literal[tuple(METHODS)]
@@ -51,7 +51,11 @@ SweepCreate = _per_method(
     "Sweep", {"grid": (Grid, ...),
               "confirm_large": (bool, Field(False, description="required for a grid above "
                                                                "safety.max_sweep_points_unconfirmed points (a run of "
-                                                               "hours is started on purpose)"))},
+                                                               "hours is started on purpose)")),
+              "regime": (RegimePlacement | None, Field(None, description="place speed values around the predicted "
+                                                       "field-weakening onset of each torque (service.plans.plan_grid); "
+                                                       "the sweep stores and measures the planned grid (POST "
+                                                       "/sweeps/preview shows it)"))},
     {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}})
 
 

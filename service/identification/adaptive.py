@@ -31,7 +31,7 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
+from service.identification.common import (stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
                                            measure_reference, measure_step, meets, noise_floor_db, periods_for, spectrum_traces,
                                            target_amplitude, time_to_suppression, verdict)
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
@@ -92,7 +92,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         return result
     history = [_row(before, np.zeros(2))]
     uncompensated = before.phasor.amplitude
-    limit = target_amplitude(uncompensated, options.target_db)
+    limit = stop_amplitude(uncompensated, options)
 
     needed_gamma = abs(before.phasor.complex / s_hat)
     if needed_gamma > 1.5 * gamma_max_rad:

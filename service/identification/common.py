@@ -36,6 +36,11 @@ class MethodOptions(BaseModel):
     max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
     settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
                             "(the shaft mode a step excites is fitted, not waited out)")
+    stop_margin_db: float | None = Field(None, ge=0, le=20, description="keep improving until the residual is this "
+                                         "far below the target (ok is still judged at target_db): a cell meant for a "
+                                         "LUT must hold its target in a later session and in the drive's LUT mode. "
+                                         "Default: 0 for one identification, LUT_MARGIN_DB (6) for sweep and "
+                                         "refinement cells")
     decoupling: bool | None = Field(None, description="drive decoupling of nominal control and injection (0x2000:6, "
                                     "sec. 3.1) for this run; at low speed the nominal current loop counteracts the "
                                     "injection without it (sec. 2.4). Default: the settings' identification.decoupling. "
@@ -59,8 +64,17 @@ class Prior:
         return None if self.s_matrix is None else np.array(self.s_matrix, dtype=float)
 
 
+LUT_MARGIN_DB = 6.0     # sweep cells: their LUT entry holds 40 dB in a later session (measured: issue 17 note)
+
+
 def target_amplitude(uncompensated_fs: float, target_db: float) -> float:
     return uncompensated_fs * 10.0 ** (-target_db / 20.0)
+
+
+def stop_amplitude(uncompensated_fs: float, options: "MethodOptions") -> float:
+    """Where a method stops improving: the target plus its margin (options.stop_margin_db; ok is still
+    judged at target_db alone, common.verdict)."""
+    return target_amplitude(uncompensated_fs, options.target_db + (options.stop_margin_db or 0.0))
 
 
 def meets(window: Window, amplitude_limit_fs: float) -> bool:

@@ -42,7 +42,7 @@ def run_job(svc, method, op=OP1):
 
 def main() -> None:
     db = Path(tempfile.mkdtemp()) / "bench.db"
-    settings = load_settings(environ={}, overrides={"server.db_path": str(db)})
+    settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db)})
     with CalibrationService(settings) as svc:
         adaptive, wall_a = run_job(svc, "adaptive")
         print(f"adaptive at OP1: plant time to 40 dB {adaptive['details']['time_to_40db_s']} s, total plant time "
@@ -68,7 +68,7 @@ def main() -> None:
     # the same at OP1 over paper-bench and five seeded truths (R_s, L, psi_p +-20 %, resonance +-10 %, map)
     worst = {"adaptive": 0.0, "probe": 0.0}
     for seed in (None, 1, 2, 3, 4, 5):
-        settings = load_settings(environ={}, overrides={"server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
         with CalibrationService(settings) as svc:
             row = []
             for method in ("adaptive", "probe"):
@@ -82,7 +82,7 @@ def main() -> None:
     # (1074 Hz nominal, +-10 % by seed): paper-bench and eight seeded truths
     reached = {"adaptive": 0, "probe": 0}
     for seed in (None, 1, 2, 3, 4, 5, 6, 7, 8):
-        settings = load_settings(environ={}, overrides={"server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
         with CalibrationService(settings) as svc:
             row = []
             for method in ("probe", "adaptive"):

@@ -80,7 +80,7 @@ def main() -> None:
           f"{'failed':>6s} {'plant s':>8s} {'sweep wall s':>12s} {'valid. wall s':>13s}  worst cell")
     for seed in seeds:
         db = Path(tempfile.mkdtemp()) / "validation.db"
-        settings = load_settings(environ={}, overrides={"server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
         name = "paper-bench" if seed is None else f"paper-bench seed {seed}"
         with CalibrationService(settings) as svc:
             t0 = time.perf_counter()

@@ -61,7 +61,7 @@ def run_job(svc, method):
 
 def main() -> None:
     db = Path(tempfile.mkdtemp()) / "bench.db"
-    settings = load_settings(environ={}, overrides={"server.db_path": str(db)})
+    settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db)})
     in_run, writing = Timed(), Timed()
     in_run.wrap(RecordingStore, "recorder")         # the recorder made before the run (its MDF, temporary file)
     in_run.wrap(RunRecorder, "samples")

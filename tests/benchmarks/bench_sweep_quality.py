@@ -83,7 +83,7 @@ def main() -> None:
           f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}")
     for seed in seeds:
         db = Path(tempfile.mkdtemp()) / "sweeps.db"
-        settings = load_settings(environ={}, overrides={"server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
         with CalibrationService(settings) as svc:
             for method, decoupling in ((m, d) for d in args.decoupling.split(",") for m in args.methods.split(",")):
                 r = run_sweep(svc, method, decoupling == "on")

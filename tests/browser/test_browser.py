@@ -680,7 +680,8 @@ def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_p
 def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive_holds(service, browser, tmp_path):
     """Map panel, "Download to drive" (operator token): a complete map answers with the CRC the drive
     read back and the Bench panel shows that map id and CRC; a map with no ok cell is refused with the
-    service's message and no way around; a partial map is refused until "download anyway" (force)."""
+    service's message and no way around; a partial map goes with its fill, and without the fill it is
+    refused until "download anyway" (force)."""
     from drivers.lut_image import crc_hex, image_crc
     from service.lut_export import lut_image
     from service.public import map_public
@@ -721,10 +722,16 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
         assert f"Map {empty} not downloaded" in text and "no valid cell (0 of 4 ok)" in text, text
         assert page.locator('[data-testid="map-download-force"]').count() == 0
 
-        text = download(partial, "refused")
+        # the partial map's failed cell carries a fill: with fill (the default) no hole, without it refused
+        text = download(partial, "ok")
+        assert f"CRC-32 {crc[partial]}" in text and "3 of 4 cells ok" in text and "1 filled" in text, text
+        page.uncheck('[data-testid="map-download-fill"]')
+        text = click("map-download", "refused")
         assert "1 of 4 cells are not ok" in text, text
         text = click("map-download-force", "ok")
-        assert f"CRC-32 {crc[partial]}" in text and "3 of 4 cells ok" in text and "forced" in text, text
+        assert "3 of 4 cells ok" in text and "forced" in text, text
+        page.check('[data-testid="map-download-fill"]')
+        text = download(partial, "ok")
         page.wait_for_function(f"""() => document.querySelector('[data-testid="drive-lut"]').textContent
                                    === 'map {partial} · {crc[partial]}'""", timeout=15_000)
         page.screenshot(path=str(tmp_path / "map_download.png"), full_page=True)
@@ -841,5 +848,63 @@ def test_validate_on_drive_draws_the_suppression_over_grid_points_and_midpoints(
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         assert not [c for c in rec["console"] if "401" not in c], f"console errors: {rec['console']}"
         page.screenshot(path=str(tmp_path / "map_validation.png"), full_page=True)
+    finally:
+        context.close()
+
+
+def test_sweep_preview_shows_the_onset_per_torque_and_the_speeds_placed_around_it(service, browser, tmp_path):
+    """The Sweeps form's Preview (POST /sweeps/preview: no token, nothing queued). With "speeds around FW
+    onset" ticked, 1..4 N·m x 1000..2600 rpm at 12 V on paper-bench's nominal motor: the predicted onsets
+    2159, 2065, 1965, 1862 rpm, the six speeds placed at and 100 rpm around them marked on the speed
+    axis, 44 points and the bench-time estimate; unticked, the grid stays 20 points, onsets still shown."""
+    sweeps_before = {s["id"] for s in _api(service, "GET", "/sweeps")}
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.fill('[data-testid="token"]', "")                  # the preview needs no token
+        page.fill('[data-testid="sweep-torque"]', "1, 2, 3, 4")
+        page.fill('[data-testid="sweep-speed"]', "1000, 1400, 1800, 2200, 2600")
+        page.fill('[data-testid="sweep-udc"]', "12")
+        page.select_option('[data-testid="sweep-method"]', "probe")
+        page.check('[data-testid="sweep-regime"]')
+        page.fill('[data-testid="sweep-spacing"]', "100")
+        page.click('[data-testid="sweep-preview-btn"]')
+        box = page.locator('[data-testid="sweep-preview"]')
+        try:
+            box.wait_for(state="visible", timeout=10_000)
+        except Exception:
+            page.screenshot(path=str(tmp_path / "sweep_preview_failure.png"), full_page=True)
+            raise AssertionError("no preview shown: error=%r\nconsole: %s" % (
+                page.inner_text('[data-testid="sweep-error"]'), rec["console"] + rec["pageerrors"]))
+        onsets = page.eval_on_selector_all('[data-testid="sweep-preview-onset"]',
+                                           "els => els.map((e) => e.textContent)")
+        assert onsets == ["1 N·m: 2159 rpm", "2 N·m: 2065 rpm", "3 N·m: 1965 rpm", "4 N·m: 1862 rpm"], onsets
+        added = page.eval_on_selector_all('[data-testid="sweep-preview-speed"][data-added="1"]',
+                                          "els => els.map((e) => [e.dataset.speed, e.tagName, e.title])")
+        assert [a[0] for a in added] == ["1760", "1860", "1960", "2060", "2160", "2260"], added
+        assert all(tag == "STRONG" and "field-weakening onset" in why for _, tag, why in added), added
+        kept = page.eval_on_selector_all('[data-testid="sweep-preview-speed"][data-added="0"]',
+                                         "els => els.map((e) => e.dataset.speed)")
+        assert kept == ["1000", "1400", "1800", "2200", "2600"], kept
+        summary = page.inner_text('[data-testid="sweep-preview-summary"]')
+        assert summary.startswith("44 operating points (20 requested; 6 speed values added") and "would queue" in summary
+        estimate = page.inner_text('[data-testid="sweep-preview-estimate"]')
+        assert "Estimated bench time ≈ 38 s" in estimate and "estimate at speedup 1" in estimate, estimate
+        assert page.inner_text('[data-testid="sweep-preview-margin"]') == "0.95"
+        page.screenshot(path=str(tmp_path / "sweep_preview.png"), full_page=True)
+
+        # unticked: the grid as entered, the onsets still predicted
+        page.uncheck('[data-testid="sweep-regime"]')
+        assert box.get_attribute("data-stale") == "1"       # the shown plan is no longer the form's
+        page.click('[data-testid="sweep-preview-btn"]')
+        page.wait_for_function("""() => document.querySelector('[data-testid="sweep-preview-summary"]')
+                                        .textContent.startsWith('20 operating points')""", timeout=10_000)
+        assert page.locator('[data-testid="sweep-preview-speed"][data-added="1"]').count() == 0
+        assert page.locator('[data-testid="sweep-preview-onset"]').count() == 4
+        assert box.get_attribute("data-stale") is None
+        # nothing was queued, no error shown or thrown
+        assert {s["id"] for s in _api(service, "GET", "/sweeps")} == sweeps_before
+        assert page.is_hidden('[data-testid="sweep-error"]')
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
     finally:
         context.close()

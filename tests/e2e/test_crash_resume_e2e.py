@@ -114,3 +114,50 @@ def test_serve_emulate_leaves_no_emulator_after_kill9(tmp_path):
         os.kill(pid, signal.SIGKILL)
     svc.log.close()
     assert not left, f"emulator(s) {left} outlived the service"
+
+
+def test_an_orderly_stop_needs_no_reset_and_kill9_still_faults(emu, tmp_path):
+    """SIGTERM: drive and load disabled, then their heartbeat consumers disarmed before the service's
+    heartbeat stops, so the next start runs at once; kill -9 leaves them in FAULT and the refusal says
+    how to reset; a fault reset right after the restart works."""
+    db, bench = tmp_path / "restart.db", emu.bench_file(tmp_path)
+    op = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
+    svc = ServiceProcess(db, "--bench", str(bench))
+    svc.wait_ready()
+    api = Api(svc, db)
+    assert api.post("/bench/fault-reset").status_code == 200     # whatever an earlier test left on the shared drive
+    assert emu.control({"status": True})["faults"]["drive_heartbeat_consumer_ms"] > 0     # armed at connect
+    assert api.identify(op)["state"] == "done"
+    api.close()
+    svc.stop()                                                            # SIGTERM
+    faults = emu.control({"status": True})["faults"]
+    assert faults["drive_heartbeat_consumer_ms"] == 0 and faults["load_heartbeat_consumer_ms"] == 0, faults
+    assert faults["drive_state"] == "switch_on_disabled" and faults["load_state"] == "switch_on_disabled", faults
+
+    svc = ServiceProcess(db, "--bench", str(bench))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        assert api.get("/bench/status")["interlocks"]["tripped"] == []
+        job = api.identify(op)                                            # at once: no reset asked for
+        assert job["state"] == "done" and job["result"]["status"] == "ok", job
+        assert emu.control({"status": True})["faults"]["drive_heartbeat_consumer_ms"] > 0   # armed again
+        api.close()
+    finally:
+        kill9(svc)
+    # the dead service's heartbeat is missed: both devices fault (the drive within its 500 ms consumer time)
+    api.wait(lambda: emu.control({"status": True})["faults"]["drive_state"] == "fault", 30, "drive FAULT")
+
+    svc = ServiceProcess(db, "--bench", str(bench))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        job = api.identify(op)
+        assert job["state"] == "failed" and "fault-reset" in job["error"], job
+        r = api.post("/bench/fault-reset")                                # right after the restart
+        assert r.status_code == 200, r.text
+        job = api.identify(op)
+        assert job["state"] == "done" and job["result"]["status"] == "ok", job
+        api.close()
+    finally:
+        svc.stop()

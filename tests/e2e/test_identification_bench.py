@@ -36,7 +36,7 @@ class GammaRecorder:
 
 
 def _service(tmp_path, **overrides):
-    settings = load_settings(environ={}, overrides={"server.db_path": str(tmp_path / "id.db"), **overrides})
+    settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "id.db"), **overrides})
     return CalibrationService(settings)
 
 

@@ -1,5 +1,6 @@
 """LUT download end to end: `ripplecal serve` with plant_emulator in its own process, maps stored as
-finished sweeps store them. The rules (no ok cell: 422; partial: 409 unless force), the CRC (CRC-32
+finished sweeps store them. The rules (no ok cell: 422; holes: 409 unless force; a failed cell's fill goes
+in unless fill=false), the CRC (CRC-32
 of the image without its CRC field, so two maps give two CRCs), and the drive reporting which map it
 holds (0x2001:4 and :2) in /bench/status, read back at the download and again by the status poller."""
 from __future__ import annotations
@@ -27,6 +28,8 @@ def bench(tmp_path_factory):
     maps = {"full": stored_map(storage), "other": stored_map(storage, gamma_offset_deg=0.5),
             "partial": stored_map(storage, failing={CELLS[1]}), "empty": stored_map(storage, failing=set(CELLS))}
     expected_crc = {name: crc_hex(image_crc(lut_image(map_public(storage, i).model_dump()))) for name, i in maps.items()}
+    expected_crc["partial without fill"] = crc_hex(image_crc(lut_image(map_public(storage, maps["partial"]).model_dump(),
+                                                                       fill=False)))
     token = create_token(db)
     svc = ServiceProcess(db)
     try:
@@ -47,13 +50,18 @@ def test_download_rules_crc_and_the_map_the_drive_holds(bench):
 
     r = client.post(f"/maps/{maps['empty']}/download")
     assert r.status_code == 422 and "no valid cell (0 of 4 ok)" in r.json()["detail"][0]["msg"], r.text
-    r = client.post(f"/maps/{maps['partial']}/download")
+    # the failed cell lies between ok ones: it carries a fill; without the fill it would be a hole
+    r = client.post(f"/maps/{maps['partial']}/download", params={"fill": "false"})
     assert r.status_code == 409 and "1 of 4 cells are not ok" in r.json()["detail"] and "force" in r.json()["detail"]
     assert _lut_status(client)["map_id"] is None                  # nothing went to the drive
-    r = client.post(f"/maps/{maps['partial']}/download", params={"force": "true"})
+    r = client.post(f"/maps/{maps['partial']}/download", params={"force": "true", "fill": "false"})
     assert r.status_code == 200, r.text
-    assert r.json() == {"map_id": maps["partial"], "crc32": expected_crc["partial"], "bytes": 20 + 4 * 5 + 9 * 4 + 4,
-                        "cells": 4, "valid_cells": 3, "harmonic_order": 6, "forced": True}
+    assert r.json() == {"map_id": maps["partial"], "crc32": expected_crc["partial without fill"],
+                        "bytes": 20 + 4 * 5 + 9 * 4 + 4, "cells": 4, "valid_cells": 3, "filled_cells": 0, "fill": False,
+                        "interpolation": "cartesian", "format_version": 3, "harmonic_order": 6, "forced": True}
+    r = client.post(f"/maps/{maps['partial']}/download")          # with its fill (the default): no hole, no force
+    assert r.status_code == 200, r.text
+    assert (r.json()["crc32"], r.json()["filled_cells"], r.json()["forced"]) == (expected_crc["partial"], 1, False)
     lut = _lut_status(client)                                     # the drive's read-back at the download
     assert (lut["map_id"], lut["crc32"], lut["status"], lut["last_error"], lut["stale"]) == (
         maps["partial"], expected_crc["partial"], "in_force", None, False)

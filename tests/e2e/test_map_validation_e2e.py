@@ -11,7 +11,7 @@ import math
 import pytest
 
 from tests.support.bench_rig import served_bench
-from tests.support.sweep_checks import cells_not_ok
+from tests.support.sweep_checks import holes
 
 pytestmark = pytest.mark.e2e
 GRID = {"torque_nm": [2.0, 3.0], "speed_rpm": [1200, 1600], "udc_v": [12]}
@@ -44,7 +44,7 @@ def drive_is_safe(emu) -> dict:
 def test_validation_measures_grid_points_and_midpoints_in_lut_mode(rig, map_id):
     emu, api = rig
     m = api.get(f"/maps/{map_id}")
-    force = cells_not_ok(m) > 0
+    force = holes(m) > 0
     r = api.post(f"/maps/{map_id}/validate", {"force": force})
     assert r.status_code == 202, r.text
     assert r.json()["kind"] == "validation"

@@ -43,7 +43,7 @@ class SteppedClock:
 
 
 def _settings(db: Path, grace_s: float = 3600):
-    return load_settings(environ={}, overrides={"server.db_path": str(db), "schedules.tick_s": TICK_S,
+    return load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "schedules.tick_s": TICK_S,
                                                 "schedules.missed_grace_s": grace_s})
 
 

@@ -19,7 +19,7 @@ STATE_CHANGING = [
 
 @pytest.fixture
 def api(tmp_path):
-    service = CalibrationService(load_settings(environ={}, overrides={"server.db_path": str(tmp_path / "api.db")}))
+    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "api.db")}))
     with TestClient(create_app(service, manage_lifecycle=False)) as client:
         yield client, service
 

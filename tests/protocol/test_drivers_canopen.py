@@ -297,8 +297,10 @@ def test_drive_and_load_share_one_bus_concurrently(bus, drive, drive_peer, load_
 
 
 def test_bus_passes_only_the_options_that_are_set():
+    # socketcand: low-latency TCP by default (drivers.canopen_bus.INTERFACE_DEFAULTS), overridable
     assert CanBus("socketcand", "can0", host="127.0.0.1", port=29536).bus_kwargs() == {
-        "interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 29536}
+        "interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 29536, "tcp_tune": True}
+    assert CanBus("socketcand", "can0", host="127.0.0.1", port=1, tcp_tune=False).bus_kwargs()["tcp_tune"] is False
     assert CanBus("virtual", "bench").bus_kwargs() == {"interface": "virtual", "channel": "bench"}
     assert CanBus("pcan", "PCAN_USBBUS1", bitrate=500_000).bus_kwargs()["bitrate"] == 500_000
 

@@ -13,9 +13,11 @@ import time
 import numpy as np
 import pytest
 
+from drivers import daq_reader
 from drivers.daq_protocol import FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, FRAME_BYTES, encode_frames
 from drivers.daq_reader import DaqDisconnected, DaqReader, DaqTimeout
 from tests.support.pty_writer import PtyWriter
+from tests.support.waiting import wait_until
 
 
 def make_stream(n: int, first_seq: int = 0, seed: int = 1) -> tuple[bytes, dict[str, np.ndarray]]:
@@ -174,3 +176,95 @@ def test_a_million_samples_over_tcp_arrive_in_order():
         server.close()
         thread.join(3.0)
     assert got == n and last == int(first.index[0]) + n - 1
+
+
+def read_exactly(reader: DaqReader, n: int, timeout_s: float = 5.0):
+    """n samples by read_available (each call returns at least one): what a consumer that confirms
+    a setpoint as soon as it arrives does."""
+    blocks, got = [], 0
+    while got < n:
+        block = reader.read_available(n - got, timeout_s)
+        assert 1 <= len(block) <= n - got
+        blocks.append(block)
+        got += len(block)
+    return blocks
+
+
+def test_small_writes_are_handed_over_without_waiting_for_a_full_chunk(pty_writer, monkeypatch):
+    # a first-byte wait of a minute: a reader that waited for a full chunk (or its timeout) before
+    # handing over would hold each 10-frame write for that minute, and every read below would time out
+    monkeypatch.setattr(daq_reader, "SERIAL_READ_TIMEOUT_S", 60.0)
+    stream, _ = make_stream(50)
+    with DaqReader(pty_writer.path) as reader:
+        for k in range(5):
+            pty_writer.write(stream[k * 10 * FRAME_BYTES:(k + 1) * 10 * FRAME_BYTES])
+            blocks = read_exactly(reader, 10)
+            index = np.concatenate([b.index for b in blocks])
+            np.testing.assert_array_equal(index, np.arange(k * 10, (k + 1) * 10))
+    assert reader.counters.frames == 50
+
+
+def test_read_available_returns_what_is_there_and_at_most_max_n(pty_writer):
+    stream, _ = make_stream(100)
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write(stream[:10 * FRAME_BYTES])
+        wait_until(lambda: reader.buffered_samples == 10, 10.0, "10 samples queued")
+        ten = reader.read_available(1000, timeout_s=5.0)      # the 10 there, without waiting for 1000
+        np.testing.assert_array_equal(ten.index, np.arange(10))
+        pty_writer.write(stream[10 * FRAME_BYTES:])
+        wait_until(lambda: reader.buffered_samples == 90, 10.0, "90 samples queued")
+        first = reader.read_available(30, timeout_s=5.0)
+        rest = reader.read_available(1000, timeout_s=5.0)
+        np.testing.assert_array_equal(first.index, np.arange(10, 40))
+        np.testing.assert_array_equal(rest.index, np.arange(40, 100))
+        with pytest.raises(DaqTimeout, match="no sample arrived within 0.2 s"):
+            reader.read_available(1000, timeout_s=0.2)
+        with pytest.raises(ValueError):
+            reader.read_available(0, timeout_s=1.0)
+        pty_writer.close_master()
+        with pytest.raises(DaqDisconnected, match="disconnected"):
+            reader.read_available(10, timeout_s=5.0)
+
+
+def test_a_flush_is_counted_as_the_flushs_not_as_line_errors(pty_writer):
+    n, skipped = 200, 37
+    stream, _ = make_stream(1000)
+    with DaqReader(pty_writer.path, max_buffered_samples=n) as reader:
+        # n frames fill the queue (the thread pauses), the next ones and half a frame wait in the OS
+        pty_writer.write(stream[:(n + 50) * FRAME_BYTES + 5])
+        wait_until(lambda: reader.buffered_samples == n, 10.0, "the queue full")
+        assert reader.discard_buffered(flush_port=True) == n
+        # the DAQ goes on mid-frame: the rest of a frame, then whole ones (frames between were flushed)
+        resume = n + 50 + skipped
+        pty_writer.write(stream[resume * FRAME_BYTES + 5:(resume + 100) * FRAME_BYTES])
+        after = reader.read(99, timeout_s=5.0)
+        counters, health = reader.counters, reader.health()
+    np.testing.assert_array_equal(after.index, np.arange(resume + 1, resume + 100))
+    assert after.gap_before[0] and not after.gap_before[1:].any()     # the stream has a hole there
+    assert (counters.crc_failures, counters.sequence_gaps, counters.samples_lost) == (0, 0, 0)
+    assert (counters.bytes_skipped, counters.resyncs) == (0, 0)
+    assert counters.flush_resyncs == 1 and counters.flush_bytes_skipped == FRAME_BYTES - 5
+    assert counters.flush_samples_lost == resume + 1 - n
+    assert health["flushes"] == 1 and health["flush_resyncs"] == 1 and health["sequence_gaps"] == 0
+
+
+def test_whole_frames_missing_after_a_backpressure_pause_are_an_overrun(pty_writer):
+    n = 300
+    stream, _ = make_stream(2000)
+    frame = lambda k: stream[k * FRAME_BYTES:(k + 1) * FRAME_BYTES]   # noqa: E731
+    with DaqReader(pty_writer.path, max_buffered_samples=n) as reader:
+        # before any pause, whole frames missing (100..102) are a sequence gap: no known cause
+        pty_writer.write(b"".join(frame(k) for k in range(n + 3) if not 100 <= k < 103))
+        wait_until(lambda: reader.buffered_samples == n, 10.0, "the queue full")
+        # nobody consumes: the reader pauses, a DAQ streaming on overflows and drops frames n+3..n+499
+        pty_writer.write(b"".join(frame(k) for k in range(n + 500, n + 700)))
+        before = reader.read(n, timeout_s=5.0)
+        after = reader.read(200, timeout_s=5.0)
+        counters, health = reader.counters, reader.health()
+    assert np.flatnonzero(before.gap_before).tolist() == [100]
+    np.testing.assert_array_equal(after.index, np.arange(n + 500, n + 700))
+    assert after.gap_before[0] and not after.gap_before[1:].any()
+    assert counters.sequence_gaps == 1 and counters.samples_lost == 3
+    assert counters.overruns == 1 and counters.overrun_samples_lost == 497
+    assert counters.crc_failures == 0
+    assert health["overruns"] == 1 and health["overrun_samples_lost"] == 497

@@ -1,5 +1,6 @@
 """Drive firmware (in process, no CAN): LUT download, CRC and map id read-back, refusal of bad images,
-LUT-mode injection = interpolated theta, the eq. 11 switch 0x2000:8."""
+LUT-mode injection = interpolated theta (format version 3: polar and cartesian, filled cells, non-uniform
+axes; a version 2 image still taken), the eq. 11 switch 0x2000:8."""
 from __future__ import annotations
 
 import math
@@ -65,7 +66,8 @@ def test_download_crc_read_back_and_refusal_keeps_old_lut(drive):
                 b"XCL1" + good[4:],                                     # magic
                 good[:40],                                              # length
                 with_repeated_torque_value(good),                       # axis
-                good[:4] + b"\x01\x00" + good[6:]):                      # format version 1
+                good[:4] + b"\x01\x00" + good[6:],                     # format version 1
+                good[:4] + b"\x04\x00" + good[6:]):                     # format version 4
         with pytest.raises(canopen.SdoAbortedError) as exc:
             write(drive, 0x2001, 1, bad)
         assert exc.value.code == 0x08000020
@@ -128,3 +130,70 @@ def test_voltage_estimate_switch_is_a_setpoint(drive):
         write(drive, 0x2000, 8, 2)
     write(drive, 0x2000, 8, 0)
     assert drive.chunk_setpoints(sp, 12.0) and sp[ph.S_VEST] == 0.0 and sp[ph.S_SYNC] == 0.0
+
+
+def _lut_mode_theta(drive, torque_nm: float, speed_rpm: float, udc_v: float = 12.0) -> tuple[float, float]:
+    """The theta the control loop gets in LUT mode at an operating point (all setpoints applied first)."""
+    sp = ph.new_setpoints()
+    while drive.chunk_setpoints(sp, udc_v):
+        pass
+    drive.torque_nm, drive.speed_rpm = torque_nm, speed_rpm
+    drive.chunk_setpoints(sp, udc_v)
+    return float(sp[ph.S_THETA_COS]), float(sp[ph.S_THETA_SIN])
+
+
+def _theta_deg(gamma_deg: float, delta_deg: float) -> tuple[float, float]:
+    g, d = math.radians(gamma_deg), math.radians(delta_deg)
+    return g * math.cos(d), -g * math.sin(d)
+
+
+def _gamma_delta_deg(tc: float, ts: float) -> tuple[float, float]:
+    return math.degrees(math.hypot(tc, ts)), math.degrees(-math.atan2(ts, tc)) % 360.0
+
+
+def test_v3_polar_image_with_a_filled_cell_on_a_non_uniform_axis(drive):
+    """Torque 1, 2, 4 Nm (non-uniform); speed 1000, 2000 rpm. Cells at 1000 rpm: gamma 3 deg at delta
+    350, 10 (filled), 10 deg; at 2000 rpm: no entry, ok 3 deg at 90 deg, ok 3 deg at 10 deg."""
+    cells = [(3.0, 350.0), (3.0, 10.0), (3.0, 10.0), (0.0, 0.0), (3.0, 90.0), (3.0, 10.0)]
+    thetas = [_theta_deg(*c) for c in cells]
+    flags = [1, 2, 1, 0, 1, 1]
+    blob = lut_image.encode(6, [1.0, 2.0, 4.0], [1000.0, 2000.0], [12.0], [t[0] for t in thetas],
+                            [t[1] for t in thetas], flags, map_id=77, interpolation="polar")
+    write(drive, 0x2001, 1, blob)
+    assert (read(drive, 0x2001, 4), read(drive, 0x2001, 3)) == (77, 1)
+    assert (drive.lut.format_version, drive.lut.interpolation) == (3, "polar")
+    write(drive, 0x2000, 2, 2)
+    # the filled cell's own grid point: its fill
+    assert _gamma_delta_deg(*_lut_mode_theta(drive, 2.0, 1000.0)) == pytest.approx((3.0, 10.0), abs=1e-5)
+    # across the wrap, midway between 350 and 10 deg: 0 deg, gamma 3 deg
+    g, d = _gamma_delta_deg(*_lut_mode_theta(drive, 1.5, 1000.0))
+    assert g == pytest.approx(3.0, rel=1e-6) and min(d, 360.0 - d) == pytest.approx(0.0, abs=1e-5)
+    # 2.5 Nm is 1/4 of 2 .. 4 Nm: weights 3/4, 1/4 on the 2000 rpm line: delta 90 -> 10 deg: 70 deg
+    assert _gamma_delta_deg(*_lut_mode_theta(drive, 2.5, 2000.0)) == pytest.approx((3.0, 70.0), abs=1e-5)
+    # midway (1.5 Nm) on the 2000 rpm line: the corner without an entry gives gamma 0, no phase
+    assert _gamma_delta_deg(*_lut_mode_theta(drive, 1.5, 2000.0)) == pytest.approx((1.5, 90.0), abs=1e-5)
+    # gamma_max clamps the polar result as any other
+    write(drive, 0x2000, 5, math.radians(2.0))
+    assert _gamma_delta_deg(*_lut_mode_theta(drive, 2.5, 2000.0)) == pytest.approx((2.0, 70.0), abs=1e-5)
+
+
+def test_a_version_2_image_is_still_taken_and_interpolated_cartesian(drive):
+    """Built here with struct as the version 2 encoder wrote it (byte 7 reserved, valid 0/1)."""
+    tc, ts = [0.02, 0.04, 0.0, 0.01], [-0.01, 0.03, 0.0, -0.02]
+    body = struct.pack("<4sHBBHHHHI", b"RCL1", 2, 6, 0, 2, 2, 1, 0, 12)
+    body += struct.pack("<5f", 1.0, 4.0, 1000.0, 2000.0, 12.0) + struct.pack("<4f", *tc) + struct.pack("<4f", *ts)
+    body += bytes([1, 1, 0, 1])
+    blob = body + struct.pack("<I", zlib.crc32(body))
+    write(drive, 0x2001, 1, blob)
+    assert (read(drive, 0x2001, 2), read(drive, 0x2001, 4), read(drive, 0x2001, 3)) == (zlib.crc32(body), 12, 1)
+    assert (drive.lut.format_version, drive.lut.interpolation) == (2, "cartesian")
+    write(drive, 0x2000, 2, 2)
+    # 1.75 Nm is 1/4 of 1 .. 4 Nm, 1250 rpm 1/4 of 1000 .. 2000 rpm; the invalid cell counts 0
+    w = {0: 0.75 * 0.75, 1: 0.25 * 0.75, 2: 0.75 * 0.25, 3: 0.25 * 0.25}
+    expected = (sum(w[k] * tc[k] for k in w), sum(w[k] * ts[k] for k in w))
+    assert _lut_mode_theta(drive, 1.75, 1250.0) == pytest.approx(expected, abs=1e-8)
+    # a version 2 image with a filled flag (2) does not exist: refused, the LUT in force stays
+    bad = body[:-1] + b"\x02"
+    with pytest.raises(canopen.SdoAbortedError):
+        write(drive, 0x2001, 1, bad + struct.pack("<I", zlib.crc32(bad)))
+    assert read(drive, 0x2001, 4) == 12 and read(drive, 0x2001, 3) == 2

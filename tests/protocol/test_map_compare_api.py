@@ -22,7 +22,7 @@ def with_outlier(p):
 
 @pytest.fixture(scope="module")
 def api(tmp_path_factory):
-    service = CalibrationService(load_settings(environ={}, overrides={
+    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, 
         "server.db_path": str(tmp_path_factory.mktemp("maps") / "api.db")}))
     with TestClient(create_app(service, manage_lifecycle=False)) as client:
         maps = {"smooth": make_map(service.storage, GRID, smooth_theta),

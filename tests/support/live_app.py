@@ -16,7 +16,7 @@ from service.settings import load_settings
 
 @contextlib.contextmanager
 def started_service(db_dir: Path, **overrides) -> Iterator[CalibrationService]:
-    service = CalibrationService(load_settings(environ={}, overrides={"server.db_path": str(db_dir / "api.db"),
+    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db_dir / "api.db"),
                                                                       **overrides}))
     service.start(status_period_s=None)
     try:

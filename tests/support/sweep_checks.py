@@ -24,6 +24,12 @@ def assert_points_measured_honestly(points: list[dict], min_ok: int) -> None:
 
 
 def cells_not_ok(m: dict) -> int:
-    """Cells of a map (as GET /maps/{id} answers) that are not ok: a download refuses the map unless
-    forced when there is one (status_counts has no key for a status no cell has)."""
+    """Cells of a map (as GET /maps/{id} answers) that are not ok (status_counts has no key for a status
+    no cell has)."""
     return len(m["cells"]) - m["status_counts"].get("ok", 0)
+
+
+def holes(m: dict) -> int:
+    """Cells that would inject nothing in a download with the fill (the default): neither ok nor filled.
+    A download refuses the map unless forced when there is one."""
+    return sum(1 for c in m["cells"] if c["status"] != "ok" and not c.get("filled"))

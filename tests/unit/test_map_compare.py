@@ -119,3 +119,38 @@ def test_not_ok_cells_and_missing_s_are_said_per_cell(storage):
     assert ok.delta_theta_deg == pytest.approx(0.8, rel=1e-12)
     assert (cmp.summary.compared, cmp.summary.not_compared, cmp.summary.without_s) == (4, 2, 4)
     assert cmp.summary.median_predicted_suppression_db is None
+
+
+def test_a_refined_map_against_the_coarse_one_compares_on_the_shared_points(storage):
+    """A refinement inserts speed breakpoints (1500, 1800 rpm) between the coarse ones: the shared
+    points are compared with the closed-form deltas, the inserted ones are listed as only in b."""
+    coarse = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0, 2600.0], "udc_v": [12.0]}
+    refined = {**coarse, "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0]}
+    cmp = compare_maps(storage, make_map(storage, coarse, base), make_map(storage, refined, shifted))
+    assert not cmp.same_axes and cmp.summary.compared == 9 and cmp.summary.not_compared == 0
+    assert {(c.torque_nm, c.speed_rpm) for c in cmp.cells} == {(t, n) for t in coarse["torque_nm"] for n in coarse["speed_rpm"]}
+    assert {(p.torque_nm, p.speed_rpm) for p in cmp.only_in_b} == {(t, n) for t in coarse["torque_nm"] for n in (1500.0, 1800.0)}
+    assert cmp.only_in_a == [] and cmp.summary.only_in_b == 6
+    for c in cmp.cells:
+        p = (c.torque_nm, c.speed_rpm, c.udc_v)
+        ga, da = _gamma_delta_deg(*base(p))
+        gb, db = _gamma_delta_deg(*shifted(p))
+        assert c.delta_gamma_deg == pytest.approx(gb - ga, abs=1e-9)
+        assert c.delta_delta_deg == pytest.approx((db - da + 180.0) % 360.0 - 180.0, abs=1e-9)
+        assert c.delta_theta_deg == pytest.approx(0.8, rel=1e-12)
+
+
+def test_a_filled_cell_is_not_compared_and_said_filled(storage):
+    """A filled cell carries a fill, not a measurement (service/map_fill.py): not compared, its note
+    names the fill and its source; the other cells compare as before."""
+    from service.map_compare import compare_public
+    a_id, b_id = make_map(storage, GRID, base), make_map(storage, GRID, shifted)
+    a, b = map_public(storage, a_id), map_public(storage, b_id)
+    source = "interpolated (cartesian) from ok cells: torque_nm between 1 and 4"
+    b.cells[1] = b.cells[1].model_copy(update={"status": "below_target", "filled": True, "fill_source": source})
+    results = storage.results_by_id([c.result_id for c in a.cells if c.result_id is not None])
+    cmp = compare_public(a, b, results)
+    cell = next(c for c in cmp.cells if (c.torque_nm, c.speed_rpm) == (b.cells[1].torque_nm, b.cells[1].speed_rpm))
+    assert not cell.compared and cell.delta_theta_deg is None
+    assert f"map b has below_target (filled: {source})" in cell.note and "a fill is not compared" in cell.note
+    assert (cmp.summary.compared, cmp.summary.not_compared) == (5, 1)

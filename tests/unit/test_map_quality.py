@@ -137,12 +137,14 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
     comments = [line for line in text.splitlines() if line.startswith("#")]
     assert any("quality: 1 outlier(s) (2 Nm / 1500 rpm / 12 V)" in line for line in comments)
     rows = list(csv.reader(io.StringIO("\n".join(line for line in text.splitlines() if not line.startswith("#")))))
+    # the columns before: as they were; filled and fill_source appended (issue "The LUT holds where the motor runs")
     assert rows[0] == ["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
-                       "suppression_db", "status"]
+                       "suppression_db", "status", "filled", "fill_source"]
     doc = json.loads(export_map(m, "json"))
     assert set(doc["cells"][0]) == {"torque_nm", "speed_rpm", "udc_v", "status", "result_id", "gamma_deg", "delta_deg",
-                                    "theta_cos", "theta_sin", "suppression_db", "target_db", "noise_floor_db", "error"}
-    assert doc["format_version"] == 1 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
+                                    "theta_cos", "theta_sin", "suppression_db", "target_db", "noise_floor_db", "error",
+                                    "filled", "fill_source"}
+    assert doc["format_version"] == 2 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
     assert doc["quality"]["cells"][0]["outlier_reason"].startswith("theta ")
     assert "quality: 1 outlier(s)" in export_map(m, "c") and "quality: 1 outlier(s)" in export_map(m, "dcm")
     # the smoothed export: same columns, one row changed, said in the header
@@ -186,3 +188,58 @@ def test_every_outlier_of_a_noisy_map_keeps_the_reason_it_was_flagged_for():
     q = map_quality.assess(cells, GRID)
     outliers = [c for c in q.cells.values() if c.quality == "outlier"]
     assert outliers and all(c.fit is not None and "deg from the median" in c.reason for c in outliers)
+
+
+# a refined map: speed breakpoints inserted where the map bends (non-uniform spacing)
+REFINED = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0], "udc_v": [12.0]}
+
+
+def _cells(axes, theta, status=None):
+    status = status or {}
+    return [{"torque_nm": t, "speed_rpm": n, "udc_v": u, "status": status.get((t, n, u), "ok"),
+             "theta_cos": theta((t, n, u))[0], "theta_sin": theta((t, n, u))[1]}
+            for u in axes["udc_v"] for n in axes["speed_rpm"] for t in axes["torque_nm"]]
+
+
+def test_refined_map_fit_interpolates_by_position():
+    """(2 Nm, 1800 rpm) sits 300 rpm above 1500 and 200 below 2000: the fit of a linear map is its
+    linear value there (the plain median of the four neighbours would lean to 1500 rpm); a planted
+    offset is flagged with exactly its size, and the smoothed view gives back the linear value."""
+    at = (2.0, 1800.0, 12.0)
+    q = map_quality.assess(_cells(REFINED, linear), REFINED)
+    assert q.count("outlier") == 0 and q.count("consistent") == 15
+    assert q.cells[at].fit == pytest.approx(linear(at), abs=1e-15)
+    assert q.cells[at].deviation_rad == pytest.approx(0.0, abs=1e-15)
+    assert q.gradient_rad_per_unit["speed_rpm"] == pytest.approx(np.hypot(*G_N), rel=1e-9)
+
+    spoiled = _cells(REFINED, planted(at, 3 * OFFSET))
+    q = map_quality.assess(spoiled, REFINED)
+    assert [k for k, c in q.cells.items() if c.quality == "outlier"] == [at]
+    c = q.cells[at]
+    assert c.deviation_rad == pytest.approx(np.hypot(*(3 * OFFSET)), rel=1e-9)
+    # expected step: median of the steps to the 4 neighbours (1 Nm twice, 300 rpm, 200 rpm)
+    steps = sorted([np.hypot(*G_T), np.hypot(*G_T), np.hypot(*G_N) * 300.0, np.hypot(*G_N) * 200.0])
+    assert c.expected_step_rad == pytest.approx((steps[1] + steps[2]) / 2, rel=1e-9)
+    smoothed = map_quality.smoothing(q, 1, {})
+    assert smoothed[at][0] == pytest.approx(linear(at), abs=1e-15)
+
+
+def test_refined_map_through_storage_has_no_outlier(storage):
+    m = map_public(storage, make_map(storage, REFINED, linear)).model_dump()
+    assert m["axes"]["speed_rpm"] == REFINED["speed_rpm"]
+    assert (m["quality"]["outliers"], m["quality"]["unchecked"], m["quality"]["consistent"]) == (0, 0, 15)
+
+
+def test_filled_cells_are_neither_judged_nor_references():
+    """A filled cell carries a fill, not a measurement: with a wild theta it is no outlier and no
+    neighbour of anyone; its ok neighbours are judged as if it had no theta."""
+    at = (2.0, 1800.0, 12.0)
+    cells = _cells(REFINED, linear, {at: "below_target"})
+    for c in cells:
+        if (c["torque_nm"], c["speed_rpm"], c["udc_v"]) == at:
+            c.update(filled=True, fill_source="measured", theta_cos=1.0, theta_sin=-1.0)
+    q = map_quality.assess(cells, REFINED)
+    assert at not in q.cells and q.count("outlier") == 0
+    assert all(at not in c.neighbours for c in q.cells.values())
+    # (2 Nm, 1500 rpm) lost its neighbour above: 3 left (1 and 3 Nm, 1000 rpm)
+    assert len(q.cells[(2.0, 1500.0, 12.0)].neighbours) == 3

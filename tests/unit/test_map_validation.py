@@ -67,10 +67,12 @@ def storage(tmp_path):
 def test_empty_and_partial_maps_are_refused_unless_forced(storage):
     full = build_map_from_sweep(storage, sweep_with_results(storage))
     check_validatable(storage, full, force=False)
+    # one failed cell between ok ones carries the fill rule's entry: no hole while the fill goes in
     partial = build_map_from_sweep(storage, sweep_with_results(storage, failing={(2.5, 1000.0)}))
+    check_validatable(storage, partial, force=False)
     with pytest.raises(ValidationRefused, match="1 of 4 cells are not ok.*force"):
-        check_validatable(storage, partial, force=False)
-    check_validatable(storage, partial, force=True)
+        check_validatable(storage, partial, force=False, fill=False)
+    check_validatable(storage, partial, force=True, fill=False)
     empty = build_map_from_sweep(storage, sweep_with_results(
         storage, failing={(1.0, 1000.0), (2.5, 1000.0), (1.0, 2000.0), (2.5, 2000.0)}))
     with pytest.raises(ValidationRefused, match="no valid"):

@@ -72,8 +72,9 @@ class RecordingEngine:
     def __init__(self):
         self.submitted: list[dict] = []
 
-    def submit_sweep(self, grid, method, options, schedule_id=None) -> int:
-        self.submitted.append({"grid": grid.model_dump(), "method": method, "schedule_id": schedule_id})
+    def submit_sweep(self, grid, method, options, schedule_id=None, regime=None) -> int:
+        self.submitted.append({"grid": grid.model_dump(), "method": method, "schedule_id": schedule_id,
+                               "regime": regime})
         return None
 
 

@@ -54,7 +54,10 @@ def test_failed_point_keeps_the_others(storage):
     assert storage.get_sweep(sweep_id)["done_points"] == 4
     m = map_public(storage, build_map_from_sweep(storage, sweep_id)).model_dump()
     bad = [c for c in m["cells"] if c["status"] == "failed"]
-    assert len(bad) == 1 and bad[0]["theta_cos"] is None and "boom" in bad[0]["error"]
+    assert len(bad) == 1 and "boom" in bad[0]["error"]
+    # its LUT entry is the fill rule's (held from an ok neighbour on its lines), flagged, never ok
+    assert bad[0]["filled"] and bad[0]["fill_source"].startswith(("held", "interpolated"))
+    assert bad[0]["theta_cos"] is not None and m["filled_cells"] == 1
 
 
 def test_csv_export_carries_axes_units_order_version(storage):
@@ -127,13 +130,14 @@ def test_dcm_export_has_one_map_per_component(storage):
     m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
     text = export_map(m, "dcm")
     assert "KONSERVIERUNG_FORMAT 2.0" in text
-    assert text.count("KENNFELD ") == 3 and text.count("END") == 3
+    assert text.count("KENNFELD ") == 4 and text.count("END") == 4      # THETA_COS, THETA_SIN, VALID, FILLED
     assert "ST/X   1   2.5" in text and __version__ in text
 
 
 def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(storage, tmp_path, caplog):
-    """dcmReader (the DCM parser of the calibration tools' users) reads the three KENNFELDs with their
-    axes; VALID is 0 exactly at the cell that failed, THETA there is 0 (no injection)."""
+    """dcmReader (the DCM parser of the calibration tools' users) reads the four KENNFELDs with their
+    axes; VALID is 0 exactly at the cell that failed; THETA there is its fill if the map carries one
+    (FILLED = 1), else 0 (no injection)."""
     from dcmReader.dcm_reader import DcmReader
     m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
     path = tmp_path / "lut.dcm"
@@ -143,7 +147,8 @@ def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(stora
         reader.read(str(path))
     assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text   # no dimension errors
     maps = {k.name: k for k in reader.get_characteristic_maps()}
-    assert set(maps) == {"RIPPLECAL_H6_THETA_COS_U12V", "RIPPLECAL_H6_THETA_SIN_U12V", "RIPPLECAL_H6_VALID_U12V"}
+    assert set(maps) == {"RIPPLECAL_H6_THETA_COS_U12V", "RIPPLECAL_H6_THETA_SIN_U12V", "RIPPLECAL_H6_VALID_U12V",
+                         "RIPPLECAL_H6_FILLED_U12V"}
     valid = maps["RIPPLECAL_H6_VALID_U12V"]
     assert (valid.x_dimension, valid.y_dimension, valid.unit_x, valid.unit_y) == (2, 2, "Nm", "rpm")
     # values[speed][torque]
@@ -151,7 +156,9 @@ def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(stora
     cells = {(c["torque_nm"], c["speed_rpm"]): c for c in m["cells"]}
     for (t, n), c in cells.items():
         theta = maps["RIPPLECAL_H6_THETA_COS_U12V"].values[n][t]
-        assert theta == (pytest.approx(c["theta_cos"], rel=1e-7) if c["status"] == "ok" else 0)
+        carried = c["status"] == "ok" or c.get("filled")
+        assert theta == (pytest.approx(c["theta_cos"], rel=1e-7) if carried else 0)
+        assert maps["RIPPLECAL_H6_FILLED_U12V"].values[n][t] == (1 if c.get("filled") else 0)
     assert cells[(1.0, 2000.0)]["status"] == "failed"
 
 

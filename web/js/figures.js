@@ -36,11 +36,12 @@ export function onClick(divId, fn) {
 // gamma = |theta| (>= 0, clamped to gamma_max); delta = -atan2(theta_sin, theta_cos) is a phase,
 // so it gets a cyclic colour scale over a full turn.
 const CYCLIC = [[0, "#3b6fb6"], [0.25, "#3aa57a"], [0.5, "#e8c547"], [0.75, "#d1495b"], [1, "#3b6fb6"]];
+// fill: a filled cell (not ok, carrying a fill: service/map_fill.py) shows its fill's value, hatched
 export const MAP_QUANTITIES = [
   { key: "gamma_deg", title: "γ — injection amplitude", unit: "deg", cbar: "γ (°)", sym: "γ",
-    scale: "Viridis", range: "zero", digits: 2 },
+    scale: "Viridis", range: "zero", digits: 2, fill: true },
   { key: "delta_deg", title: "δ — injection phase", unit: "deg", cbar: "δ (°)", sym: "δ",
-    scale: CYCLIC, range: "phase", digits: 1 },
+    scale: CYCLIC, range: "phase", digits: 1, fill: true },
   { key: "suppression_db", title: "suppression of the h-th harmonic", unit: "dB", cbar: "dB",
     sym: "suppression", scale: "Cividis", range: "fixed", zmin: 0, zmax: 80, digits: 1 },
 ];
@@ -68,7 +69,29 @@ export function mapSlice(map, udc) {
   return { udc, cells, xs: axis("torque_nm"), ys: axis("speed_rpm") };
 }
 
-// One heatmap of a MAP_QUANTITIES entry; blank where a cell has no valid value.
+// gamma, delta (deg) of a cell's theta: gamma = |theta|, delta = -atan2(theta_sin, theta_cos) in [0, 360)
+function cellValue(c, key) {
+  if (c[key] !== null && c[key] !== undefined) return c[key];
+  if ((key !== "gamma_deg" && key !== "delta_deg") || c.theta_cos === null || c.theta_cos === undefined) return null;
+  if (key === "gamma_deg") return Math.hypot(c.theta_cos, c.theta_sin) * 180 / Math.PI;
+  return ((-Math.atan2(c.theta_sin, c.theta_cos) * 180 / Math.PI) % 360 + 360) % 360;
+}
+
+// The edges of the cells around the breakpoints of a (non-uniform) axis: halfway between
+// neighbours, as far out at the ends as the first and last half-intervals (a one-value axis: +-0.5).
+function cellEdges(values) {
+  const v = values.map(Number);
+  if (v.length === 1) return [[v[0] - 0.5, v[0] + 0.5]];
+  return v.map((x, i) => {
+    const lo = i === 0 ? x - (v[1] - v[0]) / 2 : (v[i - 1] + x) / 2;
+    const hi = i === v.length - 1 ? x + (x - v[i - 1]) / 2 : (x + v[i + 1]) / 2;
+    return [lo, hi];
+  });
+}
+
+// One heatmap of a MAP_QUANTITIES entry; blank where a cell has no valid value. The axes are
+// numeric: each breakpoint at its real position (a refined map's inserted speeds sit where they are).
+// Filled cells (q.fill) show their fill's value under a hatch, with the fill's source in the hover.
 export function mapHeatmap(slice, q) {
   const { udc, cells, xs, ys } = slice;
   const xi = new Map(xs.map((v, i) => [Number(v), i]));
@@ -76,6 +99,7 @@ export function mapHeatmap(slice, q) {
   const z = ys.map(() => xs.map(() => null));
   const text = ys.map((n) => xs.map((t) =>
     `T* ${t} N·m<br>n ${n} rpm<br>U<sub>dc</sub> ${udc} V<br><i>no cell</i>`));
+  const filledAt = [];
   for (const c of cells) {
     const i = yi.get(Number(c.speed_rpm));
     const j = xi.get(Number(c.torque_nm));
@@ -83,12 +107,17 @@ export function mapHeatmap(slice, q) {
     const head = `T* ${fmt(c.torque_nm)} N·m<br>n ${fmt(c.speed_rpm)} rpm<br>U<sub>dc</sub> ${fmt(c.udc_v)} V<br>`;
     const click = (c.quality === "outlier" ? `<br><b>outlier</b>: ${escapeHtml(String(c.outlier_reason).split(" (")[0])}` : "") +
       (c.result_id ? "<br><i>click: result details</i>" : "");
-    const v = c[q.key];
-    if (c.status === "ok" && v !== null && v !== undefined) {
+    const filled = c.status !== "ok" && Boolean(c.filled);
+    const fillText = filled ? `<br><b>filled</b> (status ${escapeHtml(String(c.status))}, not a result at its target)` +
+      `<br>fill: ${escapeHtml(String(c.fill_source || "—"))}` : "";
+    if (filled) filledAt.push([i, j]);
+    const v = (c.status === "ok" || (filled && q.fill)) ? cellValue(c, q.key) : null;
+    if (v !== null && v !== undefined) {
       z[i][j] = v;
-      text[i][j] = head + `<b>${q.sym} = ${Number(v).toFixed(q.digits)} ${q.unit === "deg" ? "°" : q.unit}</b>` + click;
+      text[i][j] = head + `<b>${q.sym} = ${Number(v).toFixed(q.digits)} ${q.unit === "deg" ? "°" : q.unit}</b>` +
+        fillText + click;
     } else {
-      text[i][j] = head + `<b>status: ${escapeHtml(String(c.status))}</b> (no value)` + click;
+      text[i][j] = head + `<b>status: ${escapeHtml(String(c.status))}</b> (no value)` + fillText + click;
     }
   }
   // every cell carries its number (a map is read, not only looked at)
@@ -115,22 +144,49 @@ export function mapHeatmap(slice, q) {
     [trace.zmin, trace.zmax] = (lo >= 0 && hi > 180) ? [0, 360] : [-180, 180];
     trace.colorbar.tickvals = trace.zmin === 0 ? [0, 90, 180, 270, 360] : [-180, -90, 0, 90, 180];
   }
+  const xEdges = cellEdges(xs);
+  const yEdges = cellEdges(ys);
+  const fillNote = filledAt.length ? ` · hatched: ${filledAt.length} filled` : "";
+  // numeric axes, ticks at the breakpoints; the cells span halfway to their neighbours
+  const axis = (title, values, edges) => ({
+    title: { text: title }, type: "linear", tickmode: "array", tickvals: values, ticktext: values.map((v) => fmt(v)),
+    range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false,
+  });
   const layout = {
-    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
+    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}${fillNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 },
-    // category axes: every grid value one cell wide, and a single-cell map is a cell, not an empty box
-    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
-    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
+    xaxis: axis("torque T* (N·m)", xs, xEdges),
+    yaxis: axis("speed n (rpm)", ys, yEdges),
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
+  const data = [trace];
+  // filled cells: a hatch over the cell (its number stays readable); hover and clicks stay the heatmap's
+  if (filledAt.length) {
+    const hx = [];
+    const hy = [];
+    for (const [i, j] of filledAt) {
+      const [x0, x1] = xEdges[j];
+      const [y0, y1] = yEdges[i];
+      hx.push(x0, x1, x1, x0, x0, null);
+      hy.push(y0, y0, y1, y1, y0, null);
+    }
+    data.push({
+      type: "scatter", mode: "lines", x: hx, y: hy, fill: "toself", fillcolor: "rgba(0,0,0,0)",
+      fillpattern: { shape: "/", fgcolor: "rgba(20,20,20,0.55)", bgcolor: "rgba(0,0,0,0)", size: 7, solidity: 0.12 },
+      line: { color: "rgba(20,20,20,0.75)", width: 1.5, dash: "dot" },
+      hoverinfo: "skip", showlegend: false, name: "filled",
+    });
+  }
   // outliers of the map quality (service/map_quality.py) get a ring; hover and clicks stay the heatmap's
   const marked = cells.filter((c) => c.quality === "outlier");
-  const rings = {
-    type: "scatter", mode: "markers", x: marked.map((c) => c.torque_nm), y: marked.map((c) => c.speed_rpm),
-    marker: { symbol: "circle-open", size: 30, color: "#d1495b", line: { width: 2 } },
-    hoverinfo: "skip", showlegend: false, name: "outlier",
-  };
-  return { data: marked.length ? [trace, rings] : [trace], layout, config: CONFIG };
+  if (marked.length) {
+    data.push({
+      type: "scatter", mode: "markers", x: marked.map((c) => c.torque_nm), y: marked.map((c) => c.speed_rpm),
+      marker: { symbol: "circle-open", size: 30, color: "#d1495b", line: { width: 2 } },
+      hoverinfo: "skip", showlegend: false, name: "outlier",
+    });
+  }
+  return { data, layout, config: CONFIG };
 }
 
 // ------------------------------------------------------------------ one result (paper Fig. 8, 9, 10)

@@ -28,15 +28,36 @@ function readGrid(form) {
   return { grid, errors };
 }
 
+// {regime, errors}: the sweep request's `regime` from a form's speeds_around_onset checkbox and spacing_rpm
+// field (null when the form has none or the box is not ticked: the grid is measured as entered).
+function readRegime(form) {
+  const box = form.elements.speeds_around_onset;
+  if (!box || !box.checked) return { regime: null, errors: [] };
+  const raw = form.elements.spacing_rpm ? form.elements.spacing_rpm.value.trim() : "";
+  if (raw === "") return { regime: { speeds_around_onset: true }, errors: [] };   // the service's default spacing
+  const spacing = Number(raw);
+  if (!Number.isFinite(spacing)) return { regime: null, errors: [`spacing around the onset: "${raw}" is not a number`] };
+  return { regime: { speeds_around_onset: true, spacing_rpm: spacing }, errors: [] };
+}
+
 // The start of every grid form's submit: clear the form's messages, read its grid, show what is wrong.
 // Returns the grid, or null when the form said what to fix.
 export function submittedGrid(form, errorId, okId) {
+  const sweep = submittedSweep(form, errorId, okId);
+  return sweep && sweep.grid;
+}
+
+// The same for a form that may also place speeds around the field-weakening onset (the sweep form):
+// {grid, regime} (regime null when not asked for), or null when the form said what to fix.
+export function submittedSweep(form, errorId, okId) {
   showMsg(errorId, null);
   showMsg(okId, null);
   const { grid, errors } = readGrid(form);
+  const r = readRegime(form);
+  errors.push(...r.errors);
   if (errors.length) {
     showMsg(errorId, errors, "Check the grid:");
     return null;
   }
-  return grid;
+  return { grid, regime: r.regime };
 }

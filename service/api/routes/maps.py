@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Literal
 
 from fastapi import APIRouter, HTTPException, Query, status
+from pydantic import ValidationError
 from fastapi.responses import PlainTextResponse
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
@@ -14,6 +15,7 @@ from service.bench import BenchError
 from service import lut_download
 from service.lut_export import EXPORT_FORMATS, export_map
 from service.map_compare import MapCompareError, compare_maps
+from service.refinement import RefineRequest
 from service.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
                             ValidationPublic, job_public, map_public, map_summaries, validation_public)
 
@@ -72,13 +74,19 @@ def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> Ma
 @router.post("/maps/{map_id}/download", response_model=LutDownloadPublic,
              responses=error_responses(401, 403, 404, 409, 502))
 def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
-                 force: bool = Query(False, description="load a partial map (some cells not ok: no injection "
-                                                        "there); without it such a map is refused with 409")
+                 force: bool = Query(False, description="load a map with holes (cells that would inject nothing); "
+                                                        "without it such a map is refused with 409"),
+                 fill: bool = Query(True, description="the fill rule's entries of the cells that are not ok go in "
+                                                      "too (flagged filled in the image); false: only ok cells inject"),
+                 interpolation: Literal["cartesian", "polar"] | None = Query(
+                     None, description="what the drive interpolates between cells (default: the service's, "
+                                       "drivers/lut_image.DEFAULT_INTERPOLATION)")
                  ) -> LutDownloadPublic:
     """The map's LUT image into the drive (0x2001, segmented SDO), its CRC-32 and map id read back.
-    422: no ok cell (or not an image); 409: partial map without force, or the bench is busy / not reached."""
+    422: no ok cell (or not an image); 409: map with holes without force, or the bench is busy / not reached."""
     try:
-        return lut_download.download_map(service.storage, service.bench, map_id, force)
+        return lut_download.download_map(service.storage, service.bench, map_id, force, fill=fill,
+                                         interpolation=interpolation)
     except lut_download.MapNotFound as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     except lut_download.LutRefused as exc:
@@ -99,6 +107,27 @@ def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
     try:
         with refused_at(["path", "map_id"]):
             job_id = service.engine.submit_validation(map_id, body.force, body.options)
+    except KeyError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
+    return job_public(service.storage, service.storage.get_job(job_id))
+
+
+@router.post("/maps/{map_id}/refine", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
+             responses=error_responses(400, 401, 403, 404, 413))
+def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
+               body: RefineRequest | None = None) -> JobPublic:
+    """A job (kind refinement, run as a sweep of that kind: pause, resume and cancel it there): validate
+    the map in the drive's LUT mode, insert axis values where a point misses target_db, identify the new
+    cells, validate again; until every validated point holds or max_cells are spent. A partial map is
+    accepted (its non-ok cells are measured again first). The job's result names the refined map."""
+    body = body or RefineRequest()
+    try:
+        with refused_at(["path", "map_id"]):
+            try:
+                job_id = service.engine.submit_refinement(map_id, body)
+            except ValidationError as exc:      # the method's options
+                raise unprocessable(*(validation_error(["body", "options", *map(str, e["loc"])], e["msg"])
+                                      for e in exc.errors())) from None
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
     return job_public(service.storage, service.storage.get_job(job_id))

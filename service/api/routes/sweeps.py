@@ -10,7 +10,7 @@ from service.api.errors import error_responses, validation_error
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import SweepCreate
 from service.engine import TransitionError
-from service.plans import SweepTooLarge, check_sweep_size
+from service.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
 from service.public import SweepPublic, sweep_public
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
@@ -20,14 +20,27 @@ router = APIRouter(prefix="/api/v1", tags=["sweeps"])
              responses=error_responses(400, 401, 403, 413))
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
     try:
-        check_sweep_size(body.grid, body.confirm_large, service.settings.safety)
+        # the size that counts is the planned grid's (speeds placed around the onset included)
+        check_sweep_size(plan_grid(body.grid, body.regime, service.settings).grid, body.confirm_large,
+                         service.settings.safety)
+    except RegimeError as exc:
+        raise unprocessable(validation_error(["body", "regime"], str(exc))) from None
     except SweepTooLarge as exc:
         raise unprocessable(validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")) from None
     except ValueError as exc:
         raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
     with refused_at(["body", "grid"]):
-        sweep_id = service.engine.submit_sweep(body.grid, body.method, body.options)
+        sweep_id = service.engine.submit_sweep(body.grid, body.method, body.options, regime=body.regime)
     return sweep_public(service.storage, service.storage.get_sweep(sweep_id))
+
+
+@router.post("/sweeps/preview", response_model=SweepPreview, responses=error_responses(400, 413))
+def preview_sweep_plan(body: SweepCreate, service: ServiceDep) -> SweepPreview:
+    """The plan POST /sweeps would queue for this body, without queueing or moving anything (no token):
+    the points in measuring order, the planned speed axis (values placed around the predicted
+    field-weakening onset and why), the onset per torque and U_dc, what POST /sweeps would refuse (as a
+    list, `accepted` false), and an estimate of the bench time."""
+    return preview_sweep(body.grid, body.regime, body.method, body.options, body.confirm_large, service.settings)
 
 
 @router.get("/sweeps", response_model=list[SweepPublic])

@@ -36,10 +36,15 @@ export function render(s) {
   setDeviceState("load-state", load.state);
   setText("load-speed", fmt(load.speed_rpm, 1));
   setText("daq-frames", fmtInt(daq.frames));
+  // line errors warn; what the service's own flushes discarded and overruns while nobody read the
+  // DAQ are not the line's fault: shown plain, for what they count
   setText("daq-crc", fmtInt(daq.crc_failures));
   setText("daq-gaps", fmtInt(daq.sequence_gaps));
   $("daq-crc").dataset.level = daq.crc_failures ? "warn" : "";
   $("daq-gaps").dataset.level = daq.sequence_gaps ? "warn" : "";
+  setText("daq-flush-resyncs", fmtInt(daq.flush_resyncs));
+  setText("daq-overruns", fmtInt(daq.overruns));
+  setText("daq-overrun-samples", daq.overruns ? `${fmtInt(daq.overrun_samples_lost)} frames dropped` : "");
   // acceleration in rad/s^2 beside its fraction of the DAQ's full scale
   const fs = Number(s.accel_full_scale_rad_s2);
   const a = run.harmonic_amplitude_fs;

@@ -1,5 +1,6 @@
 // Panel (3): the compensation maps: pick a map and a DC-link voltage, see gamma, delta and the
-// suppression as heatmaps, export the LUT; a click on a cell opens its stored result.
+// suppression as heatmaps (each axis at its real breakpoints; filled cells hatched, their fill's
+// source in the hover), export the LUT; a click on a cell opens its stored result.
 import * as api from "../api.js";
 import { $, el, setText, showMsg } from "../dom.js";
 import { fmt, shortTime } from "../format.js";
@@ -88,8 +89,12 @@ async function show(id) {
   for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
   const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
   const q = m.quality || {};
+  // filled: not ok, but carrying a fill (service/map_fill.py) the LUT takes with "with fill"
+  const filled = m.cells.filter((c) => c.status !== "ok" && c.filled).length;
+  $("map-meta").dataset.filled = String(filled);
   setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · sweep ${m.sweep_id} · ` +
-    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${q.outliers || 0} outlier(s)`);
+    `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${filled} filled · ` +
+    `${q.outliers || 0} outlier(s)`);
   // outliers (ringed in the plots) with the reason to act on
   const outliers = m.cells.filter((c) => c.quality === "outlier").map((c) =>
     `T* ${fmt(c.torque_nm)} N·m, n ${fmt(c.speed_rpm)} rpm, U_dc ${fmt(c.udc_v)} V: ${c.outlier_reason}`);

@@ -1,9 +1,9 @@
-// Panel (2): start a sweep, list the sweeps with their progress, pause / resume / cancel them.
+// Panel (2): preview and start a sweep, list the sweeps with their progress, pause / resume / cancel them.
 import * as api from "../api.js";
 import { coalesced } from "../coalesce.js";
 import { $, el, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
-import { submittedGrid } from "../grid-form.js";
+import { submittedSweep } from "../grid-form.js";
 
 const RELOAD_DEBOUNCE_MS = 300;  // several events in a burst -> one GET /sweeps
 const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
@@ -18,6 +18,15 @@ let openMap = () => {};
 export function init({ openMapOf }) {
   openMap = openMapOf;
   $("sweep-form").addEventListener("submit", submit);
+  $("sweep-preview-btn").addEventListener("click", preview);
+  // a preview shown for other inputs would mislead: it is marked until previewed again
+  $("sweep-form").addEventListener("input", () => {
+    const box = $("sweep-preview");
+    if (box.hidden) return;
+    box.dataset.stale = "1";
+    box.style.opacity = "0.55";
+    box.title = "the form changed since this preview: preview again";
+  });
 }
 
 export async function reload() {
@@ -111,11 +120,12 @@ function timingText(s) {
   return text;
 }
 
-// The sweep's non-ok points with their reasons (GET /sweeps/{id}), fetched again only when its counts change.
+// The sweep's non-ok points with their reasons (GET /sweeps/{id}), fetched again only when its counts or
+// its plant time change (a second pass replaces a point's result without changing the counts).
 async function loadAttention(s) {
   const prog = s.progress || {};
   const bad = NOT_OK.reduce((n, k) => n + (Number(prog[k]) || 0), 0);
-  const key = `${prog.done}/${bad}`;
+  const key = `${prog.done}/${bad}/${s.plant_time_s}`;
   if (bad === 0 || (attention.has(s.id) && attention.get(s.id).key === key)) return;
   attention.set(s.id, { key, points: attention.has(s.id) ? attention.get(s.id).points : [] });
   try {
@@ -260,15 +270,100 @@ async function control(id, action) {
   }
 }
 
+// The request both Preview and Start send: the same body, so the sweep started is the plan previewed.
+function sweepRequest(f) {
+  const sweep = submittedSweep(f, "sweep-error", "sweep-ok");
+  if (!sweep) return null;
+  const body = { grid: sweep.grid, method: f.elements.method.value };
+  if (sweep.regime) body.regime = sweep.regime;
+  return body;
+}
+
+// POST /sweeps/preview (no token, nothing queued): point count, the speed axis with the values the plan
+// added, the predicted field-weakening onset per torque, what POST /sweeps would refuse, the estimate.
+async function preview() {
+  const body = sweepRequest($("sweep-form"));
+  if (!body) return;
+  const btn = $("sweep-preview-btn");
+  btn.disabled = true;
+  try {
+    renderPreview(await api.post("/sweeps/preview", body));
+  } catch (e) {
+    $("sweep-preview").hidden = true;
+    showMsg("sweep-error", api.errorLines(e),
+      e.status ? `Preview refused (HTTP ${e.status}):` : "Preview request failed:");
+  } finally {
+    btn.disabled = false;
+  }
+}
+
+function renderPreview(p) {
+  const box = $("sweep-preview");
+  delete box.dataset.stale;
+  box.style.opacity = "";
+  box.title = "";
+  box.dataset.accepted = p.accepted ? "1" : "0";
+  const added = p.added_speeds_rpm || [];
+  const req = p.requested_grid || {};
+  const requested = (req.torque_nm || []).length * (req.speed_rpm || []).length * (req.udc_v || []).length;
+  let summary = `${p.total} operating point${p.total === 1 ? "" : "s"}`;
+  if (added.length) summary += ` (${requested} requested; ${added.length} speed value${added.length > 1 ? "s" : ""} added around the onset)`;
+  summary += p.accepted ? " · Start sweep would queue it" : " · Start sweep would be refused:";
+  $("sweep-preview-summary").textContent = summary;
+
+  const axis = $("sweep-preview-axis");
+  axis.replaceChildren();
+  (p.speed_axis || []).forEach((v, i) => {
+    if (i) axis.appendChild(document.createTextNode(", "));
+    const why = (v.reasons || []).join("\n");
+    const e = el(v.added ? "strong" : "span", { "data-testid": "sweep-preview-speed", "data-added": v.added ? "1" : "0",
+      "data-speed": String(v.speed_rpm) }, fmt(v.speed_rpm) + (v.added ? "+" : ""));
+    if (why) e.title = why;
+    axis.appendChild(e);
+  });
+
+  const several = new Set((p.onsets || []).map((o) => o.udc_v)).size > 1;
+  const onsets = $("sweep-preview-onsets");
+  onsets.replaceChildren();
+  (p.onsets || []).forEach((o, i) => {
+    if (i) onsets.appendChild(document.createTextNode(" · "));
+    const at = o.onset_rpm === null || o.onset_rpm === undefined ? "none" : `${fmt(o.onset_rpm, 0)} rpm`;
+    const e = el("span", { "data-testid": "sweep-preview-onset", style: "white-space: nowrap", "data-torque": String(o.torque_nm),
+      "data-udc": String(o.udc_v), "data-onset": o.onset_rpm === null ? "" : String(o.onset_rpm) },
+      `${fmt(o.torque_nm)} N·m${several ? ` @ ${fmt(o.udc_v)} V` : ""}: ${at}`);
+    if (o.note) e.title = o.note;
+    onsets.appendChild(e);
+  });
+  $("sweep-preview-margin").textContent = fmt(p.voltage_margin);
+
+  const est = p.estimate;
+  $("sweep-preview-estimate").textContent = est
+    ? `Estimated bench time ≈ ${duration(est.estimated_s)} (worst case ${duration(est.worst_case_s)}); ${est.basis}.`
+    : "No estimate: the grid cannot be planned.";
+
+  const problems = $("sweep-preview-problems");
+  problems.replaceChildren();
+  problems.hidden = p.accepted;
+  if (!p.accepted) {
+    const ul = el("ul");
+    for (const d of p.problems || []) {
+      const loc = Array.isArray(d.loc) ? d.loc.filter((x) => x !== "body").join(".") : "";
+      ul.appendChild(el("li", null, (loc ? loc + ": " : "") + (d.msg || JSON.stringify(d))));
+    }
+    problems.appendChild(ul);
+  }
+  box.hidden = false;
+}
+
 async function submit(ev) {
   ev.preventDefault();
   const f = ev.target;
-  const grid = submittedGrid(f, "sweep-error", "sweep-ok");
-  if (!grid) return;
+  const body = sweepRequest(f);
+  if (!body) return;
   const btn = $("sweep-submit");
   btn.disabled = true;
   try {
-    const s = await api.post("/sweeps", { grid, method: f.elements.method.value });
+    const s = await api.post("/sweeps", body);
     if (s && s.id !== undefined) {
       sweeps.set(s.id, s);
       render();

@@ -1,0 +1,175 @@
+"""One continuous run on the bench: the drive enabled and the load machine turning from point to point.
+
+A run is opened by `Bench.run` (which holds the bench, arms the interlocks, and makes the bench safe
+when the run ends, however it ends: torque off, injection off, drive disabled, load stopped). Inside
+it, `BenchRun.operating_point(op)` moves to the next point and yields a measurement session; the
+bench is NOT made safe between points: a sweep or a validation is one run, so each point costs its
+move (a torque step, a speed ramp), its settling and its measurement, not a stop and a new start.
+
+The move to a point, in the order the wires need:
+  1. the DC link: the supply set and confirmed (torque off first while a run changes U_dc);
+  2. the load machine's speed (enabled at the run's first point); the drive enabled, gamma_max;
+  3. the setpoint accounting re-established if it is in doubt (service/setpoint_accounting.py): with
+     nothing written that the drive applies, while the load ramps;
+  4. what the drive applies as setpoints (each one sync toggle): at the run's first point harmonic
+     order, decoupling, injection mode manual; theta 0 where it is not; and the torque, always: its
+     toggle marks the sample from which every setpoint of the move is in force (the drive applies
+     them in the order written).
+Then the session settles by measurement (OperatingPointSession.settle_operating_point). A failure
+before the session is handed out names the move.
+
+Each point's wall time is split (PointTiming): move (commands until the last setpoint is written),
+accounting, settle (from there to steady), measurement (the caller's use of the session).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Callable, Iterator
+
+from service.identification.session import MeasurementError
+from service.interlocks import InterlockTripped
+from service.limits import LimitError, check_limits
+from service.measurement import OperatingPointSession, PointStream
+from service.operating_point import OperatingPoint
+
+if TYPE_CHECKING:
+    from service.bench import Bench
+
+
+@dataclass
+class PointTiming:
+    """Wall seconds of one point of a run, by what they were spent on."""
+    move_s: float = 0.0
+    accounting_s: float = 0.0
+    settle_s: float = 0.0
+    measurement_s: float = 0.0
+
+    def public(self) -> dict[str, float]:
+        return {k: round(v, 4) for k, v in asdict(self).items()}
+
+
+class BenchRun:
+    """A run in progress (module doc). Created by Bench.run only; also the session's DriveCommands."""
+
+    def __init__(self, bench: "Bench", harmonic_order: int, gamma_max_rad: float, decoupling: bool,
+                 cancel: threading.Event | None):
+        self.bench = bench
+        self.harmonic_order = harmonic_order
+        self.gamma_max_rad = gamma_max_rad
+        self.decoupling = decoupling
+        self.cancel = cancel
+        self.at: OperatingPoint | None = None       # where the run stands (None: not moved yet)
+        self.theta: tuple[float, float] | None = None   # what the drive applies in manual mode (None: unknown)
+        self.mode: str | None = None
+        self.points = 0
+        self.timing = PointTiming()                 # of the last point
+        self.accounting_reports: list[dict] = []
+
+    def guard(self) -> None:
+        self.bench._guard(self.cancel)
+
+    # --- DriveCommands (what a session sends) -------------------------------------------------------
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
+        self.theta = None       # unknown until written: a refused or lost write leaves it so
+        self.bench.send_theta(theta_cos_rad, theta_sin_rad, self.cancel)
+        self.theta = (float(theta_cos_rad), float(theta_sin_rad))
+
+    def send_injection_mode(self, mode: str) -> None:
+        self.mode = None
+        self.bench.send_injection_mode(mode, self.cancel)
+        self.mode = mode
+
+    # --- points --------------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def operating_point(self, op: OperatingPoint, target_db: float = 40.0,
+                        on_window: Callable | None = None) -> Iterator[OperatingPointSession]:
+        """Move to `op` and settle (module doc), then yield a session whose plant time starts at zero.
+        An interlock that tripped during the point ends it in InterlockTripped even if the caller
+        finished: its data are not good. After an error the drive's theta and mode are unknown (the
+        next move writes them again) and setpoints left unconfirmed put the accounting in doubt."""
+        check_limits(op, self.bench.settings)
+        self.timing = timing = PointTiming()
+        bench, s = self.bench, self.bench.settings
+        stream = PointStream(bench.accounting, s.daq.sample_rate_hz, guard=self.guard)
+        session = OperatingPointSession(stream, self, self.harmonic_order, s.motor.pole_pairs,
+                                        sync_input=s.daq.sync_input, no_sync_settle_s=s.daq.no_sync_settle_s,
+                                        resonance=bench.resonance, observe=bench.live.publisher("run"),
+                                        on_window=on_window)
+        bench.live.publish("run", operating_point=op.model_dump(), speed_rpm=None, harmonic_amplitude_fs=None,
+                           plant_time_s=None)
+        try:
+            try:
+                self._move(op, timing)
+                session.theta_in_force = self.theta if self.mode == "manual" else None
+                t0 = time.perf_counter()
+                session.settle_operating_point(op.speed_rpm, target_db)
+                timing.settle_s = time.perf_counter() - t0
+            except MeasurementError as exc:
+                raise MeasurementError(f"moving to {op.label()}: {exc}", over_range=exc.over_range) from exc
+            except Exception as exc:
+                exc.add_note(f"while moving to {op.label()}")
+                raise
+            session.reset_plant_time()
+            self.points += 1
+            t0 = time.perf_counter()
+            try:
+                yield session
+            finally:
+                timing.measurement_s = time.perf_counter() - t0
+            trip = bench.interlocks.run_trip
+            if trip is not None:
+                raise InterlockTripped(trip)
+        except BaseException:
+            self.theta = self.mode = None
+            if bench.accounting.pending() != 0:
+                bench.accounting.doubt("a point ended with setpoints unconfirmed")
+            raise
+
+    def _move(self, op: OperatingPoint, timing: PointTiming) -> None:
+        bench, s = self.bench, self.bench.settings
+        drive, load = bench.drive, bench.load
+        t0 = time.perf_counter()
+        at, self.at = self.at, None          # unknown until the move is through
+        first = at is None
+        self.guard()
+        if first or op.udc_v != at.udc_v:
+            if self.points:
+                drive.set_torque_nm(0.0)       # no torque while the DC link changes
+            bench.set_dc_link(op.udc_v)
+        self.guard()
+        if first:
+            load.enable()
+        if first or op.speed_rpm != at.speed_rpm:
+            load.set_speed_rpm(op.speed_rpm)
+        self.guard()
+        if first:
+            drive.enable()
+            drive.set_gamma_max_rad(self.gamma_max_rad)     # no toggle: it only clamps |theta|
+        if bench.accounting.in_doubt:
+            t1 = time.perf_counter()
+            self.accounting_reports.append(bench.accounting.establish(self.guard))
+            timing.accounting_s = time.perf_counter() - t1
+        self.guard()
+        if first:
+            drive.set_harmonic_order(self.harmonic_order)
+            drive.set_decoupling(self.decoupling)
+        if self.mode != "manual":
+            self.send_injection_mode("manual")
+        if self.theta != (0.0, 0.0):
+            self.send_theta(0.0, 0.0)
+        self.guard()
+        # always written: its toggle marks the sample from which the whole move is in force
+        drive.set_torque_nm(op.torque_nm)
+        self.at = op
+        timing.move_s = time.perf_counter() - t0 - timing.accounting_s
+
+
+def gamma_max_for_run(requested_rad: float | None, settings_limit_rad: float) -> float:
+    """The run's injection limit: the request's, never above the bench's."""
+    if requested_rad is not None and (not math.isfinite(requested_rad) or requested_rad <= 0):
+        raise LimitError(f"gamma_max {requested_rad!r} rad is not a positive number")
+    return min(requested_rad or math.inf, settings_limit_rad)

@@ -1,0 +1,187 @@
+"""Refining a map on the drive until its LUT holds: what to measure next, from a validation in LUT mode.
+
+A refinement (POST /maps/{id}/refine) runs in rounds, each: validate the current map in the drive's own
+LUT mode (service/map_validation.py: every grid point and every midpoint between neighbouring grid
+values); where a point misses `target_db`, plan what to add; identify the new cells (priors from their
+neighbours); build the refined map; validate again. It ends when every validated point holds, or when
+the budget (`max_cells` cells identified in all) cannot pay for what is needed.
+
+What a failing point asks for (`plan_round`):
+- a grid point (a cell of the map) whose LUT entry misses the target at the cell itself: the cell is
+  identified again (its entry was not good enough; a filled or non-ok cell first of all);
+- a midpoint: the LUT's interpolation between cells misses the target there. The value of the failing
+  coordinate is inserted into its axis: on the axis where the point lies between two grid values and the
+  neighbouring cells' theta differs most (that is where the interpolation error comes from); a midpoint
+  between values on several axes inserts on the one with the largest theta step. An inserted value
+  adds a whole line of cells (the other axes' lengths multiplied: a LUT is a full grid).
+Each candidate (a re-measured cell, an inserted value) is scored by the dB its points are short of the
+target (each capped at MAX_SHORT_DB), summed, per cell it costs. A round takes the candidates in order
+of score while the budget lasts and their score is at least ROUND_SCORE_FRACTION of the best: what is
+far off is fixed first, and the budget is kept for what the next validation shows (an inserted value
+makes new midpoints, which may need more). The axes stay strictly increasing and may be non-uniform
+(every export and the LUT image carry each axis' own breakpoints).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from itertools import product
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.identification.registry import METHODS
+from service.map_validation import ValidationOptions
+
+AXES = ("torque_nm", "speed_rpm", "udc_v")
+MAX_ROUNDS = 8          # a refinement that has not converged in this many rounds stops and says so
+MAX_SHORT_DB = 30.0     # a point's claim on the budget: how far it is below the target, at most this
+ROUND_SCORE_FRACTION = 0.25
+
+
+class RefineRequest(BaseModel):
+    """POST /maps/{id}/refine. Every field bounded."""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    target_db: float = Field(30.0, ge=0, le=80, description="LUT-mode suppression wanted at every validated point "
+                                                            "(grid points and midpoints), dB")
+    max_cells: int = Field(40, ge=1, le=2000, description="most cells the refinement identifies in all (re-measured "
+                                                         "and new cells): its bench-time budget")
+    method: str = Field("probe", description="identification method of the new cells (GET /methods)")
+    options: dict = Field(default_factory=dict, description="the method's options (as for a sweep)")
+    validation: ValidationOptions = Field(default_factory=ValidationOptions,
+                                          description="how finely each validation point is measured")
+
+
+@dataclass
+class RoundPlan:
+    """What one round adds: values per axis, and the cells to identify (new ones and re-measured ones)."""
+    inserted: dict[str, list[float]] = field(default_factory=dict)
+    remeasure: list[tuple[float, float, float]] = field(default_factory=list)
+    new_cells: list[tuple[float, float, float]] = field(default_factory=list)
+    failing: int = 0
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def cells(self) -> list[tuple[float, float, float]]:
+        return self.remeasure + self.new_cells
+
+
+def failing_points(cells: list[dict], target_db: float) -> list[dict]:
+    """Validation cells that miss the target: measured below it, or not measured at all (failed)."""
+    return [c for c in cells if c["status"] != "measured" or c["suppression_db"] is None
+            or c["suppression_db"] < target_db]
+
+
+def _theta_at(map_cells: dict, key: tuple[float, float, float]) -> tuple[float, float] | None:
+    c = map_cells.get(key)
+    if c is None or c.get("theta_cos") is None:
+        return None
+    return float(c["theta_cos"]), float(c["theta_sin"])
+
+
+def _neighbours(values: list[float], x: float) -> tuple[float, float] | None:
+    below = [v for v in values if v < x]
+    above = [v for v in values if v > x]
+    return (max(below), min(above)) if below and above else None
+
+
+def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_cells: list[dict], target_db: float,
+               budget_cells: int) -> RoundPlan:
+    """The next round's cells (module doc). map_cells: the current map's cells (MapCellPublic dumps);
+    validation_cells: its validation's cells. Raises nothing: an empty plan means nothing is left to
+    do, or nothing fits the budget (`reasons` says which)."""
+    plan = RoundPlan()
+    by_key = {tuple(float(c[a]) for a in AXES): c for c in map_cells}
+    failing = failing_points(validation_cells, target_db)
+    plan.failing = len(failing)
+    if not failing:
+        return plan
+    grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
+    remeasure: dict[tuple, float] = {}
+    insertions: dict[tuple[str, float], float] = {}      # (axis, value) -> dB short, summed
+    for c in failing:
+        op = c["operating_point"]
+        key = tuple(float(op[a]) for a in AXES)
+        measured_db = c["suppression_db"] if c.get("suppression_db") is not None else -math.inf
+        short_db = min(MAX_SHORT_DB, target_db - measured_db)
+        if c["kind"] == "grid":
+            remeasure[key] = remeasure.get(key, 0.0) + short_db
+            continue
+        best = None
+        for i, axis in enumerate(AXES):
+            if key[i] in grid_values[axis]:
+                continue
+            sides = _neighbours(grid_values[axis], key[i])
+            if sides is None:
+                continue
+            lo, hi = (list(key), list(key))
+            lo[i], hi[i] = sides
+            # the neighbouring cells along this axis, at the grid values of the other coordinates nearest the point
+            step = _theta_step(by_key, grid_values, lo, hi, i)
+            if best is None or step > best[0]:
+                best = (step, axis, key[i])
+        if best is not None:
+            _, axis, value = best
+            insertions[(axis, value)] = insertions.get((axis, value), 0.0) + short_db
+    # candidates by dB short per cell they cost
+    sizes = {a: len(grid_values[a]) for a in AXES}
+    candidates = [(gain, ("remeasure", key), 1) for key, gain in remeasure.items()]
+    for (axis, value), gain in insertions.items():
+        cost = math.prod(n for a, n in sizes.items() if a != axis)
+        candidates.append((gain, ("insert", axis, value), cost))
+    candidates.sort(key=lambda c: (-c[0] / c[2], c[2]))
+    left = budget_cells
+    chosen_axes = {a: list(grid_values[a]) for a in AXES}
+    best_score = candidates[0][0] / candidates[0][2] if candidates else 0.0
+    for gain, what, cost in candidates:
+        if gain / cost < ROUND_SCORE_FRACTION * best_score:
+            break           # the rest waits for the next validation
+        if what[0] == "remeasure":
+            if left >= 1:
+                plan.remeasure.append(what[1])
+                left -= 1
+            continue
+        _, axis, value = what
+        # cost with the values inserted so far on the other axes
+        cost = math.prod(len(chosen_axes[a]) for a in AXES if a != axis)
+        if cost > left:
+            plan.reasons.append(f"inserting {axis} = {value:g} needs {cost} cells, {left} left in the budget")
+            continue
+        chosen_axes[axis] = sorted(set(chosen_axes[axis]) | {value})
+        plan.inserted.setdefault(axis, []).append(value)
+        left -= cost
+    # the new grid's cells that do not exist yet (a value inserted on two axes adds their crossing once)
+    existing = set(by_key)
+    plan.new_cells = [(t, n, u) for u, n, t in product(chosen_axes["udc_v"], chosen_axes["speed_rpm"],
+                                                       chosen_axes["torque_nm"]) if (t, n, u) not in existing]
+    if len(plan.new_cells) + len(plan.remeasure) > budget_cells:       # crossings of two insertions
+        plan.reasons.append("the crossings of the inserted values exceed the budget")
+        plan.inserted, plan.new_cells = {}, []
+    for axis in plan.inserted:
+        plan.inserted[axis].sort()
+    return plan
+
+
+def _theta_step(by_key: dict, grid_values: dict, lo: list[float], hi: list[float], axis_index: int) -> float:
+    """|delta theta| between the two cells on either side along one axis, their other coordinates taken
+    at the nearest grid values (a midpoint's other coordinates may be midpoints too); 0 if unknown."""
+    def snap(key: list[float]) -> tuple[float, float, float]:
+        out = []
+        for i, a in enumerate(AXES):
+            if i == axis_index or key[i] in grid_values[a]:
+                out.append(key[i])
+            else:
+                out.append(min(grid_values[a], key=lambda v: abs(v - key[i])))
+        return tuple(out)
+    a, b = _theta_at(by_key, snap(lo)), _theta_at(by_key, snap(hi))
+    if a is None or b is None:
+        return 0.0
+    return math.hypot(a[0] - b[0], a[1] - b[1])
+
+
+def axes_with(axes: dict[str, list[float]], inserted: dict[str, list[float]]) -> dict[str, list[float]]:
+    return {a: sorted(set(map(float, axes[a])) | set(inserted.get(a, []))) for a in AXES}
+
+
+def check_request(request: RefineRequest) -> None:
+    if request.method not in METHODS:
+        raise ValueError(f"method {request.method!r} is not available; choose one of {sorted(METHODS)}")
