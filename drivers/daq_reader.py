@@ -299,23 +299,11 @@ class DaqReader:
         """
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
-        deadline = time.monotonic() + timeout_s
         with self._cond:
-            if self._thread is None:
-                raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
             self._demand = n
             self._cond.notify_all()
-            disconnects = self._disconnects
             try:
-                while self._buffered < n:
-                    if not self._running or not self._connected or self._disconnects != disconnects:
-                        raise DaqDisconnected(self._disconnected_message(n))
-                    remaining_s = deadline - time.monotonic()
-                    if remaining_s <= 0:
-                        raise DaqTimeout(
-                            f"DAQ {self.url}: only {self._buffered} of {n} samples arrived within {timeout_s:g} s "
-                            f"({self._bytes_read} bytes read so far, decoder {self._counters})")
-                    self._cond.wait(remaining_s)
+                self._wait_buffered(n, timeout_s, lambda: f"only {self._buffered} of {n} samples arrived")
                 return self._take(n)
             finally:
                 self._demand = 0
@@ -330,23 +318,27 @@ class DaqReader:
         """
         if max_n < 1:
             raise ValueError(f"max_n must be >= 1, got {max_n}")
-        deadline = time.monotonic() + timeout_s
         with self._cond:
-            if self._thread is None:
-                raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
-            disconnects = self._disconnects
-            while not self._buffered:
-                if not self._running or not self._connected or self._disconnects != disconnects:
-                    raise DaqDisconnected(self._disconnected_message(1))
-                remaining_s = deadline - time.monotonic()
-                if remaining_s <= 0:
-                    raise DaqTimeout(
-                        f"DAQ {self.url}: no sample arrived within {timeout_s:g} s "
-                        f"({self._bytes_read} bytes read so far, decoder {self._counters})")
-                self._cond.wait(remaining_s)
+            self._wait_buffered(1, timeout_s, lambda: "no sample arrived")
             taken = self._take(min(max_n, self._buffered))
             self._cond.notify_all()     # room freed: a reader thread paused for backpressure goes on
             return taken
+
+    def _wait_buffered(self, n: int, timeout_s: float, shortfall) -> None:
+        """Wait (the condition held) until n samples are queued; DaqDisconnected if the reader stops or
+        its port is lost meanwhile, DaqTimeout after timeout_s (`shortfall()` says what came)."""
+        if self._thread is None:
+            raise DaqDisconnected(f"DAQ reader for {self.url} was not started (call start())")
+        deadline = time.monotonic() + timeout_s
+        disconnects = self._disconnects
+        while self._buffered < n:
+            if not self._running or not self._connected or self._disconnects != disconnects:
+                raise DaqDisconnected(self._disconnected_message(n))
+            remaining_s = deadline - time.monotonic()
+            if remaining_s <= 0:
+                raise DaqTimeout(f"DAQ {self.url}: {shortfall()} within {timeout_s:g} s "
+                                 f"({self._bytes_read} bytes read so far, decoder {self._counters})")
+            self._cond.wait(remaining_s)
 
     def _disconnected_message(self, n: int) -> str:
         if self._error is not None:

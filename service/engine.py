@@ -609,7 +609,7 @@ class Engine:
                              tags={"refinement_round": state["round"]})
         if ctl.cancel.is_set():
             return
-        state["cells_added"] += len(points)
+        state["cells_added"] += len(state["pending"])       # the round's cells, also those measured before a crash
         provenance = {"refinement_id": sweep_id, "source_map_id": sweep["source_map_id"], "round": state["round"],
                       "cells_added": state["cells_added"]}
         state["current_map_id"] = build_map(
@@ -666,8 +666,10 @@ class Engine:
             state["phase"] = "measure"
 
     def _save_refinement(self, sweep_id: int, state: dict) -> None:
+        # total: the cells planned so far (those measured, and the round's pending ones)
+        total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
         self.storage.update_sweep(sweep_id, refinement_json=json.dumps(state), grid_json=json.dumps(state["axes"]),
-                                  map_id=state["current_map_id"])
+                                  map_id=state["current_map_id"], total_points=total)
         self._publish_refinement(sweep_id, state, state["phase"])
 
     def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
@@ -729,7 +731,8 @@ class Engine:
 
     def _publish_sweep(self, sweep_id: int) -> None:
         s = self.storage.get_sweep(sweep_id)
-        self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "state": s["state"], "done": s["done_points"],
+        self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "kind": s.get("kind") or "sweep",
+                                               "state": s["state"], "done": s["done_points"],
                                                "total": s["total_points"], "map_id": s["map_id"],
                                                "pause_reason": s["pause_reason"]})
 

@@ -35,7 +35,7 @@ def build_map(storage: Storage, axes: dict[str, list[float]], results: list[dict
     keys = [(t, n, u) for u in axes["udc_v"] for n in axes["speed_rpm"] for t in axes["torque_nm"]]
     cells = [(latest[k]["id"] if k in latest else None, *k) for k in keys]
     fills = fill_cells([{"torque_nm": k[0], "speed_rpm": k[1], "udc_v": k[2], **_cell_fields(latest.get(k))}
-                        for k in keys], axes, getattr(lut_image, "DEFAULT_INTERPOLATION", "cartesian"))
+                        for k in keys], axes, lut_image.DEFAULT_INTERPOLATION)
     return storage.create_map(sweep_id, harmonic_order, method, axes, cells, bench_identity, __version__,
                               fills=fills, refined_from=refined_from, provenance=provenance)
 

@@ -18,7 +18,7 @@ from service.map_fill import interpolate_between
 from service.operating_point import OperatingPoint
 
 # the plane the LUT interpolates in: a prior between two cells is what the drive would inject there
-DEFAULT_INTERPOLATION = getattr(lut_image, "DEFAULT_INTERPOLATION", "cartesian")
+DEFAULT_INTERPOLATION = lut_image.DEFAULT_INTERPOLATION
 
 
 def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, list[float]]) -> Prior | None:

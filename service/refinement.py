@@ -14,8 +14,9 @@ What a failing point asks for (`plan_round`):
   neighbouring cells' theta differs most (that is where the interpolation error comes from); a midpoint
   between values on several axes inserts on the one with the largest theta step. An inserted value
   adds a whole line of cells (the other axes' lengths multiplied: a LUT is a full grid).
-Each candidate (a re-measured cell, an inserted value) is scored by the dB its points are short of the
-target (each capped at MAX_SHORT_DB), summed, per cell it costs. A round takes the candidates in order
+Each candidate (a re-measured cell, an inserted value) is scored by the failing points it serves per
+cell it costs (the refinement is judged by how many points hold), ties broken by the dB they are short
+of the target (each capped at MAX_SHORT_DB). A round takes the candidates in order
 of score while the budget lasts and their score is at least ROUND_SCORE_FRACTION of the best: what is
 far off is fixed first, and the budget is kept for what the next validation shows (an inserted value
 makes new midpoints, which may need more). The axes stay strictly increasing and may be non-uniform
@@ -96,15 +97,15 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
     if not failing:
         return plan
     grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
-    remeasure: dict[tuple, float] = {}
-    insertions: dict[tuple[str, float], float] = {}      # (axis, value) -> dB short, summed
+    remeasure: dict[tuple, list[float]] = {}
+    insertions: dict[tuple[str, float], list[float]] = {}      # (axis, value) -> dB short of each point served
     for c in failing:
         op = c["operating_point"]
         key = tuple(float(op[a]) for a in AXES)
         measured_db = c["suppression_db"] if c.get("suppression_db") is not None else -math.inf
         short_db = min(MAX_SHORT_DB, target_db - measured_db)
         if c["kind"] == "grid":
-            remeasure[key] = remeasure.get(key, 0.0) + short_db
+            remeasure.setdefault(key, []).append(short_db)
             continue
         best = None
         for i, axis in enumerate(AXES):
@@ -121,19 +122,19 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
                 best = (step, axis, key[i])
         if best is not None:
             _, axis, value = best
-            insertions[(axis, value)] = insertions.get((axis, value), 0.0) + short_db
-    # candidates by dB short per cell they cost
+            insertions.setdefault((axis, value), []).append(short_db)
+    # candidates by failing points served per cell they cost, then by the dB they are short
     sizes = {a: len(grid_values[a]) for a in AXES}
-    candidates = [(gain, ("remeasure", key), 1) for key, gain in remeasure.items()]
-    for (axis, value), gain in insertions.items():
+    candidates = [(shorts, ("remeasure", key), 1) for key, shorts in remeasure.items()]
+    for (axis, value), shorts in insertions.items():
         cost = math.prod(n for a, n in sizes.items() if a != axis)
-        candidates.append((gain, ("insert", axis, value), cost))
-    candidates.sort(key=lambda c: (-c[0] / c[2], c[2]))
+        candidates.append((shorts, ("insert", axis, value), cost))
+    candidates.sort(key=lambda c: (-len(c[0]) / c[2], -sum(c[0]) / c[2], c[2]))
     left = budget_cells
     chosen_axes = {a: list(grid_values[a]) for a in AXES}
-    best_score = candidates[0][0] / candidates[0][2] if candidates else 0.0
-    for gain, what, cost in candidates:
-        if gain / cost < ROUND_SCORE_FRACTION * best_score:
+    best_score = len(candidates[0][0]) / candidates[0][2] if candidates else 0.0
+    for shorts, what, cost in candidates:
+        if len(shorts) / cost < ROUND_SCORE_FRACTION * best_score:
             break           # the rest waits for the next validation
         if what[0] == "remeasure":
             if left >= 1:

@@ -31,7 +31,7 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
+from service.identification.common import (done, stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
                                            measure_reference, measure_step, meets, noise_floor_db, periods_for, spectrum_traces,
                                            target_amplitude, time_to_suppression, verdict)
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
@@ -92,7 +92,8 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         return result
     history = [_row(before, np.zeros(2))]
     uncompensated = before.phasor.amplitude
-    limit = stop_amplitude(uncompensated, options)
+    limit = target_amplitude(uncompensated, options.target_db)
+    stop_at = stop_amplitude(uncompensated, options)
 
     needed_gamma = abs(before.phasor.complex / s_hat)
     if needed_gamma > 1.5 * gamma_max_rad:
@@ -115,7 +116,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     best_theta, best_amp = theta.copy(), window.phasor.amplitude
     growing = at_limit = 0
     limited = diverged = over_range = False
-    final: Window | None = window if meets(window, limit) and len(history) > 1 else None
+    final: Window | None = window if done(window, limit, stop_at) and len(history) > 1 else None
     s_replaced_after = None
     blocks = best_block = 0
     for blocks in range(1, options.max_blocks + 1):
@@ -141,7 +142,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
             best_block = blocks
         if amp < best_amp:
             best_theta, best_amp = theta.copy(), amp
-        if meets(window, limit):
+        if done(window, limit, stop_at):
             final = window
             break
         if options.s_refine:

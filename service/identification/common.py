@@ -77,6 +77,13 @@ def stop_amplitude(uncompensated_fs: float, options: "MethodOptions") -> float:
     return target_amplitude(uncompensated_fs, options.target_db + (options.stop_margin_db or 0.0))
 
 
+def done(window: Window, target_fs: float, stop_fs: float) -> bool:
+    """A method may stop: the target met with confidence (meets) and the residual itself down to the
+    margin. The margin asks for a further step, never for longer windows: the windows stay sized for
+    the target's precision (PRECISION_FOR_TARGET), which is what the verdict needs."""
+    return meets(window, target_fs) and window.phasor.amplitude <= stop_fs
+
+
 def meets(window: Window, amplitude_limit_fs: float) -> bool:
     """The residual is below the limit with confidence (module doc)."""
     return window.phasor.amplitude + CONFIDENCE_SIGMAS * window.noise_std_fs <= amplitude_limit_fs

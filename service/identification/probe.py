@@ -28,7 +28,7 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference,
+from service.identification.common import (done, stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference,
                                            measure_step, meets,
                                            noise_floor_db, periods_for, spectrum_traces, target_amplitude,
                                            time_to_suppression, verdict)
@@ -159,7 +159,8 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         raise MeasurementError("the probe response is zero: the injection has no effect on the measured harmonic here")
 
     uncompensated = before.phasor.amplitude if before is not None else float(np.hypot(*(a - s_ss @ theta)))
-    limit = stop_amplitude(uncompensated, options)
+    limit = target_amplitude(uncompensated, options.target_db)
+    stop_at = stop_amplitude(uncompensated, options)
     best_theta, best_amp, best_a = theta.copy(), float(np.hypot(*a)), a
     failures = 0
     final: Window | None = None
@@ -181,7 +182,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
                 broyden = s_ss + np.outer(d_a - s_ss @ d_theta, d_theta) / float(d_theta @ d_theta)
                 if abs(np.linalg.det(broyden)) > 1e-30:
                     s_ss = broyden
-            if meets(w, limit):
+            if done(w, limit, stop_at):
                 final = w
                 best_theta = new_theta.copy()
                 break

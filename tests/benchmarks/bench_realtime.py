@@ -130,7 +130,7 @@ def grid(api: Api, ends: JobEnds) -> None:
     r = job["result"]
     print(f"grid (360 points) at OP1: wall {wall:.1f} s for {r['plant_time_s']:.1f} s of plant time "
           f"({wall / r['plant_time_s']:.2f} x), {r['status']} {r['suppression_db']:.1f} dB; "
-          f"{split_line([r['details']['bench_time_s']], [wall])}", flush=True)
+          f"{split_line([r['details'].get('bench_time_s') or {}], [wall])}", flush=True)
 
 
 def sweep_points(sweep: dict) -> list[dict]:

@@ -10,7 +10,7 @@ import time
 import httpx
 import pytest
 
-from drivers.lut_image import crc_hex, image_crc
+from drivers.lut_image import DEFAULT_INTERPOLATION, crc_hex, image_crc
 from service.lut_export import lut_image
 from service.public import map_public
 from service.storage import Storage
@@ -58,7 +58,7 @@ def test_download_rules_crc_and_the_map_the_drive_holds(bench):
     assert r.status_code == 200, r.text
     assert r.json() == {"map_id": maps["partial"], "crc32": expected_crc["partial without fill"],
                         "bytes": 20 + 4 * 5 + 9 * 4 + 4, "cells": 4, "valid_cells": 3, "filled_cells": 0, "fill": False,
-                        "interpolation": "cartesian", "format_version": 3, "harmonic_order": 6, "forced": True}
+                        "interpolation": DEFAULT_INTERPOLATION, "format_version": 3, "harmonic_order": 6, "forced": True}
     r = client.post(f"/maps/{maps['partial']}/download")          # with its fill (the default): no hole, no force
     assert r.status_code == 200, r.text
     assert (r.json()["crc32"], r.json()["filled_cells"], r.json()["forced"]) == (expected_crc["partial"], 1, False)

@@ -40,10 +40,11 @@ def read(d, index, sub):
     return od[index][sub].decode_raw(d.node.get_data(index, sub))
 
 
-def image(scale=1.0, valid=None, h=6, map_id=3):
+def image(scale=1.0, valid=None, h=6, map_id=3, interpolation="cartesian"):
+    """An image whose thetas the tests' expectations interpolate by hand (cartesian unless told)."""
     tc = scale * np.arange(6, dtype=float).reshape(1, 2, 3) * 0.01
     ts = -scale * np.arange(6, dtype=float)[::-1].reshape(1, 2, 3) * 0.005
-    return lut_image.encode(h, T_AX, N_AX, U_AX, tc, ts, valid, map_id=map_id), tc, ts
+    return lut_image.encode(h, T_AX, N_AX, U_AX, tc, ts, valid, map_id=map_id, interpolation=interpolation), tc, ts
 
 
 def with_repeated_torque_value(blob: bytes) -> bytes:

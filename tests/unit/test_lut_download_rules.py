@@ -97,7 +97,8 @@ def test_download_map_keeps_its_positional_signature_and_the_receipt_says_what_w
     assert receipt.crc32 == lut_image.crc_hex(drive.lut.crc) and receipt.bytes == 24 + 4 * (3 + 5 + 2) + 9 * 30
     assert drive.lut.filled.sum() == len(FILLED)
     # the newer receipt fields, where LutDownloadPublic has them (service/public.py adds them)
-    for key, value in {"filled_cells": 2, "fill": True, "interpolation": "cartesian", "format_version": 3}.items():
+    for key, value in {"filled_cells": 2, "fill": True, "interpolation": lut_image.DEFAULT_INTERPOLATION,
+                       "format_version": 3}.items():
         if key in LutDownloadPublic.model_fields:
             assert receipt.model_dump()[key] == value
     receipt = lut_download.download_map(None, drive, MAP_ID, force=True, fill=False, interpolation="polar")

@@ -41,7 +41,7 @@ def fixed_map() -> dict:
 
 
 def test_the_service_image_of_a_fixed_map_is_the_version_1_image_with_the_map_id_in_its_header():
-    image = service_image(fixed_map())
+    image = service_image(fixed_map(), interpolation="cartesian")       # mode byte 0, as version 1's reserved
     assert len(image) == 160
     magic, version, h, mode, nt, nn, nu, reserved, map_id = lut_image.HEADER.unpack_from(image)
     assert (magic, version, h, mode, nt, nn, nu, reserved, map_id) == (b"RCL1", 3, 6, 0, 3, 2, 2, 0, MAP_ID)
@@ -258,13 +258,13 @@ def test_the_service_image_takes_the_filled_cells_only_with_fill_and_names_the_m
     m = fixed_map()
     filled = m["cells"][3]                       # k = 4: below target; a fill of 0.05 / -0.01 rad
     filled.update(filled=True, fill_source="interpolated (cartesian) from ok cells", theta_cos=0.05, theta_sin=-0.01)
-    with_fill = lut_image.decode(service_image(m, fill=True, interpolation="polar"))
+    with_fill = lut_image.decode(service_image(m, fill=True, interpolation="cartesian"))
     without = lut_image.decode(service_image(m, fill=False))
-    assert (with_fill.interpolation, without.interpolation) == ("polar", lut_image.DEFAULT_INTERPOLATION)
+    assert (with_fill.interpolation, without.interpolation) == ("cartesian", lut_image.DEFAULT_INTERPOLATION)
     # cell k = 4 is [udc 0][speed 1][torque 0]; k = 8 and 12 stay holes (below target, no fill)
     assert with_fill.flags[0, 1, 0] == 2 and without.flags[0, 1, 0] == 0
     assert (with_fill.theta_cos[0, 1, 0], with_fill.theta_sin[0, 1, 0]) == pytest.approx((0.05, -0.01), abs=1e-8)
     assert (without.theta_cos[0, 1, 0], without.theta_sin[0, 1, 0]) == (0.0, 0.0)
     assert int((with_fill.flags == 1).sum()) == int((without.flags == 1).sum()) == 9
     assert int((with_fill.flags == 0).sum()) == 2 and int((without.flags == 0).sum()) == 3
-    assert lut_image.DEFAULT_INTERPOLATION == "cartesian"
+    assert lut_image.DEFAULT_INTERPOLATION == "polar"

@@ -132,7 +132,7 @@ int main(void)
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc is not on PATH: the exported C header cannot be compiled here")
 def test_c_header_compiles_and_a_c_main_interpolates_it_by_position(tmp_path):
-    (tmp_path / "lut.h").write_text(export_map(refined_map(), "c"))
+    (tmp_path / "lut.h").write_text(export_map(refined_map(), "c", interpolation="cartesian"))
     (tmp_path / "main.c").write_text(C_MAIN)
     build = subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c")],
                            cwd=tmp_path, capture_output=True, text=True)
@@ -188,7 +188,7 @@ def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tm
 def test_csv_has_filled_and_fill_source_columns():
     text = export_map(refined_map(), "csv")
     comments = [line for line in text.splitlines() if line.startswith("#")]
-    assert any("LUT interpolation: cartesian" in line for line in comments)
+    assert any(f"LUT interpolation: {lut_image.DEFAULT_INTERPOLATION}" in line for line in comments)
     assert any("2 filled cell(s)" in line for line in comments)
     rows = list(csv.DictReader(io.StringIO("\n".join(line for line in text.splitlines() if not line.startswith("#")))))
     assert len(rows) == 30

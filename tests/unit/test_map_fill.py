@@ -7,6 +7,7 @@ import math
 
 import pytest
 
+from drivers.lut_image import DEFAULT_INTERPOLATION
 from service.engine import second_pass_points
 from service.map_fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
 from service.neighbours import prior_from_neighbours
@@ -111,8 +112,11 @@ def test_second_pass_takes_each_non_ok_point_once_in_plan_order():
 
 def test_the_second_pass_prior_lies_between_the_neighbours_on_both_sides():
     s = [[1.0, 0.2], [-0.2, 1.0]]
-    rows = [row(1.0, 1500.0, "ok", (0.02, 0.0), s=s), row(3.0, 1500.0, "ok", (0.04, 0.02)),
-            row(2.0, 1500.0, "below_target", (0.5, 0.5))]
+    a, b = theta(3.0, 280.0), theta(5.0, 300.0)
+    rows = [row(1.0, 1500.0, "ok", a, s=s), row(3.0, 1500.0, "ok", b), row(2.0, 1500.0, "below_target", (0.5, 0.5))]
     prior = prior_from_neighbours(OperatingPoint(torque_nm=2.0, speed_rpm=1500, udc_v=12), rows, AXES)
-    assert (prior.theta_cos, prior.theta_sin) == (pytest.approx(0.03), pytest.approx(0.01))
+    # what the drive would inject midway in its plane (drivers/lut_image.DEFAULT_INTERPOLATION)
+    assert (prior.theta_cos, prior.theta_sin) == pytest.approx(blend([(0.5, a), (0.5, b)], DEFAULT_INTERPOLATION))
+    if DEFAULT_INTERPOLATION == "polar":
+        assert (prior.theta_cos, prior.theta_sin) == pytest.approx(theta(4.0, 290.0))
     assert prior.s_matrix is not None and "between 1 and 3" in prior.source

@@ -2,13 +2,14 @@
 // bench.status has come over SSE for a while. Panels subscribe with on(type, fn); this module
 // knows no panel.
 //
-// Types: the service's SSE events ("bench.status", "job.state", "sweep.progress", "sweep.point";
-// bench.status also from the fallback poll), and two of its own:
+// Types: the service's SSE events ("bench.status", "job.state", "sweep.progress", "sweep.point",
+// "job.progress", "refinement.progress"; bench.status also from the fallback poll), and two of its own:
 //   "connection" {mode: "connecting"|"live"|"poll"|"down", text}, when the mode changes;
 //   "resync" {}, when SSE is back after a drop (events may have been missed: reload lists).
 import * as api from "./api.js";
 
-const SSE_TYPES = ["bench.status", "job.state", "sweep.progress", "sweep.point"];
+const SSE_TYPES = ["bench.status", "job.state", "sweep.progress", "sweep.point", "job.progress",
+                   "refinement.progress"];
 const POLL_MS = 2000;            // fallback poll period of /bench/status
 const SSE_STALE_MS = 3500;       // no bench.status over SSE for this long -> poll
 const SSE_RETRY_MS = 10000;      // the browser gave up on the stream: open it again after this

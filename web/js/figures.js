@@ -375,8 +375,10 @@ export function gridSurface(r) {
 // ------------------------------------------------------------------ validation in the drive's LUT mode
 // Suppression measured with the drive's own LUT feedforward over the finer grid (grid values and
 // the midpoints between them) at one U_dc: grid points carry a ring marker, midpoints none; a
-// cell that failed or was not measured stays blank with its reason on hover.
-export function validationHeatmap(cells, udc) {
+// cell that failed or was not measured stays blank with its reason on hover. Numeric axes: a
+// refined map's inserted values sit at their real positions. The colour range is fixed (0…60 dB),
+// so two validations (a map and its refinement) compare by colour. opts.title replaces the title.
+export function validationHeatmap(cells, udc, opts) {
   const mine = cells.filter((c) => Number(c.operating_point.udc_v) === udc);
   const axis = (key) => [...new Set(mine.map((c) => Number(c.operating_point[key])))].sort((a, b) => a - b);
   const xs = axis("torque_nm");
@@ -416,12 +418,18 @@ export function validationHeatmap(cells, udc) {
     type: "scatter", mode: "markers", x: grid.x, y: grid.y, name: "grid point (trained)", hoverinfo: "skip",
     marker: { symbol: "square-open", size: 30, color: "#d1495b", line: { width: 2 } },
   };
+  const numericAxis = (title, values) => {
+    const edges = values.length ? cellEdges(values) : [[0, 1]];
+    return { title: { text: title }, type: "linear", tickmode: "array", tickvals: values, ticktext: values.map((v) => fmt(v)),
+      range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false };
+  };
+  const title = (opts && opts.title) ||
+    `suppression in the drive's LUT mode (dB) @ U<sub>dc</sub> = ${udc} V · ◻ grid point, else midpoint`;
   const layout = {
-    title: { text: `suppression in the drive's LUT mode (dB) @ U<sub>dc</sub> = ${udc} V · ◻ grid point, else midpoint`,
-      font: { size: 13 }, x: 0.02, xanchor: "left" },
+    title: { text: title, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 }, showlegend: false,
-    xaxis: { title: { text: "torque T* (N·m)" }, type: "category", categoryorder: "array", categoryarray: xs, zeroline: false },
-    yaxis: { title: { text: "speed n (rpm)" }, type: "category", categoryorder: "array", categoryarray: ys, zeroline: false },
+    xaxis: numericAxis("torque T* (N·m)", xs),
+    yaxis: numericAxis("speed n (rpm)", ys),
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
   return { data: [heat, marks], layout, config: CONFIG };

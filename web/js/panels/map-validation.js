@@ -1,11 +1,14 @@
 // Panel (3b): the map shown, validated in the drive's own LUT mode: "Validate on drive" (operator)
 // starts the job (POST /maps/{id}/validate); the latest validation is drawn as a heat map of the
 // suppression over the finer grid (grid points and the midpoints between them) at the U_dc chosen
-// in the map panel, with its summary (grid / midpoint median and minimum, the worst cell).
+// in the map panel, with its summary (grid / midpoint median and minimum, the worst cell). Its
+// "Refine on drive" part is map-refine.js, which this module hands the map shown and the live events.
 import * as api from "../api.js";
 import { $, setText, showMsg } from "../dom.js";
 import { fmt, shortTime } from "../format.js";
 import * as figures from "../figures.js";
+import * as events from "../events.js";
+import * as refine from "./map-refine.js";
 
 let mapId = null;            // the map the map panel shows
 let udc = null;              // its U_dc slice
@@ -14,6 +17,11 @@ let runningJob = null;       // the validation job this page started
 
 export function init() {
   $("validate-btn").addEventListener("click", start);
+  // (main.js wires the other panels; the refinement's events and "open a map" come through here)
+  refine.init({
+    subscribe: events.on,
+    openMapInView: (id) => $("map-select").dispatchEvent(new CustomEvent("open-map", { detail: id })),
+  });
 }
 
 // The map panel shows map `m` at `udcV`: fetch its latest validation (if any) and draw it.
@@ -21,6 +29,7 @@ export async function show(m, udcV) {
   const changed = !m || m.id !== mapId || !validation || !m.validation || m.validation.id !== validation.id;
   mapId = m ? m.id : null;
   udc = udcV;
+  refine.show(m, udcV);
   $("validate-btn").disabled = mapId === null;
   if (!changed) return draw();
   validation = null;
@@ -47,10 +56,10 @@ async function start() {
   }
 }
 
-// SSE job.state: a validation job that ended brings its result in.
+// SSE job.state: a validation job that ended brings its result in (a refinement's too: it validates).
 export async function onJobState(p) {
-  if (p.kind !== "validation" || ["queued", "running"].includes(p.state)) return;
-  if (p.job_id === runningJob) {
+  if (!["validation", "refinement"].includes(p.kind) || ["queued", "running"].includes(p.state)) return;
+  if (p.kind === "validation" && p.job_id === runningJob) {
     runningJob = null;
     showMsg("validation-note", p.state === "done" ? null :
       [`Validation job ${p.job_id} ${p.state}${p.error ? ": " + p.error : ""}`]);

@@ -21,6 +21,8 @@ export function init({ openResultOf, onMapShown, shown }) {
   if (onMapShown) mapShown = onMapShown;
   if (shown) onShown = shown;
   $("map-select").addEventListener("change", (e) => show(Number(e.target.value)));
+  // another part of the map card asks for a map (e.g. a refinement's): detail = its id
+  $("map-select").addEventListener("open-map", (e) => select(Number(e.detail)));
   $("udc-select").addEventListener("change", draw);
   if (!figures.plotlyLoaded()) {
     showMsg("map-note", ["Plotly.js did not load from /vendor/plotly.min.js — maps cannot be drawn."]);
@@ -30,16 +32,23 @@ export function init({ openResultOf, onMapShown, shown }) {
 // Refill the map list; show the newest map, or keep the one selected if it is still there.
 export async function reload(selectNewest) {
   let maps;
+  let sweeps;
   try {
-    maps = await api.get("/maps");
+    // the sweeps say which maps a refinement made (kind refinement: its source map)
+    [maps, sweeps] = await Promise.all([api.get("/maps"), api.get("/sweeps").catch(() => [])]);
   } catch (_) {
     return;
   }
+  const refinedFrom = new Map(sweeps.filter((s) => s.kind === "refinement" && s.refinement)
+    .map((s) => [s.id, s.refinement.source_map_id]));
   const sel = $("map-select");
   const prev = sel.value;
-  sel.replaceChildren(...maps.slice().sort((a, b) => b.id - a.id).map((m) =>
-    el("option", { value: String(m.id) },
-      `map ${m.id} · sweep ${m.sweep_id} · h=${m.harmonic_order} · ${shortTime(m.created_at)}`)));
+  sel.replaceChildren(...maps.slice().sort((a, b) => b.id - a.id).map((m) => {
+    const from = refinedFrom.get(m.sweep_id);
+    const origin = from === undefined ? `sweep ${m.sweep_id}` : `refined from ${from} (refinement ${m.sweep_id})`;
+    return el("option", { value: String(m.id), dataset: from === undefined ? {} : { refinedFrom: String(from) } },
+      `map ${m.id} · ${origin} · h=${m.harmonic_order} · ${shortTime(m.created_at)}`);
+  }));
   $("map-empty").hidden = maps.length > 0;
   $("map").dataset.empty = maps.length === 0 ? "1" : "";
   if (maps.length === 0) return;
@@ -92,7 +101,11 @@ async function show(id) {
   // filled: not ok, but carrying a fill (service/map_fill.py) the LUT takes with "with fill"
   const filled = m.cells.filter((c) => c.status !== "ok" && c.filled).length;
   $("map-meta").dataset.filled = String(filled);
-  setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · sweep ${m.sweep_id} · ` +
+  const prov = m.provenance || {};
+  const origin = m.refined_from ? `refined from ${m.refined_from} (refinement ${prov.refinement_id ?? m.sweep_id}, ` +
+    `round ${prov.round ?? "—"}, ${prov.cells_added ?? "—"} cells added)` : `sweep ${m.sweep_id}`;
+  $("map-meta").dataset.refinedFrom = m.refined_from ? String(m.refined_from) : "";
+  setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · ${origin} · ` +
     `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${filled} filled · ` +
     `${q.outliers || 0} outlier(s)`);
   // outliers (ringed in the plots) with the reason to act on

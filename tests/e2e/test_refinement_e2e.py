@@ -1,0 +1,127 @@
+"""A map refined on the drive (POST /maps/{id}/refine), end to end: the emulated bench in its own process,
+`ripplecal serve --bench` pointed at it, a real SQLite file shared by restarts. The refinement is a
+sweep of kind `refinement`: it is cancelled and resumed after a crash as any sweep is, and measures each
+of its cells once. Assertions are on states, counts and provenance, never on how well a round did (the
+figures are `make bench`'s)."""
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+
+import pytest
+
+from tests.support.bench_rig import Api, EmulatorRig
+from tests.support.service_process import ServiceProcess
+
+pytestmark = pytest.mark.e2e
+# across the field-weakening turn: the midpoints at 2200 rpm miss 30 dB, so a round has work to do
+GRID = {"torque_nm": [2.0, 3.0], "speed_rpm": [1800, 2600], "udc_v": [12]}
+
+
+@pytest.fixture(scope="module")
+def emu():
+    rig = EmulatorRig()
+    yield rig
+    rig.stop()
+
+
+def start(emu: EmulatorRig, db) -> tuple[ServiceProcess, Api]:
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(db.parent)))
+    svc.wait_ready()
+    api = Api(svc, db)
+    assert api.post("/bench/fault-reset").status_code == 200        # whatever an earlier test left
+    return svc, api
+
+
+def swept_map(api: Api) -> int:
+    r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
+    assert r.status_code == 202, r.text
+    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
+                     300, "sweep finished")
+    assert sweep["state"] == "done", sweep
+    return sweep["map_id"]
+
+
+def refinement_cells(db, sweep_id: int) -> dict:
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute("SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
+                            "GROUP BY torque_nm, speed_rpm, udc_v", (sweep_id,)).fetchall()
+    return {r[:3]: r[3] for r in rows}
+
+
+def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu, tmp_path):
+    db = tmp_path / "refine.db"
+    svc, api = start(emu, db)
+    try:
+        source = swept_map(api)
+        r = api.post(f"/maps/{source}/refine", {"target_db": 30, "max_cells": 4})
+        assert r.status_code == 202 and r.json()["kind"] == "refinement", r.text
+        job = api.job_finished(r.json()["id"], 600)
+        assert job["state"] == "done", job
+        result = job["result"]
+        assert result["source_map_id"] == source and result["rounds"] and result["cells_added"] <= 4
+        assert result["holds"] or result["stopped"]                 # every point held, or it says why not
+        assert result["rounds"][0]["map_id"] == source and result["rounds"][0]["points"] == 9
+        refined = api.get(f"/maps/{result['map_id']}")
+        if result["cells_added"]:
+            # the refined map keeps its provenance; its axes hold what the rounds inserted
+            assert refined["refined_from"] == source and refined["provenance"]["refinement_id"] == result["refinement_id"]
+            for rnd in result["rounds"][:-1]:
+                for axis, values in rnd["inserted"].items():
+                    assert set(values) <= set(refined["axes"][axis])
+            assert refined["axes"]["speed_rpm"] != GRID["speed_rpm"] or refined["axes"]["torque_nm"] != GRID["torque_nm"]
+        # its validation is the refinement's final one, in LUT mode, at every grid point and midpoint
+        validation = api.get(f"/maps/{result['map_id']}/validation")
+        assert validation["id"] == result["validation"]["id"]
+        n_t, n_n = len(refined["axes"]["torque_nm"]), len(refined["axes"]["speed_rpm"])
+        assert len(validation["cells"]) == (2 * n_t - 1) * (2 * n_n - 1)
+        sweep = api.get(f"/sweeps/{result['refinement_id']}")
+        assert sweep["kind"] == "refinement" and sweep["state"] == "done" and sweep["map_id"] == result["map_id"]
+        # each cell the refinement identified, once
+        assert set(refinement_cells(db, result["refinement_id"]).values()) <= {1}
+        assert not api.get("/bench/status")["busy"]
+        api.close()
+    finally:
+        svc.stop()
+
+
+def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp_path):
+    db = tmp_path / "crash.db"
+    svc, api = start(emu, db)
+    try:
+        source = swept_map(api)
+        # cancel: the refinement (a sweep of kind refinement) ends cancelled, the bench safe
+        job_id = api.post(f"/maps/{source}/refine", {"max_cells": 4}).json()["id"]
+        sweep_id = api.get(f"/jobs/{job_id}")["sweep_id"]
+        api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["state"] == "running", 60, "refinement running")
+        assert api.post(f"/sweeps/{sweep_id}/cancel").status_code == 200
+        assert api.job_finished(job_id, 300)["state"] == "cancelled"
+        assert api.get(f"/sweeps/{sweep_id}")["state"] == "cancelled" and not api.get("/bench/status")["busy"]
+
+        # kill -9 during a round: after the restart the refinement is interrupted, resumes from its step
+        job_id = api.post(f"/maps/{source}/refine", {"max_cells": 4}).json()["id"]
+        sweep_id = api.get(f"/jobs/{job_id}")["sweep_id"]
+        api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["refinement"]["phase"] == "measure"
+                 or s["state"] not in ("queued", "running"), 300, "a round measuring its cells")
+        api.close()
+    finally:
+        os.killpg(svc.proc.pid, signal.SIGKILL)
+        svc.proc.wait(20)
+        svc.log.close()
+    svc, api = start(emu, db)
+    try:
+        sweep = api.get(f"/sweeps/{sweep_id}")
+        if sweep["state"] == "interrupted":
+            assert api.post(f"/sweeps/{sweep_id}/resume").status_code == 200
+        sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed", "cancelled") and s,
+                         600, "refinement finished after the restart")
+        assert sweep["state"] == "done", sweep
+        refinement = sweep["refinement"]
+        assert refinement["phase"] == "done" and (refinement["holds"] or refinement["stopped"])
+        # no cell identified twice across the crash
+        assert set(refinement_cells(db, sweep_id).values()) <= {1}
+        assert refinement["cells_added"] == sum(refinement_cells(db, sweep_id).values())
+        api.close()
+    finally:
+        svc.stop()

@@ -1,0 +1,96 @@
+"""What a refinement round adds (service/refinement.py plan_round), on hand-made maps and validations."""
+from __future__ import annotations
+
+import math
+
+from service.refinement import axes_with, failing_points, plan_round
+
+AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
+
+
+def map_cells(theta=lambda t, n: (0.01 * t, 0.0)) -> list[dict]:
+    out = []
+    for n in AXES["speed_rpm"]:
+        for t in AXES["torque_nm"]:
+            c, s = theta(t, n)
+            out.append({"torque_nm": t, "speed_rpm": n, "udc_v": 12.0, "status": "ok", "theta_cos": c, "theta_sin": s})
+    return out
+
+
+def vcell(t, n, db, kind=None, status="measured") -> dict:
+    grid = t in AXES["torque_nm"] and n in AXES["speed_rpm"]
+    return {"operating_point": {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}, "kind": kind or ("grid" if grid else "midpoint"),
+            "status": status, "suppression_db": db if status == "measured" else None}
+
+
+def validation(overrides: dict) -> list[dict]:
+    """Every point of the finer grid at 45 dB, but those in `overrides` {(t, n): dB or None (failed)}."""
+    cells = []
+    for n in (1000.0, 1500.0, 2000.0, 2500.0, 3000.0):
+        for t in (1.0, 1.5, 2.0, 2.5, 3.0):
+            db = overrides.get((t, n), 45.0)
+            cells.append(vcell(t, n, db, status="measured" if db is not None else "failed"))
+    return cells
+
+
+def test_nothing_to_do_when_every_point_holds():
+    plan = plan_round(AXES, map_cells(), validation({}), 30.0, 100)
+    assert plan.failing == 0 and plan.cells == [] and plan.inserted == {}
+
+
+def test_failing_points_are_those_below_target_or_not_measured():
+    cells = validation({(1.5, 1000.0): 29.9, (2.5, 3000.0): None})
+    assert {(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"]) for c in failing_points(cells, 30.0)} \
+        == {(1.5, 1000.0), (2.5, 3000.0)}
+
+
+def test_a_failing_speed_midpoint_inserts_its_speed_a_row_of_cells():
+    # the whole 2500 rpm row of midpoints fails: theta turns between 2000 and 3000 rpm
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 * t, 0.02 if n == 3000.0 else 0.0)),
+                      validation({(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}), 30.0, 100)
+    assert plan.inserted == {"speed_rpm": [2500.0]}
+    assert sorted(plan.new_cells) == [(1.0, 2500.0, 12.0), (2.0, 2500.0, 12.0), (3.0, 2500.0, 12.0)]
+    assert plan.remeasure == []
+
+
+def test_a_diagonal_midpoint_inserts_on_the_axis_where_theta_steps_most():
+    # theta changes with speed only: a point midway in torque and speed inserts the speed value
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 + 0.01 * (n == 3000.0), 0.0)),
+                      validation({(2.5, 2500.0): 15.0}), 30.0, 100)
+    assert plan.inserted == {"speed_rpm": [2500.0]}
+
+
+def test_a_grid_point_that_misses_at_its_own_cell_is_identified_again():
+    plan = plan_round(AXES, map_cells(), validation({(2.0, 2000.0): 25.0}), 30.0, 100)
+    assert plan.remeasure == [(2.0, 2000.0, 12.0)] and plan.inserted == {} and plan.new_cells == []
+
+
+def test_the_budget_decides_what_fits_and_says_what_did_not():
+    row = {(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}     # inserting 2500 rpm costs 3 cells
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.01, 0.02 * (n == 3000.0))), validation(row), 30.0, 2)
+    assert plan.inserted == {} and plan.new_cells == []
+    assert any("needs 3 cells, 2 left" in r for r in plan.reasons)
+
+
+def test_points_served_per_cell_come_first_and_weak_candidates_wait():
+    # five failing points want 2500 rpm (3 cells: 5/3 per cell); one grid point wants a re-measure (1/1);
+    # one torque midpoint wants 1.5 Nm (3 cells: 1/3 per cell, below a quarter of the best: next round)
+    fails = {(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}
+    fails.update({(1.0, 1000.0): 20.0, (1.5, 2000.0): 29.0})
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 * t, 0.02 * (n == 3000.0))), validation(fails), 30.0, 100)
+    assert plan.inserted == {"speed_rpm": [2500.0]}
+    assert plan.remeasure == [(1.0, 1000.0, 12.0)]
+    assert "torque_nm" not in plan.inserted
+
+
+def test_values_inserted_on_two_axes_add_their_crossing_once():
+    fails = {(t, 2500.0): 10.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}
+    fails.update({(2.5, n): 10.0 for n in (1000.0, 1500.0, 2000.0, 2500.0, 3000.0)})
+    cells = map_cells(lambda t, n: (0.01 + 0.02 * (t == 3.0), 0.02 * (n == 3000.0)))
+    plan = plan_round(AXES, cells, validation(fails), 30.0, 100)
+    assert plan.inserted == {"speed_rpm": [2500.0], "torque_nm": [2.5]}
+    # 3 cells of the new row, 3 of the new column, 1 at their crossing
+    assert len(plan.new_cells) == 7 and (2.5, 2500.0, 12.0) in plan.new_cells
+    new_axes = axes_with(AXES, plan.inserted)
+    assert new_axes["speed_rpm"] == [1000.0, 2000.0, 2500.0, 3000.0] and new_axes["torque_nm"] == [1.0, 2.0, 2.5, 3.0]
+    assert math.prod(len(v) for v in new_axes.values()) == 9 + len(plan.new_cells)
