@@ -4,17 +4,26 @@ The transport is chosen by the python-can interface string alone (socketcand, so
 virtual, ...): the same code talks to the emulator and to a real bench. The heartbeat matters for
 safety: the drive consumes it (0x1016) and drops to torque 0 when the service goes silent, so it is
 produced for exactly as long as the bus is connected and stops when the service lets go of the bus.
+
+One master per node id: a second master on the bus with our node id (another `ripplecal serve`, a
+CLI run with --bench) would command the same drives, and a drive would take its heartbeat for ours.
+Transports do not hand a bus its own frames back (python-can's `receive_own_messages` is off by
+default; the emulator's socketcand server sends a client's frames to the other clients only), so a
+heartbeat heard on our own COB-ID (0x700 + service_node_id) comes from another node using our id.
+`connect()` listens before it produces its heartbeat and refuses (ForeignMasterError) when one is
+heard; a connected bus keeps listening and `foreign_master()` names what it heard.
 """
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 import can
 import canopen
 from threadpoolctl import threadpool_limits
 
-from drivers.errors import NotConnectedError
+from drivers.errors import ForeignMasterError, NotConnectedError
 
 NMT_STATE_OPERATIONAL = 0x05
 HEARTBEAT_COB_BASE = 0x700
@@ -22,6 +31,21 @@ HEARTBEAT_COB_BASE = 0x700
 NOTIFIER_CYCLE_S = 0.1
 """Receive-thread wake-up period: disconnect() waits for it, and the safety path must not hang ~1 s
 (canopen's default) before the bus is really released."""
+
+FOREIGN_LISTEN_PERIODS = 2.0
+"""connect() listens for another master's heartbeat for this many of our heartbeat periods (another
+ripplecal sends at the same period) after the first frame it hears (the receive path is live then:
+socketcand holds a new client's frames back for its handshake) ..."""
+
+FOREIGN_LISTEN_MIN_S = 0.2
+"""... and at least this long, for a loaded PC's receive thread ..."""
+
+FOREIGN_LISTEN_MAX_S = 0.5
+"""... and no longer than this in all (a silent bus: nothing to hear; a master with a period up to
+some 0.2 s is heard within it even behind socketcand's 0.2 s handshake hold)."""
+
+FOREIGN_MASTER_HOLD_S = 2.0
+"""foreign_master() reports another master for this long after its last heartbeat was heard."""
 
 
 def one_blas_thread() -> None:
@@ -38,12 +62,46 @@ def one_blas_thread() -> None:
 INTERFACE_DEFAULTS: dict[str, dict[str, Any]] = {"socketcand": {"tcp_tune": True}}
 
 
+class _OwnIdWatch(can.Listener):
+    """Every frame's arrival (is the receive path live?) and heartbeats on our own COB-ID, which only
+    another node using our id sends (receive thread)."""
+
+    def __init__(self, cob_id: int):
+        self.cob_id = cob_id
+        self.lock = threading.Lock()
+        self.first_frame_at: float | None = None
+        self.heard = threading.Event()          # a foreign heartbeat was heard (connect's listening ends)
+        self.foreign_count = 0
+        self.foreign_last_at: float | None = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        now = time.monotonic()
+        own_echo = getattr(msg, "is_rx", True) is False      # a transport set to hand our frames back
+        foreign = (msg.arbitration_id == self.cob_id and not msg.is_extended_id and not msg.is_remote_frame
+                   and not msg.is_error_frame and not own_echo)
+        with self.lock:
+            if self.first_frame_at is None:
+                self.first_frame_at = now
+            if foreign:
+                self.foreign_count += 1
+                self.foreign_last_at = now
+        if foreign:
+            self.heard.set()
+
+    def snapshot(self) -> tuple[float | None, int, float | None]:
+        with self.lock:
+            return self.first_frame_at, self.foreign_count, self.foreign_last_at
+
+
 class CanBus:
     """A python-can bus, a canopen.Network on it, and the periodic service heartbeat.
 
     interface, channel, host, port, bitrate: passed to `can.Bus` (only those that are set), so every
     python-can transport works unchanged. service_node_id: our node id on the bus; the heartbeat goes
     out on COB-ID 0x700 + service_node_id with one byte 0x05 (operational) every heartbeat_period_ms.
+    Another master heard on that COB-ID: connect() refuses (ForeignMasterError), foreign_master()
+    names it while connected (a transport told to hand our own frames back, `receive_own_messages`,
+    would hear itself: the check is off then).
     """
 
     def __init__(self, interface: str, channel: str | int, host: str | None = None, port: int | None = None,
@@ -63,6 +121,7 @@ class CanBus:
         self._extra_bus_kwargs = bus_kwargs
         self._network: canopen.Network | None = None
         self._heartbeat_task = None
+        self._watch: _OwnIdWatch | None = None
         self._lock = threading.Lock()
 
     # -- lifecycle ----------------------------------------------------------------------------------
@@ -79,7 +138,9 @@ class CanBus:
         return kwargs
 
     def connect(self) -> "CanBus":
-        """Open the bus, start the canopen notifier and the service heartbeat. Idempotent."""
+        """Open the bus, start the canopen notifier, listen for another master using our node id (up
+        to FOREIGN_LISTEN_MAX_S, usually a few tenths of a second), then start the service heartbeat.
+        Raises ForeignMasterError (the bus closed again, nothing sent) when one is heard. Idempotent."""
         with self._lock:
             if self._network is not None:
                 return self
@@ -91,16 +152,66 @@ class CanBus:
             # sent by two threads at once on transports that are not thread-safe (socketcand's TCP text)
             if not hasattr(bus, "_lock_send_periodic"):
                 bus._lock_send_periodic = network.send_lock
+            watch = None if self._hears_itself() else _OwnIdWatch(self.heartbeat_cob_id)
+            if watch is not None:
+                network.listeners.append(watch)       # the notifier network.connect() starts calls it
             try:
                 network.connect()
+                if watch is not None:
+                    # before our own heartbeat goes out: a second one with this id would keep the other
+                    # master's drive alive on our account
+                    self._listen_for_foreign_master(watch)
                 self._heartbeat_task = network.send_periodic(
-                    HEARTBEAT_COB_BASE + self.service_node_id, bytes([NMT_STATE_OPERATIONAL]),
-                    self.heartbeat_period_ms / 1000.0)
+                    self.heartbeat_cob_id, bytes([NMT_STATE_OPERATIONAL]), self.heartbeat_period_ms / 1000.0)
             except BaseException:
                 network.disconnect()
                 raise
             self._network = network
+            self._watch = watch
             return self
+
+    def _hears_itself(self) -> bool:
+        return bool(self._extra_bus_kwargs.get("receive_own_messages"))
+
+    def _listen_for_foreign_master(self, watch: _OwnIdWatch) -> None:
+        started = time.monotonic()
+        listen_s = max(FOREIGN_LISTEN_PERIODS * self.heartbeat_period_ms / 1000.0, FOREIGN_LISTEN_MIN_S)
+        while True:
+            first_frame_at = watch.snapshot()[0]
+            end = started + FOREIGN_LISTEN_MAX_S
+            if first_frame_at is not None:
+                end = min(end, max(first_frame_at, started) + listen_s)
+            left = end - time.monotonic()
+            if watch.heard.wait(max(0.0, min(left, 0.02))):
+                raise ForeignMasterError(
+                    f"CAN bus {self._where()}: {self._describe_foreign(watch)}; two masters with one node id "
+                    f"would both command the bench's devices, which would take the other's heartbeat for ours "
+                    f"(is another ripplecal serve, or a CLI run with --bench, on this bench?); not connected")
+            if left <= 0:
+                return
+
+    def _describe_foreign(self, watch: _OwnIdWatch) -> str:
+        _, count, last_at = watch.snapshot()
+        age = "" if last_at is None else f" ({count} heard, the last {time.monotonic() - last_at:.1f} s ago)"
+        return f"another master sends heartbeats as node {self.service_node_id} on {self.channel}{age}"
+
+    def foreign_master(self) -> str | None:
+        """None, or what was heard while connected: "another master sends heartbeats as node 1 on can0
+        (12 heard, the last 0.1 s ago)", while its last heartbeat is at most FOREIGN_MASTER_HOLD_S old.
+        Cheap (no bus traffic): the service's interlocks may poll it."""
+        watch = self._watch
+        if watch is None or self._network is None:
+            return None
+        last_at = watch.snapshot()[2]
+        if last_at is None or time.monotonic() - last_at > FOREIGN_MASTER_HOLD_S:
+            return None
+        return self._describe_foreign(watch)
+
+    def _where(self) -> str:
+        where = f"{self.interface}:{self.channel}"
+        if self.host is not None:
+            where += f"@{self.host}:{self.port}"
+        return where
 
     def disconnect(self) -> None:
         """Stop the heartbeat first (the drive then falls safe by itself), then shut the bus down.
@@ -108,6 +219,7 @@ class CanBus:
         with self._lock:
             network, self._network = self._network, None
             task, self._heartbeat_task = self._heartbeat_task, None
+            self._watch = None
         if network is None:
             return
         try:
@@ -155,7 +267,4 @@ class CanBus:
         return HEARTBEAT_COB_BASE + self.service_node_id
 
     def __repr__(self) -> str:
-        where = f"{self.interface}:{self.channel}"
-        if self.host is not None:
-            where += f"@{self.host}:{self.port}"
-        return f"CanBus({where}, service_node_id={self.service_node_id}, connected={self.connected})"
+        return f"CanBus({self._where()}, service_node_id={self.service_node_id}, connected={self.connected})"

@@ -35,6 +35,7 @@ from drivers.cia402 import (
 from drivers.emcy_codes import describe_emcy
 from drivers.errors import (
     DriveFaultError,
+    FaultReactionActiveError,
     HeartbeatMissingError,
     NotConnectedError,
     SdoAbortError,
@@ -71,6 +72,16 @@ heard, so the wait costs a healthy bench nothing, and a loaded start-up is not c
 
 STATUS_POLL_INTERVAL_S = 0.002
 """Pause between statusword reads while waiting for a state change (each read is one SDO round trip)."""
+
+FAULT_REACTION_WAIT_S = 10.0
+"""fault_reset() waits this long for a fault reaction to end (a load machine braking from speed to
+standstill takes seconds) before it says to try again."""
+
+FAULT_REACTION_POLL_S = 0.05
+"""Pause between statusword reads while a fault reaction runs."""
+
+FAULT_REACTION_DOES = {"load machine": "still braking to standstill"}
+"""What a device kind does during its fault reaction, for the message of a reset that came too early."""
 
 
 class Cia402Master:
@@ -341,16 +352,30 @@ class Cia402Master:
             state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
                                         f"transition out of {state.name} towards OPERATION_ENABLED", command)
 
-    def fault_reset(self, timeout_s: float = 2.0) -> bool:
-        """Acknowledge a FAULT: rising edge on controlword bit 7, wait for SWITCH_ON_DISABLED.
-        Returns False if the device was not in FAULT (nothing sent). Only on a person's request
-        (or an explicit auto-reset setting): the service never calls this on its own."""
+    def fault_reset(self, timeout_s: float = 2.0, fault_reaction_timeout_s: float = FAULT_REACTION_WAIT_S) -> bool:
+        """Acknowledge a FAULT: rising edge on controlword bit 7, wait (timeout_s) for it to leave FAULT.
+        A device still in its fault reaction (FAULT_REACTION_ACTIVE: a load machine braking to
+        standstill) cannot be reset yet: first wait up to fault_reaction_timeout_s for the reaction to
+        end, else FaultReactionActiveError says what it waits for and to try again. Returns False if the
+        device was not in FAULT (nothing sent). Only on a person's request (or an explicit auto-reset
+        setting): the service never calls this on its own."""
         state = self.state()
         if state not in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
             return False
-        deadline = time.monotonic() + timeout_s
         if state is State402.FAULT_REACTION_ACTIVE:
-            self.wait_for_state(lambda s: s is State402.FAULT, deadline, "fault reaction to end")
+            waited_from = time.monotonic()
+            while state is State402.FAULT_REACTION_ACTIVE:
+                if time.monotonic() - waited_from >= fault_reaction_timeout_s:
+                    doing = FAULT_REACTION_DOES.get(self.device_kind, "still in its fault reaction")
+                    raise FaultReactionActiveError(
+                        f"{self.device_kind} node {self.node_id} is {doing} after its fault (FAULT_REACTION_ACTIVE, "
+                        f"waited {time.monotonic() - waited_from:.0f} s)"
+                        f"{self._fault_hint(State402.FAULT_REACTION_ACTIVE)}; try the reset again when it has stopped")
+                time.sleep(FAULT_REACTION_POLL_S)     # seconds to wait: a statusword read per 50 ms will do
+                state = self.state()
+            if state is not State402.FAULT:
+                return False          # the reaction ended elsewhere than in FAULT: nothing to acknowledge
+        deadline = time.monotonic() + timeout_s
         # fault reset acts on the 0 -> 1 edge of bit 7
         self.send_command(Command402.DISABLE_VOLTAGE)
         self.send_command(Command402.FAULT_RESET)

@@ -3,9 +3,10 @@
 The DAQ sample counter is the clock of every measurement, so the reader must not lose or reorder
 samples and must say where the stream had a hole (gap_before). It also provides backpressure: the
 thread stops reading while `max_buffered_samples` are unconsumed. Against the emulator in
-`--speedup 0` the plant only advances when its pty write succeeds, so plant time stops while nobody
-measures, and memory stays bounded on a real DAQ too (the DAQ then overflows, which shows up as
-whole frames missing after the pause: counted as `overruns`, not as line errors).
+`--speedup 0` the plant waits for its pty write, so it runs only as fast as it is consumed (after
+0.25 s without a read it goes on in real time and drops frames, as a real DAQ overflows), and memory
+stays bounded on a real DAQ too (the DAQ then overflows, which shows up as whole frames missing
+after the pause: counted as `overruns`, not as line errors).
 
 Read discipline: the thread waits (up to SERIAL_READ_TIMEOUT_S) for the first byte, then takes what
 the port holds, and goes on taking while more is waiting, up to the room left in the queue and
@@ -23,11 +24,20 @@ Reconnect: when the port fails (EOF, EIO: the DAQ was unplugged) the thread clos
 the same URL with backoff (as /dev/serial/by-id/... reappears when a USB DAQ comes back). While it
 is away, read() raises DaqDisconnected at once, and so does a read that was waiting when it went; the
 first samples after a reconnect are marked gap_before, so no window spans the hole.
+
+One reader per DAQ: a serial port or pty (a device path) is opened with an exclusive lock (pyserial's
+`exclusive=True`: flock on POSIX), so a second reader of the same port, in this process or another
+(a second `ripplecal serve`, a CLI run with --bench), fails at start with DaqPortBusy naming the port
+instead of taking half of the frames. URLs (socket://, loop://, ...) have no such lock.
+
+What the port holds when it is first opened was streamed while nobody read: whole frames missing in
+it are the DAQ's overruns (as after a backpressure pause), not line errors.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+import errno
 import fcntl
 import os
 import select
@@ -40,9 +50,9 @@ import numpy as np
 import serial
 
 from drivers.daq_protocol import FLAG_SENSOR_FAULT, FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
-from drivers.errors import DaqDisconnected, DaqTimeout
+from drivers.errors import DaqDisconnected, DaqPortBusy, DaqTimeout
 
-__all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DecodedSamples", "DecoderCounters"]
+__all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DaqPortBusy", "DecodedSamples", "DecoderCounters"]
 
 SERIAL_READ_TIMEOUT_S = 0.05
 """pyserial read timeout: how long the thread waits for a first byte; bounds how long it takes to
@@ -101,7 +111,8 @@ class DaqReader:
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> "DaqReader":
-        """Open the port and start the reader thread."""
+        """Open the port and start the reader thread. Raises DaqPortBusy when another reader holds the
+        port's exclusive lock (serial.SerialException if it cannot be opened at all)."""
         if self._thread is not None:
             raise RuntimeError(f"DAQ reader for {self.url} already started")
         self._port = self._open()
@@ -138,10 +149,24 @@ class DaqReader:
 
     # -- reader thread ------------------------------------------------------------------------------
     def _open(self) -> serial.SerialBase:
-        return serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate)
+        """The port, locked for this reader alone where the OS can (a device path on POSIX); DaqPortBusy
+        when another reader holds that lock."""
+        lockable = "://" not in self.url and os.name == "posix"
+        try:
+            return serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate,
+                                         **({"exclusive": True} if lockable else {}))
+        except serial.SerialException as exc:
+            if lockable and exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise DaqPortBusy(
+                    f"DAQ {self.url}: another process holds this port (its exclusive lock is taken): one "
+                    "reader per DAQ; is another ripplecal (serve, or identify / sweep / maps download with "
+                    "--bench) reading it? Stop that one first") from exc
+            raise
 
     def _run(self) -> None:
         decoder = FrameDecoder()
+        # the OS buffered the stream while nobody read: frames missing in that backlog are overruns
+        decoder.note_pause()
         try:
             while True:
                 try:

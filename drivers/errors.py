@@ -51,6 +51,15 @@ class StateTransitionError(DriverError, TimeoutError):
     """A CiA 402 state change did not happen within its timeout."""
 
 
+class ForeignMasterError(DriverError):
+    """Another master uses our node id on the CAN bus (its heartbeat was heard on our own COB-ID)."""
+
+
+class FaultReactionActiveError(StateTransitionError):
+    """A fault reset found the device still in its fault reaction (FAULT_REACTION_ACTIVE, e.g. a load
+    machine braking to standstill) after waiting for it to end: try again once it has."""
+
+
 class HeartbeatMissingError(DriverError, TimeoutError):
     """The device answered on the bus but its heartbeat (0x700 + node id) was not heard in time."""
 
@@ -75,6 +84,10 @@ class DaqTimeout(DaqError, TimeoutError):
 
 class DaqDisconnected(DaqError, ConnectionError):
     """The reader thread stopped: port closed, EOF, or an OS error on read."""
+
+
+class DaqPortBusy(DaqError):
+    """The DAQ port is held (exclusively locked) by another reader: one reader per DAQ."""
 
 
 # --- DC supply (SCPI) ------------------------------------------------------------------------------

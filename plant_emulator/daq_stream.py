@@ -6,8 +6,14 @@ emulator owns, pointing at the current pty, removed while the DAQ is unplugged a
 comes back (as udev does with /dev/serial/by-id/...), so a bench file naming it stays valid across
 reconnects. Two write disciplines:
 
-- blocking (`--speedup 0`): a chunk is written completely before the plant goes on; a reader that
-  does not read fills the pty buffer, the write waits, and plant time stops (backpressure);
+- blocking (`--speedup 0`): batches go to a writer thread through a short queue (`offer`) and are
+  written completely, in order; a reader that does not read fills the pty buffer, the write waits,
+  and the plant waits with it (backpressure). A DAQ does not wait for ever, though: once the writer
+  has written nothing for `stall_s` of wall time while the queue is full, `offer` gives the batch up
+  (STALLED) and the emulator falls back to real time, dropping what it cannot write (`drop`, counted
+  in `frames_dropped`) until `write_progress_at` shows the reader reading again (process.py
+  `_run_fast`). What was queued before stays and is delivered first, so the reader sees the stream
+  up to the stall, then a sequence gap, as from a DAQ that overflowed;
 - paced (`--speedup X > 0`): the plant runs on the wall clock like a real DAQ. `write_paced` writes
   what the pty takes at once and queues the rest for a writer thread of its own that writes
   continuously (select + write) as fast as the reader takes it, so nothing is lost while the reader
@@ -25,6 +31,7 @@ import select
 import shutil
 import tempfile
 import threading
+import time
 import tty
 
 from drivers.daq_protocol import FRAME_BYTES
@@ -33,6 +40,12 @@ log = logging.getLogger(__name__)
 
 PACED_WRITE_MAX_BYTES = 1 << 16
 """Most bytes one paced write offers the pty (it takes ~16 KiB when nobody reads)."""
+
+QUEUED, STALLED, STOPPED = "queued", "stalled", "stopped"
+"""What `offer` did with a batch."""
+
+OFFER_POLL_S = 0.01
+"""How often a waiting `offer` looks at the writer's progress and the stop flag."""
 
 
 class DaqPty:
@@ -49,6 +62,7 @@ class DaqPty:
         self._paced_stop = threading.Event()
         self.bytes_written = 0
         self.frames_dropped = 0
+        self.write_progress_at = time.monotonic()    # when the pty last took bytes (the reader read)
         self._closed = False
         self._hung = False
         self._fd_lock = threading.Lock()
@@ -101,6 +115,7 @@ class DaqPty:
             with self._paced:
                 self._queued.clear()
             self.bytes_written = 0
+            self.write_progress_at = time.monotonic()
             self._hung = False
             self._point_link()
             return self.name
@@ -124,13 +139,24 @@ class DaqPty:
 
     def submit(self, data: bytes) -> bool:
         """Queue a batch for the writer thread; waits while the queue is full. False if stopped."""
+        return self.offer(data) == QUEUED
+
+    def offer(self, data: bytes, stall_s: float | None = None) -> str:
+        """Queue a batch for the writer thread, waiting while the queue is full: QUEUED; STOPPED once
+        the stop event is set; STALLED (the batch not queued) when stall_s is given and the pty has
+        taken nothing for stall_s of wall time (nobody reads) while the queue stayed full."""
         while not self._writer_stop.is_set():
             try:
-                self._queue.put(data, timeout=0.1)
-                return True
+                self._queue.put(data, timeout=OFFER_POLL_S)
+                return QUEUED
             except queue.Full:
-                continue
-        return False
+                if stall_s is not None and time.monotonic() - self.write_progress_at > stall_s:
+                    return STALLED
+        return STOPPED
+
+    def drop(self, data: bytes) -> None:
+        """A batch the DAQ could not deliver (nobody read): counted, never written."""
+        self.frames_dropped += len(data) // FRAME_BYTES
 
     def _writer_loop(self) -> None:
         while not self._writer_stop.is_set():
@@ -217,6 +243,8 @@ class DaqPty:
                 return
         del self._pending[:n]
         self.bytes_written += n
+        if n:
+            self.write_progress_at = time.monotonic()
 
     def close(self) -> None:
         writer = getattr(self, "_writer", None)

@@ -1,6 +1,6 @@
 """Fault hooks for reliability work: DAQ byte drops / corruption / disconnect, drive heartbeat stop,
-EMCY from the drive, delayed SDO responses. Switchable by the scenario ([faults]) or at run time on
-a loopback control socket (`"control": "tcp://127.0.0.1:P"` in the endpoints JSON).
+EMCY from the drive, delayed SDO responses, DC supply drift and trip. Switchable by the scenario
+([faults]) or at run time on a loopback control socket (`"control": "tcp://127.0.0.1:P"` in the endpoints JSON).
 
 Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ...}` or
 `{"ok": false, "error": "..."}`. Commands:
@@ -15,15 +15,29 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
     {"fault": "emcy", "code": 12816}             the drive sends this EMCY and goes to FAULT
                                                  ("fault_state": false: EMCY only; "node": 6 for the load)
     {"fault": "sdo_delay", "seconds": 1.0}       every SDO response of the emulator is held this long
-    {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again
-                                                 (a disconnected DAQ needs daq_reconnect)
+    {"fault": "supply_voltage", "volts": 9.0}    the DC supply's output drifts to this voltage (0..60 V, a
+                                                 step): MEAS:VOLT? and the physics' DC link (the drive's
+                                                 0x6079) show it while the output is on; VOLT? still reads
+                                                 the setpoint
+    {"fault": "supply_output_off"}               the supply trips: its output drops to 0 V (OUTP? reads 0,
+                                                 MEAS:VOLT? 0, the drive's power stage has no DC link:
+                                                 drive_firmware.py's udc_min_v) and OUTP ON is refused
+                                                 (SCPI error -221) until clear
+    {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again, the
+                                                 supply's output follows its setpoint again (a tripped
+                                                 output stays off until OUTP ON, as on a real supply; a
+                                                 disconnected DAQ needs daq_reconnect)
     {"scope": "arm", "samples": N}, {"scope": "read"}
                                                  the bench's oscilloscope on u_dq*, i_dq, ... (plant_emulator/scope.py)
     {"status": true}                             the fault state: {"ok": true, "faults": {...}}, with the
                                                  drive's state, injection mode and torque setpoint in force,
                                                  `drive_power_off_at` (time.monotonic() when its power
-                                                 stage last went off), the load's state, and each
-                                                 device's heartbeat consumer time (0x1016, ms; 0: off)
+                                                 stage last went off), the load's state, each
+                                                 device's heartbeat consumer time (0x1016, ms; 0: off),
+                                                 `supply` {setpoint_v, output_on, actual_v, drift_v,
+                                                 tripped}, `plant_samples` (the plant time simulated so
+                                                 far, in DAQ samples) and `daq_frames_dropped` (frames
+                                                 the DAQ could not deliver: nobody read, see process.py)
 
 Every reply carries `"at"`: time.monotonic() just before the command was carried out (CLOCK_MONOTONIC is
 system-wide, so a tool in another process can time fault -> safe against `drive_power_off_at`).
@@ -155,8 +169,13 @@ class FaultState:
             if not 0.0 <= seconds <= 60.0:
                 raise ValueError("seconds must be within 0..60")
             self.sdo_delay_s = seconds
+        elif fault == "supply_voltage":
+            self.emu.supply.drift_to(float(cmd["volts"]))
+        elif fault == "supply_output_off":
+            self.emu.supply.trip_output()
         elif fault == "clear":
             self.drop_rate = self.corrupt_rate = self.sdo_delay_s = 0.0
+            self.emu.supply.clear_faults()
             for dev in (self.emu.drive, self.emu.load):
                 if dev.node.id in self.heartbeat_stopped:
                     dev.node.nmt.start_heartbeat(int(dev.stored(0x1017)))
@@ -176,7 +195,9 @@ class FaultState:
                 "load_state": self.emu.load.state.value,
                 # whose heartbeat each device consumes, and how long it waits (0: it does not)
                 "drive_heartbeat_consumer_ms": self.emu.drive.heartbeat_consumer_ms,
-                "load_heartbeat_consumer_ms": self.emu.load.heartbeat_consumer_ms}
+                "load_heartbeat_consumer_ms": self.emu.load.heartbeat_consumer_ms,
+                "supply": self.emu.supply.snapshot(),
+                "plant_samples": self.emu.samples, "daq_frames_dropped": self.emu.daq.frames_dropped}
 
     def sdo_delay_for(self, can_id: int) -> float:
         """Delay for a frame the emulator sends (SDO responses 0x580 + node of its nodes)."""

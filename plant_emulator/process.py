@@ -14,7 +14,13 @@ Plant time is the DAQ sample counter. The drive takes at most one setpoint event
 setpoint is applied at a chunk start (256 samples) and each one is its own chunk; while no setpoint
 event waits, FRAME_BATCH_CHUNKS chunks run in one numba call and one write, which keeps the Python
 work per simulated second small (an SDO write that arrives meanwhile is applied at the next block
-start, still at a chunk start and still one toggle per write).
+start, still at a chunk start and still one toggle per write). A reader that keeps up loses nothing;
+one that stops reading does not stop the bench for ever: once the pty has taken nothing for
+FAST_STALL_S of wall time (the paced DAQ's FIFO depth), the plant runs in real time, a chunk at a time,
+and drops its frames (a DAQ overflowing), so a drive and a load machine left alone (a service killed
+mid-run: heartbeat lost, the load braking to standstill) go on in plant time as on a real bench. As
+soon as the pty takes bytes again, it runs as fast as it is read; the reader sees what was queued
+before the stall, then a sequence gap.
 
 `speedup` X > 0 (paced, like a real drive and DAQ): the plant simulates the samples that are due by
 the wall clock (X times real time), behind it as a real DAQ delivers a sample after it happened, in
@@ -48,7 +54,7 @@ from drivers.canopen_bus import one_blas_thread
 
 from . import physics as ph
 from . import scenario as scn
-from .daq_stream import DaqPty
+from .daq_stream import STALLED, STOPPED, DaqPty
 from .drive_firmware import DriveFirmware
 from .faults import ControlServer, FaultState
 from .load_machine import LoadMachineFirmware
@@ -70,6 +76,7 @@ PACED_MAX_WAIT_S = 0.1        # paced: longest sleep (stop and very slow speedup
 PACED_BEHIND_RESET_S = 1.0    # paced: this far behind the wall clock (machine busy), do not catch up
 DAQ_FIFO_S = 0.25             # paced: the DAQ's FIFO holds this much stream (wall time) before it overflows
 DAQ_FIFO_MIN_BYTES = 1 << 16
+FAST_STALL_S = DAQ_FIFO_S     # fast: the pty took nothing for this long (nobody reads): real time, frames dropped
 WATCHDOG_PERIOD_S = 0.02
 RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
 
@@ -232,20 +239,24 @@ class Emulator:
 
     # -- the two disciplines -------------------------------------------------------------------------
     def _run_fast(self) -> None:
-        """--speedup 0: blocks of chunks as fast as the DAQ reader consumes (blocking writes)."""
+        """--speedup 0: blocks of chunks as fast as the DAQ reader consumes (blocking writes). While
+        nobody reads (the pty has taken nothing for FAST_STALL_S), the plant runs in real time, chunk
+        by chunk, and its frames are dropped, until the reader reads again."""
         n, batch = self.chunk, FRAME_BATCH_CHUNKS
         self._alloc_pieces(n * batch)
         out = bytearray()
         out_limit = n * batch * ph.FRAME_BYTES
         self.daq.start_writer(self.stop_event)
+        stalled_at: float | None = None      # wall time the DAQ stalled (nobody reads); None: it is read
+        pace = (0.0, 0)                      # while stalled: (wall time, plant sample) the 1x clock started at
         while not self.stop_event.is_set():
             udc = self._piece_start()
             # one chunk while a setpoint event waits (it is applied at this chunk's start, the next one
-            # at the next chunk's start); a whole block otherwise
-            m = 1 if self.drive.has_pending() else batch
+            # at the next chunk's start) or while running in real time; a whole block otherwise
+            m = 1 if self.drive.has_pending() or stalled_at is not None else batch
             self._take_setpoints(udc)
             out += self._advance(m * n, udc)
-            if len(out) < out_limit and self.drive.has_pending():
+            if len(out) < out_limit and self.drive.has_pending() and stalled_at is None:
                 continue      # keep single event chunks together in one write
             data = bytes(out)
             out.clear()
@@ -253,8 +264,36 @@ class Emulator:
                 # nobody can read: no backpressure, so run in real time (frames are lost anyway)
                 self.stop_event.wait(len(data) / ph.FRAME_BYTES / self.sample_rate_hz)
                 continue
-            if not self.daq.submit(data):
+            if stalled_at is not None:
+                if self.daq.write_progress_at <= stalled_at:
+                    # still nobody reads: the plant keeps real time (a drive does not wait for its DAQ's
+                    # reader: a load machine braking after a lost heartbeat must come to its standstill)
+                    self.daq.drop(data)
+                    pace = self._keep_real_time(*pace)
+                    continue
+                log.info("DAQ read again: running as fast as it is read (%d frames dropped so far)",
+                         self.daq.frames_dropped)
+                stalled_at = None     # this batch is the first after the gap
+            result = self.daq.offer(data, stall_s=FAST_STALL_S)
+            if result == STOPPED:
                 break
+            if result == STALLED:
+                stalled_at = time.monotonic()
+                pace = (stalled_at, self.samples)
+                self.daq.drop(data)
+                log.info("DAQ not read for %.2f s: the plant runs in real time, its frames are dropped",
+                         FAST_STALL_S)
+
+    def _keep_real_time(self, t0: float, plant_t0: int) -> tuple[float, int]:
+        """Sleep until the wall clock has caught up with the plant (1x since (t0, plant_t0)); returns the
+        clock's origin, moved to now when the machine was too busy to keep up (no catching up)."""
+        now = time.monotonic()
+        ahead_s = t0 + (self.samples - plant_t0) / self.sample_rate_hz - now
+        if ahead_s < -PACED_BEHIND_RESET_S:
+            return now, self.samples
+        if ahead_s > 0.0:
+            self.stop_event.wait(ahead_s)
+        return t0, plant_t0
 
     def _run_paced(self) -> None:
         """--speedup X > 0: the samples due by the wall clock, in pieces of ~PACED_WAKE_S, cut where a
@@ -315,7 +354,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                          "0.25 s (the DAQ's FIFO) is dropped in whole frames. Measured on 2 cores with a DaqReader "
                          "consuming as fast as it can: no frame lost at 1x, 5x, 10x or 20x (beyond about 170x the "
                          "emulator itself falls behind); 0 = as fast as the DAQ reader consumes, the way to run "
-                         "faster than real time (default 1)")
+                         "faster than real time (while nobody reads for 0.25 s: real time, frames dropped) "
+                         "(default 1)")
     ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--control-port", type=int, default=0,

@@ -10,12 +10,23 @@ joined with ';'. Keywords are case-insensitive and accept SCPI short and long fo
     VOLT <v>            setpoint in V, 0..60 (else error -222 queued); no reply
     VOLT?               -> setpoint
     MEAS:VOLT?          -> actual output voltage: 0 with the output off, else setpoint + ~1 mV noise
-    OUTP ON|OFF|1|0     output switch; no reply
+                           (under a drift fault: the drifted voltage + noise)
+    OUTP ON|OFF|1|0     output switch; no reply (OUTP ON while the protection is tripped: -221
+                        "Settings conflict" queued, the output stays off)
     OUTP?               -> 1 / 0
     SYST:ERR?           -> oldest queued error, or 0,"No error"
 
 As with real instruments, a command never gets a reply and errors go to the error queue; an unknown
 query queues -113 "Undefined header" and gets no reply.
+
+Faults (the emulator's control socket, plant_emulator/faults.py; not reachable over SCPI, and *RST
+does not clear them, as a reset command does not repair a supply):
+- `drift_to(v)`: the output no longer follows the setpoint: with the output on, the DC link and
+  MEAS:VOLT? are at v (a step) while VOLT? still reads the setpoint;
+- `trip_output()`: the output protection trips: the output drops to 0 V, OUTP? reads 0, and OUTP ON is
+  refused until the fault is cleared;
+- `clear_faults()`: both gone; the output follows the setpoint again, and a tripped output stays off
+  until OUTP ON (a tripped supply does not switch itself back on).
 """
 from __future__ import annotations
 
@@ -43,22 +54,31 @@ class DcSupply:
         self._lock = threading.Lock()
         self.setpoint_v = float(voltage_v)
         self.output_on = False
+        self.drift_v: float | None = None   # fault: the output sits here instead of at the setpoint
+        self.tripped = False                # fault: output protection tripped (output held off)
         self._noise_v = noise_v
         self._rng = random.Random(seed)
         self.errors: deque[str] = deque(maxlen=ERROR_QUEUE_LEN)
 
+    def _output_v(self) -> float:
+        """What the output terminals carry (the caller holds the lock)."""
+        if not self.output_on:
+            return 0.0
+        return self.setpoint_v if self.drift_v is None else self.drift_v
+
     def actual_v(self) -> float:
         """Voltage at the DC link as the physics sees it (no noise: the DC link is filtered)."""
         with self._lock:
-            return self.setpoint_v if self.output_on else 0.0
+            return self._output_v()
 
     def measured_v(self) -> float:
         with self._lock:
             if not self.output_on:
                 return 0.0
-            return max(0.0, self.setpoint_v + self._rng.gauss(0.0, self._noise_v))
+            return max(0.0, self._output_v() + self._rng.gauss(0.0, self._noise_v))
 
     def reset(self) -> None:
+        """*RST: setpoint and output switch to their power-on state (faults stay: see the module doc)."""
         with self._lock:
             self.setpoint_v = self._initial_v
             self.output_on = False
@@ -67,9 +87,38 @@ class DcSupply:
         with self._lock:
             self.setpoint_v = v
 
-    def set_output(self, on: bool) -> None:
+    def set_output(self, on: bool) -> bool:
+        """Switch the output; False (nothing changed) for ON while the protection is tripped."""
         with self._lock:
+            if on and self.tripped:
+                return False
             self.output_on = on
+            return True
+
+    # -- faults (control socket) ------------------------------------------------------------------
+    def drift_to(self, v: float) -> None:
+        """The output drifts to v (with the output on) while the setpoint stays."""
+        if not 0.0 <= v <= MAX_VOLTAGE_V:
+            raise ValueError(f"volts must be within 0..{MAX_VOLTAGE_V:g}")
+        with self._lock:
+            self.drift_v = float(v)
+
+    def trip_output(self) -> None:
+        """The output protection trips: output off (0 V) and held off until clear_faults()."""
+        with self._lock:
+            self.tripped = True
+            self.output_on = False
+
+    def clear_faults(self) -> None:
+        with self._lock:
+            self.drift_v = None
+            self.tripped = False
+
+    def snapshot(self) -> dict:
+        """The supply's state for the control socket's status."""
+        with self._lock:
+            return {"setpoint_v": self.setpoint_v, "output_on": self.output_on, "actual_v": self._output_v(),
+                    "drift_v": self.drift_v, "tripped": self.tripped}
 
     # -- SCPI ---------------------------------------------------------------------------------------
     def handle_line(self, line: str) -> list[str]:
@@ -123,7 +172,8 @@ class DcSupply:
         if _match(h, r"OUTP(UT)?(:STAT(E)?)?"):
             a = arg.upper()
             if a in ("ON", "1"):
-                self.set_output(True)
+                if not self.set_output(True):
+                    self._error(-221, "Settings conflict; output protection tripped")
             elif a in ("OFF", "0"):
                 self.set_output(False)
             else:

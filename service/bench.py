@@ -29,11 +29,11 @@ from drivers.daq_reader import DaqReader
 from drivers.dc_supply import ScpiSupply
 from drivers.drive import DriveClient, LutInForce
 from drivers.lut_image import crc_hex
-from drivers.errors import DaqError
+from drivers.errors import DaqError, DaqPortBusy, ForeignMasterError
 from drivers.load_machine import LoadClient
 from service.demodulation import ResonanceMode, ResonanceTracker
 from service.harmonic import mechanical_speed_rpm
-from service.interlocks import (DaqLost, DeviceFault, HeartbeatLost, InterlockMonitor, InterlockTripped,
+from service.interlocks import (DaqLost, DeviceFault, ForeignMaster, HeartbeatLost, InterlockMonitor, InterlockTripped,
                                 ServiceHeartbeatStopped, SupplyOutOfRange, Trip, daq_disconnected_reason)
 from service import limits
 from service.limits import LimitError
@@ -110,6 +110,11 @@ class Bench:
                 step()
             except Exception as exc:
                 self.close()
+                if isinstance(exc, (ForeignMasterError, DaqPortBusy)):
+                    # reached, but held by another master: the hint is to stop that one, not to check cables
+                    hint = ("another service or tool is master of it (one service per bench): stop that one"
+                            if isinstance(exc, ForeignMasterError) else "no other process holds the DAQ port (one "
+                            "service per bench): stop the one that does")
                 self.unreachable = {"device": device, "address": address, "hint": f"check that {hint}",
                                     "error": f"{type(exc).__name__}: {exc}"}
                 raise BenchUnreachable(f"bench unreachable: {device} at {address} ({type(exc).__name__}: {exc}); "
@@ -172,7 +177,7 @@ class Bench:
         self._supply_interlock = SupplyOutOfRange(self.supply, il.supply_tolerance_fraction, il.supply_tolerance_v)
         self.interlocks = InterlockMonitor(
             [drive_fault, load_fault, HeartbeatLost(self.drive), HeartbeatLost(self.load),
-             ServiceHeartbeatStopped(self.bus), DaqLost(self.daq), self._supply_interlock],
+             ServiceHeartbeatStopped(self.bus), ForeignMaster(self.bus), DaqLost(self.daq), self._supply_interlock],
             on_trip=self._tripped, period_s=il.monitor_period_s, stall_s=il.stall_s)
         self.drive.add_emcy_callback(lambda e: self.interlocks.emcy(drive_fault, e.code))
         self.load.add_emcy_callback(lambda e: self.interlocks.emcy(load_fault, e.code))
@@ -248,6 +253,16 @@ class Bench:
         self._auto_resets = [t for t in self._auto_resets if now - t < 3600.0]
         return len(self._auto_resets) < il.auto_fault_reset_per_hour
 
+    @property
+    def supply_interlock(self) -> SupplyOutOfRange:
+        return self._supply_interlock
+
+    def check_reachable(self) -> None:
+        """Before a run is accepted: BenchUnreachable naming the device and what to check while the bench
+        could not be reached at start (a run would only fail later)."""
+        if self.unreachable is not None:
+            raise BenchUnreachable(self._unreachable_trip().reason)
+
     def interlock_refusal(self) -> Trip | None:
         """What forbids a run now (None: clear to go); read fresh. A bench never reached forbids it too."""
         if self.unreachable is not None:
@@ -282,22 +297,16 @@ class Bench:
     # --- status ------------------------------------------------------------------------------------
     def refresh_status(self) -> dict[str, Any]:
         """Read drive/load/supply by SDO/SCPI, each on its own (one failing device does not hide the
-        others). During a run the same reads go on without the run lock: each device's link has a lock
-        of its own (the interlock monitor reads the same way), so the view stays live while a run
-        holds the bench. Only a LUT download or a fault reset (the run lock without a run) is waited
-        out: the last readings are kept, with their age. The LUT the drive holds changes only by a
-        download (which publishes it), so its objects are read when idle, never during a run, and not
-        while the drive does not answer (its status read says so, without three more timeouts)."""
+        others), never under the run lock: each device's link has a lock of its own (the interlock
+        monitor reads the same way), so the view stays live while a run holds the bench, and a fault
+        reset or a LUT download on an idle bench never waits for the poller (they take the run lock).
+        The LUT the drive holds changes only by a download (which publishes it), so its objects are read
+        when no run holds the bench, and not while the drive does not answer (its status read says so,
+        without three more timeouts)."""
         if self.connected:
-            got = self._lock.acquire(timeout=0.05)
-            try:
-                if got or self.busy:
-                    self._read_devices()
-                if got and not self.busy and self._devices["drive"].get("last_error") is None:
-                    self._read_device("lut", self.drive.lut_in_force, _lut_shape)
-            finally:
-                if got:
-                    self._lock.release()
+            self._read_devices()
+            if not self.busy and self._devices["drive"].get("last_error") is None:
+                self._read_device("lut", self.drive.lut_in_force, _lut_shape)
         self._status["updated_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         return self.status()
 

@@ -120,13 +120,18 @@ class BenchRun:
                 yield session
             finally:
                 timing.measurement_s = time.perf_counter() - t0
-            trip = bench.interlocks.run_trip
+            # the supply is read every 0.5 s: a point shorter than that is checked before it counts
+            trip = bench.interlocks.check(bench.supply_interlock)
             if trip is not None:
                 raise InterlockTripped(trip)
-        except BaseException:
+        except BaseException as exc:
             self.theta = self.mode = None
             if bench.accounting.pending() != 0:
                 bench.accounting.doubt("a point ended with setpoints unconfirmed")
+            trip = bench.interlocks.run_trip if bench.interlocks is not None else None
+            if trip is not None and isinstance(exc, Exception) and not isinstance(exc, InterlockTripped):
+                # a drive that faulted shows first as a measurement gone wrong: the trip is the cause
+                raise InterlockTripped(trip) from exc
             raise
 
     def _move(self, op: OperatingPoint, timing: PointTiming) -> None:

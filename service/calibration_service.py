@@ -14,6 +14,7 @@ from typing import Any
 from drivers.canopen_bus import one_blas_thread
 from service import __version__
 from service.bench import Bench, BenchUnreachable
+from service.db_claim import DatabaseClaim
 from service.emulator_process import EmulatorProcess
 from service.engine import Engine
 from service.events import EventBroker
@@ -39,10 +40,14 @@ def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Set
 
 
 class CalibrationService:
-    def __init__(self, settings: Settings, clock: Clock = utc_now):
+    def __init__(self, settings: Settings, clock: Clock = utc_now, storage: Storage | None = None,
+                 claim: DatabaseClaim | None = None):
+        """`storage`: the database, already opened by the caller (the CLI opens it first, to name what is
+        wrong with it in one line); else opened here, from settings.server.db_path. `claim`: the
+        database's claim, already taken by the caller (the CLI takes it before even migrating)."""
         self.settings = settings
         self.clock = clock              # the scheduler's time (tests step a fake one)
-        self.storage = Storage(settings.server.db_path)
+        self.storage = storage if storage is not None else Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
         self.broker = EventBroker()
         self.emulator: EmulatorProcess | None = None
         self.bench: Bench | None = None
@@ -53,6 +58,7 @@ class CalibrationService:
         self._status_stop = threading.Event()
         self._status_thread: threading.Thread | None = None
         self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
+        self.claim = claim
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
         """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
@@ -63,6 +69,8 @@ class CalibrationService:
         server does; a CLI run of one sweep does neither: a server may be running on the same database)."""
         one_blas_thread()
         settings = self.settings
+        if run_schedules:
+            self.claim_database()
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
             em = settings.emulator
@@ -96,6 +104,14 @@ class CalibrationService:
                                                    name="ripplecal-status", daemon=True)
             self._status_thread.start()
 
+    def claim_database(self) -> None:
+        """The process that recovers the database's unfinished work claims it first (service/db_claim.py):
+        DatabaseInUse naming the holder if another serve has it. Idempotent."""
+        if self.claim is None:
+            claim = DatabaseClaim(self.settings.server.db_path, self.settings.server.port)
+            claim.acquire()
+            self.claim = claim
+
     def stop(self) -> None:
         self._status_stop.set()
         if self.scheduler is not None:
@@ -106,6 +122,8 @@ class CalibrationService:
             self.bench.close()          # leaves the bench safe (torque off, injection off)
         if self.emulator is not None:
             self.emulator.stop()
+        if self.claim is not None:
+            self.claim.release()
 
     def now(self):
         """The scheduler's time: next_runs and the times a schedule records are counted from it."""

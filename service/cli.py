@@ -13,6 +13,8 @@ import asyncio
 import json
 import math
 import logging
+import os
+import sqlite3
 import sys
 import time
 from datetime import datetime
@@ -23,6 +25,12 @@ from service import __version__
 from service.identification.registry import METHODS
 from service.lut_export import EXPORT_FORMATS
 from service.settings import Settings, SettingsError, load_settings
+from service.storage import Storage, StorageError
+
+
+class StartError(Exception):
+    """An operator error at start (a database or bench file that cannot be used): one line naming the
+    file and what is wrong, exit code 2."""
 
 
 def _floats(text: str) -> list[float]:
@@ -56,13 +64,46 @@ def _settings(args) -> Settings:
         if getattr(args, key, None) is not None:
             overrides[f"server.{key}"] = getattr(args, key)
     settings = load_settings(path, overrides=overrides)
-    if getattr(args, "bench", None) and "bench_name" not in settings.model_fields_set:
-        # a bench file without bench_name: the bench is called after its file
-        settings = settings.model_copy(update={"bench_name": Path(args.bench).stem})
+    if getattr(args, "bench", None):
+        _check_bench_file(args.bench, settings)
+        if "bench_name" not in settings.model_fields_set:
+            # a bench file without bench_name: the bench is called after its file
+            settings = settings.model_copy(update={"bench_name": Path(args.bench).stem})
     settings.server.db_path = resolve_db_path(settings.server.db_path)
-    # stderr: stdout stays clean for the token's last line, --json and exports
-    print(f"ripplecal: database {settings.server.db_path}", file=sys.stderr, flush=True)
     return settings
+
+
+def _check_bench_file(path: str, settings: Settings) -> None:
+    """A real bench needs its DAQ and supply ports: said at start, naming the file, not when the bench connects."""
+    missing = [what for what, url in (("DAQ port ([daq] url)", settings.daq.url),
+                                      ("DC supply port ([supply] url)", settings.supply.url)) if not url]
+    if missing:
+        raise SettingsError(f"bench file {Path(path).absolute()} names no {' and no '.join(missing)}: a real bench "
+                            'needs both, e.g. [daq] url = "/dev/ttyUSB0" and [supply] url = "socket://192.168.0.20:5025"')
+
+
+def _open_database(settings: Settings) -> Storage:
+    """The command's database, opened and migrated at start, then printed (stderr: stdout stays clean for
+    the token's last line, --json and exports). What makes it unusable is a StartError naming the file."""
+    path = Path(settings.server.db_path)
+    if path.is_dir():
+        raise StartError(f"database {path} is a directory: --db must name a database file, e.g. {path / 'ripplecal.db'}")
+    if path.exists() and not os.access(path, os.R_OK | os.W_OK):
+        raise StartError(f"database {path} cannot be read and written by this user: check its permissions")
+    try:
+        storage = Storage(path, busy_timeout_s=settings.server.db_busy_timeout_s)
+    except StorageError as exc:                 # a newer schema, a failed migration; locked, read-only, full
+        raise StartError(str(exc)) from None
+    except sqlite3.DatabaseError as exc:        # e.g. "file is not a database": a text file, another format
+        raise StartError(f"database {path} is not a database SQLite can use ({exc}): --db must name a ripplecal "
+                         "database or a new file") from None
+    except (FileExistsError, NotADirectoryError) as exc:
+        raise StartError(f"database {path} cannot be created: {exc.filename} is a file, not a directory") from None
+    except OSError as exc:
+        raise StartError(f"database {path} cannot be created: {exc.strerror or type(exc).__name__}"
+                         + (f" ({exc.filename})" if exc.filename else "")) from None
+    print(f"ripplecal: database {path}", file=sys.stderr, flush=True)
+    return storage
 
 
 def resolve_db_path(path: str) -> str:
@@ -77,8 +118,20 @@ def cmd_serve(args) -> int:
 
     from service.api.app import create_app
     from service.calibration_service import CalibrationService
+    from service.db_claim import DatabaseClaim
     settings = _settings(args)
-    service = CalibrationService(settings)
+    # before the database is migrated or recovered: a second serve on this database ends here, in one line
+    claim: DatabaseClaim | None = DatabaseClaim(settings.server.db_path, settings.server.port)
+    try:
+        claim.acquire()                     # DatabaseInUse (a StorageError) names the holder: one line, exit 2
+    except OSError:
+        claim = None                        # no file can be made there: opening the database names why
+    try:
+        service = CalibrationService(settings, storage=_open_database(settings), claim=claim)
+    except BaseException:
+        if claim is not None:
+            claim.release()
+        raise
     app = create_app(service)
 
     class Server(uvicorn.Server):
@@ -93,6 +146,7 @@ def cmd_serve(args) -> int:
     # timeout_graceful_shutdown: a backstop for a connection that does not end by itself
     server = Server(uvicorn.Config(app, host=settings.server.host, port=settings.server.port, log_level="info",
                                    timeout_graceful_shutdown=10))
+    logging.getLogger("uvicorn.access").addFilter(_path_without_query)      # after uvicorn's logging config
     try:
         server.run()
     except KeyboardInterrupt:
@@ -101,6 +155,13 @@ def cmd_serve(args) -> int:
     return 0
 
 
+def _path_without_query(record: logging.LogRecord) -> bool:
+    """uvicorn's access log line without the query string: a token a client puts in a query is not logged.
+    Its args are (client, method, path with query, HTTP version, status)."""
+    if isinstance(record.args, tuple) and len(record.args) == 5 and isinstance(record.args[2], str):
+        client, method, path, version, status = record.args
+        record.args = (client, method, path.split("?", 1)[0], version, status)
+    return True
 
 
 def _wait(predicate, deadline: float, what: str):
@@ -165,8 +226,9 @@ def cmd_identify(args) -> int:
     settings = _settings(args)
     op = OperatingPoint(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
     options = parse_options(args.method, _json_option(args.options))
+    storage = _open_database(settings)
     print(f"starting the {'bench ' + args.bench if args.bench else 'emulated bench'} ...", file=sys.stderr, flush=True)
-    with CalibrationService(settings) as service:
+    with CalibrationService(settings, storage=storage) as service:
         job = _follow_job(service, lambda: service.engine.submit_identification(op, args.method, options), args.timeout)
         job_id = job["id"]
         result = result_public(service.storage.get_result(job["result_id"])).model_dump() if job["result_id"] else None
@@ -205,8 +267,9 @@ def cmd_sweep(args) -> int:
     settings = _settings(args)
     grid = Grid(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
     options = parse_options(args.method, _json_option(args.options))
+    storage = _open_database(settings)
     started = time.monotonic()
-    with CalibrationService(settings) as service:
+    with CalibrationService(settings, storage=storage) as service:
         sweep_id = service.engine.submit_sweep(grid, args.method, options)
         last = None
 
@@ -232,9 +295,8 @@ def cmd_sweep(args) -> int:
 def cmd_export(args) -> int:
     from service.lut_export import export_map
     from service.public import map_public
-    from service.storage import Storage
     settings = _settings(args)
-    m = map_public(Storage(settings.server.db_path), args.map_id)
+    m = map_public(_open_database(settings), args.map_id)
     if m is None:
         print(f"map {args.map_id} does not exist in {settings.server.db_path}", file=sys.stderr)
         return 2
@@ -248,8 +310,7 @@ def cmd_export(args) -> int:
 
 
 def cmd_token(args) -> int:
-    from service.storage import Storage
-    storage = Storage(_settings(args).server.db_path)
+    storage = _open_database(_settings(args))
     if args.token_cmd == "create":
         token_id, token = storage.create_token(args.role, args.label or "")
         print(f"token id {token_id}, role {args.role} (shown once; stored hashed)")
@@ -275,7 +336,6 @@ def cmd_schedule(args) -> int:
     from service.public import schedule_public
     from service.schedules import (check_cron, check_timezone, create_schedule, delete_schedule, next_runs,
                                    iso, utc_now)
-    from service.storage import Storage
     settings = _settings(args)
     if args.schedule_cmd == "preview":
         cron, zone = check_cron(args.cron), check_timezone(args.timezone)
@@ -283,7 +343,7 @@ def cmd_schedule(args) -> int:
         for t in next_runs(cron, zone, start, args.count):
             print(iso(t))
         return 0
-    storage = Storage(settings.server.db_path)
+    storage = _open_database(settings)
     now = utc_now()
     if args.schedule_cmd == "add":
         try:
@@ -321,9 +381,8 @@ def cmd_schedule(args) -> int:
     return 0
 
 
-def _storage(args):
-    from service.storage import Storage
-    return Storage(_settings(args).server.db_path)
+def _storage(args) -> Storage:
+    return _open_database(_settings(args))
 
 
 def cmd_maps(args) -> int:
@@ -354,10 +413,10 @@ def _download_map(args) -> int:
     from service import lut_download
     from service.bench import BenchError
     from service.calibration_service import CalibrationService
-    from service.storage import Storage
     settings = _settings(args)
+    storage = _open_database(settings)
     try:                                       # refused before the bench is started
-        lut = lut_download.prepare(Storage(settings.server.db_path), args.map_id, args.force, fill=args.fill,
+        lut = lut_download.prepare(storage, args.map_id, args.force, fill=args.fill,
                                    interpolation=args.interpolation)
     except lut_download.MapNotFound as exc:
         print(f"ripplecal: {exc} in {settings.server.db_path}", file=sys.stderr)
@@ -366,7 +425,7 @@ def _download_map(args) -> int:
         print(f"ripplecal: {exc}", file=sys.stderr)
         return 2
     print(f"starting the {'bench ' + args.bench if args.bench else 'emulated bench'} ...", file=sys.stderr, flush=True)
-    with CalibrationService(settings) as service:
+    with CalibrationService(settings, storage=storage) as service:
         try:
             receipt = lut_download.send(service.bench, lut)
         except BenchError as exc:
@@ -603,7 +662,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except SettingsError as exc:
+    except (SettingsError, StartError, StorageError) as exc:   # StorageError: e.g. the database locked by another process
         print(f"ripplecal: {exc}", file=sys.stderr)
         return 2
     except (ValueError, TimeoutError) as exc:
@@ -612,6 +671,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:      # the service's context has already left the bench safe
         print("ripplecal: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:
+        from service.bench import BenchUnreachable      # here only: the bench's drivers take a while to import
+        if isinstance(exc, BenchUnreachable):           # a real bench not reached: the run is refused at start
+            print(f"ripplecal: {exc}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

@@ -4,8 +4,9 @@ State machines are tables (an Enum plus the transitions allowed); every state wr
 `_set_job` / `_set_sweep`, which check the table; any other transition is a bug and raises. A sweep
 runs its plan point by point; each point's result is committed in its own transaction before the
 next point starts, and a failing point is stored as failed and the sweep goes on. Pause takes effect
-between points, cancel between points or inside a measurement; the bench is left safe (torque off,
-injection off) in every case.
+between points: the run ends (bench safe) and the sweep's job is parked (queued, out of the worker's
+queue), so other jobs run while the sweep waits; resume queues it again. Cancel acts between points or
+inside a measurement; the bench is left safe (torque off, injection off) in every case.
 
 Surviving the night: an interlock trip discards the point in flight (stored as a failed,
 discarded attempt, never ok), pauses the sweep with the reason and measures that point again on
@@ -45,7 +46,7 @@ from service.plans import Grid, SweepPlan, plan_grid
 from service.recordings import RecordingStore, RunRecorder
 from service.settings import Settings
 from service.setpoint_accounting import AccountingError
-from service.storage import Storage, now_iso
+from service.storage import Storage, StorageUnavailable, now_iso
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,7 @@ class SweepState(str, Enum):
 J, W = JobState, SweepState
 JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
     J.QUEUED: frozenset({J.RUNNING, J.CANCELLED, J.FAILED}),   # failed: the service stopped before it ran
-    J.RUNNING: frozenset({J.DONE, J.FAILED, J.CANCELLED}),
+    J.RUNNING: frozenset({J.DONE, J.FAILED, J.CANCELLED, J.QUEUED}),    # queued: its sweep paused (parked)
     J.DONE: frozenset(), J.FAILED: frozenset(), J.CANCELLED: frozenset(),
 }
 SWEEP_TRANSITIONS: dict[SweepState, frozenset[SweepState]] = {
@@ -82,6 +83,7 @@ SWEEP_TRANSITIONS: dict[SweepState, frozenset[SweepState]] = {
     W.DONE: frozenset(), W.FAILED: frozenset(), W.CANCELLED: frozenset(),
 }
 UNFINISHED_SWEEP_STATES = frozenset({W.QUEUED, W.RUNNING, W.PAUSED})
+STORAGE_RETRY_S = (0.5, 10.0)       # first and longest pause between tries of a database that is unavailable
 del J, W
 
 
@@ -99,6 +101,12 @@ class Cancelled(Exception):
     pass
 
 
+class Paused(Exception):
+    """A sweep's job stops between points because its sweep pauses (the operator, an interlock): the
+    job is parked (queued, out of the worker's queue) and the bench is free for other jobs until the
+    sweep is resumed (service/engine.py module doc)."""
+
+
 def check_transition(table, current, target) -> None:
     if target not in table[current]:
         raise TransitionError(f"cannot go from {current.value} to {target.value}")
@@ -108,7 +116,7 @@ def check_transition(table, current, target) -> None:
 class _SweepControl:
     pause: threading.Event = field(default_factory=threading.Event)
     cancel: threading.Event = field(default_factory=threading.Event)
-    resumed: threading.Event = field(default_factory=threading.Event)
+    parked_job: int | None = None       # the sweep's job while it is paused (not in the worker's queue)
 
 
 class Engine:
@@ -145,11 +153,23 @@ class Engine:
 
     def recover(self) -> None:
         """On start-up: what a previous process left unfinished. Jobs cannot still be running (failed,
-        with the reason); sweeps become `interrupted` (not failed), resumable."""
+        with the reason); sweeps become `interrupted` (not failed), resumable; a validation cut short
+        keeps its points and says which LUT the drive was left holding."""
+        held: dict[int, str] = {}
+        for v in self.storage.running_validations():
+            download = json.loads(v["download_json"] or "null") or {}
+            cells = json.loads(v["cells_json"] or "[]")
+            lut = (f"the drive holds the LUT of map {download.get('map_id')} (CRC-32 {download.get('crc32')}) since this "
+                   "validation downloaded it")
+            error = (f"the service stopped during this validation: {len(cells)} point(s) measured and kept; {lut}")
+            self.storage.update_validation(v["id"], state="failed", error=error, finished_at=now_iso())
+            held[v["job_id"]] = lut
         for job in self.storage.unfinished_jobs():
             why = "the service stopped while this job was " + job["state"]
             if job["sweep_id"] is not None:
                 why += f"; its sweep {job['sweep_id']} is interrupted: resume it"
+            if job["id"] in held:
+                why += f"; {held[job['id']]}"
             self._set_job(job["id"], JobState.FAILED, error=why, finished_at=now_iso())
         for sweep in self.storage.unfinished_sweeps():
             state = SweepState(sweep["state"])
@@ -167,7 +187,6 @@ class Engine:
         self._shutdown.set()
         for ctl in list(self._controls.values()):
             ctl.cancel.set()
-            ctl.resumed.set()
         for ev in list(self._job_cancel.values()):
             ev.set()
         self._queue.put(None)
@@ -182,26 +201,34 @@ class Engine:
 
     # --- state writes (every one through the tables) ----------------------------------------------------------
     def _set_job(self, job_id: int, target: JobState, **fields) -> None:
-        """Check the transition, write it, tell the subscribers (SSE)."""
-        with self._lock:
-            current = JobState(self.storage.get_job(job_id)["state"])
-            if current != target:
-                check_transition(JOB_TRANSITIONS, current, target)
-            self.storage.update_job(job_id, state=target.value, **fields)
+        """Check the transition, write it, tell the subscribers (SSE). Waits for a database that is
+        unavailable (lock, read-only or full filesystem) until it takes the write or the service stops."""
+        def write() -> None:
+            with self._lock:
+                current = JobState(self.storage.get_job(job_id)["state"])
+                if current != target:
+                    check_transition(JOB_TRANSITIONS, current, target)
+                self.storage.update_job(job_id, state=target.value, **fields)
+        if not self._durably(write, f"job {job_id}: state {target.value}"):
+            raise StorageUnavailable("shutdown", f"job {job_id}: state {target.value} not written (service stopping)")
         self._publish_job(job_id)
 
     def _set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None:
         """Check the transition, write it, tell the subscribers (SSE). A same-state write only updates
-        fields (e.g. a new pause_reason)."""
-        with self._lock:
-            current = SweepState(self.storage.get_sweep(sweep_id)["state"])
-            if current != target:
-                check_transition(SWEEP_TRANSITIONS, current, target)
-            self.storage.update_sweep(sweep_id, state=target.value, **fields)
+        fields (e.g. a new pause_reason). Waits for an unavailable database as _set_job does."""
+        def write() -> None:
+            with self._lock:
+                current = SweepState(self.storage.get_sweep(sweep_id)["state"])
+                if current != target:
+                    check_transition(SWEEP_TRANSITIONS, current, target)
+                self.storage.update_sweep(sweep_id, state=target.value, **fields)
+        if not self._durably(write, f"sweep {sweep_id}: state {target.value}"):
+            raise StorageUnavailable("shutdown", f"sweep {sweep_id}: state {target.value} not written (service stopping)")
         self._publish_sweep(sweep_id)
 
     # --- submitting --------------------------------------------------------------------------------------
     def submit_identification(self, op: OperatingPoint, method: str, options) -> int:
+        self.bench.check_reachable()                        # refused now, not failed later
         check_limits(op, self.settings)                     # refuse before anything is queued
         check_plant_time([op.speed_rpm], method, options, self.settings)
         job_id = self.storage.create_job("identification", {"operating_point": op.model_dump(), "method": method,
@@ -217,6 +244,7 @@ class Engine:
         places around the predicted field-weakening onset (service.plans.plan_grid, the grid POST
         /sweeps/preview shows). The planned grid is what the sweep stores, so its run and its map use the
         real axes."""
+        self.bench.check_reachable()
         grid = plan_grid(grid, regime, self.settings).grid
         plan = SweepPlan.from_grid(grid)
         check_plant_time(grid.speed_rpm, method, options, self.settings)
@@ -231,6 +259,7 @@ class Engine:
         """Queue the validation of a map in the drive's LUT mode (service.map_validation). Refused before
         anything is queued: KeyError (no such map), ValidationRefused (no valid cell, partial without
         force), LimitError (a point outside the bench's limits)."""
+        self.bench.check_reachable()
         row = self.storage.get_map(map_id)
         if row is None:
             raise KeyError(map_id)
@@ -249,6 +278,7 @@ class Engine:
         queued: KeyError (no such map), ValueError (method or options), LimitError (a validation point
         outside the bench's limits). A partial map is accepted: its non-ok cells are measured first.
         Returns the job's id."""
+        self.bench.check_reachable()
         m = map_public(self.storage, map_id)
         if m is None:
             raise KeyError(map_id)
@@ -277,19 +307,21 @@ class Engine:
 
     # --- controlling sweeps ---------------------------------------------------------------------------------
     def pause_sweep(self, sweep_id: int) -> None:
+        """Pause takes effect between points: the run ends (bench made safe) and the sweep's job is parked,
+        so other jobs run while it waits; resume queues it again."""
         with self._lock:
             state = self._sweep_state(sweep_id)
             check_transition(SWEEP_TRANSITIONS, state, SweepState.PAUSED)
             ctl = self._control(sweep_id)
-            ctl.resumed.clear()
             ctl.pause.set()
             if state == SweepState.QUEUED:
                 self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason="paused by the operator")
         self._publish_sweep(sweep_id)
 
     def resume_sweep(self, sweep_id: int) -> None:
-        """Resume a paused sweep, or one a previous service run left `interrupted` (it is queued again
-        and measures only the points not yet committed). Refused while an interlock is tripped."""
+        """Resume a paused sweep (its job is queued again: its next point is measured afresh, from a
+        settled state), or one a previous service run left `interrupted` (queued again, it measures only
+        the points not yet committed). Refused while an interlock is tripped."""
         with self._lock:
             state = self._sweep_state(sweep_id)
             if state not in (SweepState.PAUSED, SweepState.INTERRUPTED):
@@ -304,22 +336,35 @@ class Engine:
                 return
             ctl = self._control(sweep_id)
             ctl.pause.clear()
-            ctl.resumed.set()
-            sweep = self.storage.get_sweep(sweep_id)
-            self._set_sweep(sweep_id, SweepState.RUNNING if sweep["started_at"] else SweepState.QUEUED, pause_reason=None)
+            self._set_sweep(sweep_id, SweepState.QUEUED, pause_reason=None)
+            if ctl.parked_job is not None:
+                job_id, ctl.parked_job = ctl.parked_job, None
+                self._queue.put(job_id)
         self._publish_sweep(sweep_id)
 
     def cancel_sweep(self, sweep_id: int) -> None:
         with self._lock:
-            state = self._sweep_state(sweep_id)
+            try:
+                state = self._sweep_state(sweep_id)
+            except StorageUnavailable:
+                if sweep_id in self._controls:
+                    self._controls[sweep_id].cancel.set()   # the worker ends it when the database answers
+                raise
             check_transition(SWEEP_TRANSITIONS, state, SweepState.CANCELLED)
             if state == SweepState.INTERRUPTED:
                 self._set_sweep(sweep_id, SweepState.CANCELLED, finished_at=now_iso())
             else:
                 ctl = self._control(sweep_id)
                 ctl.cancel.set()
-                ctl.resumed.set()
-                if state in (SweepState.QUEUED, SweepState.PAUSED) and not self.storage.get_sweep(sweep_id)["started_at"]:
+                sweep = self.storage.get_sweep(sweep_id)
+                if ctl.parked_job is not None:
+                    # paused with its job parked: nothing runs it, so it ends here with what it measured
+                    job_id, ctl.parked_job = ctl.parked_job, None
+                    map_id = build_map_from_sweep(self.storage, sweep_id) if sweep["started_at"] and \
+                        sweep.get("kind", "sweep") == "sweep" and self.storage.sweep_results(sweep_id) else sweep["map_id"]
+                    self._set_sweep(sweep_id, SweepState.CANCELLED, finished_at=now_iso(), map_id=map_id)
+                    self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
+                elif state in (SweepState.QUEUED, SweepState.PAUSED) and not sweep["started_at"]:
                     self._set_sweep(sweep_id, SweepState.CANCELLED, finished_at=now_iso())
         self._publish_sweep(sweep_id)
 
@@ -386,6 +431,8 @@ class Engine:
             final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
             self._set_job(job_id, final, finished_at=now_iso(),
                           error=self._shutdown_reason if self._shutdown.is_set() else None)
+        except Paused:
+            self._park(job_id, job["sweep_id"])
         except Cancelled:
             self._set_job(job_id, JobState.CANCELLED, finished_at=now_iso(),
                           error=self._shutdown_reason if self._shutdown.is_set() else None)
@@ -401,6 +448,21 @@ class Engine:
                                                                          SweepState.FAILED):
                 self._set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
         self._publish_job(job_id)
+
+    def _park(self, job_id: int, sweep_id: int) -> None:
+        """The sweep paused between points: its job waits, queued but out of the worker's queue, until
+        resume puts it back (or cancel ends it); the worker goes on with the next job."""
+        with self._lock:
+            ctl = self._controls[sweep_id]
+            if SweepState(self.storage.get_sweep(sweep_id)["state"]) != SweepState.PAUSED:
+                self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason="paused by the operator")
+            self._set_job(job_id, JobState.QUEUED)
+            if ctl.pause.is_set():
+                ctl.parked_job = job_id
+            else:                   # resumed while the run was ending: straight back into the queue
+                self._set_sweep(sweep_id, SweepState.QUEUED, pause_reason=None)
+                self._queue.put(job_id)
+        log.info("sweep %s paused: its job %s waits; the bench is free for other jobs", sweep_id, job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
         req = json.loads(job["request_json"])
@@ -420,9 +482,13 @@ class Engine:
             rid = self._insert_result(row, recorder)
             self.storage.update_job(job_id, result_id=rid)
             raise
-        rid = self._insert_result(result_row(op, req["method"], options, self.bench.identity, started, result,
-                                             job_id=job_id, harmonic_order=result.harmonic_order), recorder)
-        self.storage.update_job(job_id, result_id=rid)
+        row = result_row(op, req["method"], options, self.bench.identity, started, result, job_id=job_id,
+                         harmonic_order=result.harmonic_order)
+        stored: dict = {}
+        # the bench is safe (the run has ended): a database that cannot take the result now is waited for
+        self._durably(lambda: stored.setdefault("id", self._insert_result(row, recorder)), f"job {job_id}: its result")
+        if "id" in stored:
+            self._durably(lambda: self.storage.update_job(job_id, result_id=stored["id"]), f"job {job_id}: its result")
 
     def _new_recorder(self) -> RunRecorder | None:
         return self.recordings.recorder() if self.recordings is not None else None
@@ -445,7 +511,9 @@ class Engine:
         def on_cell(cell: dict, total: int) -> None:
             self.broker.publish("job.progress", {"job_id": job_id, "kind": "validation", "total": total, "cell": cell})
         run = run_validation(self.storage, self.bench, self.settings, req["map_id"], req["force"], options,
-                             self._job_cancel[job_id], on_cell=on_cell)
+                             self._job_cancel[job_id], on_cell=on_cell,
+                             on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity,
+                                                                    finished=False))
         store_validation(self.storage, job_id, run, self.bench.identity)
         if run.state == "cancelled":
             raise Cancelled()
@@ -468,6 +536,8 @@ class Engine:
         done = self.storage.committed_points(sweep_id)          # a resumed sweep measures only the rest
         if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
             raise Cancelled()       # cancelled as the worker took it: nothing was run
+        if ctl.pause.is_set():
+            raise Paused()          # paused while it waited in the queue
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
         first = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
         in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
@@ -503,9 +573,10 @@ class Engine:
         point = _PointInFlight()
         i = 0
         while i < len(points):
-            self._hold_while_paused(sweep_id, ctl)
             if ctl.cancel.is_set():
                 break
+            if ctl.pause.is_set():
+                raise Paused()
             try:
                 with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
                     while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
@@ -521,9 +592,18 @@ class Engine:
                             # this point could not be measured; the bench is fine: the run goes on
                             log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
                             row = self._failed_row(point, sweep, options, exc, sweep_id, tags)
+                        point.row = row         # measured: kept if the database cannot take it now
                         self._store_point(sweep_id, point.op, row, point.recorder)
                         point.clear()
                         i += 1
+            except StorageUnavailable as exc:
+                # the run has ended (bench made safe); the point measured is kept and written when the
+                # database answers again, or measured again if it was not measured yet
+                self._storage_pause(sweep_id, ctl, exc, point)
+                if point.row is not None:       # stored now
+                    i += 1
+                point.clear()
+                continue
             except InterlockTripped as exc:
                 # the point is measured again after the operator resumes; its attempt (if any
                 # torque was commanded) is kept as a failed, discarded attempt, never ok
@@ -569,12 +649,15 @@ class Engine:
         options = parse_options(sweep["method"], json.loads(sweep["options_json"]))
         if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
             raise Cancelled()
+        if ctl.pause.is_set():
+            raise Paused()
         self._set_sweep(sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None)
         source = self.storage.get_map(sweep["source_map_id"])
         while state["phase"] != "done":
-            self._hold_while_paused(sweep_id, ctl)
             if ctl.cancel.is_set():
                 break
+            if ctl.pause.is_set():
+                raise Paused()
             if state["phase"] == "measure":
                 self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
             else:
@@ -626,14 +709,15 @@ class Engine:
             self.broker.publish("job.progress", {"job_id": job_id, "kind": "refinement", "round": state["round"],
                                                  "total": total, "cell": cell})
         run = run_validation(self.storage, self.bench, self.settings, map_id, True,
-                             ValidationOptions.model_validate(state["validation"]), ctl.cancel, on_cell=on_cell)
+                             ValidationOptions.model_validate(state["validation"]), ctl.cancel, on_cell=on_cell,
+                             on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity,
+                                                                    finished=False))
         validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
         if run.state == "cancelled":
             return
         if run.state == "failed":
             # an interlock stopped it: pause like a sweep; on resume the map is validated again
             with self._lock:
-                ctl.resumed.clear()
                 ctl.pause.set()
                 self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason=f"{run.error} (validating refined map "
                                 f"{map_id}); acknowledge with POST /api/v1/bench/fault-reset, then resume")
@@ -691,35 +775,64 @@ class Engine:
         row["detail_json"] = json.dumps({"message": str(exc), "discarded": "interlock", "interlock": exc.trip.public()})
         return row
 
+    def _storage_pause(self, sweep_id: int, ctl: "_SweepControl", exc: StorageUnavailable,
+                       point: "_PointInFlight") -> None:
+        """The database cannot be used: the bench is already safe (the run ended). Tell the dashboard the
+        sweep waits (in memory: the database cannot take it), keep the point measured and write it when the
+        database answers again, then go on by itself. A cancel or a shutdown ends the wait."""
+        reason = (f"{exc.public} at {now_iso()}; "
+                  + (f"the point {point.op.label()} is kept and written when it answers again" if point.row is not None
+                     else "the sweep goes on when it answers again"))
+        log.warning("sweep %s waits for the database: %s", sweep_id, reason)
+        self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "state": "paused", "pause_reason": reason,
+                                               "storage": {"cause": exc.cause, "retry_after_s": exc.retry_after_s}})
+        if point.row is not None:
+            # kept even through a cancel: a point measured is never thrown away while the service runs
+            stored = self._durably(lambda: self._store_point(sweep_id, point.op, point.row, point.recorder),
+                                   f"sweep {sweep_id}: storing point {point.op.label()}")
+            if not stored:
+                _discard(point.recorder)
+                point.row = None
+        else:
+            _discard(point.recorder)
+            self._durably(lambda: self.storage.get_sweep(sweep_id), f"sweep {sweep_id}: the database", ctl.cancel)
+        self._publish_sweep(sweep_id)
+
+    def _durably(self, write: Callable[[], object], what: str, cancel: threading.Event | None = None) -> bool:
+        """Call `write` until the database takes it (backoff STORAGE_RETRY_S, doubling to the last); False
+        if a cancel or the shutdown ended the wait first. Only ever called with the bench safe."""
+        pause = STORAGE_RETRY_S[0]
+        while True:
+            try:
+                write()
+                return True
+            except StorageUnavailable as exc:
+                if threading.current_thread() is not self._thread:
+                    raise           # an API request is answered at once (503), never held
+                if self._shutdown.is_set() or (cancel is not None and cancel.is_set()):
+                    log.warning("%s: given up (%s): %s", what, "shutdown" if self._shutdown.is_set() else "cancelled",
+                                exc)
+                    return False
+                log.info("%s: the database is unavailable (%s); next try in %.1f s", what, exc.cause, pause)
+                self._shutdown.wait(pause)
+                pause = min(2 * pause, STORAGE_RETRY_S[1])
+
     def _pause_for_interlock(self, sweep_id: int, ctl: _SweepControl, op: OperatingPoint, exc: InterlockTripped) -> None:
         reason = (f"{exc.trip.reason} during point {op.label()}"
                   + (" (refused before it started)" if exc.refused else " (discarded; measured again on resume)")
                   + ("; acknowledge with POST /api/v1/bench/fault-reset, then resume" if exc.trip.latched else "; resume when it has cleared"))
         with self._lock:
-            ctl.resumed.clear()
             ctl.pause.set()
             self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason=reason)
         log.warning("sweep %s paused: %s", sweep_id, reason)
         self._publish_sweep(sweep_id)
 
-    def _hold_while_paused(self, sweep_id: int, ctl: _SweepControl) -> None:
-        if not ctl.pause.is_set():
-            return
-        with self._lock:
-            if SweepState(self.storage.get_sweep(sweep_id)["state"]) != SweepState.PAUSED:
-                self._set_sweep(sweep_id, SweepState.PAUSED, pause_reason="paused by the operator")
-        self._publish_sweep(sweep_id)
-        while not ctl.resumed.wait(timeout=1.0):   # bounded waits; the bench is already safe between points
-            if ctl.cancel.is_set():
-                return
-        if not ctl.cancel.is_set():
-            with self._lock:
-                self._set_sweep(sweep_id, SweepState.RUNNING, pause_reason=None)
-            self._publish_sweep(sweep_id)
-
     # --- events ----------------------------------------------------------------------------------------------
     def _publish_job(self, job_id: int) -> None:
-        job = self.storage.get_job(job_id)
+        try:
+            job = self.storage.get_job(job_id)
+        except StorageUnavailable:
+            return          # the dashboard hears of it when the database answers again
         self.broker.publish("job.state", {"job_id": job_id, "state": job["state"], "kind": job["kind"],
                                           "error": job["error"]})
 
@@ -730,7 +843,10 @@ class Engine:
                                              "noise_std_fs": window.noise_std_fs})
 
     def _publish_sweep(self, sweep_id: int) -> None:
-        s = self.storage.get_sweep(sweep_id)
+        try:
+            s = self.storage.get_sweep(sweep_id)
+        except StorageUnavailable:
+            return
         self.broker.publish("sweep.progress", {"sweep_id": sweep_id, "kind": s.get("kind") or "sweep",
                                                "state": s["state"], "done": s["done_points"],
                                                "total": s["total_points"], "map_id": s["map_id"],
@@ -755,12 +871,13 @@ class _PointInFlight:
         self.clear()
 
     def start(self, op: OperatingPoint, recorder: RunRecorder | None) -> None:
-        self.op, self.recorder, self.started = op, recorder, now_iso()
+        self.op, self.recorder, self.started, self.row = op, recorder, now_iso(), None
 
     def clear(self) -> None:
         self.op: OperatingPoint | None = None
         self.recorder: RunRecorder | None = None
         self.started: str | None = None
+        self.row: dict | None = None        # its result, once measured (until stored)
 
 
 def _discard(recorder: RunRecorder | None) -> None:

@@ -212,6 +212,27 @@ def daq_disconnected_reason(url: str, error: str | None) -> str:
     return f"DAQ {url} disconnected ({error})"
 
 
+class ForeignMaster(Interlock):
+    """Another master on the CAN bus with the service's own node id (its heartbeat heard): SDO answers
+    would cross and the drive would keep a dead service's heartbeat alive. Clears when it is gone."""
+
+    name = "foreign_master"
+    period_s = 0.5
+
+    def __init__(self, bus):
+        super().__init__()
+        self.bus = bus
+
+    def read(self) -> str | None:
+        return self.bus.foreign_master()
+
+    def should_trip(self, value: str | None) -> bool:
+        return value is not None
+
+    def justification(self, value: str) -> str:
+        return f"a second master on the bus: {value}; stop it (one service per bench)"
+
+
 class SupplyOutOfRange(Interlock):
     """The DC supply measures outside a band around the voltage the run set (only during a run)."""
 
@@ -304,6 +325,19 @@ class InterlockMonitor:
         with self._lock:
             self._armed = True
             self._run_trip = None
+            # an armed-only interlock is not read between runs: a reason from the last run is stale
+            for lock in self.interlocks:
+                if lock.armed_only and not lock.latched:
+                    lock.reason = None
+                    self._reported.pop(lock.name, None)
+
+    def check(self, interlock: "Interlock") -> Trip | None:
+        """Read one interlock now (e.g. the supply before a point is committed: its monitor period may
+        be longer than a point); returns the run's first trip."""
+        reason = interlock.evaluate()
+        if reason is not None:
+            self._tripped(interlock.name, reason, interlock.latched)
+        return self.run_trip
 
     def disarm(self) -> Trip | None:
         """End of a run: returns its first trip (None if it ran clean)."""

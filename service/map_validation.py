@@ -106,15 +106,17 @@ def download_into_drive(storage: Storage, bench, map_id: int, force: bool, fill:
 
 @dataclass
 class ValidationRun:
-    """What a validation job found so far (stored as it ends, whatever ends it)."""
+    """What a validation job found so far (stored from the download on, after every point, and as it
+    ends, whatever ends it: store_validation)."""
     map_id: int
     harmonic_order: int
     options: dict
     cells: list[dict] = field(default_factory=list)
     download: dict | None = None
-    state: str = "done"            # done | failed | cancelled
+    state: str = "done"            # done | failed | cancelled (running while stored before its end)
     error: str | None = None
     started_at: str = field(default_factory=now_iso)
+    row_id: int | None = None      # its map_validations row, once stored
 
     def summary(self) -> dict:
         return summarize(self.cells)
@@ -166,13 +168,14 @@ def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
 
 def run_validation(storage: Storage, bench, settings: Settings, map_id: int, force: bool, options: ValidationOptions,
                    cancel: threading.Event, on_cell: Callable[[dict, int], None] | None = None,
-                   download: Callable[..., dict] = download_into_drive) -> ValidationRun:
+                   download: Callable[..., dict] = download_into_drive,
+                   on_progress: Callable[[ValidationRun], None] | None = None) -> ValidationRun:
     """The whole job: download, then every point in one continuous bench run (service/bench_run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
     is made safe and a new one goes on from the next point). Never raises for a point: a failed point
     is a cell with its reason; an interlock trip or a cancel ends the run with state failed /
     cancelled and the remaining cells marked not measured. Errors before the first point (download)
-    do raise."""
+    do raise. `on_progress(run)` is told after the download and after every point (the job stores it)."""
     m = map_public(storage, map_id)
     if m is None:
         raise KeyError(f"map {map_id} does not exist")
@@ -181,6 +184,8 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
     decoupling = measured_decoupling(storage, m, settings)
     run.options["decoupling"] = decoupling
     run.download = download(storage, bench, map_id, force, fill=options.fill, interpolation=options.interpolation)
+    if on_progress is not None:
+        on_progress(run)        # stored now: the drive holds this LUT from here on
     points = validation_points(m.axes)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
     map_cells = {(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
@@ -195,6 +200,8 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
 
     def finish(cell: dict) -> None:
         run.cells.append(cell)
+        if on_progress is not None:
+            on_progress(run)
         if on_cell is not None:
             on_cell(cell, len(points))
 
@@ -262,13 +269,21 @@ def summarize(cells: list[dict]) -> dict:
     return out
 
 
-def store_validation(storage: Storage, job_id: int, run: ValidationRun, bench_identity: str) -> int:
-    return storage.insert_validation({
-        "map_id": run.map_id, "job_id": job_id, "state": run.state, "error": run.error,
-        "harmonic_order": run.harmonic_order, "options_json": json.dumps(run.options),
-        "download_json": json.dumps(run.download), "summary_json": json.dumps(run.summary()),
-        "cells_json": json.dumps(run.cells), "bench_identity": bench_identity, "software_version": __version__,
-        "started_at": run.started_at, "finished_at": now_iso()})
+def store_validation(storage: Storage, job_id: int, run: ValidationRun, bench_identity: str,
+                     finished: bool = True) -> int:
+    """The run into its map_validations row (inserted the first time, updated after): `finished` False
+    while it runs (state running), so a crash keeps every point measured so far. Returns the row id."""
+    fields = {"state": run.state if finished else "running", "error": run.error,
+              "summary_json": json.dumps(run.summary()), "cells_json": json.dumps(run.cells),
+              "download_json": json.dumps(run.download), "finished_at": now_iso() if finished else None}
+    if run.row_id is None:
+        run.row_id = storage.insert_validation({
+            "map_id": run.map_id, "job_id": job_id, "harmonic_order": run.harmonic_order,
+            "options_json": json.dumps(run.options), "bench_identity": bench_identity,
+            "software_version": __version__, "started_at": run.started_at, **fields})
+    else:
+        storage.update_validation(run.row_id, **fields)
+    return run.row_id
 
 
 def check_points(axes: dict[str, list[float]], settings: Settings) -> None:

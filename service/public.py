@@ -348,9 +348,10 @@ class ValidationSummaryPublic(BaseModel):
     id: int
     job_id: int
     map_id: int
-    state: str = Field(description="done | failed (interlock or error: see error) | cancelled")
+    state: str = Field(description="running (stored as it measures) | done | failed (interlock, error or the "
+                                   "service stopped: see error) | cancelled")
     error: str | None = None
-    finished_at: str
+    finished_at: str | None = None
     download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
     grid: dict[str, Any]
     midpoint: dict[str, Any]

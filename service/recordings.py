@@ -16,17 +16,21 @@ a recording 60 times its plant time. So, per recording:
 and a setpoint's `effect_sample_index` is the first sample of its segment (sample_index jumps there
 by the stale samples left out).
 
-Memory stays bounded: samples are kept as their wire integers (15 bytes each) and handed to asammdf
-every CHUNK_SAMPLES, which writes them to its temporary file in the recordings directory; only the
-setpoints (tens to a few thousand per identification) stay in memory until the file is written: at
-most CHUNK_SAMPLES x 15 B (1 MB) plus the session's largest single read (one window) is held.
+Memory stays bounded: samples are kept as their wire integers (15 bytes each) and spilled every
+CHUNK_SAMPLES to the recorder's spool, a temporary file in the recordings directory that has no name
+(it counts on the same disk, and nothing of it is left behind whatever becomes of the recorder: a failed
+result insert, a crash, a kill); only the setpoints (tens to a few thousand per identification) stay in
+memory until the file is written: at most CHUNK_SAMPLES x 15 B (1 MB) plus the session's largest single
+read (one window) is held. asammdf (and its own temporary file) is used only while the file is written,
+a chunk at a time, and closed however the write ends.
 
 `RecordingStore` writes the file once the result row exists (its id names the file and goes into the
 header), records in the row whether the recording exists (`results.recording_json`), and applies the
 retention (`[recordings] keep_gb`: the newest recordings up to that many GB are kept, older ones are
 deleted after each write; the one just written is always kept). No storage error (directory not
 writable, disk full, asammdf failing) ever reaches the measurement or loses the result: the row is
-stored and says why its recording failed.
+stored and says why its recording failed, in words that name no server path (the API shows them; the
+service's log has the paths).
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ import logging
 import math
 import os
 import re
+import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -61,6 +66,8 @@ _FILE_NAME = re.compile(r"^result-(\d+)\.mf4$")
 DAQ_GROUP, SETPOINT_GROUP = "daq", "theta_setpoints"
 DAQ_CHANNELS = ("sample_index", "angle", "alpha", "flags", "gap_before")
 SETPOINT_CHANNELS = ("effect_sample_index", "theta_cos", "theta_sin", "gamma", "delta")
+# one sample in the spool: the wire integers, packed (15 bytes)
+_WIRE = np.dtype([("index", "<i8"), ("angle", "<u2"), ("alpha", "<i2"), ("flags", "<u2"), ("gap", "u1")])
 
 
 def recordings_directory(directory: str | None, db_path: str) -> Path:
@@ -70,8 +77,19 @@ def recordings_directory(directory: str | None, db_path: str) -> Path:
     return path.absolute()
 
 
+class RecordingWriteError(RuntimeError):
+    """A recording could not be written; the message says why and names no server path."""
+
+
 class RecordingUnavailable(LookupError):
-    """A result has no raw recording to hand out; the message says why."""
+    """A result has no raw recording to hand out; the message says why (and names no server path)."""
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception in words that name no path (an OSError's text carries its file name)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{type(exc).__name__}: {exc.strerror}"
+    return f"{type(exc).__name__}: {exc}"
 
 
 @dataclass
@@ -96,17 +114,18 @@ class RunRecorder:
         self.stale_samples = 0          # read before a setpoint took effect: counted, not kept
         self.started_at: datetime | None = None
         self.setpoints: list[_Setpoint] = []
-        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._parts: list[np.ndarray] = []
         self._buffered = 0
-        self._mdf = None
+        self._spool: BinaryIO | None = None
         try:
+            if directory.exists() and not directory.is_dir():
+                raise NotADirectoryError(20, "a file stands where it should be", str(directory))
             directory.mkdir(parents=True, exist_ok=True)
-            if not directory.is_dir():
-                raise NotADirectoryError(f"{directory} is not a directory")
-            # asammdf keeps appended data in a temporary file: there, so that it counts on the same disk
-            self._mdf = MDF(version="4.10", temporary_folder=str(directory))
+            # no name in the directory (O_TMPFILE, or unlinked at once): gone with the recorder, whatever happens
+            self._spool = tempfile.TemporaryFile(dir=directory)
         except Exception as exc:  # noqa: BLE001 - any storage problem is the recording's, not the run's
-            self._fail(f"recordings directory {directory} unusable", exc)
+            self._fail("the recordings directory is unusable (check recordings.directory)", exc,
+                       f"recordings directory {directory} unusable")
 
     # --- fed by the measurement session -----------------------------------------------------------
     def samples(self, s: DecodedSamples, counted: bool) -> None:
@@ -121,16 +140,17 @@ class RunRecorder:
             self.started_at = datetime.now(timezone.utc)
         n = len(s)
         # back to the wire integers (exact: the decoder scaled them by these constants)
-        self._parts.append((
-            s.index.astype(np.int64),
-            np.rint(s.angle_rad * (ANGLE_COUNTS_PER_TURN / (2.0 * math.pi))).astype(np.int64).astype(np.uint16),
-            np.rint(s.accel_fs * ACCEL_FULL_SCALE_COUNTS).astype(np.int16),
-            s.flags.astype(np.uint16),
-            s.gap_before.astype(np.uint8)))
+        part = np.empty(n, _WIRE)
+        part["index"] = s.index
+        part["angle"] = np.rint(s.angle_rad * (ANGLE_COUNTS_PER_TURN / (2.0 * math.pi))).astype(np.int64).astype(np.uint16)
+        part["alpha"] = np.rint(s.accel_fs * ACCEL_FULL_SCALE_COUNTS).astype(np.int16)
+        part["flags"] = s.flags
+        part["gap"] = s.gap_before
+        self._parts.append(part)
         self._buffered += n
         self.samples_recorded += n
         if self._buffered >= self.chunk_samples:
-            self._flush()
+            self._spill()
 
     def setpoint(self, effect_index: int, theta_cos_rad: float, theta_sin_rad: float) -> None:
         """A theta setpoint and the DAQ sample at which it took effect."""
@@ -138,21 +158,24 @@ class RunRecorder:
             self.setpoints.append(_Setpoint(int(effect_index), float(theta_cos_rad), float(theta_sin_rad)))
 
     # --- to the file ----------------------------------------------------------------------------------
-    def _flush(self) -> None:
+    def _spill(self) -> None:
+        """The samples held in memory to the spool."""
         if not self._parts or self.error is not None:
             return
-        index, angle, alpha, flags, gap = (np.concatenate(cols) for cols in zip(*self._parts))
+        block = np.concatenate(self._parts)
         self._parts, self._buffered = [], 0
-        t = index / self.sample_rate_hz
         try:
-            if not self._mdf.groups:
-                self._mdf.append(self._daq_signals(t, index, angle, alpha, flags, gap), acq_name=DAQ_GROUP,
-                                 comment="DAQ samples the identification counted as plant time, in stream order; "
-                                         "time = sample_index / sample rate")
-            else:
-                self._mdf.extend(0, [(t, None), *((x, None) for x in (index, angle, alpha, flags, gap))])
-        except Exception as exc:  # noqa: BLE001 - disk full, asammdf refusing: the run goes on without it
-            self._fail("writing the DAQ samples failed", exc)
+            self._spool.write(block.tobytes())
+        except Exception as exc:  # noqa: BLE001 - disk full: the run goes on without its recording
+            self._fail("spooling the DAQ samples failed", exc)
+
+    def _spooled_chunks(self):
+        """The spooled samples back, CHUNK_SAMPLES at a time: (t, index, angle, alpha, flags, gap)."""
+        self._spool.seek(0)
+        while data := self._spool.read(self.chunk_samples * _WIRE.itemsize):
+            block = np.frombuffer(data, _WIRE)
+            index = block["index"].copy()
+            yield (index / self.sample_rate_hz, index, *(block[k].copy() for k in ("angle", "alpha", "flags", "gap")))
 
     def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
         return [
@@ -188,40 +211,75 @@ class RunRecorder:
 
     def write(self, path: Path, header: dict[str, Any], description: str) -> int:
         """The MF4 file at `path` (written beside it, then renamed: never half a file under its name);
-        returns its size in bytes. Raises on a storage error."""
-        if self.error is not None:
-            raise RuntimeError(self.error)
-        self._flush()
-        if self.error is not None:
-            raise RuntimeError(self.error)
-        if self.setpoints:
-            self._mdf.append(self._setpoint_signals(), acq_name=SETPOINT_GROUP,
-                             comment="theta setpoints; time = effect_sample_index / sample rate")
-        self._mdf.header.start_time = self.started_at or datetime.now(timezone.utc)
-        self._mdf.header.comment = _header_xml(description, header)
+        returns its size in bytes. Raises on a storage error (its message names no path). However it
+        ends, nothing is left in the directory but the file, and the recorder is closed."""
+        mdf = None
         partial = path.with_name(path.stem + ".partial.mf4")       # asammdf insists on the .mf4 suffix
         try:
-            self._mdf.save(partial, overwrite=True, compression=2)     # 2: transposed deflate (MDF 4.10 DZ blocks)
+            self._spill()
+            if self.error is not None:
+                raise RecordingWriteError(self.error)
+            # asammdf keeps appended data in a temporary file: in the recordings directory (the same disk)
+            mdf = MDF(version="4.10", temporary_folder=str(self.directory))
+            for i, (t, index, angle, alpha, flags, gap) in enumerate(self._spooled_chunks()):
+                if i == 0:
+                    mdf.append(self._daq_signals(t, index, angle, alpha, flags, gap), acq_name=DAQ_GROUP,
+                               comment="DAQ samples the identification counted as plant time, in stream order; "
+                                       "time = sample_index / sample rate")
+                else:
+                    mdf.extend(0, [(t, None), *((x, None) for x in (index, angle, alpha, flags, gap))])
+            if self.setpoints:
+                mdf.append(self._setpoint_signals(), acq_name=SETPOINT_GROUP,
+                           comment="theta setpoints; time = effect_sample_index / sample rate")
+            mdf.header.start_time = self.started_at or datetime.now(timezone.utc)
+            mdf.header.comment = _header_xml(description, header)
+            mdf.save(partial, overwrite=True, compression=2)     # 2: transposed deflate (MDF 4.10 DZ blocks)
             os.replace(partial, path)
+        except RecordingWriteError:
+            raise
+        except Exception as exc:
+            log.warning("writing the raw recording %s failed", path, exc_info=True)
+            raise RecordingWriteError(f"writing its file failed: {_reason(exc)}") from exc
         finally:
-            partial.unlink(missing_ok=True)
+            if mdf is not None:
+                _close_mdf(mdf)
+                _remove(partial)
             self.close()
         return path.stat().st_size
 
     def close(self) -> None:
-        """Drop what is held (asammdf's temporary file too). Idempotent."""
+        """Drop what is held (the spool too). Idempotent."""
         self._parts, self._buffered = [], 0
-        mdf, self._mdf = self._mdf, None
-        if mdf is not None:
+        spool, self._spool = self._spool, None
+        if spool is not None:
             try:
-                mdf.close()
-            except Exception:  # noqa: BLE001 - its temporary file may already be gone
-                log.debug("closing the recording failed", exc_info=True)
+                spool.close()
+            except OSError:
+                log.debug("closing the recording's spool failed", exc_info=True)
 
-    def _fail(self, what: str, exc: BaseException) -> None:
-        self.error = f"{what}: {type(exc).__name__}: {exc}"
-        log.warning("raw recording stopped: %s", self.error)
+    def _fail(self, what: str, exc: BaseException, logged: str | None = None) -> None:
+        """Recording stops: `what` (no server path: the API shows it) goes into `error`, `logged` (with
+        the path) into the log."""
+        self.error = f"{what}: {_reason(exc)}"
+        log.warning("raw recording stopped: %s: %s: %s", logged or what, type(exc).__name__, exc)
         self.close()
+
+
+def _close_mdf(mdf) -> None:
+    """asammdf's MDF closed (its temporary file deleted), whatever state a failed write left it in."""
+    if mdf is None:
+        return
+    try:
+        mdf.close()
+    except Exception:  # noqa: BLE001 - its temporary file may already be gone
+        log.debug("closing asammdf's MDF failed", exc_info=True)
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as exc:
+        log.warning("could not remove %s: %s", path, exc)
 
 
 def _header_xml(description: str, properties: dict[str, Any]) -> str:
@@ -280,8 +338,9 @@ class RecordingStore:
                 record["written_at"] = now_iso()
         except Exception as exc:  # noqa: BLE001 - the recording failed, the result stands
             recorder.close()
-            record["error"] = recorder.error or f"writing {self.path(result_id)} failed: {type(exc).__name__}: {exc}"
-            log.warning("result %s: raw recording failed: %s", result_id, record["error"])
+            record["error"] = recorder.error or (str(exc) if isinstance(exc, RecordingWriteError)
+                                                 else f"writing its file failed: {_reason(exc)}")
+            log.warning("result %s: raw recording %s failed: %s", result_id, self.path(result_id), record["error"])
         try:
             self.storage.set_result_recording(result_id, record)
         except Exception:  # noqa: BLE001
@@ -356,9 +415,14 @@ class RecordingStore:
         path = Path(record["path"])
         try:
             return path.open("rb")
+        except FileNotFoundError:
+            log.warning("result %s: its raw recording %s is missing", result_id, path)
+            raise RecordingUnavailable(f"the raw recording of result {result_id} is missing: its file was deleted "
+                                       "or moved outside ripplecal (the service's log names it)") from None
         except OSError as exc:
-            raise RecordingUnavailable(f"the raw recording of result {result_id} cannot be read ({path}: "
-                                       f"{exc.strerror or exc})") from None
+            log.warning("result %s: its raw recording %s cannot be read: %s", result_id, path, exc)
+            raise RecordingUnavailable(f"the raw recording of result {result_id} cannot be read "
+                                       f"({_reason(exc)}; the service's log names the file)") from None
 
 
 def recording_record(row: dict) -> dict | None:

@@ -166,6 +166,9 @@ class ServerSettings(_Section):
     db_path: str = Field(default_factory=default_db_path)
     max_body_bytes: int = Field(1_048_576, ge=1024, description="larger request bodies get 413 before they are "
                                                                 "parsed or authenticated")
+    db_busy_timeout_s: float = Field(10.0, gt=0, le=600, description="how long a database access waits for another "
+                                     "process's lock before the service treats the database as unavailable (a sweep "
+                                     "then waits with the bench safe, the API answers 503)")
 
 
 class Settings(_Section):
@@ -203,35 +206,59 @@ def _parse_env_value(text: str) -> Any:
 
 def load_settings(path: str | Path | None = None, environ: dict[str, str] | None = None,
                   overrides: dict[str, Any] | None = None) -> Settings:
-    """Settings from defaults <- TOML file <- environment <- explicit overrides (CLI flags)."""
+    """Settings from defaults <- TOML file <- environment <- explicit overrides (CLI flags). A problem is
+    a SettingsError of one line naming the file (or the environment variable, or the command line) and
+    the key."""
     data: dict[str, Any] = {}
-    if path is not None:
-        p = Path(path)
+    p = Path(path) if path is not None else None
+    if p is not None:
         try:
-            data = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise SettingsError(f"settings file {p} does not exist") from None
+        except IsADirectoryError:
+            raise SettingsError(f"settings file {p} is a directory, not a TOML file") from None
+        except UnicodeDecodeError as exc:
+            raise SettingsError(f"settings file {p} is not UTF-8 text (byte {exc.start}): is it a TOML file?") from None
+        except OSError as exc:
+            raise SettingsError(f"settings file {p} cannot be read ({exc.strerror or type(exc).__name__})") from None
         except tomllib.TOMLDecodeError as exc:
             raise SettingsError(f"settings file {p} is not valid TOML: {exc}") from None
+    sources: dict[tuple[str, ...], str] = {}        # key path -> where it came from, if not from the file
     env = os.environ if environ is None else environ
     for key, raw in env.items():
         if not key.startswith(ENV_PREFIX):
             continue
         parts = key[len(ENV_PREFIX):].lower().split("__")
-        node = data
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = _parse_env_value(raw)
+        _put(data, parts, _parse_env_value(raw), f"environment {key}", p)
+        sources[tuple(parts)] = f"environment {key}"
     for dotted, value in (overrides or {}).items():
         if value is None:
             continue
         parts = dotted.split(".")
-        node = data
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = value
+        _put(data, parts, value, "the command line", p)
+        sources[tuple(parts)] = "the command line"
     try:
         return Settings.model_validate(data)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise SettingsError(f"invalid settings: {problems}") from None
+        problems = "; ".join(_problem(e, sources) for e in exc.errors())
+        where = f"settings file {p}" if p is not None else "invalid settings"
+        raise SettingsError(f"{where}: {problems}") from None
+
+
+def _put(data: dict[str, Any], parts: list[str], value: Any, source: str, path: Path | None) -> None:
+    node = data
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            where = f"settings file {path}" if path is not None else "settings"
+            raise SettingsError(f"{where}: {part} is not a table, so {source} cannot set {'.'.join(parts)}")
+    node[parts[-1]] = value
+
+
+def _problem(error: dict[str, Any], sources: dict[tuple[str, ...], str]) -> str:
+    """'key: what is wrong', with where the key came from when that is not the file."""
+    loc = tuple(str(x) for x in error["loc"])
+    msg = "unknown key" if error["type"] == "extra_forbidden" else error["msg"].removeprefix("Value error, ")
+    source = next((sources[loc[:n]] for n in range(len(loc), 0, -1) if loc[:n] in sources), None)
+    return f"{'.'.join(loc)}: {msg}" + (f" (set by {source})" if source else "")

@@ -22,6 +22,42 @@ class StorageError(RuntimeError):
     pass
 
 
+class StorageUnavailable(StorageError):
+    """The database cannot be used now, for a reason that passes (another process holds its lock, its
+    filesystem is read-only or full, an I/O error): what needs it waits and tries again; the API answers
+    503 with Retry-After. str() names the cause and the file (for the log); `public` names the file
+    without the server's path to it (for answers and a sweep's pause reason)."""
+
+    def __init__(self, cause: str, message: str, retry_after_s: float = 5.0, public: str | None = None):
+        super().__init__(message)
+        self.cause = cause
+        self.retry_after_s = retry_after_s
+        self.public = public if public is not None else message
+
+
+# sqlite3's OperationalError texts of the causes that pass, and what to tell the operator
+_UNAVAILABLE = (
+    ("database is locked", "locked", "another process holds its lock"),
+    ("readonly database", "read_only", "its filesystem is read-only"),
+    ("read-only", "read_only", "its filesystem is read-only"),
+    ("database or disk is full", "disk_full", "its disk is full"),
+    ("disk i/o error", "io_error", "a disk I/O error"),
+    ("unable to open database file", "cannot_open", "the file cannot be opened"),
+)
+
+
+def unavailable(exc: BaseException, path: Path) -> StorageUnavailable | None:
+    """The StorageUnavailable a sqlite3 error stands for (None: not one that passes)."""
+    if not isinstance(exc, sqlite3.OperationalError):
+        return None
+    text = str(exc).lower()
+    for needle, cause, what in _UNAVAILABLE:
+        if needle in text:
+            return StorageUnavailable(cause, f"database {path}: {what} ({exc})",
+                                      public=f"database {path.name}: {what} ({exc})")
+    return None
+
+
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
@@ -40,22 +76,33 @@ def migrations(directory: Path = MIGRATIONS_DIR) -> list[tuple[int, Path]]:
 
 
 class Storage:
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, busy_timeout_s: float = 10.0):
         self.path = Path(path)
+        self.busy_timeout_s = busy_timeout_s    # sqlite3 waits this long for another process's lock before it says so
+        self._known_tokens: dict[str, str] = {}  # sha256 -> role of tokens seen valid (used while the database is unavailable)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._write_lock = threading.Lock()
         self.migrate()
 
     @contextlib.contextmanager
     def connect(self) -> Iterator[sqlite3.Connection]:
-        conn = sqlite3.connect(self.path, timeout=10.0, isolation_level=None)
-        conn.row_factory = sqlite3.Row
-        conn.execute("PRAGMA foreign_keys = ON")
-        conn.execute("PRAGMA journal_mode = WAL")
+        """A connection; a sqlite3 error that passes (lock, read-only or full filesystem) becomes
+        StorageUnavailable, here and in the caller's use of the connection."""
+        conn = None
         try:
+            conn = sqlite3.connect(self.path, timeout=self.busy_timeout_s, isolation_level=None)
+            conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA foreign_keys = ON")
+            conn.execute("PRAGMA journal_mode = WAL")
             yield conn
+        except sqlite3.Error as exc:
+            passing = unavailable(exc, self.path)
+            if passing is not None:
+                raise passing from exc
+            raise
         finally:
-            conn.close()
+            if conn is not None:
+                conn.close()
 
     @contextlib.contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
@@ -64,7 +111,8 @@ class Storage:
             try:
                 yield conn
             except BaseException:
-                conn.execute("ROLLBACK")
+                with contextlib.suppress(sqlite3.Error):     # a full disk or I/O error may have rolled it back already
+                    conn.execute("ROLLBACK")
                 raise
             conn.execute("COMMIT")
 
@@ -109,10 +157,24 @@ class Storage:
             return cur.rowcount == 1
 
     def token_role(self, token: str) -> str | None:
-        with self.connect() as conn:
-            row = conn.execute("SELECT role FROM api_tokens WHERE token_sha256 = ? AND revoked_at IS NULL",
-                               (_sha256(token),)).fetchone()
-            return row["role"] if row else None
+        """The token's role (None: unknown or revoked). While the database is unavailable, a token this
+        process has seen valid before stays valid (an operator can still cancel or pause; revoking one
+        needs the database anyway)."""
+        digest = _sha256(token)
+        try:
+            with self.connect() as conn:
+                row = conn.execute("SELECT role FROM api_tokens WHERE token_sha256 = ? AND revoked_at IS NULL",
+                                   (digest,)).fetchone()
+        except StorageUnavailable:
+            if digest in self._known_tokens:
+                return self._known_tokens[digest]
+            raise
+        role = row["role"] if row else None
+        if role is None:
+            self._known_tokens.pop(digest, None)
+        else:
+            self._known_tokens[digest] = role
+        return role
 
     def list_tokens(self) -> list[dict]:
         with self.connect() as conn:
@@ -286,6 +348,13 @@ class Storage:
         with self.transaction() as conn:
             return _insert(conn, "map_validations", row)
 
+    def update_validation(self, validation_id: int, **fields: Any) -> None:
+        _update(self, "map_validations", validation_id, fields)
+
+    def running_validations(self) -> list[dict]:
+        with self.connect() as conn:
+            return [dict(r) for r in conn.execute("SELECT * FROM map_validations WHERE state = 'running'")]
+
     def latest_validation(self, map_id: int) -> dict | None:
         with self.connect() as conn:
             row = conn.execute("SELECT * FROM map_validations WHERE map_id = ? ORDER BY id DESC LIMIT 1",
@@ -347,9 +416,12 @@ class Storage:
             return row["id"] if row else None
 
     def bench_has_work(self) -> bool:
-        """A job queued or running: a new sweep would wait for the bench."""
+        """A job queued or running: a new sweep would wait for the bench. The job of a paused sweep is
+        parked (queued, out of the worker's queue: the bench is free) and does not count."""
         with self.connect() as conn:
-            return conn.execute("SELECT 1 FROM jobs WHERE state IN ('queued', 'running') LIMIT 1").fetchone() is not None
+            return conn.execute(
+                "SELECT 1 FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id WHERE j.state = 'running' "
+                "OR (j.state = 'queued' AND (s.state IS NULL OR s.state != 'paused')) LIMIT 1").fetchone() is not None
 
 
 _IDENT = re.compile(r"^[a-z_]+$")

@@ -15,7 +15,7 @@ from fastapi.staticfiles import StaticFiles
 
 from service import __version__
 from service.api.body_limit import BodySizeLimit
-from service.api.errors import request_validation_error
+from service.api.errors import EVERY_ROUTE, ErrorAnswers, request_validation_error
 from service.api.routes import ROUTERS
 from service.calibration_service import CalibrationService
 
@@ -41,9 +41,11 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
                   description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.")
     app.state.service = service
     for router in ROUTERS:
-        app.include_router(router)
+        app.include_router(router, responses=EVERY_ROUTE)        # every route documents 500 and 503
     app.add_exception_handler(RequestValidationError, request_validation_error)
     app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
+    # added last: outermost, so an error anywhere below (the body limit too) is a JSON answer, never plain text
+    app.add_middleware(ErrorAnswers)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

@@ -1,16 +1,39 @@
 """Error answers: one shape (FastAPI's `{"detail": ...}`), documented in the OpenAPI per route, and a
-422 handler that can always serialise what it refuses (NaN, inf, deep or huge inputs)."""
+422 handler that can always serialise what it refuses (NaN, inf, deep or huge inputs). Never a plain-text
+500: storage trouble that passes is a 503 with Retry-After, anything unexpected a JSON 500 whose
+`error_id` is in the log line with the traceback."""
 from __future__ import annotations
 
+import json
+import logging
 import math
+import secrets
 from typing import Any
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
 
 from service.api.schemas import ErrorPublic
 from service.identification.registry import METHODS
+from service.storage import StorageUnavailable
+
+log = logging.getLogger(__name__)
+
+
+class UnavailablePublic(BaseModel):
+    """503: the database cannot be used now, for a reason that passes; try again after Retry-After."""
+    detail: str = Field(..., description="what is wrong with the database, e.g. 'database ripplecal.db: its disk is full (...)'")
+    cause: str = Field(..., description="locked | read_only | disk_full | io_error | cannot_open")
+    retry_after_s: float = Field(..., description="try again after this many seconds (also the Retry-After header)")
+
+
+class InternalErrorPublic(BaseModel):
+    """500: a fault of the service; the service's log has the traceback under the same error_id."""
+    detail: str = Field("internal error", description="always 'internal error' (the cause is in the log)")
+    error_id: str = Field(..., description="the id of the log line with the traceback")
+
 
 _DESCRIPTIONS = {
     400: "Malformed request (not JSON, or an unreadable header)",
@@ -19,13 +42,23 @@ _DESCRIPTIONS = {
     404: "No such resource",
     409: "The resource's state does not allow this now (e.g. resume a finished sweep, bench busy)",
     413: "Request body larger than server.max_body_bytes",
+    500: "Internal error: the body's error_id names the log line with the traceback",
     502: "The drive refused or did not answer",
+    503: "The database cannot be used now (locked by another process, read-only or full filesystem, I/O error): "
+         "try again after Retry-After",
 }
+_MODELS: dict[int, type[BaseModel]] = {500: InternalErrorPublic, 503: UnavailablePublic}
+_RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying again", "schema": {"type": "integer"}}}
 
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """`responses=` for a route: each status it can answer besides its success."""
-    return {code: {"model": ErrorPublic, "description": _DESCRIPTIONS[code]} for code in codes}
+    return {code: {"model": _MODELS.get(code, ErrorPublic), "description": _DESCRIPTIONS[code],
+                   **({"headers": _RETRY_AFTER} if code == 503 else {})} for code in codes}
+
+
+# every route can meet storage trouble or a fault of its own (app.include_router adds them to each)
+EVERY_ROUTE = error_responses(500, 503)
 
 
 def validation_error(loc: list[str | int], msg: str, type_: str = "value_error") -> dict[str, Any]:
@@ -58,3 +91,49 @@ async def request_validation_error(request: Request, exc: RequestValidationError
             item["input"] = e["input"]
         detail.append(item)
     return JSONResponse(status_code=422, content={"detail": detail})
+
+
+class ErrorAnswers:
+    """Pure ASGI middleware around the whole app (outside the body limit): StorageUnavailable from anywhere
+    below a route (the route, the service, the auth dependency reading tokens) answers 503 with Retry-After;
+    any other exception answers 500 as JSON with a short error_id, logged with its traceback under the same
+    id. Answers name no server paths: the database is named by its file name (StorageUnavailable.public). Once a response has started
+    (a stream), nothing can be answered any more: the error is logged and the connection ends."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked_send(message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        what = f"{scope.get('method', '?')} {scope.get('path', '?')}"       # never the query: it may hold a token
+        try:
+            await self.app(scope, receive, tracked_send)
+        except StorageUnavailable as exc:
+            log.warning("%s: 503, %s", what, exc)
+            if not started:
+                await _answer(send, 503, {"detail": exc.public, "cause": exc.cause,
+                                          "retry_after_s": exc.retry_after_s},
+                              [(b"retry-after", str(max(1, math.ceil(exc.retry_after_s))).encode())])
+        except Exception as exc:  # noqa: BLE001 - the one place an unexpected fault becomes an answer
+            error_id = secrets.token_hex(4)
+            log.error("internal error %s answering %s: %s: %s", error_id, what, type(exc).__name__, exc, exc_info=exc)
+            if not started:
+                await _answer(send, 500, {"detail": "internal error", "error_id": error_id})
+
+
+async def _answer(send, status: int, body: dict[str, Any], headers: list[tuple[bytes, bytes]] = ()) -> None:
+    data = json.dumps(body).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()),
+                            *headers]})
+    await send({"type": "http.response.body", "body": data})

@@ -7,6 +7,7 @@ from typing import Any, Iterator
 from fastapi import HTTPException, status
 
 from service.api.errors import validation_error
+from service.bench import BenchUnreachable
 from service.identify import PlantTimeError
 from service.limits import LimitError
 
@@ -25,10 +26,13 @@ def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
 
 @contextlib.contextmanager
 def refused_at(setpoints: list[str], options_at: tuple[str, ...] = ("body", "options")) -> Iterator[None]:
-    """Submitting a run: bench limits become 422s at the setpoint fields (`setpoints`, e.g. body.grid),
-    a plant-time refusal a 422 at the options (`options_at`), any other ValueError a 422 at the setpoints."""
+    """Submitting a run: a bench not reached at start is a 409 naming the device; bench limits become
+    422s at the setpoint fields (`setpoints`, e.g. body.grid), a plant-time refusal a 422 at the options
+    (`options_at`), any other ValueError a 422 at the setpoints."""
     try:
         yield
+    except BenchUnreachable as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     except LimitError as exc:
         raise limit_error(exc, setpoints) from None
     except PlantTimeError as exc:

@@ -184,3 +184,24 @@ def test_maps_download_refuses_an_empty_or_partial_map_before_starting_the_bench
         assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
         assert "starting the" not in proc.stderr and "Traceback" not in proc.stderr
     assert "--force" in proc.stderr
+
+
+def test_a_bad_environment_variable_is_one_line_naming_it(tmp_path):
+    proc = run("token", "list", "--db", str(tmp_path / "r.db"),
+               env=_env(tmp_path / "xdg", RIPPLECAL_SERVER__PORT="eighty"), cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    [line] = proc.stderr.strip().splitlines()
+    assert "server.port" in line and "(set by environment RIPPLECAL_SERVER__PORT)" in line, line
+
+
+def test_identify_on_a_bench_that_cannot_be_reached_is_refused_without_a_traceback(tmp_path):
+    port = free_port()          # bound and released: nothing listens there
+    bench = tmp_path / "offline.toml"
+    bench.write_text(f'[can]\ninterface = "socketcand"\nchannel = "can0"\nhost = "127.0.0.1"\nport = {port}\n'
+                     f'[daq]\nurl = "socket://127.0.0.1:{port}"\n[supply]\nurl = "socket://127.0.0.1:{port}"\n')
+    proc = run("identify", "--torque", "2.5", "--speed", "2000", "--bench", str(bench), "--db", str(tmp_path / "r.db"),
+               env=_env(tmp_path / "xdg"), cwd=tmp_path, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("ripplecal: CAN bus") and f"127.0.0.1:{port}" in last and "check that" in last, proc.stderr
+    assert "job " not in proc.stderr                 # refused: nothing was queued

@@ -32,10 +32,22 @@ def kill9(svc: ServiceProcess) -> None:
 
 
 def attempts_per_point(db, sweep_id) -> dict:
+    """Results per point of the sweep's first pass (its second pass measures a non-ok cell once more, by design)."""
     with sqlite3.connect(db) as conn:
         rows = conn.execute("SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
+                            "AND COALESCE(json_extract(detail_json, '$.details.sweep_pass'), 1) = 1 "
                             "GROUP BY torque_nm, speed_rpm, udc_v", (sweep_id,)).fetchall()
     return {r[:3]: r[3] for r in rows}
+
+
+def second_pass_only_where_the_first_missed(db, sweep_id) -> None:
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute("SELECT torque_nm, speed_rpm, udc_v, status, "
+                            "COALESCE(json_extract(detail_json, '$.details.sweep_pass'), 1) FROM results WHERE sweep_id = ?",
+                            (sweep_id,)).fetchall()
+    first_ok = {r[:3] for r in rows if r[4] == 1 and r[3] == "ok"}
+    again = [r[:3] for r in rows if r[4] == 2]
+    assert not first_ok & set(again) and len(again) == len(set(again)), rows
 
 
 def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_path):
@@ -73,6 +85,7 @@ def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_
         assert_points_measured_honestly(sweep["points"], min_ok=12)
         after = attempts_per_point(db, sweep_id)
         assert len(after) == 16 and set(after.values()) == {1}          # none lost, none measured twice
+        second_pass_only_where_the_first_missed(db, sweep_id)
         assert len(api.get(f"/maps/{sweep['map_id']}")["cells"]) == 16
         api.close()
     finally:
@@ -158,6 +171,38 @@ def test_an_orderly_stop_needs_no_reset_and_kill9_still_faults(emu, tmp_path):
         assert r.status_code == 200, r.text
         job = api.identify(op)
         assert job["state"] == "done" and job["result"]["status"] == "ok", job
+        api.close()
+    finally:
+        svc.stop()
+
+
+def test_kill9_during_a_validation_keeps_the_points_measured_and_names_the_lut_in_the_drive(emu, tmp_path):
+    db = tmp_path / "validation.db"
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(tmp_path)))
+    svc.wait_ready()
+    api = Api(svc, db)
+    assert api.post("/bench/fault-reset").status_code == 200     # whatever an earlier test left on the shared drive
+    r = api.post("/sweeps", {"grid": {"torque_nm": [2.0, 3.0], "speed_rpm": [1200, 1600], "udc_v": [12]},
+                             "method": "probe"})
+    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] in ("done", "failed") and s, 300,
+                     "sweep done")
+    map_id = sweep["map_id"]
+    job_id = api.post(f"/maps/{map_id}/validate", {"force": True}).json()["id"]
+    # the validation is stored as it measures: running, with its cells growing
+    partial = api.wait(lambda: (v := api.http.get(f"/maps/{map_id}/validation")).status_code == 200
+                       and len(v.json()["cells"]) >= 2 and v.json(), 300, "two points stored")
+    assert partial["state"] == "running" and partial["download"]["map_id"] == map_id
+    kill9(svc)
+    api.close()
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(tmp_path)))
+    try:
+        svc.wait_ready()
+        api = Api(svc, db)
+        v = api.get(f"/maps/{map_id}/validation")
+        assert v["state"] == "failed" and len(v["cells"]) >= len(partial["cells"]), v
+        assert f"the drive holds the LUT of map {map_id}" in v["error"] and v["download"]["crc32"] in v["error"]
+        job = api.get(f"/jobs/{job_id}")
+        assert job["state"] == "failed" and f"LUT of map {map_id}" in job["error"], job
         api.close()
     finally:
         svc.stop()

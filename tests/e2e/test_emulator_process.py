@@ -1,5 +1,6 @@
 """`python -m plant_emulator` as a process, through its real wires: socketcand + canopen, DAQ pty,
-SCPI over TCP. Tests run in file order on one emulator; the last one stops it with SIGTERM."""
+SCPI over TCP. Tests run in file order on one emulator; the last one stops it with SIGTERM (the two
+that need a DAQ nobody reads have an emulator of their own)."""
 from __future__ import annotations
 
 import json
@@ -17,8 +18,12 @@ import pytest
 import serial
 
 from drivers import DRIVE_EDS, LOAD_EDS
+from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, PATH_TO_OPERATION_ENABLED, State402, decode_statusword
 from drivers.daq_protocol import FLAG_SYNC_INPUT, FrameDecoder
+from drivers.daq_reader import DaqReader
+from drivers.load_machine import LoadClient
+from tests.support.bench_rig import EmulatorRig
 from tests.support.waiting import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -66,7 +71,7 @@ def bench(emulator):
 
 
 def read_samples(bench, n: int):
-    """Next n decoded samples from the DAQ (the plant advances only while we read: --speedup 0)."""
+    """Next n decoded samples from the DAQ (--speedup 0: the plant runs as fast as we read; unread, in real time)."""
     parts, got = [], 0
     deadline = time.monotonic() + 20.0
     while got < n and time.monotonic() < deadline:
@@ -280,6 +285,133 @@ def test_control_socket_faults(emulator, bench):
     index = read_samples(bench, 4000)[0]
     assert np.all(np.diff(index) == 1)
     assert control(emulator, {"status": True})["faults"]["daq_disconnected"] is False
+
+
+def test_control_socket_supply_faults(emulator, bench):
+    """The supply drifts (MEAS:VOLT? and the drive's DC link follow, VOLT? stays) and trips (0 V, OUTP? 0),
+    until clear; the status shows it."""
+    _, ep = emulator
+    drive = bench["drive"]
+    port = serial.serial_for_url(ep["supply"], timeout=2.0)
+
+    def ask(query: str) -> str:
+        port.write(query.encode() + b"\n")
+        return port.readline().decode().strip()
+
+    def dc_link_v() -> float:
+        read_samples(bench, 4096)            # a piece of plant: the firmware publishes what it measured
+        return drive.sdo[0x6079].raw / 1000.0
+
+    try:
+        port.write(b"VOLT 12\nOUTP ON\n")
+        assert float(ask("MEAS:VOLT?")) == pytest.approx(12.0, abs=0.01)
+        assert control(emulator, {"fault": "supply_voltage", "volts": 9.0})["ok"]
+        assert float(ask("MEAS:VOLT?")) == pytest.approx(9.0, abs=0.01)
+        assert float(ask("VOLT?")) == pytest.approx(12.0)
+        assert wait_until(lambda: dc_link_v() == pytest.approx(9.0, abs=0.01), 20.0)
+        supply = control(emulator, {"status": True})["faults"]["supply"]
+        assert supply == {"setpoint_v": 12.0, "output_on": True, "actual_v": 9.0, "drift_v": 9.0, "tripped": False}
+        assert control(emulator, {"fault": "supply_voltage", "volts": 99})["ok"] is False
+        assert control(emulator, {"fault": "supply_output_off"})["ok"]
+        assert ask("OUTP?") == "0" and float(ask("MEAS:VOLT?")) == 0.0
+        assert wait_until(lambda: dc_link_v() == 0.0, 20.0)
+        assert control(emulator, {"fault": "clear"})["ok"]
+        assert control(emulator, {"status": True})["faults"]["supply"]["tripped"] is False
+        assert ask("OUTP?") == "0"                  # a tripped supply does not switch itself back on
+        port.write(b"OUTP ON\n")
+        assert float(ask("MEAS:VOLT?")) == pytest.approx(12.0, abs=0.01)
+        assert wait_until(lambda: dc_link_v() == pytest.approx(12.0, abs=0.01), 20.0)
+    finally:
+        port.close()
+
+
+@pytest.fixture(scope="module")
+def lone_emulator():
+    """An emulator of its own at --speedup 0, that nobody reads unless a test does."""
+    rig = EmulatorRig(speedup=0.0)
+    try:
+        yield rig
+    finally:
+        rig.stop()
+
+
+def test_the_plant_keeps_real_time_while_nobody_reads_the_daq(lone_emulator):
+    """--speedup 0 runs as fast as the DAQ is read; while nobody reads, it runs in real time and drops
+    what the DAQ cannot deliver (a gap for the reader that comes back); read again, it runs fast again."""
+    rig = lone_emulator
+    rate_hz = rig.endpoints["sample_rate_hz"]
+
+    def status() -> dict:
+        reply = rig.control({"status": True})
+        return {**reply["faults"], "at": reply["at"]}
+
+    with DaqReader(rig.endpoints["daq"]) as reader:
+        last = int(reader.read(4 * rate_hz, timeout_s=30.0).index[-1])      # a reader reads ...
+        stopped_at = time.monotonic()                                        # ... then stops reading
+        # the plant goes on alone: the DAQ's frames are dropped, at 1x real time (not as fast as it can)
+        first = wait_until(lambda: (s := status())["daq_frames_dropped"] > 0 and s, 20.0, "frames dropped")
+        later = wait_until(lambda: (s := status())["plant_samples"] - first["plant_samples"] >= rate_hz and s,
+                           20.0, "a second of plant time without a reader")
+        real_time_factor = (later["plant_samples"] - first["plant_samples"]) / rate_hz / (later["at"] - first["at"])
+        assert 0.3 < real_time_factor < 2.0, real_time_factor
+        assert later["daq_frames_dropped"] > first["daq_frames_dropped"]
+        # the reader reads again: what was queued before the stall, then a gap, then the plant of now
+        resumed_at = time.monotonic()
+        before, after = [], None
+        while after is None:
+            block = reader.read_available(1 << 16, timeout_s=10.0)
+            holes = np.flatnonzero(block.gap_before)
+            if len(holes):
+                before.append(block.index[:holes[0]])
+                after = block.slice(int(holes[0]))
+            else:
+                before.append(block.index)
+            assert sum(map(len, before)) < 30 * rate_hz, "no gap in 30 s of stream"
+        stale = np.concatenate(before)
+        np.testing.assert_array_equal(stale, np.arange(last + 1, last + 1 + len(stale)))   # in order, nothing lost
+        wall_s = resumed_at - stopped_at
+        advanced_s = (int(after.index[0]) - last) / rate_hz
+        # about the wall time (and the buffers' couple of seconds, filled fast before the stall)
+        assert 0.5 * wall_s <= advanced_s <= wall_s + 5.0, (advanced_s, wall_s)
+        counters = reader.counters
+        assert counters.overruns >= 1 and counters.sequence_gaps == 0 and counters.crc_failures == 0
+        # read again, it runs as fast as it is read: 10 s of plant time in far less wall time
+        t0, got, index = time.monotonic(), 0, int(after.index[-1])
+        while got < 10 * rate_hz:
+            block = reader.read_available(1 << 16, timeout_s=10.0)
+            assert not block.gap_before.any() and int(block.index[0]) == index + 1
+            index = int(block.index[-1])
+            got += len(block)
+        assert time.monotonic() - t0 < 5.0
+
+
+def test_the_load_machines_fault_reaction_ends_without_a_reader(lone_emulator):
+    """A master killed at speed (heartbeat gone, nobody reads the DAQ): the load machine brakes to
+    standstill in plant time, which goes on in real time, and ends in FAULT by itself; a reset then works."""
+    rig = lone_emulator
+    can_ep = rig.endpoints["can"]
+
+    def bus() -> CanBus:
+        return CanBus(can_ep["interface"], can_ep["channel"], host=can_ep["host"], port=can_ep["port"]).connect()
+
+    master = bus()
+    load = LoadClient(master, rig.endpoints["load_node"], sdo_timeout_s=2.0)
+    load.connect()
+    load.enable()
+    load.set_speed_rpm(2000)
+    wait_until(lambda: load.read_status().speed_rpm > 1900, 30.0, "the load at speed (nobody reads the DAQ)")
+    master.disconnect()                         # as kill -9: the heartbeat stops, nothing else is said
+    wait_until(lambda: rig.control({"status": True})["faults"]["load_state"] == "fault", 10.0,
+               "the load's fault reaction ended by itself")
+    again = bus()
+    try:
+        load = LoadClient(again, rig.endpoints["load_node"], sdo_timeout_s=2.0)
+        load.connect()
+        assert load.fault_reset() is True
+        assert load.state() is State402.SWITCH_ON_DISABLED
+        load.disarm_heartbeat_consumer()
+    finally:
+        again.disconnect()
 
 
 def test_sigterm_exits_cleanly(emulator, bench):

@@ -92,6 +92,42 @@ def test_pause_resume_and_a_failing_point(svc):
     assert bench_is_safe(svc)
 
 
+def test_a_paused_sweep_releases_the_bench_and_resume_queues_it_again(svc):
+    """While a sweep waits paused, an identification runs; resume queues the sweep, which measures its
+    remaining points from a settled state and ends done."""
+    grid = Grid(torque_nm=[1.5, 2.5], speed_rpm=[1500, 2000], udc_v=[12])
+    sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
+    svc.engine.pause_sweep(sweep_id)
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused" and not svc.bench.busy)
+    sweep_job = next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)
+    assert sweep_job["state"] == "queued"                       # parked: out of the worker's queue
+    assert not svc.storage.bench_has_work()                     # a schedule firing now would start at once
+    held = svc.storage.get_sweep(sweep_id)["done_points"]
+    job_id = svc.engine.submit_identification(OP1, "probe", parse_options("probe", {}))
+    job = wait_for(lambda: (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") and j)
+    assert job["state"] == "done", job
+    sweep = svc.storage.get_sweep(sweep_id)
+    assert sweep["state"] == "paused" and sweep["done_points"] == held        # untouched meanwhile
+    svc.engine.resume_sweep(sweep_id)
+    sweep = wait_for(lambda: (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed") and s)
+    assert sweep["state"] == "done" and sweep["done_points"] == 4 and sweep["map_id"] is not None
+    assert svc.storage.get_job(sweep_job["id"])["state"] == "done"              # the same job, resumed
+    assert bench_is_safe(svc)
+
+
+def test_a_paused_sweep_cancelled_ends_with_what_it_measured(svc):
+    grid = Grid(torque_nm=[1.5, 2.5], speed_rpm=[1500, 2000], udc_v=[12])
+    sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
+    svc.engine.pause_sweep(sweep_id)
+    wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused" and not svc.bench.busy)
+    svc.engine.cancel_sweep(sweep_id)
+    sweep = svc.storage.get_sweep(sweep_id)
+    assert sweep["state"] == "cancelled" and sweep["map_id"] is not None
+    assert next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)["state"] == "cancelled"
+
+
 def test_corrupted_windows_are_refused_then_measured_again(svc):
     """DESIGN 5: a window that holds a bad frame or a gap is discarded and measured again."""
     before = svc.bench.daq.counters

@@ -110,6 +110,25 @@ def test_a_burst_of_sdo_delays_fails_at_most_the_job_it_hit(rig):
         assert job["state"] == "done", job
 
 
+def test_slow_sdo_answers_never_make_an_idle_bench_busy(rig):
+    """The 1 Hz status poller reads the drive without the run lock: with every SDO answer 0.15 s late
+    (a slow CAN link), fault-reset and a LUT download on an idle bench are never refused as busy."""
+    from service.storage import Storage
+    from tests.support.stored_maps import stored_map
+    emu, svc, api, db = rig
+    map_id = stored_map(Storage(db))
+    assert emu.control({"fault": "sdo_delay", "seconds": 0.15})["ok"]
+    try:
+        for _ in range(3):          # each some 30 SDO exchanges, interleaved with the poller's reads
+            r = api.post("/bench/fault-reset")
+            assert r.status_code == 200, r.text
+        r = api.post(f"/maps/{map_id}/download")        # its SDO writes take a while at this delay
+        assert r.status_code == 200, r.text
+    finally:
+        assert emu.control({"fault": "clear"})["ok"]
+    assert api.identify(OP1)["state"] == "done"
+
+
 def test_heartbeat_lost_by_a_stalled_service_names_the_cause(rig):
     """The service process stops (SIGSTOP) long enough for the drive's consumer heartbeat to lapse:
     the drive goes safe by itself; the job's error names the heartbeat as the first cause."""

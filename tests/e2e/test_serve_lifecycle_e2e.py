@@ -11,7 +11,7 @@ import time
 
 import httpx
 
-from tests.support.service_process import REPO, ServiceProcess, free_port
+from tests.support.service_process import REPO, ServiceProcess, create_token, free_port
 
 EXIT_TIMEOUT_S = 60.0       # generous: the emulator child and the bench are shut down in order
 
@@ -87,9 +87,14 @@ url = "socket://127.0.0.1:{port}"
         assert status["unreachable"]["device"] == "CAN bus"
         assert f"127.0.0.1:{port}" in status["unreachable"]["address"]
         assert f"127.0.0.1:{port}" in status["error"] and "check" in status["error"]
-        # the dashboard and the stored data are served; a run is refused with the reason
+        # the dashboard and the stored data are served; a run is refused with the reason (409, nothing queued)
         assert httpx.get(f"{base}/", timeout=5).status_code == 200
         assert httpx.get(f"{base}/api/v1/sweeps", timeout=5).status_code == 200
+        token = create_token(tmp_path / "ripplecal.db")
+        r = httpx.post(f"{base}/api/v1/identifications", timeout=10, headers={"Authorization": f"Bearer {token}"},
+                       json={"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "probe"})
+        assert r.status_code == 409 and "CAN bus" in r.json()["detail"] and "check that" in r.json()["detail"], r.text
+        assert httpx.get(f"{base}/api/v1/jobs", timeout=5).json() == []
         lines = [l for l in text.splitlines() if "bench unreachable" in l]
         assert len(lines) == 1, text
         assert f"127.0.0.1:{port}" in lines[0] and "check that" in lines[0], lines[0]
@@ -103,3 +108,43 @@ url = "socket://127.0.0.1:{port}"
                 proc.kill()
                 proc.wait(timeout=10)
     assert "Traceback" not in log_path.read_text(), log_path.read_text()[-3000:]
+
+
+def test_the_access_log_names_method_path_and_status_but_never_the_query(tmp_path):
+    """A token a client puts in a query string must not end up in the service's log."""
+    svc = ServiceProcess(tmp_path / "ripplecal.db")
+    try:
+        svc.wait_ready()
+        r = httpx.get(f"{svc.base}/api/v1/version?token=rc_query-secret&x=1", timeout=10)
+        assert r.status_code == 200, r.text
+        missing = httpx.get(f"{svc.base}/api/v1/results/987654?access_token=rc_other-secret", timeout=10)
+        assert missing.status_code == 404, missing.text
+    finally:
+        svc.stop()                           # the log is complete once the process has ended
+    log = svc.log_text()
+    assert '"GET /api/v1/version HTTP/1.1" 200' in log, log[-3000:]
+    assert '"GET /api/v1/results/987654 HTTP/1.1" 404' in log, log[-3000:]
+    assert "secret" not in log and "token=" not in log, log[-3000:]
+
+
+def test_a_second_serve_on_the_same_database_is_refused_naming_the_first(tmp_path):
+    """The claim comes before recovery: the first service's work is untouched by the second's start."""
+    db = tmp_path / "ripplecal.db"
+    first = ServiceProcess(db)
+    try:
+        first.wait_ready()
+        second = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(free_port()), "--db", str(db)],
+                                cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert second.returncode == 2, (second.returncode, second.stderr[-3000:])
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+        assert f"in use by another ripplecal serve (pid {first.proc.pid}, port {first.port}" in lines[0], lines[0]
+        assert httpx.get(f"{first.base}/api/v1/bench/status", timeout=5).json()["connected"]    # the first goes on
+    finally:
+        first.stop()
+    # the claim ends with its process: a restart on the same database comes up
+    again = ServiceProcess(db)
+    try:
+        again.wait_ready()
+    finally:
+        again.stop()

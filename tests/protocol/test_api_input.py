@@ -1,12 +1,17 @@
 """Issue 8, item 6: bad input is refused at the edge with a 4xx naming the field, never a 500.
+"The night, second step", item 2: never a plain-text 500: a database that cannot be used now is a 503
+with Retry-After, an unexpected fault a JSON 500 whose error_id is in the log with the traceback.
 
 Against the real app around a started CalibrationService (SQLite file, emulator child): the
 refusals that come from the bench limits go through the engine's own checks. Each case below is
 one of the failures the issue lists (or its neighbour), reproduced first as a test.
 """
+import contextlib
 import json
+import logging
 import math
 import socket
+import sqlite3
 import threading
 import time
 
@@ -15,10 +20,13 @@ import uvicorn
 
 from tests.support.live_app import bearer, client_for, started_service, wait_finished
 from service.api.app import create_app
+from service.calibration_service import CalibrationService
 from service.limits import LimitError, check_limits
 from service.operating_point import OperatingPoint
 from service.plans import Grid, SweepPlan
+from service.public import result_row
 from service.settings import SettingsError, load_settings
+from service.storage import now_iso
 from tests.support.service_process import free_port
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
@@ -308,12 +316,14 @@ def test_chunked_unauthenticated_body_is_cut_off_at_the_limit(http_server):
 def test_openapi_lists_the_error_responses(live):
     _, client, _ = live
     paths = client.get("/openapi.json").json()["paths"]
+    every = {"500", "503"}          # every route: a fault of its own, the database unavailable now
     expected = {
-        ("post", "/api/v1/identifications"): {"202", "400", "401", "403", "413", "422"},
-        ("post", "/api/v1/sweeps"): {"202", "400", "401", "403", "413", "422"},
+        ("post", "/api/v1/identifications"): {"202", "400", "401", "403", "409", "413", "422"},   # 409: bench unreachable
+        ("post", "/api/v1/sweeps"): {"202", "400", "401", "403", "409", "413", "422"},
         ("get", "/api/v1/jobs/{job_id}"): {"200", "404", "422"},
         ("post", "/api/v1/jobs/{job_id}/cancel"): {"200", "401", "403", "404", "409", "422"},
         ("get", "/api/v1/results/{result_id}"): {"200", "404", "422"},
+        ("get", "/api/v1/results/{result_id}/recording"): {"200", "404", "422"},
         ("get", "/api/v1/sweeps/{sweep_id}"): {"200", "404", "422"},
         ("post", "/api/v1/sweeps/{sweep_id}/{action}"): {"200", "401", "403", "404", "409", "422"},
         ("get", "/api/v1/maps/{map_id}"): {"200", "404", "422"},
@@ -322,8 +332,98 @@ def test_openapi_lists_the_error_responses(live):
     }
     for (method, path), codes in expected.items():
         responses = paths[path][method]["responses"]
-        assert set(responses) == codes, (method, path, sorted(responses))
+        assert set(responses) == codes | every, (method, path, sorted(responses))
         for code in codes - {"200", "202", "422"}:
             assert responses[code]["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorPublic"}
+    for path, operations in paths.items():
+        for method, operation in operations.items():
+            responses = operation["responses"]
+            assert every <= set(responses), (method, path, sorted(responses))
+            assert responses["503"]["content"]["application/json"]["schema"] == {
+                "$ref": "#/components/schemas/UnavailablePublic"}
+            assert "Retry-After" in responses["503"]["headers"]
+            assert responses["500"]["content"]["application/json"]["schema"] == {
+                "$ref": "#/components/schemas/InternalErrorPublic"}
     bounds = [p["schema"] for p in paths["/api/v1/jobs/{job_id}"]["get"]["parameters"] if p["name"] == "job_id"]
     assert bounds[0]["minimum"] == 1 and bounds[0]["maximum"] == 2**63 - 1
+
+
+# --- never a plain-text 500: the database unavailable is a 503, a fault a JSON 500 with its log id ----------------
+@pytest.fixture
+def idle(tmp_path):
+    """The real app around a CalibrationService on its own SQLite file, not started (no bench: the routes
+    that only read and write the database), so a test may hold that database's lock."""
+    service = CalibrationService(load_settings(environ={}, overrides={"server.db_path": str(tmp_path / "api.db")}))
+    return service, client_for(service), bearer(service, "operator")
+
+
+@contextlib.contextmanager
+def locked(service, timeout_s: float = 0.2):
+    """Another process's view of the database: a connection holding its EXCLUSIVE lock (locking mode
+    exclusive: readers are shut out too, WAL or not). The service waits `timeout_s` for it, not 10 s."""
+    service.storage.busy_timeout_s = timeout_s
+    holder = sqlite3.connect(service.storage.path, isolation_level=None)
+    try:
+        holder.execute("PRAGMA locking_mode = EXCLUSIVE")
+        holder.execute("BEGIN EXCLUSIVE")
+        holder.execute("DELETE FROM api_tokens WHERE id < 0")      # a write: the lock is taken now
+        yield
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+
+
+def test_a_locked_database_is_503_with_retry_after(idle):
+    service, client, _ = idle
+    with locked(service):
+        one = client.get("/api/v1/results/1")
+        listing = client.get("/api/v1/sweeps")
+    for r in (one, listing):
+        assert r.status_code == 503, r.text
+        assert r.headers["content-type"] == "application/json" and r.headers["retry-after"] == "5"
+        body = r.json()
+        assert body["cause"] == "locked" and body["retry_after_s"] == 5
+        assert body["detail"].startswith("database api.db: another process holds its lock")
+        assert str(service.storage.path.parent) not in r.text            # the file's name, not the server's path
+    assert client.get("/api/v1/results/1").status_code == 404          # the lock gone: answered again
+
+
+def test_the_token_check_meets_a_locked_database_as_503_not_401(idle):
+    """The auth dependency reads the token from the database: before any route code runs."""
+    service, client, operator = idle
+    with locked(service):
+        r = client.delete("/api/v1/schedules/987654", headers=operator)
+    assert r.status_code == 503 and r.json()["cause"] == "locked", r.text
+    assert r.headers["retry-after"] == "5"
+    assert client.delete("/api/v1/schedules/987654", headers=operator).status_code == 404
+
+
+def test_an_unexpected_error_is_a_json_500_whose_id_is_in_the_log(live, monkeypatch, caplog):
+    service, client, _ = live
+
+    def broken(result_id):
+        raise RuntimeError("a fault of the service at /srv/secret/place")
+    monkeypatch.setattr(service.storage, "get_result", broken)
+    with caplog.at_level(logging.ERROR, logger="service.api.errors"):
+        r = client.get("/api/v1/results/1?token=query-secret")
+    assert r.status_code == 500 and r.headers["content-type"] == "application/json", r.text
+    body = r.json()
+    assert set(body) == {"detail", "error_id"} and body["detail"] == "internal error"
+    assert "secret" not in r.text and len(body["error_id"]) >= 6
+    [record] = [rec for rec in caplog.records if body["error_id"] in rec.getMessage()]
+    assert record.levelno == logging.ERROR and "GET /api/v1/results/1" in record.getMessage()
+    assert record.exc_info and record.exc_info[0] is RuntimeError              # the traceback, under the same id
+    assert "query-secret" not in caplog.text                                  # the query string is not logged
+
+
+def test_a_missing_recording_is_404_without_server_paths(live):
+    service, client, _ = live
+    op = OperatingPoint(torque_nm=1.0, speed_rpm=1000.0, udc_v=12.0)
+    rid = service.storage.insert_result(result_row(op, "probe", None, "test-bench", now_iso(), error="x"))
+    gone = service.recordings.path(rid)           # recorded, then deleted behind the service's back
+    service.storage.set_result_recording(rid, {"format": "mf4", "path": str(gone), "bytes": 1000})
+    r = client.get(f"/api/v1/results/{rid}/recording")
+    assert r.status_code == 404, r.text
+    detail = r.json()["detail"]
+    assert f"result {rid}" in detail and "missing" in detail and "deleted" in detail
+    assert "/" not in detail.replace("/api/v1", ""), detail          # no server path (nor a piece of one)

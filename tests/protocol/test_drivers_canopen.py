@@ -13,20 +13,23 @@ import threading
 import time
 import zlib
 
+import can
 import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from drivers import DRIVE_EDS, LOAD_EDS, lut_image
+from drivers import DRIVE_EDS, LOAD_EDS, cia402_master, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus, LutInForce
-from drivers.errors import DriveFaultError, HeartbeatMissingError, NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError
+from drivers.errors import (DriveFaultError, FaultReactionActiveError, ForeignMasterError, HeartbeatMissingError,
+                            NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError)
 from drivers.load_machine import LoadClient, LoadStatus
 from tests.support.drivers_peers import EmulatedDevice, unique_channel
 from tests.support.waiting import wait_until
 from plant_emulator.drive_firmware import DriveFirmware
 from plant_emulator.load_machine import LoadMachineFirmware
+from plant_emulator.socketcand_server import SocketcandServer
 
 DRIVE_NODE = 5
 LOAD_NODE = 6
@@ -342,3 +345,131 @@ def test_load_machine_reports_its_speed_ramp(load_peer, bus):
         assert load.read(0x2000) == 20000           # load.eds's manufacturer object, rpm/s
     finally:
         load.close()
+
+
+# --- fault reaction: a reset that comes while the load machine still brakes ----------------------------
+
+def _count_statusword_reads(peer: EmulatedDevice) -> list[int]:
+    """Statusword reads the device served (a read callback ahead of the device's own, answering nothing)."""
+    reads: list[int] = []
+
+    def count(index, subindex, od, **_kwargs):
+        if index == 0x6041:
+            reads.append(1)
+        return None
+
+    peer.node._read_callbacks.insert(0, count)
+    return reads
+
+
+def test_fault_reset_waits_for_the_fault_reaction_to_end_then_resets(bus, load_peer):
+    load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=2.0)
+    load.connect()
+    try:
+        load.enable()
+        load_peer.device.publish(speed_rpm=2000.0, torque_nm=0.0)
+        load_peer.device.heartbeat_lost()                  # enabled at speed: it brakes to standstill first
+        assert load_peer.device.state is State402.FAULT_REACTION_ACTIVE
+        reads = _count_statusword_reads(load_peer)
+        outcome: dict = {}
+        resetting = threading.Thread(
+            target=lambda: outcome.update(reset=load.fault_reset(fault_reaction_timeout_s=60.0)))
+        resetting.start()
+        # the reset waits, reading the statusword, and sends nothing while the machine still brakes
+        wait_until(lambda: len(reads) >= 3, 10.0, "the reset polling the statusword")
+        assert CONTROLWORD[Command402.FAULT_RESET] not in load_peer.writes_to(0x6040)
+        load_peer.device.publish(speed_rpm=0.0, torque_nm=0.0)       # standstill: the reaction ends in FAULT
+        resetting.join(20.0)
+        assert outcome == {"reset": True}
+        assert load_peer.writes_to(0x6040)[-2:] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
+        assert load_peer.device.state is State402.SWITCH_ON_DISABLED
+    finally:
+        load.close()
+
+
+def test_fault_reset_during_a_fault_reaction_that_goes_on_says_what_it_waits_for(bus, load_peer):
+    load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=2.0)
+    load.connect()
+    try:
+        load.enable()
+        load_peer.device.heartbeat_lost()                  # no standstill is published: it brakes on
+        started = time.monotonic()
+        with pytest.raises(FaultReactionActiveError) as info:
+            load.fault_reset(fault_reaction_timeout_s=0.3)
+        assert time.monotonic() - started >= 0.3           # it did wait for the reaction first
+        message = str(info.value)
+        assert message.startswith("load machine node 6 is still braking to standstill after its fault "
+                                  "(FAULT_REACTION_ACTIVE")
+        assert "EMCY 0x8130" in message and message.endswith("try the reset again when it has stopped")
+        assert isinstance(info.value, StateTransitionError)          # callers that knew the old error still do
+        assert CONTROLWORD[Command402.FAULT_RESET] not in load_peer.writes_to(0x6040)
+        assert load_peer.device.state is State402.FAULT_REACTION_ACTIVE
+        assert cia402_master.FAULT_REACTION_WAIT_S >= 10.0           # the default waits for a real braking
+    finally:
+        load.close()
+
+
+# --- one master per node id on the bus ---------------------------------------------------------------------
+
+def test_a_second_master_with_our_node_id_is_refused_at_connect(bus, drive_peer):
+    heard: list[float] = []
+    drive_peer.network.subscribe(0x701, lambda can_id, data, ts: heard.append(time.monotonic()))
+    wait_until(lambda: len(heard) >= 2, 5.0, "the first master's heartbeat")
+    second = CanBus("virtual", bus.channel, service_node_id=SERVICE_NODE, heartbeat_period_ms=50)
+    with pytest.raises(ForeignMasterError, match=rf"another master sends heartbeats as node 1 on {bus.channel}"):
+        second.connect()
+    assert not second.connected and second.foreign_master() is None
+    # it listened before sending: the first master never heard a heartbeat with its own id
+    assert bus.foreign_master() is None
+    # another node id is another master, not ours: both run, neither reports the other
+    other = CanBus("virtual", bus.channel, service_node_id=2, heartbeat_period_ms=50).connect()
+    try:
+        seen_2: list[float] = []
+        drive_peer.network.subscribe(0x702, lambda can_id, data, ts: seen_2.append(time.monotonic()))
+        wait_until(lambda: len(seen_2) >= 5, 5.0, "node 2's heartbeats")
+        assert bus.foreign_master() is None and other.foreign_master() is None
+    finally:
+        other.disconnect()
+
+
+def test_a_running_bus_names_a_master_that_appears_with_its_id(bus):
+    assert bus.foreign_master() is None
+    # a master that does not listen first (an older tool, a PLC configured as node 1)
+    intruder = can.Bus(interface="virtual", channel=bus.channel)
+    task = intruder.send_periodic(can.Message(arbitration_id=0x701, data=[0x05], is_extended_id=False), 0.05)
+    try:
+        described = wait_until(bus.foreign_master, 5.0, "the second master named")
+        assert described.startswith(f"another master sends heartbeats as node 1 on {bus.channel}")
+    finally:
+        task.stop()
+        intruder.shutdown()
+    # gone again: reported no more once its last heartbeat is older than the hold time
+    wait_until(lambda: bus.foreign_master() is None, 10.0, "the report cleared")
+    assert bus.heartbeat_producing()
+
+
+def test_over_socketcand_a_bus_does_not_hear_itself_but_hears_a_second_master():
+    """The emulator's socketcand server sends a client's frames to the other clients only, so our own
+    heartbeat never comes back to us; a second client with our node id is heard."""
+    server = SocketcandServer(unique_channel()).start()
+    first = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=SERVICE_NODE,
+                   heartbeat_period_ms=50)
+    try:
+        first.connect()                                    # no refusal: it does not hear itself
+        watcher = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=9,
+                         heartbeat_period_ms=50).connect()
+        try:
+            heard: list[float] = []
+            watcher.network.subscribe(0x701, lambda can_id, data, ts: heard.append(time.monotonic()))
+            wait_until(lambda: len(heard) >= 10, 10.0, "ten of the first master's heartbeats on the wire")
+            assert first.foreign_master() is None
+            second = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=SERVICE_NODE,
+                            heartbeat_period_ms=50)
+            with pytest.raises(ForeignMasterError, match="another master sends heartbeats as node 1 on can0"):
+                second.connect()
+            assert first.foreign_master() is None          # the refused one sent nothing
+        finally:
+            watcher.disconnect()
+    finally:
+        first.disconnect()
+        server.close()

@@ -13,9 +13,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers import daq_reader
+from drivers import daq_protocol, daq_reader
 from drivers.daq_protocol import FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, FRAME_BYTES, encode_frames
-from drivers.daq_reader import DaqDisconnected, DaqReader, DaqTimeout
+from drivers.daq_reader import DaqDisconnected, DaqPortBusy, DaqReader, DaqTimeout
 from tests.support.pty_writer import PtyWriter
 from tests.support.waiting import wait_until
 
@@ -248,13 +248,18 @@ def test_a_flush_is_counted_as_the_flushs_not_as_line_errors(pty_writer):
     assert health["flushes"] == 1 and health["flush_resyncs"] == 1 and health["sequence_gaps"] == 0
 
 
-def test_whole_frames_missing_after_a_backpressure_pause_are_an_overrun(pty_writer):
+def test_whole_frames_missing_after_a_backpressure_pause_are_an_overrun(pty_writer, monkeypatch):
     n = 300
     stream, _ = make_stream(2000)
     frame = lambda k: stream[k * FRAME_BYTES:(k + 1) * FRAME_BYTES]   # noqa: E731
+    # an overrun window of 50 frames (instead of 256 KiB), so that this short stream can leave the one
+    # that follows the reader's start (the port's backlog) before its hole
+    monkeypatch.setattr(daq_protocol, "OVERRUN_WINDOW_BYTES", 50 * FRAME_BYTES)
     with DaqReader(pty_writer.path, max_buffered_samples=n) as reader:
-        # before any pause, whole frames missing (100..102) are a sequence gap: no known cause
-        pty_writer.write(b"".join(frame(k) for k in range(n + 3) if not 100 <= k < 103))
+        pty_writer.write(stream[:100 * FRAME_BYTES])
+        wait_until(lambda: reader.buffered_samples == 100, 10.0, "the start's window read")
+        # outside every window, whole frames missing (100..102) are a sequence gap: no known cause
+        pty_writer.write(b"".join(frame(k) for k in range(103, n + 3)))
         wait_until(lambda: reader.buffered_samples == n, 10.0, "the queue full")
         # nobody consumes: the reader pauses, a DAQ streaming on overflows and drops frames n+3..n+499
         pty_writer.write(b"".join(frame(k) for k in range(n + 500, n + 700)))
@@ -268,3 +273,36 @@ def test_whole_frames_missing_after_a_backpressure_pause_are_an_overrun(pty_writ
     assert counters.overruns == 1 and counters.overrun_samples_lost == 497
     assert counters.crc_failures == 0
     assert health["overruns"] == 1 and health["overrun_samples_lost"] == 497
+
+
+def test_whole_frames_missing_in_the_backlog_a_reader_finds_at_start_are_an_overrun(pty_writer):
+    """A DAQ streams before anybody reads it (the emulator at --speedup 0 falls back to real time and
+    drops frames): the hole in what the reader finds at its start is the DAQ's overflow, not a line error."""
+    stream, _ = make_stream(1000)
+    with DaqReader(pty_writer.path) as reader:
+        pty_writer.write(stream[:400 * FRAME_BYTES] + stream[700 * FRAME_BYTES:])
+        samples = reader.read(700, timeout_s=5.0)
+        counters = reader.counters
+    assert np.flatnonzero(samples.gap_before).tolist() == [400] and samples.index[400] == 700
+    assert (counters.sequence_gaps, counters.samples_lost, counters.crc_failures) == (0, 0, 0)
+    assert counters.overruns == 1 and counters.overrun_samples_lost == 300
+
+
+def test_a_second_reader_of_one_port_is_refused_naming_it(pty_writer, tmp_path):
+    stream, _ = make_stream(2000)
+    link = tmp_path / "usb-ripplecal_emulated_DAQ-if00"       # a stable path, as the emulator and udev make
+    link.symlink_to(pty_writer.path)
+    with DaqReader(str(link)) as first:
+        for url in (pty_writer.path, str(link)):              # the device, by either of its names
+            second = DaqReader(url)
+            with pytest.raises(DaqPortBusy, match=rf"DAQ {url}: another process holds this port") as info:
+                second.start()
+            assert "one reader per DAQ" in str(info.value)
+            assert not second.running
+        # the first reader keeps the whole stream
+        pty_writer.write_in_thread(stream)
+        samples = first.read(2000, timeout_s=5.0)
+        np.testing.assert_array_equal(samples.index, np.arange(2000))
+    # once it let go, the port is free for the next one
+    with DaqReader(pty_writer.path) as again:
+        assert again.connected

@@ -1,4 +1,5 @@
-"""ScpiSupply against a small SCPI peer on a loopback TCP socket (pyserial URL socket://127.0.0.1:PORT)."""
+"""ScpiSupply against a small SCPI peer on a loopback TCP socket (pyserial URL socket://127.0.0.1:PORT),
+and against the emulator's own supply with its faults."""
 from __future__ import annotations
 
 import socket
@@ -9,6 +10,7 @@ import pytest
 
 from drivers.dc_supply import ScpiSupply
 from drivers.errors import ScpiError, ScpiTimeout
+from plant_emulator.scpi_supply import IDN, DcSupply, ScpiServer
 from tests.support.drivers_peers import ScpiPeer
 from tests.support.waiting import wait_until
 
@@ -85,3 +87,30 @@ def test_garbled_reply_is_an_error():
     finally:
         server.close()
         thread.join(3.0)
+
+
+def test_the_emulated_supply_drifting_and_tripping_as_the_driver_sees_it():
+    """The emulator's own SCPI supply (plant_emulator/scpi_supply.py) under its control-socket faults:
+    what the service's supply interlock reads (MEAS:VOLT?) moves, the setpoint (VOLT?) stays."""
+    emulated = DcSupply(12.0, seed=1)
+    server = ScpiServer(emulated).start()
+    try:
+        with ScpiSupply(server.url, timeout_s=2.0) as supply:
+            assert supply.identify() == IDN
+            supply.set_voltage(12.0)
+            supply.output(True)
+            assert supply.measure_voltage() == pytest.approx(12.0, abs=0.01)
+            emulated.drift_to(9.0)
+            assert supply.measure_voltage() == pytest.approx(9.0, abs=0.01)
+            assert supply.voltage_setpoint() == pytest.approx(12.0)
+            emulated.trip_output()
+            assert supply.measure_voltage() == 0.0 and supply.query("OUTP?") == "0"
+            supply.output(True)                   # refused while tripped: the output stays off
+            assert supply.measure_voltage() == 0.0
+            assert supply.query("SYST:ERR?").startswith("-221")
+            emulated.clear_faults()
+            assert supply.measure_voltage() == 0.0                  # a tripped output stays off ...
+            supply.output(True)                                     # ... until switched on again
+            assert supply.measure_voltage() == pytest.approx(12.0, abs=0.01)
+    finally:
+        server.close()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import select
 import socket
 import threading
 import time
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from drivers.daq_protocol import FrameDecoder, encode_frames
-from plant_emulator.daq_stream import DaqPty
+from plant_emulator.daq_stream import QUEUED, STALLED, STOPPED, DaqPty
 from plant_emulator.scpi_supply import DcSupply
 from plant_emulator.socketcand_server import SocketcandServer, format_frame, parse_send
 
@@ -132,4 +133,63 @@ def test_pty_paced_drops_whole_frames_and_blocking_waits():
         assert pty.write_blocking(frames * 20, stop) is False
         t.cancel()
     finally:
+        pty.close()
+
+
+def test_scpi_supply_faults_drift_and_trip():
+    s = DcSupply(12.0)
+    s.handle_line("VOLT 12;OUTP ON")
+    s.drift_to(9.0)                           # the output drifts; the setpoint stays
+    assert s.handle_line("VOLT?") == ["12.0000"]
+    assert float(s.handle_line("MEAS:VOLT?")[0]) == pytest.approx(9.0, abs=0.01) and s.actual_v() == 9.0
+    s.handle_line("VOLT 14")                  # a new setpoint does not repair it either
+    assert s.actual_v() == 9.0 and s.handle_line("VOLT?") == ["14.0000"]
+    s.trip_output()                           # the protection trips: 0 V, OUTP? 0, OUTP ON refused
+    assert s.handle_line("OUTP?;MEAS:VOLT?") == ["0", "0.0000"] and s.actual_v() == 0.0
+    assert s.handle_line("OUTP ON;OUTP?") == ["0"]
+    assert s.handle_line("SYST:ERR?") == ['-221,"Settings conflict; output protection tripped"']
+    s.handle_line("*RST")                     # a reset command does not repair the supply
+    assert s.snapshot()["tripped"] and s.snapshot()["drift_v"] == 9.0
+    s.clear_faults()                          # repaired: a tripped output stays off until switched on
+    assert s.handle_line("OUTP?") == ["0"] and s.actual_v() == 0.0
+    s.handle_line("VOLT 12;OUTP ON")
+    assert s.actual_v() == 12.0 and float(s.handle_line("MEAS:VOLT?")[0]) == pytest.approx(12.0, abs=0.01)
+    assert s.snapshot() == {"setpoint_v": 12.0, "output_on": True, "actual_v": 12.0, "drift_v": None, "tripped": False}
+    with pytest.raises(ValueError):
+        s.drift_to(61.0)
+
+
+def test_pty_offer_waits_while_read_and_gives_up_once_nobody_reads():
+    """--speedup 0's writer: backpressure while a reader reads; STALLED (the batch not queued) once the pty
+    has taken nothing for stall_s, so the emulator can go on in real time (process.py _run_fast)."""
+    pty = DaqPty()
+    stop = threading.Event()
+    batch = encode_frames(np.arange(4096), np.zeros(4096), np.zeros(4096), np.zeros(4096))
+    try:
+        pty.start_writer(stop)
+        stall_s = 0.3
+        results = []
+        while len(results) < 50 and (not results or results[-1] == QUEUED):   # nobody reads: it fills, then stalls
+            results.append(pty.offer(batch, stall_s=stall_s))
+        assert results[-1] == STALLED and results.count(STALLED) == 1
+        assert time.monotonic() - pty.write_progress_at > stall_s       # the pty took nothing for that long
+        progress_before = pty.write_progress_at
+        fd = os.open(pty.name, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            got = 0
+            while pty.write_progress_at == progress_before or got < len(batch):   # a reader reads again
+                try:
+                    got += len(os.read(fd, 1 << 16))
+                except BlockingIOError:
+                    select.select([fd], [], [], 0.05)
+            assert pty.write_progress_at > progress_before
+            assert pty.offer(batch, stall_s=stall_s) == QUEUED            # it takes batches again
+        finally:
+            os.close(fd)
+        pty.drop(batch)
+        assert pty.frames_dropped == 4096
+        stop.set()
+        assert pty.offer(batch) == STOPPED
+    finally:
+        stop.set()
         pty.close()

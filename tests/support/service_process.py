@@ -30,10 +30,11 @@ def create_token(db: Path, role: str = "operator") -> str:
 
 
 class ServiceProcess:
-    def __init__(self, db: Path, *extra: str):
+    def __init__(self, db: Path, *extra: str, log_dir: Path | None = None):
+        """`log_dir`: where service.log goes (default: beside the database)."""
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
-        self.log = open(db.parent / "service.log", "w")
+        self.log = open((log_dir or db.parent) / "service.log", "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port),
                                       "--db", str(db), *extra], cwd=REPO, stdout=self.log, stderr=subprocess.STDOUT,
                                      start_new_session=True)

@@ -203,6 +203,9 @@ def test_preview_lists_every_problem_post_sweeps_would_refuse():
 class _Bench:
     identity = "unit:no-bench"
 
+    def check_reachable(self) -> None:      # a bench that was reached at start
+        pass
+
 
 def test_engine_submit_sweep_stores_the_grid_and_plan_the_preview_shows(tmp_path):
     storage = Storage(str(tmp_path / "plans.db"))

@@ -1,7 +1,10 @@
 """Raw recordings without a bench: the MF4 a recorder writes holds exactly the wire values it was
 given (read back with asammdf), memory stays within a chunk, and retention keeps the newest files
-up to keep_gb and says so in the results whose recordings it deleted."""
+up to keep_gb and says so in the results whose recordings it deleted. Whatever fails (the result's
+insert, the write), no stray file is left in the recordings directory, and no error names a server path."""
+import contextlib
 import os
+import sqlite3
 
 import numpy as np
 import pytest
@@ -12,7 +15,7 @@ from service.operating_point import OperatingPoint
 from service.public import result_public, result_row
 from service.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
 from service.settings import SettingsError, load_settings
-from service.storage import Storage, now_iso
+from service.storage import Storage, StorageUnavailable, now_iso
 
 RATE_HZ, FULL_SCALE = 16_000.0, 500.0
 
@@ -66,7 +69,7 @@ def test_a_recorder_that_cannot_write_never_raises_into_the_run(tmp_path):
     samples, *_ = _decoded(100)
     recorder.samples(samples, counted=True)       # silently ignored
     recorder.setpoint(0, 0.0, 0.0)
-    assert "unusable" in recorder.error
+    assert "unusable" in recorder.error and str(tmp_path) not in recorder.error      # the API shows it
     with pytest.raises(RuntimeError, match="unusable"):
         recorder.write(blocker / "x.mf4", {}, "")
 
@@ -116,3 +119,69 @@ def test_the_newest_recording_is_kept_even_alone_over_the_limit(tmp_path):
 def test_keep_gb_must_be_a_positive_finite_number(value):
     with pytest.raises(SettingsError, match="recordings.keep_gb"):
         load_settings(environ={}, overrides={"recordings.keep_gb": value})
+
+
+@contextlib.contextmanager
+def _locked(storage: Storage):
+    """Another process holding the database's lock: the storage's inserts fail for real (after 0.1 s)."""
+    storage.busy_timeout_s = 0.1
+    holder = sqlite3.connect(storage.path, isolation_level=None)
+    try:
+        holder.execute("PRAGMA locking_mode = EXCLUSIVE")
+        holder.execute("BEGIN EXCLUSIVE")
+        holder.execute("DELETE FROM api_tokens WHERE id < 0")
+        yield
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+
+
+def test_a_failed_result_insert_leaves_nothing_in_the_recordings_directory(tmp_path):
+    """The engine stores the result, then keeps its recording: when the insert fails, the recorder is
+    dropped unwritten and unclosed. Its samples never had a name in the directory."""
+    storage = Storage(tmp_path / "r.db")
+    directory = tmp_path / "recordings"
+    store = RecordingStore(storage, directory, keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE)
+    recorder = RunRecorder(directory, RATE_HZ, FULL_SCALE, chunk_samples=1000)    # as store.recorder(), small chunks
+    samples, *_ = _decoded(5000)
+    recorder.samples(samples, counted=True)                   # five chunks spooled
+    recorder.setpoint(0, 0.01, 0.0)
+    assert recorder.error is None and recorder.samples_recorded == 5000
+    assert list(directory.iterdir()) == []                    # while it records, too
+    row = result_row(OperatingPoint(torque_nm=1.0, speed_rpm=1000.0, udc_v=12.0), "probe", None, "test-bench", now_iso(),
+                     error="x")
+    with _locked(storage), pytest.raises(StorageUnavailable, match="lock"):
+        store.keep(recorder, storage.insert_result(row), row)   # never reaches keep
+    assert list(directory.iterdir()) == []                    # the recorder still alive, unclosed: nothing stray
+    recorder.close()
+    assert list(directory.iterdir()) == []
+
+
+def test_a_failed_write_leaves_the_error_in_the_result_and_nothing_in_the_directory(tmp_path):
+    storage = Storage(tmp_path / "r.db")
+    directory = tmp_path / "recordings"
+    store = RecordingStore(storage, directory, keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE)
+    recorder = store.recorder()
+    samples, *_ = _decoded(3000)
+    recorder.samples(samples, counted=True)
+    [rid] = _stored_results(storage, 1)
+    # the directory goes away between the run and the write: a file stands where it was
+    aside = directory.rename(tmp_path / "recordings-aside")
+    directory.write_text("not a directory")
+    store.keep(recorder, rid, storage.get_result(rid))
+    rec = result_public(storage.get_result(rid)).recording
+    assert not rec.available and rec.error.startswith("writing its file failed: "), rec
+    assert str(tmp_path) not in rec.error
+    assert list(aside.iterdir()) == []                        # no spool, no asammdf temporary file, no .partial.mf4
+    assert not list(tmp_path.rglob("*.mf4"))
+
+
+def test_a_recording_deleted_behind_the_service_is_missing_without_its_path(tmp_path):
+    storage = Storage(tmp_path / "r.db")
+    store = RecordingStore(storage, tmp_path / "recordings", keep_gb=1.0, sample_rate_hz=RATE_HZ,
+                           accel_full_scale_rad_s2=FULL_SCALE)
+    [rid] = _stored_results(storage, 1)
+    storage.set_result_recording(rid, {"format": "mf4", "path": str(store.path(rid)), "bytes": 10})
+    with pytest.raises(RecordingUnavailable) as exc:
+        store.open(rid)
+    assert f"result {rid} is missing" in str(exc.value) and str(tmp_path) not in str(exc.value)

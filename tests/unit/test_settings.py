@@ -41,3 +41,45 @@ def test_bad_settings_name_the_problem(tmp_path, text, needle):
 def test_missing_file_is_named(tmp_path):
     with pytest.raises(SettingsError, match="does not exist"):
         load_settings(tmp_path / "nope.toml", environ={})
+
+
+# --- every problem in one line naming the file (or the variable) and the key ----------------------------
+@pytest.mark.parametrize("text,needle", [
+    ("[daq]\nurll = '/dev/ttyUSB0'\n", "daq.urll: unknown key"),
+    ("bench_nam = 'x'\n", "bench_nam: unknown key"),
+    ("[safety]\nmin_speed_rpm = 7000\n", "safety: min_speed_rpm 7000 must be below max_speed_rpm 6000"),
+    ("[daq\nurl = 1\n", "is not valid TOML: "),
+])
+def test_a_bad_file_is_one_line_naming_it_and_the_key(tmp_path, text, needle):
+    path = tmp_path / "bench.toml"
+    path.write_text(text)
+    with pytest.raises(SettingsError) as exc:
+        load_settings(path, environ={})
+    message = str(exc.value)
+    assert message.startswith(f"settings file {path}") and needle in message and "\n" not in message, message
+
+
+def test_a_bad_environment_variable_is_named(tmp_path):
+    (tmp_path / "s.toml").write_text('[can]\nchannel = "can0"\n')
+    with pytest.raises(SettingsError) as exc:
+        load_settings(tmp_path / "s.toml", environ={"RIPPLECAL_SERVER__PORT": "eighty"})
+    assert "server.port" in str(exc.value) and "(set by environment RIPPLECAL_SERVER__PORT)" in str(exc.value)
+    with pytest.raises(SettingsError, match=r"\(set by the command line\)"):
+        load_settings(environ={}, overrides={"server.port": 0})
+
+
+@pytest.mark.parametrize("make,needle", [
+    (lambda p: p.mkdir(), "is a directory"),
+    (lambda p: p.write_bytes(b"\xff\xfe[daq]"), "is not UTF-8 text"),
+])
+def test_a_file_that_is_no_toml_text_is_named(tmp_path, make, needle):
+    path = tmp_path / "bench.toml"
+    make(path)
+    with pytest.raises(SettingsError, match=re.escape(f"settings file {path} {needle}")):
+        load_settings(path, environ={})
+
+
+def test_a_section_that_is_not_a_table_under_an_environment_override(tmp_path):
+    (tmp_path / "s.toml").write_text('can = "can0"\n')
+    with pytest.raises(SettingsError, match="can is not a table, so environment RIPPLECAL_CAN__CHANNEL cannot set"):
+        load_settings(tmp_path / "s.toml", environ={"RIPPLECAL_CAN__CHANNEL": "can1"})

@@ -5,6 +5,7 @@ from fastapi import APIRouter, HTTPException, status
 
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.errors import error_responses
+from drivers.errors import FaultReactionActiveError
 from service.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
@@ -28,7 +29,7 @@ def fault_reset(service: ServiceDep, _: OperatorDep) -> dict:
     Answers what was reset, what still forbids a run (`still_tripped`), and the bench status."""
     try:
         result = service.fault_reset()
-    except BenchError as exc:
+    except (BenchError, FaultReactionActiveError) as exc:       # busy, or a device still braking: try again
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     except Exception as exc:   # SDO timeout / the drive stayed in FAULT: say which
         raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"fault reset failed: {type(exc).__name__}: {exc}") from None

@@ -14,7 +14,7 @@ router = APIRouter(prefix="/api/v1", tags=["identifications"])
 
 
 @router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 413))
+             responses=error_responses(400, 401, 403, 409, 413))
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
     with refused_at(["body", "operating_point"]):
         job_id = service.engine.submit_identification(body.operating_point, body.method, body.options)

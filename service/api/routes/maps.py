@@ -98,7 +98,7 @@ def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
 
 
 @router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 404, 413))
+             responses=error_responses(400, 401, 403, 404, 409, 413))
 def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
                  body: ValidationCreate | None = None) -> JobPublic:
     """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
@@ -113,7 +113,7 @@ def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
 
 
 @router.post("/maps/{map_id}/refine", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 404, 413))
+             responses=error_responses(400, 401, 403, 404, 409, 413))
 def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
                body: RefineRequest | None = None) -> JobPublic:
     """A job (kind refinement, run as a sweep of that kind: pause, resume and cancel it there): validate

@@ -32,7 +32,9 @@ def get_result(result_id: ResourceId, service: ServiceDep) -> ResultPublic:
 def get_recording(result_id: ResourceId, service: ServiceDep,
                   format: RecordingFormatName = Query("mf4", description=" | ".join(
                       f"{name}: {what}" for name, what in RECORDING_FORMATS.items()))) -> StreamingResponse:
-    """The result's raw recording; 404 says why there is none (never written, write failed, deleted by retention)."""
+    """The result's raw recording; 404 says why there is none (never written, write failed, deleted by
+    retention, missing: its file deleted or moved behind the service's back), naming the result, never a
+    path on the server."""
     if service.recordings is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "recordings are not available: the service has not started")
     try:

@@ -17,7 +17,7 @@ router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 
 
 @router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic,
-             responses=error_responses(400, 401, 403, 413))
+             responses=error_responses(400, 401, 403, 409, 413))
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
     try:
         # the size that counts is the planned grid's (speeds placed around the onset included)

@@ -1,0 +1,162 @@
+"""Storage trouble is a pause, not a failure (issue 18), through the real mechanisms: another process
+holding an exclusive lock on the SQLite file, the database's filesystem turned read-only, its disk full.
+The service (`ripplecal serve --bench`, the emulator in its own process) keeps the bench safe while the
+database is away, keeps the point it measured and writes it when the database answers again, goes on by
+itself, and answers the API with 503 + Retry-After meanwhile. The database lives on a tmpfs mounted for
+the test (size-limited: "full"; remounted read-only: "read-only"); where this machine does not let the
+test mount one (not root), the filesystem cases are skipped, saying so."""
+from __future__ import annotations
+
+import contextlib
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.support.bench_rig import Api, EmulatorRig
+from tests.support.service_process import ServiceProcess
+from tests.support.waiting import wait_until
+
+pytestmark = pytest.mark.e2e
+GRID = {"torque_nm": [1.5, 2.0, 2.5], "speed_rpm": [1500, 2000], "udc_v": [12]}
+
+
+@pytest.fixture(scope="module")
+def emu():
+    rig = EmulatorRig()
+    yield rig
+    rig.stop()
+
+
+@contextlib.contextmanager
+def tmpfs(size: str = "4m"):
+    where = Path(tempfile.mkdtemp(prefix="ripplecal-tmpfs-"))
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({mounted.stderr.decode().strip()}): the filesystem cases need root")
+    try:
+        yield where
+    finally:
+        subprocess.run(["mount", "-o", "remount,rw", str(where)], capture_output=True)
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def start(emu: EmulatorRig, db: Path, monkeypatch) -> tuple[ServiceProcess, Api]:
+    monkeypatch.setenv("RIPPLECAL_SERVER__DB_BUSY_TIMEOUT_S", "1")      # unavailable after 1 s, not 10
+    # the raw recordings on another filesystem: the trouble here is the database's (and a recording being
+    # written, open, would keep Linux from remounting the database's filesystem read-only)
+    monkeypatch.setenv("RIPPLECAL_RECORDINGS__DIRECTORY", str(Path(tempfile.mkdtemp(prefix="ripplecal-rec-"))))
+    # the log beside the test, not on the database's filesystem (an open file would keep it from going read-only)
+    logs = Path(tempfile.mkdtemp(prefix="ripplecal-log-"))
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(logs)), log_dir=logs)
+    svc.wait_ready()
+    api = Api(svc, db)
+    assert api.post("/bench/fault-reset").status_code == 200        # whatever an earlier test left
+    return svc, api
+
+
+def drive_safe(emu: EmulatorRig) -> bool:
+    f = emu.control({"status": True})["faults"]
+    return f["drive_state"] != "operation_enabled" and f["drive_torque_nm"] == 0.0 and f["drive_injection_mode"] == 0
+
+
+def sweep_through(api: Api, emu: EmulatorRig, trouble_on, trouble_off) -> dict:
+    """A sweep; once it has 2 points, `trouble_on()`; while the database is away: the API answers 503 with
+    Retry-After and a JSON reason, the bench goes safe; then `trouble_off()`: the sweep finishes by itself,
+    every point measured exactly once."""
+    sweep_id = api.post("/sweeps", {"grid": GRID, "method": "probe"}).json()["id"]
+    api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 2, 300, "2 points")
+    trouble_on()
+    try:
+        r = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 503 and r, 60, "a 503")
+        assert r.headers.get("Retry-After") and "database" in r.json()["detail"], r.text
+        assert " /" not in r.json()["detail"], r.text           # the file by its name, no absolute path
+        api.wait(lambda: drive_safe(emu), 60, "the bench made safe while the database is away")
+    finally:
+        trouble_off()
+    sweep = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
+                     and r.json()["state"] in ("done", "failed", "cancelled") and r.json(), 300, "sweep finished")
+    assert sweep["state"] == "done", sweep
+    assert sweep["progress"]["done"] == sweep["progress"]["total"] == 6 and len(sweep["points"]) == 6
+    history = api.get(f"/sweeps/{sweep_id}")["points"]
+    assert len({(p["operating_point"]["torque_nm"], p["operating_point"]["speed_rpm"]) for p in history}) == 6
+    return sweep
+
+
+def test_a_lock_held_by_another_process_pauses_the_sweep_and_loses_nothing(emu, tmp_path, monkeypatch):
+    db = tmp_path / "locked.db"
+    svc, api = start(emu, db, monkeypatch)
+    holder: list[subprocess.Popen] = []
+    script = ("import sqlite3, sys\n"
+              f"c = sqlite3.connect({str(db)!r}, isolation_level=None)\n"
+              "c.execute('PRAGMA locking_mode=EXCLUSIVE'); c.execute('BEGIN EXCLUSIVE')\n"
+              "print('locked', flush=True); sys.stdin.readline(); c.execute('ROLLBACK')\n")
+
+    def lock() -> None:
+        p = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert p.stdout.readline().strip() == "locked"
+        holder.append(p)
+
+    def unlock() -> None:
+        for p in holder:
+            p.stdin.write("\n")
+            p.stdin.flush()
+            p.wait(30)
+    try:
+        sweep_through(api, emu, lock, unlock)
+        api.close()
+    finally:
+        for p in holder:
+            if p.poll() is None:
+                p.kill()
+        svc.stop()
+
+
+def remount(where: Path, mode: str) -> None:
+    """The filesystem read-only or writable again. Linux refuses a read-only remount while a file on it is
+    open for writing (EBUSY): the service opens the database per access, so it is tried until it lands
+    between two (the wait only guards a hang)."""
+    wait_until(lambda: subprocess.run(["mount", "-o", f"remount,{mode}", str(where)], capture_output=True).returncode
+               == 0, 60, f"the filesystem remounted {mode}", poll_s=0.01)
+
+
+def test_a_read_only_filesystem_pauses_the_sweep_and_loses_nothing(emu, tmp_path, monkeypatch):
+    with tmpfs("16m") as where:
+        svc, api = start(emu, where / "ro.db", monkeypatch)
+        try:
+            sweep_through(api, emu, lambda: remount(where, "ro"), lambda: remount(where, "rw"))
+            api.close()
+        finally:
+            svc.stop()
+
+
+def test_a_full_disk_pauses_the_sweep_and_loses_nothing_and_cancel_ends_it(emu, tmp_path, monkeypatch):
+    with tmpfs("16m") as where:
+        svc, api = start(emu, where / "full.db", monkeypatch)
+        filler = where / "filler"
+
+        def fill() -> None:
+            subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=64k"], capture_output=True)   # until ENOSPC
+
+        try:
+            sweep_through(api, emu, fill, lambda: filler.unlink())
+            # cancel during an outage: acknowledged at once, the sweep ends when the database is back
+            sweep_id = api.post("/sweeps", {"grid": GRID, "method": "probe"}).json()["id"]
+            api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 1, 300, "1 point")
+            fill()
+            try:
+                api.wait(lambda: drive_safe(emu) and api.http.get(f"/sweeps/{sweep_id}").status_code == 503, 60,
+                         "the sweep waiting for the database")
+                assert api.http.post(f"/sweeps/{sweep_id}/cancel").status_code == 503     # said: the database
+            finally:
+                filler.unlink()
+            sweep = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
+                             and r.json()["state"] in ("done", "cancelled", "failed") and r.json(), 300, "ended")
+            assert sweep["state"] == "cancelled", sweep
+            assert httpx.get(f"{svc.base}/api/v1/bench/status", timeout=10).json()["busy"] is False
+            api.close()
+        finally:
+            svc.stop()
