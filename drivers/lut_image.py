@@ -1,7 +1,7 @@
 """The LUT image the drive takes on 0x2001:1 (docs/interfaces.md "LUT image"): encode, decode, interpolate.
 
 One definition for both ends of the wire: the service builds the image from a map
-(service/lut_export.py) and the emulated drive firmware decodes it and interpolates with `Lut.theta`
+(service/maps/lut_export.py) and the emulated drive firmware decodes it and interpolates with `Lut.theta`
 (plant_emulator/drive_firmware.py).
 
 Layout, format_version 3 (little-endian, 20-byte header):
@@ -11,7 +11,7 @@ Layout, format_version 3 (little-endian, 20-byte header):
         breakpoints: non-uniform spacing is interpolated by position) |
     f32 theta_cos_rad[n_udc][n_speed][n_torque] | f32 theta_sin_rad[...] |
     u8 flag[...]  (0 no entry: theta 0, no injection; 1 ok: a result at its target; 2 filled: a fill,
-                   service/map_fill.py) |
+                   service/maps/fill.py) |
     u32 crc32 (zlib) of every byte before it.
 Version 2 is the same layout with byte 7 reserved (0) and u8 valid[...] (0/1) for the flags; the drive
 decodes both: a version 2 image is flags = valid and cartesian interpolation. `encode` writes version 3.

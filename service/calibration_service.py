@@ -13,15 +13,15 @@ from typing import Any
 
 from drivers.canopen_bus import one_blas_thread
 from service import __version__
-from service.bench import Bench, BenchUnreachable
-from service.db_claim import DatabaseClaim
-from service.emulator_process import EmulatorProcess
-from service.engine import Engine
-from service.events import EventBroker
-from service.recordings import RecordingStore, recordings_directory
-from service.schedules import Clock, Scheduler, utc_now
+from service.bench.bench import Bench, BenchUnreachable
+from service.store.db_claim import DatabaseClaim
+from service.bench.emulator_process import EmulatorProcess
+from service.runs.engine import Engine
+from service.runs.events import EventBroker
+from service.store.recordings import RecordingStore, recordings_directory
+from service.runs.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
-from service.storage import Storage
+from service.store.storage import Storage
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class CalibrationService:
             self._status_thread.start()
 
     def claim_database(self) -> None:
-        """The process that recovers the database's unfinished work claims it first (service/db_claim.py):
+        """The process that recovers the database's unfinished work claims it first (service/store/db_claim.py):
         DatabaseInUse naming the holder if another serve has it. Idempotent."""
         if self.claim is None:
             claim = DatabaseClaim(self.settings.server.db_path, self.settings.server.port)

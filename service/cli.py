@@ -23,9 +23,9 @@ from pathlib import Path
 from drivers.lut_image import DEFAULT_INTERPOLATION, INTERPOLATIONS
 from service import __version__
 from service.identification.registry import METHODS
-from service.lut_export import EXPORT_FORMATS
+from service.maps.lut_export import EXPORT_FORMATS
 from service.settings import Settings, SettingsError, load_settings
-from service.storage import Storage, StorageError
+from service.store.storage import Storage, StorageError
 
 
 class StartError(Exception):
@@ -118,7 +118,7 @@ def cmd_serve(args) -> int:
 
     from service.api.app import create_app
     from service.calibration_service import CalibrationService
-    from service.db_claim import DatabaseClaim
+    from service.store.db_claim import DatabaseClaim
     settings = _settings(args)
     # before the database is migrated or recovered: a second serve on this database ends here, in one line
     claim: DatabaseClaim | None = DatabaseClaim(settings.server.db_path, settings.server.port)
@@ -220,9 +220,9 @@ def _follow_job(service, submit, timeout_s: float, out=sys.stderr) -> dict:
 
 def cmd_identify(args) -> int:
     from service.calibration_service import CalibrationService
-    from service.identify import parse_options
-    from service.public import result_public
-    from service.operating_point import OperatingPoint
+    from service.runs.identify import parse_options
+    from service.api.public import result_public
+    from service.model.operating_point import OperatingPoint
     settings = _settings(args)
     op = OperatingPoint(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
     options = parse_options(args.method, _json_option(args.options))
@@ -262,8 +262,8 @@ def _json_option(text: str | None) -> dict:
 
 def cmd_sweep(args) -> int:
     from service.calibration_service import CalibrationService
-    from service.identify import parse_options
-    from service.plans import Grid
+    from service.runs.identify import parse_options
+    from service.runs.plans import Grid
     settings = _settings(args)
     grid = Grid(torque_nm=args.torque, speed_rpm=args.speed, udc_v=args.udc)
     options = parse_options(args.method, _json_option(args.options))
@@ -293,8 +293,8 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from service.lut_export import export_map
-    from service.public import map_public
+    from service.maps.lut_export import export_map
+    from service.api.public import map_public
     settings = _settings(args)
     m = map_public(_open_database(settings), args.map_id)
     if m is None:
@@ -333,8 +333,8 @@ def cmd_schedule(args) -> int:
     from pydantic import TypeAdapter, ValidationError
 
     from service.api.schemas import SweepCreate
-    from service.public import schedule_public
-    from service.schedules import (check_cron, check_timezone, create_schedule, delete_schedule, next_runs,
+    from service.api.public import schedule_public
+    from service.runs.schedules import (check_cron, check_timezone, create_schedule, delete_schedule, next_runs,
                                    iso, utc_now)
     settings = _settings(args)
     if args.schedule_cmd == "preview":
@@ -388,7 +388,7 @@ def _storage(args) -> Storage:
 def cmd_maps(args) -> int:
     if args.maps_cmd == "download":
         return _download_map(args)
-    from service.public import map_public
+    from service.api.public import map_public
     storage = _storage(args)
     maps = [map_public(storage, row["id"]) for row in storage.list_maps(args.limit)]
     if args.json:
@@ -410,8 +410,8 @@ def _download_map(args) -> int:
     --no-fill leaves the filled cells out, --interpolation names the drive's mode). It opens the bench itself: run it with no
     `ripplecal serve` using the same bench (two masters on one bus and one DAQ port would fight over
     it); without --bench it downloads into an emulator of its own."""
-    from service import lut_download
-    from service.bench import BenchError
+    from service.runs import lut_download
+    from service.bench.bench import BenchError
     from service.calibration_service import CalibrationService
     settings = _settings(args)
     storage = _open_database(settings)
@@ -446,7 +446,7 @@ def _download_map(args) -> int:
 
 
 def cmd_sweeps(args) -> int:
-    from service.public import sweep_public
+    from service.api.public import sweep_public
     storage = _storage(args)
     if args.sweeps_cmd == "show":
         row = storage.get_sweep(args.sweep_id)
@@ -672,7 +672,7 @@ def main(argv: list[str] | None = None) -> int:
         print("ripplecal: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:
-        from service.bench import BenchUnreachable      # here only: the bench's drivers take a while to import
+        from service.bench.bench import BenchUnreachable      # here only: the bench's drivers take a while to import
         if isinstance(exc, BenchUnreachable):           # a real bench not reached: the run is refused at start
             print(f"ripplecal: {exc}", file=sys.stderr)
             return 2

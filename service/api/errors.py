@@ -17,7 +17,7 @@ from pydantic import BaseModel, Field
 
 from service.api.schemas import ErrorPublic
 from service.identification.registry import METHODS
-from service.storage import StorageUnavailable
+from service.store.storage import StorageUnavailable
 
 log = logging.getLogger(__name__)
 

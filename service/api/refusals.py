@@ -7,9 +7,9 @@ from typing import Any, Iterator
 from fastapi import HTTPException, status
 
 from service.api.errors import validation_error
-from service.bench import BenchUnreachable
-from service.identify import PlantTimeError
-from service.limits import LimitError
+from service.bench.bench import BenchUnreachable
+from service.runs.identify import PlantTimeError
+from service.model.limits import LimitError
 
 
 def unprocessable(*errors: dict[str, Any]) -> HTTPException:

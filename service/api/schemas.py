@@ -11,10 +11,10 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
 
 from service.identification.registry import METHODS
-from service.map_validation import ValidationOptions
-from service.operating_point import OperatingPoint
-from service.plans import Grid, RegimePlacement
-from service.schedules import check_cron, check_timezone
+from service.runs.validation import ValidationOptions
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid, RegimePlacement
+from service.runs.schedules import check_cron, check_timezone
 
 MethodName = Literal[tuple(METHODS)]
 DEFAULT_METHOD = "adaptive"

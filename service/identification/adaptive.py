@@ -37,7 +37,7 @@ from service.identification.common import (done, stop_amplitude, PRECISION_FOR_T
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementError, MeasurementSession, Window
-from service.secondary_path import phase_error_deg, rotation_part, s_matrix
+from service.model.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 
 class AdaptiveOptions(MethodOptions):

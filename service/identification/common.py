@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.harmonic import amplitude_spectrum
+from service.model.harmonic import amplitude_spectrum
 from service.identification.session import MeasurementError, MeasurementSession, Window
 
 SPECTRUM_MAX_ORDER = 24

@@ -26,7 +26,7 @@ from service.identification.common import (PRECISION_FOR_TARGET, Conditions, Met
                                            spectrum_traces, target_amplitude, verdict)
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
-from service.secondary_path import rotation_part, theta_from_gamma_delta, theta_parts
+from service.model.secondary_path import rotation_part, theta_from_gamma_delta, theta_parts
 
 
 MAX_GRID_POINTS = 2_000        # x about 30 ms of plant time each: about a minute per operating point

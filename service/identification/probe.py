@@ -33,9 +33,9 @@ from service.identification.common import (done, stop_amplitude, PRECISION_FOR_T
                                            noise_floor_db, periods_for, spectrum_traces, target_amplitude,
                                            time_to_suppression, verdict)
 from service.identification.result import IdentificationResult
-from service.harmonic import Phasor
+from service.model.harmonic import Phasor
 from service.identification.session import MeasurementError, MeasurementSession, Window
-from service.secondary_path import phase_error_deg, rotation_part, s_matrix
+from service.model.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 HISTORY_COLUMNS = ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"]
 

@@ -5,8 +5,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.harmonic import Phasor
-from service.secondary_path import gamma_delta
+from service.model.harmonic import Phasor
+from service.model.secondary_path import gamma_delta
 
 def suppression_db(uncompensated: Phasor, residual: Phasor) -> float:
     """20 log10(|a_uncompensated| / |a_residual|), dB (positive = harmonic reduced)."""

@@ -6,7 +6,7 @@ from typing import Protocol
 
 import numpy as np
 
-from service.harmonic import Phasor
+from service.model.harmonic import Phasor
 
 
 class MeasurementError(RuntimeError):

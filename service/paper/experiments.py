@@ -20,14 +20,14 @@ from typing import Any
 import numpy as np
 
 from service.calibration_service import CalibrationService
-from service.harmonic import amplitude_spectrum
+from service.model.harmonic import amplitude_spectrum
 from service.identification.common import periods_for
-from service.identify import parse_options
-from service.interlocks import InterlockTripped
-from service.limits import gamma_max_rad
-from service.operating_point import OperatingPoint
+from service.runs.identify import parse_options
+from service.bench.interlocks import InterlockTripped
+from service.model.limits import gamma_max_rad
+from service.model.operating_point import OperatingPoint
 from service.paper.scope import Scope, Trace
-from service.public import ResultPublic, result_public
+from service.api.public import ResultPublic, result_public
 from service.settings import Settings, load_settings
 
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)      # paper Fig. 7-9

@@ -23,7 +23,7 @@ from pathlib import Path
 from service import __version__
 from service.paper import experiments as ex
 from service.paper import figures
-from service.secondary_path import theta_from_gamma_delta
+from service.model.secondary_path import theta_from_gamma_delta
 
 PAPER = {
     "fig8": {"gamma_deg": 3.0, "delta_deg": 280.0},

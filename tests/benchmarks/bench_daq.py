@@ -20,7 +20,7 @@ import numpy as np
 
 from drivers.daq_protocol import FRAME_BYTES, FrameDecoder, encode_frames
 from drivers.daq_reader import DaqReader
-from service.harmonic import phasor
+from service.model.harmonic import phasor
 from tests.support.pty_writer import PtyWriter
 
 N = 2_000_000

@@ -14,10 +14,10 @@ from pathlib import Path
 
 
 from service.calibration_service import CalibrationService
-from service.identify import parse_options
-from service.public import result_public
-from service.operating_point import OperatingPoint
-from service.plans import Grid
+from service.runs.identify import parse_options
+from service.api.public import result_public
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid
 from service.settings import load_settings
 
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)

@@ -32,11 +32,11 @@ import time
 from pathlib import Path
 
 from service.calibration_service import CalibrationService
-from service.engine import TransitionError
-from service.identify import parse_options
-from service.map_validation import ValidationOptions
-from service.plans import Grid
-from service.public import validation_public
+from service.runs.engine import TransitionError
+from service.runs.identify import parse_options
+from service.runs.validation import ValidationOptions
+from service.runs.plans import Grid
+from service.api.public import validation_public
 from service.settings import load_settings
 
 TORQUES = [1.0, 2.5, 4.0]

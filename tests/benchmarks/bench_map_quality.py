@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from service import map_quality
+from service.maps import quality as map_quality
 
 
 def _map(n: int, outliers: int, rng: np.random.Generator) -> tuple[list[dict], dict]:

@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 
 from service.calibration_service import CalibrationService
-from service.identify import parse_options
-from service.operating_point import OperatingPoint
-from service.public import result_public
-from service.recordings import RecordingStore, RunRecorder
+from service.runs.identify import parse_options
+from service.model.operating_point import OperatingPoint
+from service.api.public import result_public
+from service.store.recordings import RecordingStore, RunRecorder
 from service.settings import load_settings
 
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)

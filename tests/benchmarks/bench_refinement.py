@@ -19,11 +19,11 @@ import time
 from pathlib import Path
 
 from service.calibration_service import CalibrationService
-from service.identify import parse_options
-from service.map_validation import ValidationOptions
-from service.plans import Grid
-from service.public import job_public, map_public
-from service.refinement import RefineRequest
+from service.runs.identify import parse_options
+from service.runs.validation import ValidationOptions
+from service.runs.plans import Grid
+from service.api.public import job_public, map_public
+from service.runs.refinement import RefineRequest
 from service.settings import load_settings
 
 GRID5 = Grid(torque_nm=[1.0, 1.75, 2.5, 3.25, 4.0], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])

@@ -693,9 +693,9 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
     service's message and no way around; a partial map goes with its fill, and without the fill it is
     refused until "download anyway" (force)."""
     from drivers.lut_image import crc_hex, image_crc
-    from service.lut_export import lut_image
-    from service.public import map_public
-    from service.storage import Storage
+    from service.maps.lut_export import lut_image
+    from service.api.public import map_public
+    from service.store.storage import Storage
     from tests.support.stored_maps import CELLS, stored_map
     storage = Storage(service["log"].parent / "ripplecal.db")      # the service's own database (WAL)
     full, empty, partial = (stored_map(storage), stored_map(storage, failing=set(CELLS)),
@@ -756,7 +756,7 @@ def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp
     """Two maps put into the service's database from stored results (no sweep: tests/support/maps.py):
     the Map panel rings map a's planted outlier and gives its reason; the Compare panel, with map b
     picked, shows |delta theta| and the predicted suppression of every cell, the outlier the worst."""
-    from service.storage import Storage
+    from service.store.storage import Storage
     from tests.support.maps import make_map, theta_of
 
     grid = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}

@@ -16,9 +16,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.lut_export import lut_image
-from service.public import map_public
-from service.storage import Storage
+from service.maps.lut_export import lut_image
+from service.api.public import map_public
+from service.store.storage import Storage
 from tests.support.service_process import REPO, free_port
 from tests.support.sweep_checks import holes
 
@@ -171,7 +171,7 @@ def test_bad_input_gives_one_clear_line(home, args, needle):
 
 
 def test_maps_download_refuses_an_empty_or_partial_map_before_starting_the_bench(tmp_path):
-    """The API's download rules (service/lut_download.py), before any bench is opened."""
+    """The API's download rules (service/runs/lut_download.py), before any bench is opened."""
     from tests.support.stored_maps import CELLS, stored_map
     db = tmp_path / "r.db"
     storage = Storage(db)

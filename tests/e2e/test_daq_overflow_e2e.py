@@ -2,7 +2,7 @@
 slow CAN link (every SDO answered 0.1 s late, through the control socket). The move to the operating
 point then takes seconds without the service reading the DAQ, more than the reader, the pty and the
 DAQ buffer hold: frames are dropped, and the sync toggles of the move's setpoints with them. The
-service counts them once the line is quiet (service/measurement.py) instead of failing every run with
+service counts them once the line is quiet (service/bench/measurement.py) instead of failing every run with
 "setpoint not confirmed" (it did: 4 toggles missing, on every identification)."""
 from __future__ import annotations
 

@@ -8,10 +8,10 @@ import time
 import pytest
 
 from service.calibration_service import CalibrationService
-from service.identify import parse_options
-from service.measurement import MeasurementError
-from service.operating_point import OperatingPoint
-from service.plans import Grid
+from service.runs.identify import parse_options
+from service.bench.measurement import MeasurementError
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid
 from service.settings import load_settings
 from tests.support.waiting import wait_until
 

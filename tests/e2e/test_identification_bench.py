@@ -9,8 +9,8 @@ import math
 import pytest
 
 from service.calibration_service import CalibrationService
-from service.identify import identify_at, parse_options
-from service.operating_point import OperatingPoint
+from service.runs.identify import identify_at, parse_options
+from service.model.operating_point import OperatingPoint
 from service.settings import load_settings
 
 pytestmark = pytest.mark.e2e

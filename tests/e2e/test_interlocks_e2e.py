@@ -113,7 +113,7 @@ def test_a_burst_of_sdo_delays_fails_at_most_the_job_it_hit(rig):
 def test_slow_sdo_answers_never_make_an_idle_bench_busy(rig):
     """The 1 Hz status poller reads the drive without the run lock: with every SDO answer 0.15 s late
     (a slow CAN link), fault-reset and a LUT download on an idle bench are never refused as busy."""
-    from service.storage import Storage
+    from service.store.storage import Storage
     from tests.support.stored_maps import stored_map
     emu, svc, api, db = rig
     map_id = stored_map(Storage(db))

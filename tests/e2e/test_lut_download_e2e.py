@@ -11,9 +11,9 @@ import httpx
 import pytest
 
 from drivers.lut_image import DEFAULT_INTERPOLATION, crc_hex, image_crc
-from service.lut_export import lut_image
-from service.public import map_public
-from service.storage import Storage
+from service.maps.lut_export import lut_image
+from service.api.public import map_public
+from service.store.storage import Storage
 from tests.support.service_process import ServiceProcess, create_token
 from tests.support.stored_maps import CELLS, stored_map
 from tests.support.waiting import wait_until

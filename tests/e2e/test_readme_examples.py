@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.storage import Storage
+from service.store.storage import Storage
 from tests.support.service_process import REPO, ServiceProcess
 from tests.support.sweep_checks import cells_not_ok, holes
 

@@ -15,7 +15,7 @@ import pytest
 from asammdf import MDF
 
 from drivers.daq_protocol import FLAG_SYNC_INPUT
-from service.recordings import DAQ_CHANNELS, SETPOINT_CHANNELS, header_properties
+from service.store.recordings import DAQ_CHANNELS, SETPOINT_CHANNELS, header_properties
 from tests.support.live_app import bearer, client_for, started_service, wait_finished
 
 pytestmark = pytest.mark.e2e

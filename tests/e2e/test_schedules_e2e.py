@@ -15,9 +15,9 @@ from pydantic import TypeAdapter
 
 from service.api.schemas import SweepCreate
 from service.calibration_service import CalibrationService
-from service.schedules import create_schedule
+from service.runs.schedules import create_schedule
 from service.settings import load_settings
-from service.storage import Storage
+from service.store.storage import Storage
 from tests.support.live_app import bearer, client_for, wait_finished
 from tests.support.waiting import wait_until
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from service.storage import Storage
+from service.store.storage import Storage
 from tests.support.service_process import cli
 
 pytestmark = pytest.mark.e2e

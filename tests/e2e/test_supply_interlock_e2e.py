@@ -3,7 +3,7 @@
 The emulator runs in its own process; the service runs as `ripplecal serve --bench FILE` pointed at it
 as at a real bench; the faults go through the emulator's control socket (`supply_voltage`,
 `supply_output_off`, `clear`), and the bench's safety is read there too (the drive's state, torque
-and injection mode in force). The supply interlock is not latched (service/interlocks.py
+and injection mode in force). The supply interlock is not latched (service/bench/interlocks.py
 SupplyOutOfRange): once the supply is back, a resume goes on without a fault reset unless the drive
 itself faulted. Assertions are on states, reasons and counts (never on timings or dB figures).
 
@@ -79,7 +79,7 @@ def resume_and_finish(emu, api, db, sweep_id: int) -> dict:
     supply = emu.control({"status": True})["faults"]["supply"]
     assert sweep["state"] == "done", (
         f"{sweep['state']}: {sweep.get('pause_reason')}; the emulated supply now: {supply} (a supply trip named "
-        "while the supply is back at its setpoint is the previous run's: service/interlocks.py keeps an "
+        "while the supply is back at its setpoint is the previous run's: service/bench/interlocks.py keeps an "
         "armed-only interlock's reason across runs)")
     assert sweep["progress"]["done"] == POINTS and len(sweep["points"]) == POINTS and sweep["map_id"] is not None
     assert_points_measured_honestly(sweep["points"], min_ok=POINTS - 1)

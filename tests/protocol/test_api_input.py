@@ -21,12 +21,12 @@ import uvicorn
 from tests.support.live_app import bearer, client_for, started_service, wait_finished
 from service.api.app import create_app
 from service.calibration_service import CalibrationService
-from service.limits import LimitError, check_limits
-from service.operating_point import OperatingPoint
-from service.plans import Grid, SweepPlan
-from service.public import result_row
+from service.model.limits import LimitError, check_limits
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid, SweepPlan
+from service.api.public import result_row
 from service.settings import SettingsError, load_settings
-from service.storage import now_iso
+from service.store.storage import now_iso
 from tests.support.service_process import free_port
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}

@@ -10,8 +10,8 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.calibration_service import CalibrationService
-from service.engine import Engine
-from service.plans import Grid, SweepPlan
+from service.runs.engine import Engine
+from service.runs.plans import Grid, SweepPlan
 from service.settings import load_settings
 
 EXAMPLE = {"grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000, 1400, 1800, 2200, 2600], "udc_v": [12]},

@@ -1,4 +1,4 @@
-"""The setpoint/sync-toggle accounting (service/setpoint_accounting.py, service/measurement.PointStream)
+"""The setpoint/sync-toggle accounting (service/bench/setpoint_accounting.py, service/measurement.PointStream)
 on a real pty.
 
 A DAQ that cannot wait (a real one, or the emulator paced) drops what the reader does not take in
@@ -13,8 +13,8 @@ import pytest
 from drivers.daq_protocol import FLAG_SYNC_INPUT, encode_frames
 from drivers.daq_reader import DaqReader
 from service.identification.session import MeasurementError
-from service.measurement import PointStream
-from service.setpoint_accounting import (INITIAL_QUIET_SAMPLES, MIN_QUIET_SAMPLES, AccountingError,
+from service.bench.measurement import PointStream
+from service.bench.setpoint_accounting import (INITIAL_QUIET_SAMPLES, MIN_QUIET_SAMPLES, AccountingError,
                                          SetpointAccounting)
 from tests.support.pty_writer import PtyWriter
 

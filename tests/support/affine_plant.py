@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from service.harmonic import phasor
+from service.model.harmonic import phasor
 from service.identification.session import Window
 
 

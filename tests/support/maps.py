@@ -6,13 +6,13 @@ import math
 from typing import Callable
 
 from service import __version__
-from service.harmonic import Phasor
+from service.model.harmonic import Phasor
 from service.identification.adaptive import AdaptiveOptions
 from service.identification.result import IdentificationResult
-from service.maps import build_map_from_sweep
-from service.operating_point import OperatingPoint
-from service.public import result_row
-from service.storage import Storage, now_iso
+from service.maps.build import build_map_from_sweep
+from service.model.operating_point import OperatingPoint
+from service.api.public import result_row
+from service.store.storage import Storage, now_iso
 
 Point = tuple[float, float, float]
 

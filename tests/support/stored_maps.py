@@ -4,7 +4,7 @@ dashboard. 2 x 2 x 1 grid; cell k (1..4, torque fastest) has gamma = k + gamma_o
 delta = 240 + 10 k deg; the cells in `failing` are stored as failed runs (not valid in a LUT)."""
 from __future__ import annotations
 
-from service.storage import Storage
+from service.store.storage import Storage
 from tests.support.maps import make_map, store_sweep, theta_of
 
 GRID = {"torque_nm": [1.0, 2.5], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0]}

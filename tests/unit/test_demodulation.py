@@ -1,12 +1,12 @@
-"""The harmonic fit with the shaft mode as a nuisance (service/demodulation.py), against records built
+"""The harmonic fit with the shaft mode as a nuisance (service/model/demodulation.py), against records built
 in closed form: a harmonic phasor, a decaying mode rung by a step, a clipped sensor, white noise."""
 import math
 
 import numpy as np
 import pytest
 
-from service.demodulation import ResonanceMode, ResonanceTracker, _electrical_hz, fit_harmonic
-from service.harmonic import phasor, whole_period_samples
+from service.model.demodulation import ResonanceMode, ResonanceTracker, _electrical_hz, fit_harmonic
+from service.model.harmonic import phasor, whole_period_samples
 
 FS_HZ = 16000.0
 H = 6

@@ -1,9 +1,9 @@
 """A database with jobs a previous process left queued (killed before they ran) still starts: recover
 marks them failed with the reason (found by the README test's database with earlier rows)."""
-from service.engine import Engine
-from service.events import EventBroker
+from service.runs.engine import Engine
+from service.runs.events import EventBroker
 from service.settings import load_settings
-from service.storage import Storage
+from service.store.storage import Storage
 
 
 def test_recover_fails_jobs_left_queued(tmp_path):

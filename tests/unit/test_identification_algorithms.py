@@ -144,7 +144,7 @@ def test_probe_starts_from_a_prior_without_probing():
 
 
 def test_verdict_is_ok_only_with_confidence_and_says_what_is_confirmed():
-    from service.harmonic import Phasor
+    from service.model.harmonic import Phasor
     from service.identification.common import verdict
     from service.identification.session import Window
 

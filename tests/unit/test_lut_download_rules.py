@@ -1,4 +1,4 @@
-"""The download rules of service/lut_download.py under the fill choice, on a hand-built map (the refined
+"""The download rules of service/runs/lut_download.py under the fill choice, on a hand-built map (the refined
 map of test_lut_readers: 27 ok cells, 2 filled, 1 hole): holes are the cells that would inject nothing
 under the chosen fill; the image carries flag 2 only with fill; the receipt says what went in. No
 bench: a stand-in drive decodes the image with the drive's own codec and reports it back."""
@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 
 from drivers import lut_image
-from service import lut_download
-from service.public import LutDownloadPublic, MapPublic
+from service.runs import lut_download
+from service.api.public import LutDownloadPublic, MapPublic
 from tests.unit.test_lut_readers import FILLED, HOLE, MAP_ID, refined_map
 
 
@@ -96,7 +96,7 @@ def test_download_map_keeps_its_positional_signature_and_the_receipt_says_what_w
     assert (receipt.map_id, receipt.cells, receipt.valid_cells, receipt.forced) == (MAP_ID, 30, 27, True)
     assert receipt.crc32 == lut_image.crc_hex(drive.lut.crc) and receipt.bytes == 24 + 4 * (3 + 5 + 2) + 9 * 30
     assert drive.lut.filled.sum() == len(FILLED)
-    # the newer receipt fields, where LutDownloadPublic has them (service/public.py adds them)
+    # the newer receipt fields, where LutDownloadPublic has them (service/api/public.py adds them)
     for key, value in {"filled_cells": 2, "fill": True, "interpolation": lut_image.DEFAULT_INTERPOLATION,
                        "format_version": 3}.items():
         if key in LutDownloadPublic.model_fields:

@@ -1,5 +1,5 @@
 """The LUT image contract (drivers/lut_image.py): one encoder and one decoder, imported by the service's
-builder (service/lut_export.py) and the emulated drive firmware; the image bytes after the header are
+builder (service/maps/lut_export.py) and the emulated drive firmware; the image bytes after the header are
 those the two separate implementations produced before they were merged into one codec; the CRC is
 CRC-32 of the image without its CRC field, so two maps have two CRCs. Format version 3: the layout
 read byte by byte, the flags (0 none, 1 ok, 2 filled), the interpolation mode, both modes against
@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from drivers import lut_image
-from service.lut_export import lut_image as service_image
+from service.maps.lut_export import lut_image as service_image
 
 AXES = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0, 24.0]}
-# sha256 of the 156-byte format_version 1 image of FIXED_MAP, recorded from service/lut_export.py at
+# sha256 of the 156-byte format_version 1 image of FIXED_MAP, recorded from service/maps/lut_export.py at
 # commit e535cf8 (its own struct-based builder, before the codec moved to drivers/lut_image.py)
 IMAGE_SHA256_BEFORE = "13b598b43bd3a1b202d398b6f899d1a24e33ba6182beebdd231bc7e66ac8929f"
 V1_HEADER = struct.Struct("<4sHBBHHHH")     # version 2 appended u32 map_id to it

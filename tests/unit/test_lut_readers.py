@@ -20,9 +20,9 @@ import subprocess
 import pytest
 
 from drivers import lut_image
-from service.lut_export import export_map
-from service.lut_export import lut_image as service_image
-from service.public import MapCellPublic, MapPublic
+from service.maps.lut_export import export_map
+from service.maps.lut_export import lut_image as service_image
+from service.api.public import MapCellPublic, MapPublic
 
 AXES = {"torque_nm": [1.0, 2.0, 4.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0], "udc_v": [12.0, 24.0]}
 MAP_ID = 31

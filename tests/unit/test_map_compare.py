@@ -1,4 +1,4 @@
-"""Map comparison (service/map_compare.py) against closed forms: two maps whose thetas differ by a
+"""Map comparison (service/maps/compare.py) against closed forms: two maps whose thetas differ by a
 known vector, on a bench with a known measured S, residual and uncompensated phasor; the predicted
 suppression is computed here independently, in the complex form of DESIGN 3 (A = a_c - j a_s,
 Theta = theta_cos - j theta_sin, A = S (Theta_d + Theta))."""
@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from service.map_compare import compare_maps, wrap_deg
-from service.public import map_public
-from service.storage import Storage
+from service.maps.compare import compare_maps, wrap_deg
+from service.api.public import map_public
+from service.store.storage import Storage
 from tests.support.maps import RESIDUAL, S_MEASURED, UNCOMPENSATED, make_map, theta_of
 
 GRID = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0]}
@@ -141,9 +141,9 @@ def test_a_refined_map_against_the_coarse_one_compares_on_the_shared_points(stor
 
 
 def test_a_filled_cell_is_not_compared_and_said_filled(storage):
-    """A filled cell carries a fill, not a measurement (service/map_fill.py): not compared, its note
+    """A filled cell carries a fill, not a measurement (service/maps/fill.py): not compared, its note
     names the fill and its source; the other cells compare as before."""
-    from service.map_compare import compare_public
+    from service.maps.compare import compare_public
     a_id, b_id = make_map(storage, GRID, base), make_map(storage, GRID, shifted)
     a, b = map_public(storage, a_id), map_public(storage, b_id)
     source = "interpolated (cartesian) from ok cells: torque_nm between 1 and 4"

@@ -1,5 +1,5 @@
-"""The fill rule (service/map_fill.py) and the priors a sweep's second pass starts from
-(service/neighbours.py), against hand-worked values."""
+"""The fill rule (service/maps/fill.py) and the priors a sweep's second pass starts from
+(service/maps/neighbours.py), against hand-worked values."""
 from __future__ import annotations
 
 import json
@@ -8,11 +8,11 @@ import math
 import pytest
 
 from drivers.lut_image import DEFAULT_INTERPOLATION
-from service.engine import second_pass_points
-from service.map_fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
-from service.neighbours import prior_from_neighbours
-from service.operating_point import OperatingPoint
-from service.plans import Grid, SweepPlan
+from service.runs.engine import second_pass_points
+from service.maps.fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
+from service.maps.neighbours import prior_from_neighbours
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid, SweepPlan
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 1500.0, 2500.0], "udc_v": [12.0]}
 

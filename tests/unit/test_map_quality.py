@@ -1,4 +1,4 @@
-"""Map quality (service/map_quality.py) on closed-form maps: a map linear in the operating point has
+"""Map quality (service/maps/quality.py) on closed-form maps: a map linear in the operating point has
 no outlier, one planted outlier is flagged alone with the numbers its reason gives, non-ok cells are
 never references, and the smoothed view replaces only the outlier (the stored map stays as measured)."""
 import csv
@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from service import map_quality
-from service.lut_export import export_map
-from service.public import map_public
-from service.storage import Storage
+from service.maps import quality as map_quality
+from service.maps.lut_export import export_map
+from service.api.public import map_public
+from service.store.storage import Storage
 from tests.support.maps import make_map, theta_of
 
 # non-uniform speed axis: the expected step scales with the grid spacing

@@ -1,4 +1,4 @@
-"""Map validation (service/map_validation.py): the finer grid, the summary, the refusals, migration 0006
+"""Map validation (service/runs/validation.py): the finer grid, the summary, the refusals, migration 0006
 keeping every job, and the summary in every export (closed forms and independent counts, real SQLite)."""
 import json
 import sqlite3
@@ -7,13 +7,13 @@ import statistics
 import pytest
 
 from service.identification.adaptive import AdaptiveOptions
-from service.lut_export import export_map
-from service.map_validation import (ValidationRefused, ValidationRun, check_validatable, finer_axis, store_validation,
+from service.maps.lut_export import export_map
+from service.runs.validation import (ValidationRefused, ValidationRun, check_validatable, finer_axis, store_validation,
                                     summarize, validation_points)
-from service.maps import build_map_from_sweep
-from service.operating_point import OperatingPoint
-from service.public import job_public, map_public, result_row
-from service.storage import MIGRATIONS_DIR, Storage, migrations
+from service.maps.build import build_map_from_sweep
+from service.model.operating_point import OperatingPoint
+from service.api.public import job_public, map_public, result_row
+from service.store.storage import MIGRATIONS_DIR, Storage, migrations
 from tests.support.stored_maps import sweep_with_results
 
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from service.harmonic import electrical_frequency_hz, phasor, whole_period_samples
-from service.operating_point import OperatingPoint, nominal_steady_state
-from service.secondary_path import (g_salpha, gamma_delta, model_secondary_path, s_matrix, theta_complex,
+from service.model.harmonic import electrical_frequency_hz, phasor, whole_period_samples
+from service.model.operating_point import OperatingPoint, nominal_steady_state
+from service.model.secondary_path import (g_salpha, gamma_delta, model_secondary_path, s_matrix, theta_complex,
                                     theta_from_gamma_delta)
 from service.settings import load_settings
 

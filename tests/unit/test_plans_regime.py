@@ -9,15 +9,15 @@ import math
 import pytest
 from pydantic import ValidationError
 
-from service.engine import Engine
-from service.events import EventBroker
-from service.identify import parse_options
-from service.operating_point import (OperatingPoint, field_weakening_onset, field_weakening_onset_rpm,
+from service.runs.engine import Engine
+from service.runs.events import EventBroker
+from service.runs.identify import parse_options
+from service.model.operating_point import (OperatingPoint, field_weakening_onset, field_weakening_onset_rpm,
                                      nominal_steady_state)
-from service.plans import (ESTIMATE_MEASUREMENT_S, ESTIMATE_RUN_START_S, ESTIMATE_SETTLE_S_PER_POINT, Grid,
+from service.runs.plans import (ESTIMATE_MEASUREMENT_S, ESTIMATE_RUN_START_S, ESTIMATE_SETTLE_S_PER_POINT, Grid,
                            RegimeError, RegimePlacement, SweepPlan, plan_grid, preview_sweep)
 from service.settings import MotorSettings, SettingsError, load_settings
-from service.storage import Storage
+from service.store.storage import Storage
 
 PAPER = MotorSettings()          # paper-bench nominal: N_p 4, R_s 10 mOhm, L_d = L_q 20 uH, psi_p 7 mWb, I_max 113 A
 SETTINGS = load_settings(environ={})

@@ -11,11 +11,11 @@ import pytest
 from asammdf import MDF
 
 from drivers.daq_protocol import ACCEL_FULL_SCALE_COUNTS, FrameDecoder, encode_frames
-from service.operating_point import OperatingPoint
-from service.public import result_public, result_row
-from service.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
+from service.model.operating_point import OperatingPoint
+from service.api.public import result_public, result_row
+from service.store.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
 from service.settings import SettingsError, load_settings
-from service.storage import Storage, StorageUnavailable, now_iso
+from service.store.storage import Storage, StorageUnavailable, now_iso
 
 RATE_HZ, FULL_SCALE = 16_000.0, 500.0
 

@@ -1,9 +1,9 @@
-"""What a refinement round adds (service/refinement.py plan_round), on hand-made maps and validations."""
+"""What a refinement round adds (service/runs/refinement.py plan_round), on hand-made maps and validations."""
 from __future__ import annotations
 
 import math
 
-from service.refinement import axes_with, failing_points, plan_round
+from service.runs.refinement import axes_with, failing_points, plan_round
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
 

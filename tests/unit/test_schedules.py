@@ -12,10 +12,10 @@ import pytest
 from pydantic import TypeAdapter
 
 from service.api.schemas import SweepCreate
-from service.events import EventBroker
-from service.schedules import Scheduler, check_cron, check_timezone, create_schedule, next_runs
+from service.runs.events import EventBroker
+from service.runs.schedules import Scheduler, check_cron, check_timezone, create_schedule, next_runs
 from service.settings import load_settings
-from service.storage import Storage
+from service.store.storage import Storage
 
 UTC = timezone.utc
 BERLIN = check_timezone("Europe/Berlin")
@@ -137,7 +137,7 @@ def test_a_firing_beyond_grace_is_recorded_missed_not_run(tmp_path):
 
 
 def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(tmp_path):
-    from service.schedules import update_schedule
+    from service.runs.schedules import update_schedule
     clock = SteppedClock(datetime(2027, 6, 1, 12, 0, 30, tzinfo=UTC))
     storage, engine, settings, scheduler = _scheduler(tmp_path, clock)
     sid = _add(storage, settings, clock, "* * * * *")

@@ -12,10 +12,10 @@ import subprocess
 import pytest
 
 from service import __version__
-from service.lut_export import export_map
-from service.maps import build_map_from_sweep
-from service.public import map_public
-from service.storage import Storage, StorageError, migrations
+from service.maps.lut_export import export_map
+from service.maps.build import build_map_from_sweep
+from service.api.public import map_public
+from service.store.storage import Storage, StorageError, migrations
 from tests.support.stored_maps import sweep_with_results
 
 
@@ -168,7 +168,7 @@ def test_lut_image_is_what_the_drive_parses(storage):
 
     from drivers.lut_image import LutImageError
     from drivers.lut_image import decode as parse
-    from service.lut_export import lut_image
+    from service.maps.lut_export import lut_image
     m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
     image = lut_image(m)
     lut = parse(image)

@@ -7,9 +7,9 @@ import pytest
 
 from service import __version__
 from service.identification import AdaptiveOptions
-from service.public import result_row
-from service.operating_point import OperatingPoint
-from service.storage import Storage
+from service.api.public import result_row
+from service.model.operating_point import OperatingPoint
+from service.store.storage import Storage
 
 GRID = {"torque_nm": [1.0, 2.5], "speed_rpm": [1000.0], "udc_v": [12.0]}
 

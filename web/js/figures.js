@@ -36,7 +36,7 @@ export function onClick(divId, fn) {
 // gamma = |theta| (>= 0, clamped to gamma_max); delta = -atan2(theta_sin, theta_cos) is a phase,
 // so it gets a cyclic colour scale over a full turn.
 const CYCLIC = [[0, "#3b6fb6"], [0.25, "#3aa57a"], [0.5, "#e8c547"], [0.75, "#d1495b"], [1, "#3b6fb6"]];
-// fill: a filled cell (not ok, carrying a fill: service/map_fill.py) shows its fill's value, hatched
+// fill: a filled cell (not ok, carrying a fill: service/maps/fill.py) shows its fill's value, hatched
 export const MAP_QUANTITIES = [
   { key: "gamma_deg", title: "γ — injection amplitude", unit: "deg", cbar: "γ (°)", sym: "γ",
     scale: "Viridis", range: "zero", digits: 2, fill: true },
@@ -177,7 +177,7 @@ export function mapHeatmap(slice, q) {
       hoverinfo: "skip", showlegend: false, name: "filled",
     });
   }
-  // outliers of the map quality (service/map_quality.py) get a ring; hover and clicks stay the heatmap's
+  // outliers of the map quality (service/maps/quality.py) get a ring; hover and clicks stay the heatmap's
   const marked = cells.filter((c) => c.quality === "outlier");
   if (marked.length) {
     data.push({

@@ -6,7 +6,7 @@ from fastapi import APIRouter, HTTPException, status
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.errors import error_responses
 from drivers.errors import FaultReactionActiveError
-from service.bench import BenchError
+from service.bench.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter
 from pydantic import BaseModel
 
 from service.identification.registry import METHODS
-from service.lut_export import EXPORT_FORMATS
+from service.maps.lut_export import EXPORT_FORMATS
 
 router = APIRouter(prefix="/api/v1", tags=["catalog"])
 

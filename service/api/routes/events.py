@@ -9,7 +9,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
 
 from service.api.deps import ServiceDep
-from service.events import END, format_sse
+from service.runs.events import END, format_sse
 
 router = APIRouter(prefix="/api/v1", tags=["events"])
 

@@ -7,8 +7,8 @@ from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
 from service.api.refusals import refused_at
 from service.api.schemas import IdentificationCreate
-from service.engine import TransitionError
-from service.public import JobPublic, job_public
+from service.runs.engine import TransitionError
+from service.api.public import JobPublic, job_public
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
 

@@ -11,17 +11,17 @@ from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import ValidationCreate
-from service.bench import BenchError
-from service import lut_download
-from service.lut_export import EXPORT_FORMATS, export_map
-from service.map_compare import MapCompareError, compare_maps
-from service.refinement import RefineRequest
-from service.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
+from service.bench.bench import BenchError
+from service.runs import lut_download
+from service.maps.lut_export import EXPORT_FORMATS, export_map
+from service.maps.compare import MapCompareError, compare_maps
+from service.runs.refinement import RefineRequest
+from service.api.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
                             ValidationPublic, job_public, map_public, map_summaries, validation_public)
 
 router = APIRouter(prefix="/api/v1", tags=["maps"])
 
-# a view, never a change of the stored map: outlier cells carry their neighbours' fit (service/map_quality.py)
+# a view, never a change of the stored map: outlier cells carry their neighbours' fit (service/maps/quality.py)
 SmoothQuery = Query("none", description="outliers: outlier cells carry their ok neighbours' median theta, "
                                         "marked smoothed with their source (the stored map is not changed)")
 Smooth = Literal["none", "outliers"]

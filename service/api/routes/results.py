@@ -9,8 +9,8 @@ from fastapi.responses import StreamingResponse
 
 from service.api.deps import ResourceId, ServiceDep
 from service.api.errors import error_responses
-from service.public import ResultPublic, result_public
-from service.recordings import RECORDING_FORMATS, RecordingUnavailable
+from service.api.public import ResultPublic, result_public
+from service.store.recordings import RECORDING_FORMATS, RecordingUnavailable
 
 router = APIRouter(prefix="/api/v1", tags=["results"])
 

@@ -11,9 +11,9 @@ from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import ScheduleCreate, ScheduleUpdate
-from service.plans import SweepTooLarge
-from service.public import SchedulePreviewPublic, SchedulePublic, schedule_public
-from service.schedules import (MAX_PREVIEW_RUNS, ScheduleConflict, check_cron, check_timezone, create_schedule,
+from service.runs.plans import SweepTooLarge
+from service.api.public import SchedulePreviewPublic, SchedulePublic, schedule_public
+from service.runs.schedules import (MAX_PREVIEW_RUNS, ScheduleConflict, check_cron, check_timezone, create_schedule,
                                delete_schedule, iso, next_runs, update_schedule)
 
 router = APIRouter(prefix="/api/v1", tags=["schedules"])

@@ -9,9 +9,9 @@ from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import SweepCreate
-from service.engine import TransitionError
-from service.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
-from service.public import SweepPublic, sweep_public
+from service.runs.engine import TransitionError
+from service.runs.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
+from service.api.public import SweepPublic, sweep_public
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 

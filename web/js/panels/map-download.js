@@ -1,5 +1,5 @@
 // The map shown in the Map panel into the drive's LUT (POST /maps/{id}/download, operator token).
-// "with fill" (default on) takes the filled cells (not ok, carrying a fill: service/map_fill.py) into
+// "with fill" (default on) takes the filled cells (not ok, carrying a fill: service/maps/fill.py) into
 // the LUT; off, the drive injects only at ok cells. Success shows the CRC the drive read back and what
 // went in; a refusal shows the service's message. A map with cells that would inject nothing under
 // the chosen fill is refused without force; then this offers a second, explicit "download anyway"

@@ -98,7 +98,7 @@ async function show(id) {
   for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
   const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
   const q = m.quality || {};
-  // filled: not ok, but carrying a fill (service/map_fill.py) the LUT takes with "with fill"
+  // filled: not ok, but carrying a fill (service/maps/fill.py) the LUT takes with "with fill"
   const filled = m.cells.filter((c) => c.status !== "ok" && c.filled).length;
   $("map-meta").dataset.filled = String(filled);
   const prov = m.provenance || {};

@@ -9,7 +9,7 @@ move (a torque step, a speed ramp), its settling and its measurement, not a stop
 The move to a point, in the order the wires need:
   1. the DC link: the supply set and confirmed (torque off first while a run changes U_dc);
   2. the load machine's speed (enabled at the run's first point); the drive enabled, gamma_max;
-  3. the setpoint accounting re-established if it is in doubt (service/setpoint_accounting.py): with
+  3. the setpoint accounting re-established if it is in doubt (service/bench/setpoint_accounting.py): with
      nothing written that the drive applies, while the load ramps;
   4. what the drive applies as setpoints (each one sync toggle): at the run's first point harmonic
      order, decoupling, injection mode manual; theta 0 where it is not; and the torque, always: its
@@ -31,13 +31,13 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Callable, Iterator
 
 from service.identification.session import MeasurementError
-from service.interlocks import InterlockTripped
-from service.limits import LimitError, check_limits
-from service.measurement import OperatingPointSession, PointStream
-from service.operating_point import OperatingPoint
+from service.bench.interlocks import InterlockTripped
+from service.model.limits import LimitError, check_limits
+from service.bench.measurement import OperatingPointSession, PointStream
+from service.model.operating_point import OperatingPoint
 
 if TYPE_CHECKING:
-    from service.bench import Bench
+    from service.bench.bench import Bench
 
 
 @dataclass

@@ -14,7 +14,7 @@ import os
 from datetime import datetime, timezone
 from pathlib import Path
 
-from service.storage import StorageError
+from service.store.storage import StorageError
 
 
 class DatabaseInUse(StorageError):

@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from service.operating_point import OperatingPoint, SteadyState, nominal_steady_state
+from service.model.operating_point import OperatingPoint, SteadyState, nominal_steady_state
 from service.settings import Settings
 
 

@@ -1,7 +1,7 @@
 """Measuring at one operating point on the DAQ sample clock.
 
 `PointStream` consumes the DAQ stream of one operating point in order and keeps its clock: the exact
-sample at which each setpoint took effect (the drive's sync toggles, service/setpoint_accounting.py),
+sample at which each setpoint took effect (the drive's sync toggles, service/bench/setpoint_accounting.py),
 which samples are stale (buffered before that: on a real bench CAN and DAQ latency, in the emulator
 run as fast as it is read its buffered data) and which count as plant time. Every duration is a
 difference of DAQ sample indices, so a gap in the stream (frames lost) counts as the plant time it
@@ -25,10 +25,10 @@ from typing import Callable, Protocol
 import numpy as np
 
 from drivers.daq_protocol import FLAG_OVER_RANGE, FLAG_SENSOR_FAULT, FLAG_SYNC_INPUT, DecodedSamples
-from service.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
-from service.harmonic import mechanical_speed_rpm, whole_period_samples
+from service.model.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
+from service.model.harmonic import mechanical_speed_rpm, whole_period_samples
 from service.identification.session import MeasurementError, Window
-from service.setpoint_accounting import Chunk, SetpointAccounting
+from service.bench.setpoint_accounting import Chunk, SetpointAccounting
 
 log = logging.getLogger(__name__)
 

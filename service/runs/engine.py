@@ -26,27 +26,27 @@ from typing import Callable
 from enum import Enum
 
 from drivers.errors import DriverError
-from service.bench import BenchError
-from service.events import EventBroker
+from service.bench.bench import BenchError
+from service.runs.events import EventBroker
 from service import __version__
-from service.limits import check_limits
-from service.interlocks import InterlockTripped
+from service.model.limits import check_limits
+from service.bench.interlocks import InterlockTripped
 from service.identification.common import LUT_MARGIN_DB
 from service.identification.session import MeasurementError
-from service.identify import check_plant_time, identify_at, identify_in_run, parse_options, run_settings
-from service.limits import LimitError
-from service.public import map_public, result_public, result_row
-from service.maps import build_map, build_map_from_sweep
-from service.map_validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
+from service.runs.identify import check_plant_time, identify_at, identify_in_run, parse_options, run_settings
+from service.model.limits import LimitError
+from service.api.public import map_public, result_public, result_row
+from service.maps.build import build_map, build_map_from_sweep
+from service.runs.validation import (ValidationOptions, ValidationStopped, check_points, check_validatable, run_validation,
                                     store_validation)
-from service.neighbours import prior_from_neighbours
-from service.refinement import MAX_ROUNDS, RefineRequest, axes_with, check_request, plan_round
-from service.operating_point import OperatingPoint
-from service.plans import Grid, SweepPlan, plan_grid
-from service.recordings import RecordingStore, RunRecorder
+from service.maps.neighbours import prior_from_neighbours
+from service.runs.refinement import MAX_ROUNDS, RefineRequest, axes_with, check_request, plan_round
+from service.model.operating_point import OperatingPoint
+from service.runs.plans import Grid, SweepPlan, plan_grid
+from service.store.recordings import RecordingStore, RunRecorder
 from service.settings import Settings
-from service.setpoint_accounting import AccountingError
-from service.storage import Storage, StorageUnavailable, now_iso
+from service.bench.setpoint_accounting import AccountingError
+from service.store.storage import Storage, StorageUnavailable, now_iso
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ class Cancelled(Exception):
 class Paused(Exception):
     """A sweep's job stops between points because its sweep pauses (the operator, an interlock): the
     job is parked (queued, out of the worker's queue) and the bench is free for other jobs until the
-    sweep is resumed (service/engine.py module doc)."""
+    sweep is resumed (service/runs/engine.py module doc)."""
 
 
 def check_transition(table, current, target) -> None:
@@ -273,7 +273,7 @@ class Engine:
         return job_id
 
     def submit_refinement(self, map_id: int, request: RefineRequest) -> int:
-        """Queue the refinement of a map (service/refinement.py) as a sweep of kind `refinement`: its
+        """Queue the refinement of a map (service/runs/refinement.py) as a sweep of kind `refinement`: its
         cells, pause, resume, cancel and crash-resume are a sweep's. Refused before anything is
         queued: KeyError (no such map), ValueError (method or options), LimitError (a validation point
         outside the bench's limits). A partial map is accepted: its non-ok cells are measured first.
@@ -521,13 +521,13 @@ class Engine:
             raise ValidationStopped(run.error)
 
     def _run_sweep(self, job_id: int, sweep_id: int) -> None:
-        """The sweep as continuous bench runs (service/bench_run.py): the drive stays enabled and the
+        """The sweep as continuous bench runs (service/bench/run.py): the drive stays enabled and the
         load turning from point to point; a run ends (bench made safe) on pause, cancel, an interlock
         trip, a failure of the bench itself, and at the end. A point that cannot be measured is stored
         failed and the run goes on; an interlock trip discards the point in flight and pauses.
         Two passes: every point, then once more each point whose result is not ok, with what its
-        neighbours now know on every side (service/neighbours.py); a cell that stays non-ok gets the fill
-        rule's entry in the map (service/map_fill.py)."""
+        neighbours now know on every side (service/maps/neighbours.py); a cell that stays non-ok gets the fill
+        rule's entry in the map (service/maps/fill.py)."""
         sweep = self.storage.get_sweep(sweep_id)
         ctl = self._controls[sweep_id]
         grid = Grid.model_validate(json.loads(sweep["grid_json"]))
@@ -640,7 +640,7 @@ class Engine:
 
     # --- refinements ---------------------------------------------------------------------------------------
     def _run_refinement(self, job_id: int, sweep_id: int) -> None:
-        """A refinement's rounds (service/refinement.py): measure the pending cells, build the refined map,
+        """A refinement's rounds (service/runs/refinement.py): measure the pending cells, build the refined map,
         validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
         so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
         sweep = self.storage.get_sweep(sweep_id)

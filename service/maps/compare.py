@@ -12,7 +12,7 @@ map holds are listed). Where both cells are ok:
       predicted_suppression_db = 20 log10(|a_uncompensated| / |a_pred|)
   against the uncompensated amplitude of the same result. theta_b = theta_a gives back the measured
   suppression. A result that stored no measured S gets no prediction (said per cell), never a model's.
-A filled cell (status not ok, service/map_fill.py) carries a fill, not a measurement: it is not
+A filled cell (status not ok, service/maps/fill.py) carries a fill, not a measurement: it is not
 compared, and its note says it is filled and where the fill comes from. Axes may differ and be
 non-uniform (a refined map inserts breakpoints): the cells meet on their operating points only.
 """
@@ -23,11 +23,11 @@ import math
 
 import numpy as np
 
-from service.operating_point import OperatingPoint
-from service.public import (ComplexGainPublic, MapCompareCellPublic, MapCompareSummaryPublic, MapComparisonPublic, MapPublic,
+from service.model.operating_point import OperatingPoint
+from service.api.public import (ComplexGainPublic, MapCompareCellPublic, MapCompareSummaryPublic, MapComparisonPublic, MapPublic,
                             map_public)
-from service.secondary_path import s_matrix
-from service.storage import Storage
+from service.model.secondary_path import s_matrix
+from service.store.storage import Storage
 
 
 class MapCompareError(ValueError):

@@ -7,9 +7,9 @@ from typing import Any, Callable
 from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
 from service.identification.session import MeasurementError, Window
-from service.limits import gamma_max_rad
-from service.operating_point import OperatingPoint
-from service.secondary_path import model_secondary_path
+from service.model.limits import gamma_max_rad
+from service.model.operating_point import OperatingPoint
+from service.model.secondary_path import model_secondary_path
 from service.settings import Settings
 
 def parse_options(method: str, options: dict[str, Any] | None):

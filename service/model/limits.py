@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from service.operating_point import OperatingPoint
+from service.model.operating_point import OperatingPoint
 from service.settings import Settings
 
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.harmonic import Phasor
+from service.model.harmonic import Phasor
 
 RING_SNR_TO_LEARN = 30.0      # learn the mode only from windows whose ring stands this far above its noise
 SEARCH_SCALE = 0.15           # every search: +-15 % around the estimate so far (covers a +-10 % bench spread)

@@ -32,16 +32,17 @@ from typing import Any, Callable, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service import __version__, lut_download
+from service import __version__
+from service.runs import lut_download
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.identification.session import MeasurementError
-from service.interlocks import InterlockTripped
-from service.limits import check_limits
-from service.measurement import RunCancelled
-from service.operating_point import OperatingPoint
-from service.public import map_public
+from service.bench.interlocks import InterlockTripped
+from service.model.limits import check_limits
+from service.bench.measurement import RunCancelled
+from service.model.operating_point import OperatingPoint
+from service.api.public import map_public
 from service.settings import Settings
-from service.storage import Storage, now_iso
+from service.store.storage import Storage, now_iso
 
 AT_FLOOR_SIGMAS = 3.0       # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
 
@@ -87,7 +88,7 @@ def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint
 
 
 def check_validatable(storage: Storage, map_id: int, force: bool, fill: bool = True) -> None:
-    """The download rules (service/lut_download.py: no ok cell is refused, a partial map needs
+    """The download rules (service/runs/lut_download.py: no ok cell is refused, a partial map needs
     `force`) checked before anything is queued."""
     try:
         lut_download.prepare(storage, map_id, force, fill=fill)
@@ -170,7 +171,7 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
                    cancel: threading.Event, on_cell: Callable[[dict, int], None] | None = None,
                    download: Callable[..., dict] = download_into_drive,
                    on_progress: Callable[[ValidationRun], None] | None = None) -> ValidationRun:
-    """The whole job: download, then every point in one continuous bench run (service/bench_run.py:
+    """The whole job: download, then every point in one continuous bench run (service/bench/run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
     is made safe and a new one goes on from the next point). Never raises for a point: a failed point
     is a cell with its reason; an interlock trip or a cancel ends the run with state failed /

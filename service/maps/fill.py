@@ -2,7 +2,7 @@
 
 A cell without an entry injects nothing in the drive, and the drive interpolates towards nothing
 around it (a LUT with one hole loses its neighbourhood too). A sweep measures its non-ok cells once
-more at its end (service/engine.py); a cell that stays non-ok is *filled* here. The fill is flagged in
+more at its end (service/runs/engine.py); a cell that stays non-ok is *filled* here. The fill is flagged in
 the map and in every export (VALID stays 1 only for ok cells; FILLED says which cells carry a fill),
 and a download chooses whether fills go into the drive.
 

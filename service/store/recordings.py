@@ -5,7 +5,7 @@ The session gives it every sample it consumes from the DAQ stream between the me
 last read, in stream order, each marked counted (part of the result's plant_time_s: the settling
 after each setpoint and every window, discarded ones included) or stale (read while waiting for a
 setpoint to take effect), and each theta setpoint with the DAQ sample at which it took effect (its
-sync-line toggle, service/measurement.py). The file holds the counted samples; stale ones are only
+sync-line toggle, service/bench/measurement.py). The file holds the counted samples; stale ones are only
 counted (`stale_samples` in the header): on a real bench they are the few samples of CAN latency,
 in the emulator's fast mode the 1-2 s per setpoint that the DAQ path had buffered, which would make
 a recording 60 times its plant time. So, per recording:
@@ -52,8 +52,8 @@ from asammdf import MDF, Signal
 from drivers.daq_protocol import (ACCEL_FULL_SCALE_COUNTS, ANGLE_COUNTS_PER_TURN, FLAG_OVER_RANGE, FLAG_SENSOR_FAULT,
                                   FLAG_SYNC_INPUT, DecodedSamples)
 from service import __version__
-from service.secondary_path import gamma_delta
-from service.storage import Storage, now_iso
+from service.model.secondary_path import gamma_delta
+from service.store.storage import Storage, now_iso
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """A map into the drive's LUT (0x2001): what may go, the download, and the receipt.
 
 The drive injects at the LUT's entries: `ok` cells (flag 1) and, when the download takes the fill
-(`fill`, default True), the filled cells (flag 2: a cell not ok that carries a fill, service/map_fill.py).
+(`fill`, default True), the filled cells (flag 2: a cell not ok that carries a fill, service/maps/fill.py).
 Every other cell is a hole: the drive injects nothing there. A map without one ok cell is refused
 (whatever its fills: no cell met its target); a map with holes under the chosen fill goes only when
 asked with `force`, so a LUT with holes is never loaded by mistake. The interpolation mode goes into
@@ -15,10 +15,10 @@ from dataclasses import dataclass
 
 from drivers import lut_image as lut_codec
 from drivers.lut_image import crc_hex
-from service.bench import Bench, BenchError
-from service.lut_export import cell_flag, lut_image
-from service.public import LutDownloadPublic, map_public
-from service.storage import Storage
+from service.bench.bench import Bench, BenchError
+from service.maps.lut_export import cell_flag, lut_image
+from service.api.public import LutDownloadPublic, map_public
+from service.store.storage import Storage
 
 
 class MapNotFound(LookupError):

@@ -14,7 +14,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 _MIGRATION_NAME = re.compile(r"^(\d{4})_[a-z0-9_]+\.sql$")
 
 
@@ -207,7 +207,7 @@ class Storage:
     def create_sweep(self, method: str, harmonic_order: int, grid: dict, options: dict, total: int,
                      bench_identity: str, software_version: str, schedule_id: int | None = None,
                      kind: str = "sweep", source_map_id: int | None = None, refinement: dict | None = None) -> int:
-        """A sweep, or (kind `refinement`) a map's refinement: its state in `refinement` (service/refinement.py)."""
+        """A sweep, or (kind `refinement`) a map's refinement: its state in `refinement` (service/runs/refinement.py)."""
         with self.transaction() as conn:
             return conn.execute(
                 "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
@@ -266,7 +266,7 @@ class Storage:
                 f"SELECT * FROM results WHERE id IN ({', '.join('?' for _ in ids)})", ids)}
 
     def set_result_recording(self, result_id: int, record: dict) -> None:
-        """What became of the result's raw recording (service/recordings.py)."""
+        """What became of the result's raw recording (service/store/recordings.py)."""
         _update(self, "results", result_id, {"recording_json": json.dumps(record)})
 
     def mark_recordings_deleted(self, result_ids: list[int], reason: str) -> None:
@@ -307,7 +307,7 @@ class Storage:
                    cells: list[tuple[int | None, float, float, float]], bench_identity: str, software_version: str,
                    fills: dict | None = None, refined_from: int | None = None, provenance: dict | None = None) -> int:
         """A map of `cells` [(result_id, torque, speed, udc)]; `fills` {(torque, speed, udc): Fill} the
-        fill rule's entries for cells that are not ok (service/map_fill.py)."""
+        fill rule's entries for cells that are not ok (service/maps/fill.py)."""
         fills = fills or {}
         with self.transaction() as conn:
             map_id = conn.execute(

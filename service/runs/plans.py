@@ -20,9 +20,9 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
-from service.identify import PlantTimeError, check_plant_time
-from service.limits import LimitError, check_limits
-from service.operating_point import OperatingPoint, field_weakening_onset
+from service.runs.identify import PlantTimeError, check_plant_time
+from service.model.limits import LimitError, check_limits
+from service.model.operating_point import OperatingPoint, field_weakening_onset
 from service.settings import SafetySettings, Settings
 
 MAX_GRID_POINTS = 10_000

@@ -14,8 +14,8 @@ import math
 
 from drivers import lut_image
 from service.identification.common import Prior
-from service.map_fill import interpolate_between
-from service.operating_point import OperatingPoint
+from service.maps.fill import interpolate_between
+from service.model.operating_point import OperatingPoint
 
 # the plane the LUT interpolates in: a prior between two cells is what the drive would inject there
 DEFAULT_INTERPOLATION = lut_image.DEFAULT_INTERPOLATION

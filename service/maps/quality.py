@@ -1,7 +1,7 @@
 """Map quality: each cell's theta against its grid neighbours', outliers flagged with a reason.
 
 Arithmetic in theta = (theta_cos, theta_sin), rad (DESIGN 3: never gamma/delta, which wrap at 0/360 deg).
-Only `ok` cells take part (a filled cell, service/map_fill.py, carries a fill, not a measurement: it is
+Only `ok` cells take part (a filled cell, service/maps/fill.py, carries a fill, not a measurement: it is
 neither judged nor a reference); a cell's neighbours are the cells one grid index away along each
 axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
 spacing, and the fit interpolates by position.
@@ -33,7 +33,7 @@ import math
 import statistics
 from dataclasses import dataclass, field
 
-from service.secondary_path import gamma_delta
+from service.model.secondary_path import gamma_delta
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
 AXIS_UNITS = {"torque_nm": "Nm", "speed_rpm": "rpm", "udc_v": "V"}

@@ -6,7 +6,7 @@ the mode a download would use). Each axis carries its own strictly increasing br
 spacing allowed: the drive interpolates by position).
 
 Cells: `ok` cells carry their result's theta (VALID = 1). A filled cell (status not ok, `filled`: the
-fill rule of service/map_fill.py) carries its fill, flagged FILLED = 1 and VALID = 0 in every export:
+fill rule of service/maps/fill.py) carries its fill, flagged FILLED = 1 and VALID = 0 in every export:
 exports always show the fill, only a LUT download chooses whether it goes into the drive (`fill`).
 Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0."""
 from __future__ import annotations
@@ -21,7 +21,8 @@ import math
 import re
 
 from drivers import lut_image as lut_codec
-from service import __version__, map_quality
+from service import __version__
+from service.maps import quality as map_quality
 
 JSON_FORMAT_VERSION = 2     # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
 
@@ -238,7 +239,7 @@ def export_c(m: dict, interpolation: str | None = None) -> str:
         f"static const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
         f"/* 1 where the cell holds an identified value (ok) */\n"
         f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
-        f"/* 1 where the cell holds a fill (not ok; service/map_fill.py) */\n"
+        f"/* 1 where the cell holds a fill (not ok; service/maps/fill.py) */\n"
         f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'filled'))};",
         "", f"#endif /* {guard} */", "",
     ]

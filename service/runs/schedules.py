@@ -24,10 +24,10 @@ from zoneinfo import ZoneInfo, available_timezones
 
 from cronsim import CronSim, CronSimError
 
-from service.identify import check_plant_time, parse_options
-from service.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
+from service.runs.identify import check_plant_time, parse_options
+from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
 from service.settings import Settings
-from service.storage import Storage
+from service.store.storage import Storage
 
 log = logging.getLogger(__name__)
 

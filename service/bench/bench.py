@@ -5,7 +5,7 @@ the bench is emulated. Safety (pymeasure's startup/execute/shutdown): every oper
 ends in `make_safe` (torque off, injection off, drive disabled, load stopped), also after an error
 or a cancel, and every wait has a timeout.
 
-Interlocks (service/interlocks.py) are watched from their own thread during every run and between
+Interlocks (service/bench/interlocks.py) are watched from their own thread during every run and between
 runs: a trip takes the torque off at once (from a thread of its own: the CAN receive thread must
 never wait for an SDO answer), stops the run at its next DAQ read (the session's guard), and the run
 ends with InterlockTripped naming the first cause and make_safe's outcome. No run starts and no
@@ -31,18 +31,18 @@ from drivers.drive import DriveClient, LutInForce
 from drivers.lut_image import crc_hex
 from drivers.errors import DaqError, DaqPortBusy, ForeignMasterError
 from drivers.load_machine import LoadClient
-from service.demodulation import ResonanceMode, ResonanceTracker
-from service.harmonic import mechanical_speed_rpm
-from service.interlocks import (DaqLost, DeviceFault, ForeignMaster, HeartbeatLost, InterlockMonitor, InterlockTripped,
+from service.model.demodulation import ResonanceMode, ResonanceTracker
+from service.model.harmonic import mechanical_speed_rpm
+from service.bench.interlocks import (DaqLost, DeviceFault, ForeignMaster, HeartbeatLost, InterlockMonitor, InterlockTripped,
                                 ServiceHeartbeatStopped, SupplyOutOfRange, Trip, daq_disconnected_reason)
-from service import limits
-from service.limits import LimitError
-from service.live_values import STALE_AFTER_S, LiveValues
-from service.bench_run import BenchRun, gamma_max_for_run
-from service.measurement import OperatingPointSession, RunCancelled
-from service.operating_point import OperatingPoint
+from service.model import limits
+from service.model.limits import LimitError
+from service.bench.live_values import STALE_AFTER_S, LiveValues
+from service.bench.run import BenchRun, gamma_max_for_run
+from service.bench.measurement import OperatingPointSession, RunCancelled
+from service.model.operating_point import OperatingPoint
 from service.settings import Settings
-from service.setpoint_accounting import AccountingError, SetpointAccounting
+from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
 
 log = logging.getLogger(__name__)
 
@@ -413,7 +413,7 @@ class Bench:
     @contextlib.contextmanager
     def run(self, harmonic_order: int, gamma_max_rad: float | None = None, decoupling: bool | None = None,
             cancel: threading.Event | None = None) -> Iterator[BenchRun]:
-        """One continuous run (service/bench_run.py): the bench held, the interlocks armed throughout,
+        """One continuous run (service/bench/run.py): the bench held, the interlocks armed throughout,
         moves from point to point; make_safe when it ends, however it ends. gamma_max_rad (default:
         settings) is enforced here and also set in the drive, which clamps; decoupling (default:
         settings) is the drive's 0x2000:6 for the run. Refused (InterlockTripped, nothing commanded)

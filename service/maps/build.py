@@ -9,8 +9,8 @@ import json
 
 from drivers import lut_image
 from service import __version__
-from service.map_fill import fill_cells
-from service.storage import Storage
+from service.maps.fill import fill_cells
+from service.store.storage import Storage
 
 
 def build_map_from_sweep(storage: Storage, sweep_id: int) -> int:
@@ -28,7 +28,7 @@ def build_map(storage: Storage, axes: dict[str, list[float]], results: list[dict
               harmonic_order: int, method: str, bench_identity: str, refined_from: int | None = None,
               provenance: dict | None = None) -> int:
     """A map over `axes` from result rows (the latest per cell wins), with the fill rule applied to the
-    cells that are not ok (service/map_fill.py), in the plane the LUT interpolates in."""
+    cells that are not ok (service/maps/fill.py), in the plane the LUT interpolates in."""
     latest: dict[tuple[float, float, float], dict] = {}
     for row in results:
         latest[(row["torque_nm"], row["speed_rpm"], row["udc_v"])] = row

@@ -15,13 +15,14 @@ from zoneinfo import ZoneInfo
 
 from pydantic import BaseModel, Field
 
-from service import __version__, map_quality
+from service import __version__
+from service.maps import quality as map_quality
 from service.identification import IdentificationResult
-from service.operating_point import OperatingPoint
-from service.recordings import recording_record, unavailable_reason
-from service.schedules import iso, next_runs
-from service.secondary_path import gamma_delta
-from service.storage import Storage, now_iso
+from service.model.operating_point import OperatingPoint
+from service.store.recordings import recording_record, unavailable_reason
+from service.runs.schedules import iso, next_runs
+from service.model.secondary_path import gamma_delta
+from service.store.storage import Storage, now_iso
 
 # every cell of a map has one of these; only `ok` cells are valid in a LUT (DESIGN 6)
 RESULT_STATUSES = ("ok", "below_target", "no_authority", "failed")
@@ -120,7 +121,7 @@ class RefinementRoundPublic(BaseModel):
 
 
 class RefinementPublic(BaseModel):
-    """A map refined on the drive until its LUT holds (service/refinement.py)."""
+    """A map refined on the drive until its LUT holds (service/runs/refinement.py)."""
     refinement_id: int = Field(description="its sweep (kind refinement): pause, resume, cancel there")
     source_map_id: int
     map_id: int = Field(description="the refined map (the latest round's)")
@@ -182,17 +183,17 @@ class MapCellPublic(BaseModel):
     error: str | None = None
     quality: str | None = Field(None, description="ok cells only: consistent | outlier | unchecked (fewer than 2 ok "
                                 "neighbours) | smoothed (a smoothed view replaced the measured theta); "
-                                "service/map_quality.py")
+                                "service/maps/quality.py")
     outlier_reason: str | None = Field(None, description="outlier or smoothed: how far theta is from its neighbours'")
     smoothed_from: str | None = Field(None, description="smoothed: where the theta shown comes from")
     filled: bool = Field(False, description="a cell that is not ok but carries a LUT entry by the fill rule "
-                         "(service/map_fill.py): theta_cos/theta_sin are the fill, never a result at its target; "
+                         "(service/maps/fill.py): theta_cos/theta_sin are the fill, never a result at its target; "
                          "every export flags it apart from valid, and a download takes it only with fill")
     fill_source: str | None = Field(None, description="filled cells: where the theta comes from")
 
 
 class MapQualityPublic(BaseModel):
-    """Each ok cell's theta against its grid neighbours' (service/map_quality.py has the statistic)."""
+    """Each ok cell's theta against its grid neighbours' (service/maps/quality.py has the statistic)."""
     consistent: int
     outliers: int
     unchecked: int = Field(description="ok cells with fewer than 2 ok neighbours to compare with")
@@ -220,7 +221,7 @@ class MapPublic(BaseModel):
                            "(?smooth=outliers); the stored map is never changed")
     validation: "ValidationSummaryPublic | None" = Field(None, description="the latest validation in the drive's "
                                                                          "LUT mode (cells: GET /maps/{id}/validation)")
-    filled_cells: int = Field(0, description="cells not ok that carry a fill (service/map_fill.py)")
+    filled_cells: int = Field(0, description="cells not ok that carry a fill (service/maps/fill.py)")
     refined_from: int | None = Field(None, description="a refined map: the map it was refined from")
     provenance: dict[str, Any] | None = Field(None, description="how a refined map was made: refinement, rounds, "
                                               "cells added")
@@ -268,7 +269,7 @@ class SchedulePreviewPublic(BaseModel):
 
 
 class MapCompareCellPublic(BaseModel):
-    """One operating point present in both maps (service/map_compare.py)."""
+    """One operating point present in both maps (service/maps/compare.py)."""
     torque_nm: float
     speed_rpm: float
     udc_v: float
@@ -337,7 +338,7 @@ class ValidationCellPublic(BaseModel):
     harmonic_frequency_hz: float | None = None
     map_cell_status: str | None = Field(None, description="grid points: the map cell's status")
     map_cell_filled: bool | None = Field(None, description="grid points: the cell went into the LUT with its fill "
-                                         "(not ok, service/map_fill.py)")
+                                         "(not ok, service/maps/fill.py)")
     bench_time_s: dict[str, float] | None = Field(None, description="wall seconds of the point by what they were "
                                                   "spent on: move, accounting, settle, measurement")
 
@@ -521,7 +522,7 @@ def map_public(storage: Storage, map_id: int, smooth: bool = False) -> MapPublic
             theta_cos=c["theta_cos"] if ok else None, theta_sin=c["theta_sin"] if ok else None,
             suppression_db=c["suppression_db"], target_db=c.get("target_db"), noise_floor_db=c.get("noise_floor_db"),
             error=c["error"])
-        if not ok and c.get("fill_theta_cos") is not None:      # the fill rule's entry (service/map_fill.py)
+        if not ok and c.get("fill_theta_cos") is not None:      # the fill rule's entry (service/maps/fill.py)
             cell.theta_cos, cell.theta_sin = c["fill_theta_cos"], c["fill_theta_sin"]
             cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(cell.theta_cos, cell.theta_sin))
             cell.filled, cell.fill_source = True, c["fill_source"]
@@ -590,7 +591,7 @@ class LutDownloadPublic(BaseModel):
     bytes: int = Field(description="size of the LUT image")
     cells: int = Field(description="cells of the map")
     valid_cells: int = Field(description="cells with status ok (VALID)")
-    filled_cells: int = Field(0, description="cells not ok that went in with their fill (service/map_fill.py); "
+    filled_cells: int = Field(0, description="cells not ok that went in with their fill (service/maps/fill.py); "
                               "the drive injects at ok and filled cells")
     fill: bool = Field(True, description="whether the fills were chosen for this download")
     interpolation: str = Field("cartesian", description="what the drive interpolates between cells: cartesian "

@@ -1,7 +1,7 @@
 """Refining a map on the drive until its LUT holds: what to measure next, from a validation in LUT mode.
 
 A refinement (POST /maps/{id}/refine) runs in rounds, each: validate the current map in the drive's own
-LUT mode (service/map_validation.py: every grid point and every midpoint between neighbouring grid
+LUT mode (service/runs/validation.py: every grid point and every midpoint between neighbouring grid
 values); where a point misses `target_db`, plan what to add; identify the new cells (priors from their
 neighbours); build the refined map; validate again. It ends when every validated point holds, or when
 the budget (`max_cells` cells identified in all) cannot pay for what is needed.
@@ -31,7 +31,7 @@ from itertools import product
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.identification.registry import METHODS
-from service.map_validation import ValidationOptions
+from service.runs.validation import ValidationOptions
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_ROUNDS = 8          # a refinement that has not converged in this many rounds stops and says so
