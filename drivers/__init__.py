@@ -3,6 +3,7 @@
 Every driver is chosen and configured by settings strings (python-can interface name, pyserial URL);
 none of them knows whether the bench behind the wire is real or emulated.
 """
+
 from pathlib import Path
 
 EDS_DIR = Path(__file__).resolve().parent / "eds"

@@ -13,6 +13,7 @@ heartbeat heard on our own COB-ID (0x700 + service_node_id) comes from another n
 `connect()` listens before it produces its heartbeat and refuses (ForeignMasterError) when one is
 heard; a connected bus keeps listening and `foreign_master()` names what it heard.
 """
+
 from __future__ import annotations
 
 import threading
@@ -70,15 +71,20 @@ class _OwnIdWatch(can.Listener):
         self.cob_id = cob_id
         self.lock = threading.Lock()
         self.first_frame_at: float | None = None
-        self.heard = threading.Event()          # a foreign heartbeat was heard (connect's listening ends)
+        self.heard = threading.Event()  # a foreign heartbeat was heard (connect's listening ends)
         self.foreign_count = 0
         self.foreign_last_at: float | None = None
 
     def on_message_received(self, msg: can.Message) -> None:
         now = time.monotonic()
-        own_echo = getattr(msg, "is_rx", True) is False      # a transport set to hand our frames back
-        foreign = (msg.arbitration_id == self.cob_id and not msg.is_extended_id and not msg.is_remote_frame
-                   and not msg.is_error_frame and not own_echo)
+        own_echo = getattr(msg, "is_rx", True) is False  # a transport set to hand our frames back
+        foreign = (
+            msg.arbitration_id == self.cob_id
+            and not msg.is_extended_id
+            and not msg.is_remote_frame
+            and not msg.is_error_frame
+            and not own_echo
+        )
         with self.lock:
             if self.first_frame_at is None:
                 self.first_frame_at = now
@@ -104,9 +110,17 @@ class CanBus:
     would hear itself: the check is off then).
     """
 
-    def __init__(self, interface: str, channel: str | int, host: str | None = None, port: int | None = None,
-                 bitrate: int | None = None, service_node_id: int = 1, heartbeat_period_ms: int = 100,
-                 **bus_kwargs: Any):
+    def __init__(
+        self,
+        interface: str,
+        channel: str | int,
+        host: str | None = None,
+        port: int | None = None,
+        bitrate: int | None = None,
+        service_node_id: int = 1,
+        heartbeat_period_ms: int = 100,
+        **bus_kwargs: Any,
+    ):
         if not 1 <= service_node_id <= 127:
             raise ValueError(f"service_node_id must be 1..127, got {service_node_id}")
         if heartbeat_period_ms <= 0:
@@ -128,8 +142,11 @@ class CanBus:
     def bus_kwargs(self) -> dict[str, Any]:
         """Arguments for can.Bus: the interface string decides the transport; unset options are left out
         so that each interface applies its own defaults (virtual has no host, socketcan no bitrate)."""
-        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel,
-                                  **INTERFACE_DEFAULTS.get(self.interface, {})}
+        kwargs: dict[str, Any] = {
+            "interface": self.interface,
+            "channel": self.channel,
+            **INTERFACE_DEFAULTS.get(self.interface, {}),
+        }
         for key in ("host", "port", "bitrate"):
             value = getattr(self, key)
             if value is not None:
@@ -154,7 +171,7 @@ class CanBus:
                 bus._lock_send_periodic = network.send_lock
             watch = None if self._hears_itself() else _OwnIdWatch(self.heartbeat_cob_id)
             if watch is not None:
-                network.listeners.append(watch)       # the notifier network.connect() starts calls it
+                network.listeners.append(watch)  # the notifier network.connect() starts calls it
             try:
                 network.connect()
                 if watch is not None:
@@ -162,7 +179,8 @@ class CanBus:
                     # master's drive alive on our account
                     self._listen_for_foreign_master(watch)
                 self._heartbeat_task = network.send_periodic(
-                    self.heartbeat_cob_id, bytes([NMT_STATE_OPERATIONAL]), self.heartbeat_period_ms / 1000.0)
+                    self.heartbeat_cob_id, bytes([NMT_STATE_OPERATIONAL]), self.heartbeat_period_ms / 1000.0
+                )
             except BaseException:
                 network.disconnect()
                 raise
@@ -186,7 +204,8 @@ class CanBus:
                 raise ForeignMasterError(
                     f"CAN bus {self._where()}: {self._describe_foreign(watch)}; two masters with one node id "
                     f"would both command the bench's devices, which would take the other's heartbeat for ours "
-                    f"(is another ripplecal serve, or a CLI run with --bench, on this bench?); not connected")
+                    f"(is another ripplecal serve, or a CLI run with --bench, on this bench?); not connected"
+                )
             if left <= 0:
                 return
 
@@ -247,7 +266,8 @@ class CanBus:
         network = self._network
         if network is None:
             raise NotConnectedError(
-                f"CAN bus {self.interface}:{self.channel} is not connected (call CanBus.connect() first)")
+                f"CAN bus {self.interface}:{self.channel} is not connected (call CanBus.connect() first)"
+            )
         return network
 
     def heartbeat_producing(self) -> bool:
@@ -256,7 +276,7 @@ class CanBus:
         task = self._heartbeat_task
         if task is None or self._network is None:
             return False
-        inner = getattr(task, "_task", task)          # canopen wraps python-can's cyclic task
+        inner = getattr(task, "_task", task)  # canopen wraps python-can's cyclic task
         thread = getattr(inner, "thread", None)
         if thread is not None and not thread.is_alive():
             return False

@@ -4,6 +4,7 @@ The drive firmware in plant_emulator walks `DEVICE_TRANSITIONS`; the master in d
 statusword with `decode_statusword` and follows `PATH_TO_OPERATION_ENABLED`. Bit patterns are those of
 CiA 402 (IEC 61800-7-201), section "Statusword" and "Controlword".
 """
+
 from __future__ import annotations
 
 from enum import Enum
@@ -61,22 +62,22 @@ CONTROLWORD: dict[Command402, int] = {
 # (current state, command) -> next state; anything not in the table leaves the state unchanged
 S, C = State402, Command402
 DEVICE_TRANSITIONS: dict[tuple[State402, Command402], State402] = {
-    (S.SWITCH_ON_DISABLED, C.SHUTDOWN): S.READY_TO_SWITCH_ON,                 # 2
-    (S.READY_TO_SWITCH_ON, C.SWITCH_ON): S.SWITCHED_ON,                       # 3
-    (S.READY_TO_SWITCH_ON, C.ENABLE_OPERATION): S.OPERATION_ENABLED,          # 3+4
-    (S.SWITCHED_ON, C.ENABLE_OPERATION): S.OPERATION_ENABLED,                 # 4
+    (S.SWITCH_ON_DISABLED, C.SHUTDOWN): S.READY_TO_SWITCH_ON,  # 2
+    (S.READY_TO_SWITCH_ON, C.SWITCH_ON): S.SWITCHED_ON,  # 3
+    (S.READY_TO_SWITCH_ON, C.ENABLE_OPERATION): S.OPERATION_ENABLED,  # 3+4
+    (S.SWITCHED_ON, C.ENABLE_OPERATION): S.OPERATION_ENABLED,  # 4
     # 5: 'disable operation' is coded 0x07, the same word as 'switch on'
-    (S.OPERATION_ENABLED, C.SWITCH_ON): S.SWITCHED_ON,                        # 5
-    (S.SWITCHED_ON, C.SHUTDOWN): S.READY_TO_SWITCH_ON,                        # 6
-    (S.READY_TO_SWITCH_ON, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,          # 7
-    (S.READY_TO_SWITCH_ON, C.QUICK_STOP): S.SWITCH_ON_DISABLED,               # 7
-    (S.OPERATION_ENABLED, C.SHUTDOWN): S.READY_TO_SWITCH_ON,                  # 8
-    (S.OPERATION_ENABLED, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,           # 9
-    (S.SWITCHED_ON, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,                 # 10
-    (S.SWITCHED_ON, C.QUICK_STOP): S.SWITCH_ON_DISABLED,                      # 10
-    (S.OPERATION_ENABLED, C.QUICK_STOP): S.QUICK_STOP_ACTIVE,                 # 11
-    (S.QUICK_STOP_ACTIVE, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,           # 12
-    (S.FAULT, C.FAULT_RESET): S.SWITCH_ON_DISABLED,                           # 15
+    (S.OPERATION_ENABLED, C.SWITCH_ON): S.SWITCHED_ON,  # 5
+    (S.SWITCHED_ON, C.SHUTDOWN): S.READY_TO_SWITCH_ON,  # 6
+    (S.READY_TO_SWITCH_ON, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,  # 7
+    (S.READY_TO_SWITCH_ON, C.QUICK_STOP): S.SWITCH_ON_DISABLED,  # 7
+    (S.OPERATION_ENABLED, C.SHUTDOWN): S.READY_TO_SWITCH_ON,  # 8
+    (S.OPERATION_ENABLED, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,  # 9
+    (S.SWITCHED_ON, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,  # 10
+    (S.SWITCHED_ON, C.QUICK_STOP): S.SWITCH_ON_DISABLED,  # 10
+    (S.OPERATION_ENABLED, C.QUICK_STOP): S.QUICK_STOP_ACTIVE,  # 11
+    (S.QUICK_STOP_ACTIVE, C.DISABLE_VOLTAGE): S.SWITCH_ON_DISABLED,  # 12
+    (S.FAULT, C.FAULT_RESET): S.SWITCH_ON_DISABLED,  # 15
 }
 del S, C
 
@@ -104,7 +105,11 @@ def decode_statusword(statusword: int) -> State402:
 def encode_statusword(state: State402, extra_bits: int = STATUSWORD_REMOTE) -> int:
     """Statusword a device in `state` reports (remote bit set by default)."""
     _, value = STATUSWORD_PATTERNS[state]
-    voltage = STATUSWORD_VOLTAGE_ENABLED if state in TORQUE_STATES | {State402.SWITCHED_ON, State402.READY_TO_SWITCH_ON} else 0
+    voltage = (
+        STATUSWORD_VOLTAGE_ENABLED
+        if state in TORQUE_STATES | {State402.SWITCHED_ON, State402.READY_TO_SWITCH_ON}
+        else 0
+    )
     return value | voltage | extra_bits
 
 

@@ -9,6 +9,7 @@ Enabling follows drivers.cia402.PATH_TO_OPERATION_ENABLED one command at a time 
 deadline, for the statusword to show each step; disabling is the safety path and tries every step even
 when one fails (subclasses add their own "make it harmless first" steps, e.g. torque 0).
 """
+
 from __future__ import annotations
 
 import queue
@@ -19,10 +20,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 import canopen
+from can import CanError
 from canopen.emcy import EmcyError
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
-from can import CanError
 
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import (
@@ -94,8 +95,7 @@ class Cia402Master:
 
     device_kind = "CiA 402 device"
 
-    def __init__(self, bus: CanBus, node_id: int, eds_path: Path, mode_of_operation: int,
-                 sdo_timeout_s: float = 0.5):
+    def __init__(self, bus: CanBus, node_id: int, eds_path: Path, mode_of_operation: int, sdo_timeout_s: float = 0.5):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node_id must be 1..127, got {node_id}")
         if sdo_timeout_s <= 0:
@@ -110,7 +110,7 @@ class Cia402Master:
         self.node.sdo.MAX_RETRIES = 1
         # one SDO transfer at a time: the SDO client keeps a single response queue per node
         self._sdo_lock = threading.RLock()
-        self._sdo_failed_at: float | None = None    # monotonic time of a transaction that lost its answer
+        self._sdo_failed_at: float | None = None  # monotonic time of a transaction that lost its answer
         self._network: canopen.Network | None = None
         self._heartbeat_lock = threading.Lock()
         self._heartbeat_seen_monotonic: float | None = None
@@ -156,8 +156,10 @@ class Cia402Master:
         # the heartbeat interlock trips on a device never heard; the bench is ready only once each was heard
         timeout_s = max(HEARTBEAT_ALIVE_PERIODS * self.heartbeat_period_ms / 1000.0, FIRST_HEARTBEAT_WAIT_MIN_S)
         if not self._heartbeat_first_seen.wait(timeout_s):
-            raise HeartbeatMissingError(f"{self.device_kind} node {self.node_id}: answers SDO but sent no heartbeat "
-                                        f"within {timeout_s:g} s (producer period 0x1017 = {self.heartbeat_period_ms} ms)")
+            raise HeartbeatMissingError(
+                f"{self.device_kind} node {self.node_id}: answers SDO but sent no heartbeat "
+                f"within {timeout_s:g} s (producer period 0x1017 = {self.heartbeat_period_ms} ms)"
+            )
 
     def _after_connect(self) -> None:
         """Hook for subclasses: read constants the device reports (e.g. rated torque)."""
@@ -203,12 +205,26 @@ class Cia402Master:
         name = self._object_name(index, subindex)
         if isinstance(exc, SdoAbortedError):
             meaning = SdoAbortedError.CODES.get(exc.code, "unknown abort code")
-            return SdoAbortError(self.node_id, action, index, subindex, name,
-                                 f"aborted with 0x{exc.code:08X} ({meaning})", abort_code=exc.code, value=value)
+            return SdoAbortError(
+                self.node_id,
+                action,
+                index,
+                subindex,
+                name,
+                f"aborted with 0x{exc.code:08X} ({meaning})",
+                abort_code=exc.code,
+                value=value,
+            )
         if isinstance(exc, SdoCommunicationError) and "No SDO response" in str(exc):
-            return SdoTimeoutError(self.node_id, action, index, subindex, name,
-                                   f"no SDO response within {self.sdo_timeout_s:g} s "
-                                   f"(is node {self.node_id} on the bus and powered?)", value=value)
+            return SdoTimeoutError(
+                self.node_id,
+                action,
+                index,
+                subindex,
+                name,
+                f"no SDO response within {self.sdo_timeout_s:g} s (is node {self.node_id} on the bus and powered?)",
+                value=value,
+            )
         if isinstance(exc, CanError):
             return SdoError(self.node_id, action, index, subindex, name, f"CAN transport error: {exc}", value=value)
         return SdoError(self.node_id, action, index, subindex, name, f"{type(exc).__name__}: {exc}", value=value)
@@ -256,8 +272,9 @@ class Cia402Master:
                 raise self._translate("write", index, subindex, exc, value) from exc
             except (struct.error, TypeError, ValueError) as exc:
                 name = self._object_name(index, subindex)
-                raise ValueError(f"node {self.node_id}: value {value!r} does not fit 0x{index:04X}:{subindex:02X} "
-                                 f"'{name}': {exc}") from exc
+                raise ValueError(
+                    f"node {self.node_id}: value {value!r} does not fit 0x{index:04X}:{subindex:02X} '{name}': {exc}"
+                ) from exc
 
     def download_domain(self, index: int, subindex: int, data: bytes) -> None:
         """Write a DOMAIN object by segmented SDO transfer (block transfer is never used)."""
@@ -284,15 +301,17 @@ class Cia402Master:
         try:
             return decode_statusword(statusword)
         except ValueError as exc:
-            raise SdoError(self.node_id, "read", OD_STATUSWORD, 0, self._object_name(OD_STATUSWORD, 0),
-                           str(exc)) from exc
+            raise SdoError(
+                self.node_id, "read", OD_STATUSWORD, 0, self._object_name(OD_STATUSWORD, 0), str(exc)
+            ) from exc
 
     def send_command(self, command: Command402) -> None:
         """Write the controlword that carries one CiA 402 command."""
         self.write(OD_CONTROLWORD, 0, CONTROLWORD[command])
 
-    def wait_for_state(self, accept: Callable[[State402], bool], deadline: float, what: str,
-                       last_command: Command402 | None = None) -> State402:
+    def wait_for_state(
+        self, accept: Callable[[State402], bool], deadline: float, what: str, last_command: Command402 | None = None
+    ) -> State402:
         """Poll the statusword until accept(state) or the monotonic deadline passes."""
         while True:
             statusword = self.statusword()
@@ -303,7 +322,8 @@ class Cia402Master:
                 sent = f" after {last_command.name}" if last_command is not None else ""
                 raise StateTransitionError(
                     f"{self.device_kind} node {self.node_id}: {what} did not happen{sent}; "
-                    f"still {state.name} (statusword 0x{statusword:04X}){self._fault_hint(state)}")
+                    f"still {state.name} (statusword 0x{statusword:04X}){self._fault_hint(state)}"
+                )
             time.sleep(STATUS_POLL_INTERVAL_S)
 
     def _fault_hint(self, state: State402) -> str:
@@ -345,12 +365,17 @@ class Cia402Master:
                 raise DriveFaultError(self.fault_description() + " while enabling; acknowledge it with a fault reset")
             if command is None:
                 # transient states (NOT_READY_TO_SWITCH_ON, FAULT_REACTION_ACTIVE) advance by themselves
-                state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
-                                            f"leaving {state.name} on its own")
+                state = self.wait_for_state(
+                    lambda s, prev=state: s is not prev, deadline, f"leaving {state.name} on its own"
+                )
                 continue
             self.send_command(command)
-            state = self.wait_for_state(lambda s, prev=state: s is not prev, deadline,
-                                        f"transition out of {state.name} towards OPERATION_ENABLED", command)
+            state = self.wait_for_state(
+                lambda s, prev=state: s is not prev,
+                deadline,
+                f"transition out of {state.name} towards OPERATION_ENABLED",
+                command,
+            )
 
     def fault_reset(self, timeout_s: float = 2.0, fault_reaction_timeout_s: float = FAULT_REACTION_WAIT_S) -> bool:
         """Acknowledge a FAULT: rising edge on controlword bit 7, wait (timeout_s) for it to leave FAULT.
@@ -370,11 +395,12 @@ class Cia402Master:
                     raise FaultReactionActiveError(
                         f"{self.device_kind} node {self.node_id} is {doing} after its fault (FAULT_REACTION_ACTIVE, "
                         f"waited {time.monotonic() - waited_from:.0f} s)"
-                        f"{self._fault_hint(State402.FAULT_REACTION_ACTIVE)}; try the reset again when it has stopped")
-                time.sleep(FAULT_REACTION_POLL_S)     # seconds to wait: a statusword read per 50 ms will do
+                        f"{self._fault_hint(State402.FAULT_REACTION_ACTIVE)}; try the reset again when it has stopped"
+                    )
+                time.sleep(FAULT_REACTION_POLL_S)  # seconds to wait: a statusword read per 50 ms will do
                 state = self.state()
             if state is not State402.FAULT:
-                return False          # the reaction ended elsewhere than in FAULT: nothing to acknowledge
+                return False  # the reaction ended elsewhere than in FAULT: nothing to acknowledge
         deadline = time.monotonic() + timeout_s
         # fault reset acts on the 0 -> 1 edge of bit 7
         self.send_command(Command402.DISABLE_VOLTAGE)
@@ -399,9 +425,15 @@ class Cia402Master:
         errors: list[BaseException] = []
         steps = self._safe_steps() + [
             ("disable voltage", lambda: self.send_command(Command402.DISABLE_VOLTAGE)),
-            ("wait for SWITCH_ON_DISABLED", lambda: self.wait_for_state(
-                lambda s: s in (State402.SWITCH_ON_DISABLED, State402.FAULT), time.monotonic() + timeout_s,
-                "switching off", Command402.DISABLE_VOLTAGE)),
+            (
+                "wait for SWITCH_ON_DISABLED",
+                lambda: self.wait_for_state(
+                    lambda s: s in (State402.SWITCH_ON_DISABLED, State402.FAULT),
+                    time.monotonic() + timeout_s,
+                    "switching off",
+                    Command402.DISABLE_VOLTAGE,
+                ),
+            ),
         ]
         for _name, step in steps:
             try:

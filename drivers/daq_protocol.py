@@ -1,4 +1,4 @@
-"""DAQ stream frame format (DESIGN section 5): encoding and vectorised decoding.
+"""DAQ stream frame format (docs/interfaces.md, "DAQ stream frame"): encoding and vectorised decoding.
 
 One little-endian frame of 12 bytes per sample:
 
@@ -23,6 +23,7 @@ backpressure (`note_pause`: a DAQ that streams on overflows meanwhile, so whole 
 intact bytes around them in what follows are an `overrun`), and when it reopened a lost port
 (`note_reconnect`: the jump is the disconnect's, which the reader counts).
 """
+
 from __future__ import annotations
 
 import math
@@ -32,7 +33,7 @@ import numpy as np
 
 FRAME_BYTES = 12
 SYNC = b"\xa5\x5a"
-SYNC_0, SYNC_1 = SYNC            # the two sync bytes as ints (0xA5, 0x5A)
+SYNC_0, SYNC_1 = SYNC  # the two sync bytes as ints (0xA5, 0x5A)
 FLAG_OVER_RANGE = 1 << 0
 FLAG_SENSOR_FAULT = 1 << 1
 FLAG_SYNC_INPUT = 1 << 2
@@ -41,8 +42,15 @@ ANGLE_COUNTS_PER_TURN = 65536
 ACCEL_FULL_SCALE_COUNTS = 32767
 
 FRAME_DTYPE = np.dtype(
-    [("sync0", "u1"), ("sync1", "u1"), ("seq", "<u2"), ("angle", "<u2"), ("accel", "<i2"),
-     ("flags", "<u2"), ("crc", "<u2")]
+    [
+        ("sync0", "u1"),
+        ("sync1", "u1"),
+        ("seq", "<u2"),
+        ("angle", "<u2"),
+        ("accel", "<i2"),
+        ("flags", "<u2"),
+        ("crc", "<u2"),
+    ]
 )
 assert FRAME_DTYPE.itemsize == FRAME_BYTES
 # byte offsets of the little-endian uint16/int16 fields, from the dtype
@@ -51,7 +59,7 @@ OFFSET_ANGLE = FRAME_DTYPE.fields["angle"][1]
 OFFSET_ACCEL = FRAME_DTYPE.fields["accel"][1]
 OFFSET_FLAGS = FRAME_DTYPE.fields["flags"][1]
 OFFSET_CRC = FRAME_DTYPE.fields["crc"][1]
-CRC_FIRST, CRC_STOP = OFFSET_SEQ, OFFSET_CRC    # the CRC covers bytes [CRC_FIRST, CRC_STOP)
+CRC_FIRST, CRC_STOP = OFFSET_SEQ, OFFSET_CRC  # the CRC covers bytes [CRC_FIRST, CRC_STOP)
 CRC_INIT = 0xFFFF
 
 
@@ -90,8 +98,7 @@ def crc16_rows(rows: np.ndarray) -> np.ndarray:
     return crc
 
 
-def encode_frames(seq: np.ndarray, angle_counts: np.ndarray, accel_counts: np.ndarray,
-                  flags: np.ndarray) -> bytes:
+def encode_frames(seq: np.ndarray, angle_counts: np.ndarray, accel_counts: np.ndarray, flags: np.ndarray) -> bytes:
     """Frames for n samples; inputs are arrays of the wire integers (seq wraps modulo 65536)."""
     n = len(seq)
     frames = np.zeros(n, dtype=FRAME_DTYPE)
@@ -112,6 +119,7 @@ class DecodedSamples:
     index: unwrapped sample number (the measurement clock; continues across the 65536 wrap).
     gap_before: True where samples were lost or a bad frame was skipped just before this sample.
     """
+
     index: np.ndarray
     angle_rad: np.ndarray
     accel_fs: np.ndarray
@@ -151,6 +159,7 @@ class DecoderCounters:
     Not line errors: flush_* (what the reader's own flush of the port discarded: the resync and jump
     right after it), overruns (whole frames missing, bytes intact, after a backpressure pause: the
     DAQ overflowed while nobody read) and overrun_samples_lost."""
+
     frames: int = 0
     crc_failures: int = 0
     sequence_gaps: int = 0
@@ -167,13 +176,14 @@ class DecoderCounters:
 @dataclass
 class FrameDecoder:
     """Stateful decoder: feed byte chunks, get samples. Resynchronises on sync + valid CRC."""
+
     counters: DecoderCounters = field(default_factory=DecoderCounters)
     _pending: bytes = b""
     _last_seq: int | None = None
     _last_index: int = -1
     _bad_since_last: bool = False
-    _break: str | None = None       # "flush" / "reconnect": the next valid frame's hole is this one's
-    _overrun_bytes_left: int = 0    # bytes after a backpressure pause in which a clean jump is an overrun
+    _break: str | None = None  # "flush" / "reconnect": the next valid frame's hole is this one's
+    _overrun_bytes_left: int = 0  # bytes after a backpressure pause in which a clean jump is an overrun
 
     def note_flush(self) -> None:
         """The port's input buffer was just discarded: the resync and sequence jump before the next
@@ -202,8 +212,9 @@ class FrameDecoder:
         # candidate frame starts: every sync pattern with a whole frame after it
         cand = np.flatnonzero((arr[: n - FRAME_BYTES + 1] == SYNC_0) & (arr[1 : n - FRAME_BYTES + 2] == SYNC_1))
         rows = arr[cand[:, None] + np.arange(FRAME_BYTES)] if len(cand) else np.zeros((0, FRAME_BYTES), np.uint8)
-        crc_ok = crc16_rows(rows[:, CRC_FIRST:CRC_STOP]) == (rows[:, OFFSET_CRC].astype(np.uint16)
-                                                             | (rows[:, OFFSET_CRC + 1].astype(np.uint16) << 8))
+        crc_ok = crc16_rows(rows[:, CRC_FIRST:CRC_STOP]) == (
+            rows[:, OFFSET_CRC].astype(np.uint16) | (rows[:, OFFSET_CRC + 1].astype(np.uint16) << 8)
+        )
         starts = cand[crc_ok]
         # a valid frame may contain a false sync pattern with a (rare) valid CRC: keep non-overlapping ones
         if len(starts) > 1 and np.any(np.diff(starts) < FRAME_BYTES):
@@ -238,7 +249,12 @@ class FrameDecoder:
         if not len(starts):
             self._bad_since_last = self._bad_since_last or skipped > 0
             return DecodedSamples.empty()
-        frames = np.frombuffer(buf, dtype=np.uint8)[starts[:, None] + np.arange(FRAME_BYTES)].copy().view(FRAME_DTYPE).ravel()
+        frames = (
+            np.frombuffer(buf, dtype=np.uint8)[starts[:, None] + np.arange(FRAME_BYTES)]
+            .copy()
+            .view(FRAME_DTYPE)
+            .ravel()
+        )
         seq = frames["seq"].astype(np.int64)
         prev = np.empty_like(seq)
         prev[1:] = seq[:-1]

@@ -33,6 +33,7 @@ instead of taking half of the frames. URLs (socket://, loop://, ...) have no suc
 What the port holds when it is first opened was streamed while nobody read: whole frames missing in
 it are the DAQ's overruns (as after a backpressure pause), not line errors.
 """
+
 from __future__ import annotations
 
 import collections
@@ -77,8 +78,14 @@ class DaqReader:
     calls and decoded as one batch of up to COALESCE_MAX_BYTES).
     """
 
-    def __init__(self, url: str, max_buffered_samples: int = 16384, read_chunk_bytes: int = 8192,
-                 baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True):
+    def __init__(
+        self,
+        url: str,
+        max_buffered_samples: int = 16384,
+        read_chunk_bytes: int = 8192,
+        baudrate: int = DEFAULT_BAUDRATE,
+        reconnect: bool = True,
+    ):
         if max_buffered_samples < 1:
             raise ValueError(f"max_buffered_samples must be >= 1, got {max_buffered_samples}")
         if read_chunk_bytes < FRAME_BYTES:
@@ -101,7 +108,7 @@ class DaqReader:
         self._error: BaseException | None = None
         self._connected = False
         self._mark_gap = False
-        self._disconnects = 0           # a read that saw this change while waiting has a hole in it
+        self._disconnects = 0  # a read that saw this change while waiting has a hole in it
         self._reconnects = 0
         self._last_data_monotonic: float | None = None
         self._sensor_fault_samples = 0
@@ -153,14 +160,19 @@ class DaqReader:
         when another reader holds that lock."""
         lockable = "://" not in self.url and os.name == "posix"
         try:
-            return serial.serial_for_url(self.url, timeout=SERIAL_READ_TIMEOUT_S, baudrate=self.baudrate,
-                                         **({"exclusive": True} if lockable else {}))
+            return serial.serial_for_url(
+                self.url,
+                timeout=SERIAL_READ_TIMEOUT_S,
+                baudrate=self.baudrate,
+                **({"exclusive": True} if lockable else {}),
+            )
         except serial.SerialException as exc:
             if lockable and exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
                 raise DaqPortBusy(
                     f"DAQ {self.url}: another process holds this port (its exclusive lock is taken): one "
                     "reader per DAQ; is another ripplecal (serve, or identify / sweep / maps download with "
-                    "--bench) reading it? Stop that one first") from exc
+                    "--bench) reading it? Stop that one first"
+                ) from exc
             raise
 
     def _run(self) -> None:
@@ -171,7 +183,7 @@ class DaqReader:
             while True:
                 try:
                     self._read_port(decoder)
-                    return                                   # close() asked
+                    return  # close() asked
                 except BaseException as exc:  # noqa: BLE001 - reported to the consumer as DaqDisconnected
                     with self._cond:
                         if self._stop:
@@ -183,7 +195,7 @@ class DaqReader:
                     self._close_port()
                     if not self.reconnect or not self._reopen_with_backoff():
                         return
-                    decoder.note_reconnect()                 # its hole is the disconnect's
+                    decoder.note_reconnect()  # its hole is the disconnect's
         finally:
             with self._cond:
                 self._running = False
@@ -230,8 +242,11 @@ class DaqReader:
         while True:
             with cond:
                 paused = False
-                while (not self._stop and not self._flush_requested
-                       and self._buffered >= max(self.max_buffered_samples, self._demand)):
+                while (
+                    not self._stop
+                    and not self._flush_requested
+                    and self._buffered >= max(self.max_buffered_samples, self._demand)
+                ):
                     paused = True
                     cond.wait(SERIAL_READ_TIMEOUT_S)
                     # paused by backpressure we read nothing, so look for an unplugged port directly
@@ -248,8 +263,8 @@ class DaqReader:
                 try:
                     port.reset_input_buffer()
                 except (OSError, serial.SerialException, AttributeError):
-                    pass    # not every pyserial URL type can flush
-                decoder.note_flush()    # the resync and jump at the next frame are this flush's
+                    pass  # not every pyserial URL type can flush
+                decoder.note_flush()  # the resync and jump at the next frame are this flush's
                 with cond:
                     self._flush_requested = False
                     self._flushes += 1
@@ -346,7 +361,7 @@ class DaqReader:
         with self._cond:
             self._wait_buffered(1, timeout_s, lambda: "no sample arrived")
             taken = self._take(min(max_n, self._buffered))
-            self._cond.notify_all()     # room freed: a reader thread paused for backpressure goes on
+            self._cond.notify_all()  # room freed: a reader thread paused for backpressure goes on
             return taken
 
     def _wait_buffered(self, n: int, timeout_s: float, shortfall) -> None:
@@ -361,8 +376,10 @@ class DaqReader:
                 raise DaqDisconnected(self._disconnected_message(n))
             remaining_s = deadline - time.monotonic()
             if remaining_s <= 0:
-                raise DaqTimeout(f"DAQ {self.url}: {shortfall()} within {timeout_s:g} s "
-                                 f"({self._bytes_read} bytes read so far, decoder {self._counters})")
+                raise DaqTimeout(
+                    f"DAQ {self.url}: {shortfall()} within {timeout_s:g} s "
+                    f"({self._bytes_read} bytes read so far, decoder {self._counters})"
+                )
             self._cond.wait(remaining_s)
 
     def _disconnected_message(self, n: int) -> str:
@@ -375,8 +392,10 @@ class DaqReader:
         else:
             cause = "reader thread ended"
         again = "; reopening it with backoff" if self._running and self.reconnect and not self._stop else ""
-        return (f"DAQ {self.url} disconnected ({cause}){again}; {self._buffered} of {n} requested samples were "
-                f"left after {self._samples_delivered} delivered")
+        return (
+            f"DAQ {self.url} disconnected ({cause}){again}; {self._buffered} of {n} requested samples were "
+            f"left after {self._samples_delivered} delivered"
+        )
 
     def _take(self, n: int) -> DecodedSamples:
         """Pop exactly n samples (caller holds the lock and has checked that n are buffered)."""
@@ -458,15 +477,24 @@ class DaqReader:
         with self._cond:
             age = None if self._last_data_monotonic is None else time.monotonic() - self._last_data_monotonic
             err = self._error
-            return {**dataclasses.asdict(self._counters), "flushes": self._flushes,
-                    "url": self.url, "connected": self._running and self._connected,
-                    "last_error": None if err is None else f"{type(err).__name__}: {err}",
-                    "data_age_s": None if age is None else round(age, 3),
-                    # stale: room to read, yet nothing came for a second (a full buffer is backpressure, not staleness)
-                    "stale": bool(self._connected and (age is None or age > 1.0)
-                                  and self._buffered < max(self.max_buffered_samples, self._demand)),
-                    "reconnects": self._reconnects, "sensor_fault_samples": self._sensor_fault_samples,
-                    "disconnects": self._disconnects, "buffered_samples": self._buffered}
+            return {
+                **dataclasses.asdict(self._counters),
+                "flushes": self._flushes,
+                "url": self.url,
+                "connected": self._running and self._connected,
+                "last_error": None if err is None else f"{type(err).__name__}: {err}",
+                "data_age_s": None if age is None else round(age, 3),
+                # stale: room to read, yet nothing came for a second (a full buffer is backpressure, not staleness)
+                "stale": bool(
+                    self._connected
+                    and (age is None or age > 1.0)
+                    and self._buffered < max(self.max_buffered_samples, self._demand)
+                ),
+                "reconnects": self._reconnects,
+                "sensor_fault_samples": self._sensor_fault_samples,
+                "disconnects": self._disconnects,
+                "buffered_samples": self._buffered,
+            }
 
 
 def _bytes_waiting(port: serial.SerialBase) -> int:

@@ -6,6 +6,7 @@ missing or unparsable reply is an error that quotes the command and what came ba
 a supply in local mode is recognisable from the message alone. set_voltage reads the setpoint back:
 SCPI has no acknowledge, and a supply that clamps or ignores the value must not pass silently.
 """
+
 from __future__ import annotations
 
 import math
@@ -33,16 +34,16 @@ def _no_nagle(port) -> None:
 class ScpiSupply:
     """SCPI DC supply. url: any pyserial URL (/dev/ttyUSB0, socket://127.0.0.1:5025, loop://)."""
 
-    def __init__(self, url: str, timeout_s: float = 1.0, baudrate: int = 9600,
-                 setpoint_tolerance_v: float = 0.01):
+    def __init__(self, url: str, timeout_s: float = 1.0, baudrate: int = 9600, setpoint_tolerance_v: float = 0.01):
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
         self.url = url
         self.timeout_s = timeout_s
         self.setpoint_tolerance_v = setpoint_tolerance_v
         # short per-read timeout; the reply deadline is enforced in _readline
-        self._port = serial.serial_for_url(url, timeout=min(0.05, timeout_s), write_timeout=timeout_s,
-                                           baudrate=baudrate)
+        self._port = serial.serial_for_url(
+            url, timeout=min(0.05, timeout_s), write_timeout=timeout_s, baudrate=baudrate
+        )
         _no_nagle(self._port)
         self._lock = threading.Lock()
         self._rx = bytearray()
@@ -81,8 +82,10 @@ class ScpiSupply:
             if time.monotonic() >= deadline:
                 got = bytes(self._rx)
                 self._rx.clear()
-                raise ScpiTimeout(f"supply {self.url}: no reply to {command!r} within {self.timeout_s:g} s"
-                                  + (f" (partial reply {got!r})" if got else ""))
+                raise ScpiTimeout(
+                    f"supply {self.url}: no reply to {command!r} within {self.timeout_s:g} s"
+                    + (f" (partial reply {got!r})" if got else "")
+                )
             if len(self._rx) > MAX_REPLY_BYTES:
                 got = bytes(self._rx)
                 self._rx.clear()
@@ -125,8 +128,10 @@ class ScpiSupply:
         self.write(f"VOLT {voltage_v:.6g}")
         setpoint_v = self.voltage_setpoint()
         if abs(setpoint_v - voltage_v) > max(self.setpoint_tolerance_v, 1e-4 * abs(voltage_v)):
-            raise ScpiError(f"supply {self.url}: setpoint read back as {setpoint_v:g} V after 'VOLT {voltage_v:.6g}' "
-                            "(limit, range or local mode?)")
+            raise ScpiError(
+                f"supply {self.url}: setpoint read back as {setpoint_v:g} V after 'VOLT {voltage_v:.6g}' "
+                "(limit, range or local mode?)"
+            )
         return setpoint_v
 
     def voltage_setpoint(self) -> float:

@@ -5,6 +5,7 @@ Units are converted here and nowhere else: the service speaks newtons-metres, rp
 the wire speaks per mille of the rated torque, mV and REAL32. Setpoints are checked before anything
 goes out, so a refused value never reaches the bench half-applied.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,29 +20,29 @@ from drivers.errors import ConfigurationError, SdoError, SdoTimeoutError
 
 MODE_PROFILE_TORQUE = 4
 
-OD_VELOCITY_ACTUAL = 0x606C      # I32, rpm (mechanical)
-OD_TARGET_TORQUE = 0x6071        # I16, per mille of rated torque
-OD_RATED_TORQUE = 0x6076         # U32, mNm
-OD_TORQUE_ACTUAL = 0x6077        # I16, per mille of rated torque
-OD_DC_LINK_VOLTAGE = 0x6079      # U32, mV
+OD_VELOCITY_ACTUAL = 0x606C  # I32, rpm (mechanical)
+OD_TARGET_TORQUE = 0x6071  # I16, per mille of rated torque
+OD_RATED_TORQUE = 0x6076  # U32, mNm
+OD_TORQUE_ACTUAL = 0x6077  # I16, per mille of rated torque
+OD_DC_LINK_VOLTAGE = 0x6079  # U32, mV
 OD_INJECTION = 0x2000
-SUB_HARMONIC_ORDER = 1           # U8
-SUB_INJECTION_MODE = 2           # U8: 0 off, 1 manual, 2 LUT
-SUB_THETA_COS = 3                # REAL32 rad, staged
-SUB_THETA_SIN = 4                # REAL32 rad, staged
-SUB_GAMMA_MAX = 5                # REAL32 rad
-SUB_DECOUPLING = 6               # U8
-SUB_COMMIT = 7                   # U8: write 1 applies the staged pair; reads commits mod 256
+SUB_HARMONIC_ORDER = 1  # U8
+SUB_INJECTION_MODE = 2  # U8: 0 off, 1 manual, 2 LUT
+SUB_THETA_COS = 3  # REAL32 rad, staged
+SUB_THETA_SIN = 4  # REAL32 rad, staged
+SUB_GAMMA_MAX = 5  # REAL32 rad
+SUB_DECOUPLING = 6  # U8
+SUB_COMMIT = 7  # U8: write 1 applies the staged pair; reads commits mod 256
 OD_LUT = 0x2001
-SUB_LUT_DATA = 1                 # DOMAIN
-SUB_LUT_CRC = 2                  # U32, CRC-32 of the LUT in force (lut_image.image_crc), 0: none
-SUB_LUT_STATUS = 3               # U8, LUT_STATUSES
-SUB_LUT_MAP_ID = 4               # U32, map id of the LUT in force (from the image header), 0: none
+SUB_LUT_DATA = 1  # DOMAIN
+SUB_LUT_CRC = 2  # U32, CRC-32 of the LUT in force (lut_image.image_crc), 0: none
+SUB_LUT_STATUS = 3  # U8, LUT_STATUSES
+SUB_LUT_MAP_ID = 4  # U32, map id of the LUT in force (from the image header), 0: none
 # 0x2001:3; after a refused download the LUT before it stays in force (its map id and CRC still read)
 LUT_STATUSES = {0: "none", 1: "in_force", 2: "last_download_refused"}
 OD_VOLTAGE_REFERENCE = 0x2010
-SUB_UD_REF = 1                   # REAL32 V
-SUB_UQ_REF = 2                   # REAL32 V
+SUB_UD_REF = 1  # REAL32 V
+SUB_UQ_REF = 2  # REAL32 V
 
 INJECTION_OFF = 0
 INJECTION_MANUAL = 1
@@ -49,8 +50,15 @@ INJECTION_LUT = 2
 INJECTION_MODES = {"off": INJECTION_OFF, "manual": INJECTION_MANUAL, "lut": INJECTION_LUT}
 
 # writes the drive applies as a new setpoint, each toggling the DAQ sync line once (docs/interfaces.md)
-SETPOINT_OBJECTS = frozenset({(OD_TARGET_TORQUE, 0), (OD_INJECTION, SUB_HARMONIC_ORDER), (OD_INJECTION, SUB_INJECTION_MODE),
-                              (OD_INJECTION, SUB_DECOUPLING), (OD_INJECTION, SUB_COMMIT)})
+SETPOINT_OBJECTS = frozenset(
+    {
+        (OD_TARGET_TORQUE, 0),
+        (OD_INJECTION, SUB_HARMONIC_ORDER),
+        (OD_INJECTION, SUB_INJECTION_MODE),
+        (OD_INJECTION, SUB_DECOUPLING),
+        (OD_INJECTION, SUB_COMMIT),
+    }
+)
 
 PER_MILLE = 1000.0
 
@@ -58,6 +66,7 @@ PER_MILLE = 1000.0
 @dataclass(frozen=True)
 class DriveStatus:
     """One snapshot of the drive, in SI-ish units (read by SDO, one object after the other)."""
+
     state: State402
     torque_nm: float
     speed_rpm: float
@@ -69,9 +78,10 @@ class DriveStatus:
 @dataclass(frozen=True)
 class LutInForce:
     """Which LUT the drive holds, as it reports it (0x2001:4, :2, :3)."""
-    map_id: int                # 0: no LUT
-    crc32: int                 # lut_image.image_crc of the image in force, 0: no LUT
-    status: str                # LUT_STATUSES
+
+    map_id: int  # 0: no LUT
+    crc32: int  # lut_image.image_crc of the image in force, 0: no LUT
+    status: str  # LUT_STATUSES
 
 
 class DriveClient(Cia402Master):
@@ -89,7 +99,7 @@ class DriveClient(Cia402Master):
         super().__init__(bus, node_id, DRIVE_EDS, MODE_PROFILE_TORQUE, sdo_timeout_s)
         self.rated_torque_nm: float | None = None
         self.setpoints_written = 0
-        self.commits_expected: int | None = None   # the drive's commit counter as we expect it (mod 256)
+        self.commits_expected: int | None = None  # the drive's commit counter as we expect it (mod 256)
         # told the running number of every setpoint accepted (the service times its sync toggle)
         self.on_setpoint: Callable[[int], None] | None = None
 
@@ -130,8 +140,12 @@ class DriveClient(Cia402Master):
         setpoint pending (the caller's job: the drive applies one per DAQ chunk). Returns what was
         corrected, for the log: {"commits_reported", "commits_expected", "setpoints_written_before"}."""
         reported = self.commit_count()
-        report = {"commits_reported": reported, "commits_expected": self.commits_expected,
-                  "setpoints_written_before": self.setpoints_written, "toggles_seen": toggles_seen}
+        report = {
+            "commits_reported": reported,
+            "commits_expected": self.commits_expected,
+            "setpoints_written_before": self.setpoints_written,
+            "toggles_seen": toggles_seen,
+        }
         self.commits_expected = reported
         self.setpoints_written = toggles_seen
         return report
@@ -139,13 +153,14 @@ class DriveClient(Cia402Master):
     def _after_connect(self) -> None:
         rated_mnm = int(self.read(OD_RATED_TORQUE))
         if rated_mnm <= 0:
-            raise ConfigurationError(f"drive node {self.node_id}: motor rated torque 0x6076 is {rated_mnm} mNm; "
-                                     "cannot scale torque setpoints")
+            raise ConfigurationError(
+                f"drive node {self.node_id}: motor rated torque 0x6076 is {rated_mnm} mNm; "
+                "cannot scale torque setpoints"
+            )
         self.rated_torque_nm = rated_mnm / 1000.0
 
     def _safe_steps(self):
-        return [("target torque 0", lambda: self.write(OD_TARGET_TORQUE, 0, 0)),
-                ("injection off", self.injection_off)]
+        return [("target torque 0", lambda: self.write(OD_TARGET_TORQUE, 0, 0)), ("injection off", self.injection_off)]
 
     # -- setpoints ----------------------------------------------------------------------------------
     def _rated_nm(self) -> float:
@@ -157,8 +172,9 @@ class DriveClient(Cia402Master):
         """Wire value of a torque setpoint; ValueError outside +-rated torque (nothing is sent)."""
         rated_nm = self._rated_nm()
         if not math.isfinite(torque_nm) or abs(torque_nm) > rated_nm * (1.0 + 1e-9):
-            raise ValueError(f"torque {torque_nm!r} Nm outside the drive's range +-{rated_nm:g} Nm "
-                             "(motor rated torque, 0x6076)")
+            raise ValueError(
+                f"torque {torque_nm!r} Nm outside the drive's range +-{rated_nm:g} Nm (motor rated torque, 0x6076)"
+            )
         return max(-1000, min(1000, round(torque_nm / rated_nm * PER_MILLE)))
 
     def set_torque_nm(self, torque_nm: float) -> int:
@@ -217,7 +233,7 @@ class DriveClient(Cia402Master):
         return float(self.read(OD_INJECTION, SUB_GAMMA_MAX))
 
     def set_decoupling(self, on: bool) -> None:
-        """Decoupling of the current controller (0x2000:6, DESIGN section 3.1)."""
+        """Decoupling of the current controller (0x2000:6, paper sec. 3.1)."""
         self.write(OD_INJECTION, SUB_DECOUPLING, 1 if on else 0)
 
     # -- LUT download -------------------------------------------------------------------------------
@@ -232,16 +248,25 @@ class DriveClient(Cia402Master):
         expected = lut_image.image_crc(blob)
         held = self.lut_in_force()
         if held.crc32 != expected:
-            raise SdoError(self.node_id, "read", OD_LUT, SUB_LUT_CRC, self._object_name(OD_LUT, SUB_LUT_CRC),
-                           f"LUT CRC-32 read-back {lut_image.crc_hex(held.crc32)} != {lut_image.crc_hex(expected)} "
-                           f"of the {len(blob)} bytes sent (LUT status {held.status})")
+            raise SdoError(
+                self.node_id,
+                "read",
+                OD_LUT,
+                SUB_LUT_CRC,
+                self._object_name(OD_LUT, SUB_LUT_CRC),
+                f"LUT CRC-32 read-back {lut_image.crc_hex(held.crc32)} != {lut_image.crc_hex(expected)} "
+                f"of the {len(blob)} bytes sent (LUT status {held.status})",
+            )
         return held
 
     def lut_in_force(self) -> LutInForce:
         """Three expedited SDO reads: map id, CRC and status of the drive's LUT."""
         code = int(self.read(OD_LUT, SUB_LUT_STATUS))
-        return LutInForce(map_id=int(self.read(OD_LUT, SUB_LUT_MAP_ID)), crc32=int(self.read(OD_LUT, SUB_LUT_CRC)),
-                          status=LUT_STATUSES.get(code, f"unknown ({code})"))
+        return LutInForce(
+            map_id=int(self.read(OD_LUT, SUB_LUT_MAP_ID)),
+            crc32=int(self.read(OD_LUT, SUB_LUT_CRC)),
+            status=LUT_STATUSES.get(code, f"unknown ({code})"),
+        )
 
     # -- readings -----------------------------------------------------------------------------------
     def read_status(self) -> DriveStatus:
@@ -252,5 +277,11 @@ class DriveClient(Cia402Master):
         udc_mv = int(self.read(OD_DC_LINK_VOLTAGE))
         ud_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UD_REF))
         uq_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UQ_REF))
-        return DriveStatus(state=state, torque_nm=torque_per_mille / PER_MILLE * rated_nm, speed_rpm=speed_rpm,
-                           udc_v=udc_mv / 1000.0, ud_ref_v=ud_ref_v, uq_ref_v=uq_ref_v)
+        return DriveStatus(
+            state=state,
+            torque_nm=torque_per_mille / PER_MILLE * rated_nm,
+            speed_rpm=speed_rpm,
+            udc_v=udc_mv / 1000.0,
+            ud_ref_v=ud_ref_v,
+            uq_ref_v=uq_ref_v,
+        )

@@ -4,6 +4,7 @@ An operator reads "EMCY 0x3210 DC link over-voltage", not "0x3210": the interloc
 errors and sweep pause reasons name the code with its meaning. Exact codes first, then the code's
 class (high byte, then high nibble) so that an unlisted vendor code still says what area it is in.
 """
+
 from __future__ import annotations
 
 EXACT: dict[int, str] = {
@@ -52,12 +53,30 @@ EXACT: dict[int, str] = {
 }
 
 CLASSES: dict[int, str] = {
-    0x10: "generic error", 0x20: "current", 0x21: "current, device input side", 0x22: "current inside the device",
-    0x23: "current, device output side", 0x30: "voltage", 0x31: "mains voltage", 0x32: "voltage inside the device",
-    0x33: "output voltage", 0x40: "temperature", 0x41: "ambient temperature", 0x42: "device temperature",
-    0x43: "drive temperature", 0x50: "device hardware", 0x60: "device software", 0x70: "additional modules",
-    0x80: "monitoring", 0x81: "communication", 0x82: "protocol error", 0x83: "torque control",
-    0x86: "position control", 0x90: "external error", 0xF0: "additional functions", 0xFF: "device specific",
+    0x10: "generic error",
+    0x20: "current",
+    0x21: "current, device input side",
+    0x22: "current inside the device",
+    0x23: "current, device output side",
+    0x30: "voltage",
+    0x31: "mains voltage",
+    0x32: "voltage inside the device",
+    0x33: "output voltage",
+    0x40: "temperature",
+    0x41: "ambient temperature",
+    0x42: "device temperature",
+    0x43: "drive temperature",
+    0x50: "device hardware",
+    0x60: "device software",
+    0x70: "additional modules",
+    0x80: "monitoring",
+    0x81: "communication",
+    0x82: "protocol error",
+    0x83: "torque control",
+    0x86: "position control",
+    0x90: "external error",
+    0xF0: "additional functions",
+    0xFF: "device specific",
 }
 
 

@@ -4,6 +4,7 @@ The service turns these into failed jobs and operator messages, so a message mus
 the traceback: which node, which object (index:sub and its EDS name), which value, and what the device
 or the transport said (SDO abort code with its meaning, samples that arrived, the reply received).
 """
+
 from __future__ import annotations
 
 
@@ -17,6 +18,7 @@ class NotConnectedError(DriverError):
 
 # --- CANopen ---------------------------------------------------------------------------------------
 
+
 class SdoError(DriverError):
     """An SDO read or write of one object failed.
 
@@ -24,8 +26,17 @@ class SdoError(DriverError):
     (e.g. 0x06090030 'value range exceeded' on the target torque).
     """
 
-    def __init__(self, node_id: int, action: str, index: int, subindex: int, name: str, detail: str,
-                 abort_code: int | None = None, value: object = None):
+    def __init__(
+        self,
+        node_id: int,
+        action: str,
+        index: int,
+        subindex: int,
+        name: str,
+        detail: str,
+        abort_code: int | None = None,
+        value: object = None,
+    ):
         self.node_id = node_id
         self.action = action
         self.index = index
@@ -74,6 +85,7 @@ class ConfigurationError(DriverError):
 
 # --- DAQ stream ------------------------------------------------------------------------------------
 
+
 class DaqError(DriverError):
     """Base class of DAQ stream errors."""
 
@@ -91,6 +103,7 @@ class DaqPortBusy(DaqError):
 
 
 # --- DC supply (SCPI) ------------------------------------------------------------------------------
+
 
 class ScpiError(DriverError):
     """The supply's reply was missing, garbled or disagreed with the command."""

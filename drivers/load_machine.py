@@ -3,6 +3,7 @@
 Shares all CiA 402 master logic with the drive (drivers.cia402_master); only the mode, the speed
 setpoint and its safety step (speed 0 before the power stage goes off) are its own.
 """
+
 from __future__ import annotations
 
 import math
@@ -15,9 +16,9 @@ from drivers.cia402_master import Cia402Master
 
 MODE_PROFILE_VELOCITY = 3
 
-OD_VELOCITY_ACTUAL = 0x606C      # I32, rpm
-OD_TORQUE_ACTUAL = 0x6077        # I16, scaled by LoadClient.torque_scale_nm (the contract gives no unit)
-OD_TARGET_VELOCITY = 0x60FF      # I32, rpm
+OD_VELOCITY_ACTUAL = 0x606C  # I32, rpm
+OD_TORQUE_ACTUAL = 0x6077  # I16, scaled by LoadClient.torque_scale_nm (the contract gives no unit)
+OD_TARGET_VELOCITY = 0x60FF  # I32, rpm
 
 INT32_MAX = 2**31 - 1
 

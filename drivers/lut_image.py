@@ -39,6 +39,7 @@ The corners c of the enclosing cell carry w_c = w_torque w_speed w_udc (sum 1; c
   3 deg at 45 deg; delta 350 and 10 deg midway: polar 0 deg (not 180).
 The drive then clamps |theta| to gamma_max (0x2000:5).
 """
+
 from __future__ import annotations
 
 import math
@@ -50,13 +51,13 @@ from functools import cached_property
 import numpy as np
 
 MAGIC = b"RCL1"
-FORMAT_VERSION = 3                  # what encode writes
-SUPPORTED_VERSIONS = (2, 3)         # what the drive decodes
+FORMAT_VERSION = 3  # what encode writes
+SUPPORTED_VERSIONS = (2, 3)  # what the drive decodes
 HEADER = struct.Struct("<4sHBBHHHHI")
-TRAILER = struct.Struct("<I")      # CRC-32 (zlib) of every byte before it
+TRAILER = struct.Struct("<I")  # CRC-32 (zlib) of every byte before it
 MAX_CELLS = 4096
 AXES = ("torque_nm", "speed_rpm", "udc_v")
-MAX_MAP_ID = 0xFFFFFFFF    # u32; 0 is what the drive reports when it holds no LUT
+MAX_MAP_ID = 0xFFFFFFFF  # u32; 0 is what the drive reports when it holds no LUT
 
 # per-cell flag byte
 FLAG_NONE, FLAG_OK, FLAG_FILLED = 0, 1, 2
@@ -78,15 +79,16 @@ class LutImageError(ValueError):
 class Lut:
     """A decoded image: map id, axes, theta per cell [udc][speed][torque] (0 where flag 0), the flag per
     cell, the interpolation mode, the image's format version and CRC."""
+
     map_id: int
     harmonic_order: int
-    torque_nm: np.ndarray      # (n_t,)
-    speed_rpm: np.ndarray      # (n_n,)
-    udc_v: np.ndarray          # (n_u,)
-    theta_cos: np.ndarray      # (n_u, n_n, n_t), rad, 0 where flag 0
+    torque_nm: np.ndarray  # (n_t,)
+    speed_rpm: np.ndarray  # (n_n,)
+    udc_v: np.ndarray  # (n_u,)
+    theta_cos: np.ndarray  # (n_u, n_n, n_t), rad, 0 where flag 0
     theta_sin: np.ndarray
-    flags: np.ndarray          # uint8 (n_u, n_n, n_t): FLAG_NONE | FLAG_OK | FLAG_FILLED
-    crc: int                   # image_crc: CRC-32 of the image without its CRC field
+    flags: np.ndarray  # uint8 (n_u, n_n, n_t): FLAG_NONE | FLAG_OK | FLAG_FILLED
+    crc: int  # image_crc: CRC-32 of the image without its CRC field
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = FORMAT_VERSION
 
@@ -113,14 +115,16 @@ class Lut:
     def theta(self, torque_nm: float, speed_rpm: float, udc_v: float) -> tuple[float, float]:
         """(theta_cos, theta_sin) in rad at an operating point, interpolated by the image's mode and
         clamped at the axis ends (module doc has the formulas); not yet clamped to gamma_max."""
-        corners = [((iu, i_n, it), wu * wn * wt)
-                   for (iu, wu) in _weights(self.udc_v, udc_v)
-                   for (i_n, wn) in _weights(self.speed_rpm, speed_rpm)
-                   for (it, wt) in _weights(self.torque_nm, torque_nm)
-                   if wu * wn * wt != 0.0]
+        corners = [
+            ((iu, i_n, it), wu * wn * wt)
+            for (iu, wu) in _weights(self.udc_v, udc_v)
+            for (i_n, wn) in _weights(self.speed_rpm, speed_rpm)
+            for (it, wt) in _weights(self.torque_nm, torque_nm)
+            if wu * wn * wt != 0.0
+        ]
         if self.interpolation == "polar":
             return self._polar(corners)
-        tc = sum(w * float(self.theta_cos[c]) for c, w in corners)    # 0 where flag 0 (decode)
+        tc = sum(w * float(self.theta_cos[c]) for c, w in corners)  # 0 where flag 0 (decode)
         ts = sum(w * float(self.theta_sin[c]) for c, w in corners)
         return float(tc), float(ts)
 
@@ -129,12 +133,14 @@ class Lut:
         with_phase = [(c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0]
         if not with_phase:
             return 0.0, 0.0
-        gamma = sum(w * float(gamma_c[c]) for c, w in with_phase)      # no entry: gamma 0
-        ref = float(delta_c[max(with_phase, key=lambda cw: cw[1])[0]])   # first of the largest weight
+        gamma = sum(w * float(gamma_c[c]) for c, w in with_phase)  # no entry: gamma 0
+        ref = float(delta_c[max(with_phase, key=lambda cw: cw[1])[0]])  # first of the largest weight
         total = sum(w for _, w in with_phase)
         # each corner's delta within +-pi of the reference's: the shortest arc
-        delta = sum(w * (ref + (float(delta_c[c]) - ref + math.pi) % (2.0 * math.pi) - math.pi)
-                    for c, w in with_phase) / total
+        delta = (
+            sum(w * (ref + (float(delta_c[c]) - ref + math.pi) % (2.0 * math.pi) - math.pi) for c, w in with_phase)
+            / total
+        )
         return gamma * math.cos(delta), -gamma * math.sin(delta)
 
 
@@ -152,7 +158,7 @@ def _weights(axis: np.ndarray, x: float) -> list[tuple[int, float]]:
 
 def image_crc(blob: bytes) -> int:
     """The image's CRC: CRC-32 (zlib) of every byte but the trailing CRC field (docs/interfaces.md)."""
-    return _crc32(bytes(blob)[:-TRAILER.size])
+    return _crc32(bytes(blob)[: -TRAILER.size])
 
 
 def crc_hex(crc: int) -> str:
@@ -172,8 +178,18 @@ def check_interpolation(interpolation: str | None) -> str:
     return mode
 
 
-def encode(harmonic_order: int, torque_nm, speed_rpm, udc_v, theta_cos, theta_sin, flags=None, *,
-           map_id: int, interpolation: str | None = None) -> bytes:
+def encode(
+    harmonic_order: int,
+    torque_nm,
+    speed_rpm,
+    udc_v,
+    theta_cos,
+    theta_sin,
+    flags=None,
+    *,
+    map_id: int,
+    interpolation: str | None = None,
+) -> bytes:
     """A format_version 3 image of map `map_id` from the axes and [udc][speed][torque] arrays (nested
     lists or arrays of that shape, or flat in that order). flags: FLAG_NONE / FLAG_OK / FLAG_FILLED per
     cell (default all FLAG_OK); cells with flag 0 go in with theta 0. interpolation: "cartesian" or
@@ -199,8 +215,9 @@ def encode(harmonic_order: int, torque_nm, speed_rpm, udc_v, theta_cos, theta_si
     tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape)).astype("<f4")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
-    body = HEADER.pack(MAGIC, FORMAT_VERSION, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0,
-                       int(map_id))
+    body = HEADER.pack(
+        MAGIC, FORMAT_VERSION, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id)
+    )
     for axis in axes:
         body += np.asarray(axis, dtype="<f4").tobytes()
     body += tc.tobytes() + tsn.tobytes() + f.tobytes()
@@ -215,9 +232,11 @@ def decode(blob: bytes) -> Lut:
     magic, version = struct.unpack_from("<4sH", blob, 0)
     if magic != MAGIC:
         raise LutImageError(f"bad magic {magic!r}")
-    if version not in SUPPORTED_VERSIONS:       # before the length: another version has another header
-        raise LutImageError(f"unsupported format_version {version}: this drive takes versions "
-                            f"{' and '.join(str(v) for v in SUPPORTED_VERSIONS)} (their header carries the map id)")
+    if version not in SUPPORTED_VERSIONS:  # before the length: another version has another header
+        raise LutImageError(
+            f"unsupported format_version {version}: this drive takes versions "
+            f"{' and '.join(str(v) for v in SUPPORTED_VERSIONS)} (their header carries the map id)"
+        )
     if len(blob) < HEADER.size + TRAILER.size:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
     _magic, _version, h, mode_code, nt, nn, nu, reserved, map_id = HEADER.unpack_from(blob, 0)
@@ -231,7 +250,7 @@ def decode(blob: bytes) -> Lut:
         if reserved != 0:
             raise LutImageError(f"reserved header field is {reserved}, not 0")
         interpolation, allowed = INTERPOLATIONS[mode_code], FLAGS
-    else:       # version 2: byte 7 was reserved, the flags were valid 0/1; it interpolated cartesian
+    else:  # version 2: byte 7 was reserved, the flags were valid 0/1; it interpolated cartesian
         interpolation, allowed = "cartesian", (FLAG_NONE, FLAG_OK)
     if min(nt, nn, nu) < 1 or nt * nn * nu > MAX_CELLS:
         raise LutImageError(f"bad axis lengths {nt} x {nn} x {nu}")
@@ -261,5 +280,16 @@ def decode(blob: bytes) -> Lut:
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
     entry = flags != FLAG_NONE
-    return Lut(int(map_id), int(h), axes[0], axes[1], axes[2], np.where(entry, tc, 0.0), np.where(entry, tsn, 0.0),
-               flags, crc, interpolation, int(version))
+    return Lut(
+        int(map_id),
+        int(h),
+        axes[0],
+        axes[1],
+        axes[2],
+        np.where(entry, tc, 0.0),
+        np.where(entry, tsn, 0.0),
+        flags,
+        crc,
+        interpolation,
+        int(version),
+    )

@@ -1,5 +1,5 @@
 -- ripplecal schema 7: the LUT holds where the motor runs (issue 17).
--- - map_cells.fill_*: a cell that stayed non-ok gets a LUT entry by the fill rule (service/map_fill.py),
+-- - map_cells.fill_*: a cell that stayed non-ok gets a LUT entry by the fill rule (service/maps/fill.py),
 --   stored with the map so a LUT built today is built the same way tomorrow (its CRC does not move).
 -- - maps.refined_from, maps.provenance_json: a refined map names the map it was refined from and how
 --   (the refinement, its round, the cells it added).

@@ -1,5 +1,5 @@
 """Emulated test bench: PMSM + drive firmware + load machine + DC supply + DAQ behind real wires.
 
 `python -m plant_emulator` starts one process speaking socketcand (CANopen), SCPI over TCP and the
-DAQ frame protocol on a pty (DESIGN section 4, docs/interfaces.md "Emulator process").
+DAQ frame protocol on a pty (docs/interfaces.md, "Emulator process"; its truth: docs/scenarios.md).
 """

@@ -1,4 +1,5 @@
 """`python -m plant_emulator [--scenario FILE|NAME] [--seed N] [--speedup X]` (see process.py)."""
+
 import sys
 
 from .process import main

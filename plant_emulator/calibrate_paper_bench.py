@@ -1,8 +1,8 @@
 """Calibrate the paper-bench disturbance map so that the optimum at OP1 is the paper's.
 
 Paper section 3, Fig. 8: at OP1 = {2.5 Nm, 2000 rpm} (U_dc = 12 V) the 6th harmonic of the
-angular acceleration is minimal for gamma = 3 deg, delta = 280 deg. With DESIGN section 3,
-theta* = gamma (cos delta, -sin delta) (eq. 21-22 inverted). The optimal injection cancels every
+angular acceleration is minimal for gamma = 3 deg, delta = 280 deg. With docs/conventions.md
+(Injection and theta), theta* = gamma (cos delta, -sin delta) (eq. 21-22 inverted). The optimal injection cancels every
 h-th torque harmonic, so the disturbance d at OP1 must equal minus the h-th harmonic of T_em that
 theta* and everything else (dead time, saturation) produce without d:
 
@@ -18,6 +18,7 @@ theta* and everything else (dead time, saturation) produce without d:
 Run `python -m plant_emulator.calibrate_paper_bench [--write]`; --write puts the map into
 scenarios/paper-bench.toml. It also prints the suppression of the alpha harmonic with theta*.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,10 +43,9 @@ def theta_from_gamma_delta(gamma_rad: float, delta_rad: float) -> tuple[float, f
 
 
 def harmonic_phasor(signal: np.ndarray, phi_e: np.ndarray, h: float) -> tuple[float, float]:
-    """(a_c, a_s) = (2/N) sum(signal cos(h phi_e)), (2/N) sum(signal sin(h phi_e)) (DESIGN 3)."""
+    """(a_c, a_s) = (2/N) sum(signal cos(h phi_e)), (2/N) sum(signal sin(h phi_e)) (docs/conventions.md, Phasors)."""
     n = len(signal)
-    return (2.0 / n * float(np.sum(signal * np.cos(h * phi_e))),
-            2.0 / n * float(np.sum(signal * np.sin(h * phi_e))))
+    return (2.0 / n * float(np.sum(signal * np.cos(h * phi_e))), 2.0 / n * float(np.sum(signal * np.sin(h * phi_e))))
 
 
 def op_setpoints(udc_v: float, torque_nm: float, speed_rpm: float, theta=(0.0, 0.0), h: int = 6) -> np.ndarray:
@@ -65,8 +65,17 @@ def whole_periods(speed_rpm: float, n_p: float, sample_rate_hz: float, periods: 
     return int(round(periods * sample_rate_hz / f_e))
 
 
-def simulate_op(p: np.ndarray, tab: np.ndarray, sp: np.ndarray, torque_nm: float, speed_rpm: float, udc_v: float,
-                settle_s: float = 0.5, periods: int = 200, noise_seed: int | None = 0):
+def simulate_op(
+    p: np.ndarray,
+    tab: np.ndarray,
+    sp: np.ndarray,
+    torque_nm: float,
+    speed_rpm: float,
+    udc_v: float,
+    settle_s: float = 0.5,
+    periods: int = 200,
+    noise_seed: int | None = 0,
+):
     """Steady state of an OP: returns the trace of `periods` whole electrical periods after settling."""
     plant = ph.Plant(p, tab, noise_seed)
     plant.init_op(torque_nm, speed_rpm, udc_v)
@@ -91,7 +100,7 @@ def calibrate(iterations: int = 4, verbose: bool = True) -> dict:
     h = int(sc.section("disturbance").get("order", 6))
     theta = theta_from_gamma_delta(math.radians(GAMMA_DEG), math.radians(DELTA_DEG))
     sp = op_setpoints(OP1_UDC_V, OP1_TORQUE_NM, OP1_SPEED_RPM, theta, h)
-    dc, ds = 0.0, 0.0   # phasor of d at OP1
+    dc, ds = 0.0, 0.0  # phasor of d at OP1
     for it in range(iterations + 1):
         amp, phase_deg = math.hypot(dc, ds), math.degrees(math.atan2(-ds, dc))
         sc.data["disturbance"]["amplitude_nm"], sc.data["disturbance"]["phase_deg"] = map_from_op1(sc, amp, phase_deg)
@@ -106,8 +115,14 @@ def calibrate(iterations: int = 4, verbose: bool = True) -> dict:
         dc -= rc
         ds -= rs
     # verification on the measured acceleration (noise off): uncompensated vs theta*
-    tr0 = simulate_op(p, tab, op_setpoints(OP1_UDC_V, OP1_TORQUE_NM, OP1_SPEED_RPM, (0.0, 0.0), h),
-                      OP1_TORQUE_NM, OP1_SPEED_RPM, OP1_UDC_V)
+    tr0 = simulate_op(
+        p,
+        tab,
+        op_setpoints(OP1_UDC_V, OP1_TORQUE_NM, OP1_SPEED_RPM, (0.0, 0.0), h),
+        OP1_TORQUE_NM,
+        OP1_SPEED_RPM,
+        OP1_UDC_V,
+    )
     tr1 = simulate_op(p, tab, sp, OP1_TORQUE_NM, OP1_SPEED_RPM, OP1_UDC_V)
     a0 = math.hypot(*harmonic_phasor(tr0[:, ph.TR_ALPHA_MEAS], tr0[:, ph.TR_PHI_E], h))
     a1 = math.hypot(*harmonic_phasor(tr1[:, ph.TR_ALPHA_MEAS], tr1[:, ph.TR_PHI_E], h))

@@ -1,6 +1,7 @@
 """A CiA 402 device on a canopen LocalNode: state machine, statusword, NMT, consumer heartbeat.
 
-The node is a real canopen LocalNode built from the same EDS the service reads (DESIGN 7). The
+The node is a real canopen LocalNode built from the same EDS the service reads (docs/interfaces.md,
+"Object dictionaries"): client and server are tested against each other. The
 state machine walks drivers.cia402.DEVICE_TRANSITIONS on every controlword (0x6040) write; the
 statusword (0x6041), mode display (0x6061), error code (0x603F) and error register (0x1001) are
 served live by a read callback. Subclasses add their objects with `read_object` / `write_object`.
@@ -9,6 +10,7 @@ Consumer heartbeat (0x1016:1 = node id << 16 | time in ms): after the first hear
 was seen, silence longer than the time calls `heartbeat_lost()` once (then it must be seen again).
 Time is wall-clock here: CAN is a real-time wire even when the plant runs faster.
 """
+
 from __future__ import annotations
 
 import logging
@@ -20,17 +22,16 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.cia402 import DEVICE_TRANSITIONS, State402, decode_controlword, encode_statusword
 
-
-EMULATOR_STALL_GRACE_S = 0.2    # a watchdog this late means the emulator itself was starved
+EMULATOR_STALL_GRACE_S = 0.2  # a watchdog this late means the emulator itself was starved
 log = logging.getLogger(__name__)
 
-ABORT_VALUE_RANGE = 0x06090030      # value range of parameter exceeded
+ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded
 ABORT_VALUE_TOO_HIGH = 0x06090031
-ABORT_NOT_IN_STATE = 0x08000022     # data cannot be transferred because of the present device state
+ABORT_NOT_IN_STATE = 0x08000022  # data cannot be transferred because of the present device state
 NMT_RESET_COMMUNICATION = 0x82
 NMT_ENTER_PRE_OPERATIONAL = 0x80
-EMCY_HEARTBEAT = 0x8130             # life guard / heartbeat error
-ERROR_REGISTER_COMM = 0x11          # generic + communication error
+EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
+ERROR_REGISTER_COMM = 0x11  # generic + communication error
 
 
 def encode(node: canopen.LocalNode, index: int, subindex: int, value) -> bytes:
@@ -38,15 +39,15 @@ def encode(node: canopen.LocalNode, index: int, subindex: int, value) -> bytes:
 
 
 class Cia402Device:
-    mode_of_operation = 0   # set by subclasses (4 profile torque, 3 profile velocity)
+    mode_of_operation = 0  # set by subclasses (4 profile torque, 3 profile velocity)
 
     def __init__(self, network: canopen.Network, node_id: int, eds_path: str):
         self.node = canopen.LocalNode(node_id, str(eds_path))
         self.network = network
         self.lock = threading.RLock()
-        self.state = State402.SWITCH_ON_DISABLED   # transitions 0 and 1 happen at power-up
+        self.state = State402.SWITCH_ON_DISABLED  # transitions 0 and 1 happen at power-up
         self.error_code = 0
-        self.power_off_at: float | None = None      # time.monotonic() when the power stage last went off
+        self.power_off_at: float | None = None  # time.monotonic() when the power stage last went off
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         network.add_node(self.node)
@@ -91,7 +92,7 @@ class Cia402Device:
             if new != old:
                 self.state = new
                 if old == State402.OPERATION_ENABLED:
-                    self.power_off_at = time.monotonic()     # fault -> safe timing (faults.py status)
+                    self.power_off_at = time.monotonic()  # fault -> safe timing (faults.py status)
                 log.info("node %d: %s -> %s", self.node.id, old.value, new.value)
                 self.state_changed(old, new)
 
@@ -194,8 +195,9 @@ class Cia402Device:
             return
         now = time.monotonic() if now is None else now
         if emulator_stalled_s > EMULATOR_STALL_GRACE_S:
-            log.warning("node %d: emulator stalled %.2f s: heartbeat consumer re-armed", self.node.id,
-                        emulator_stalled_s)
+            log.warning(
+                "node %d: emulator stalled %.2f s: heartbeat consumer re-armed", self.node.id, emulator_stalled_s
+            )
             self._hb_last = now
             return
         if now - last > self._hb_timeout_s:

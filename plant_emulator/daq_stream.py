@@ -22,6 +22,7 @@ reconnects. Two write disciplines:
   real DAQ's FIFO overflows when nobody reads (the reader sees a sequence gap, an overrun, and no
   stale backlog). The stream stays frame aligned: a frame the pty has taken part of is never dropped.
 """
+
 from __future__ import annotations
 
 import logging
@@ -55,14 +56,14 @@ class DaqPty:
         self.name = os.ttyname(self.slave_fd)
         os.set_blocking(self.master_fd, False)
         self.max_pending_bytes = max_pending_bytes
-        self._pending = bytearray()          # blocking mode: what write_blocking still has to write
+        self._pending = bytearray()  # blocking mode: what write_blocking still has to write
         self._paced = threading.Condition()  # paced mode: guards _queued (plant thread in, writer thread out)
         self._queued = bytearray()
         self._paced_writer: threading.Thread | None = None
         self._paced_stop = threading.Event()
         self.bytes_written = 0
         self.frames_dropped = 0
-        self.write_progress_at = time.monotonic()    # when the pty last took bytes (the reader read)
+        self.write_progress_at = time.monotonic()  # when the pty last took bytes (the reader read)
         self._closed = False
         self._hung = False
         self._fd_lock = threading.Lock()
@@ -95,7 +96,7 @@ class DaqPty:
             self._pending.clear()
             with self._paced:
                 self._queued.clear()
-            self._remove_link()              # unplugged: the by-id path disappears too
+            self._remove_link()  # unplugged: the by-id path disappears too
             for fd in (self.master_fd, self.slave_fd):
                 try:
                     os.close(fd)
@@ -181,7 +182,7 @@ class DaqPty:
                 drop = ((excess + FRAME_BYTES - 1) // FRAME_BYTES) * FRAME_BYTES
                 drop = min(drop, ((len(self._queued) - partial) // FRAME_BYTES) * FRAME_BYTES)
                 if drop > 0:
-                    del self._queued[partial:partial + drop]
+                    del self._queued[partial : partial + drop]
                     self.frames_dropped += drop // FRAME_BYTES
             if self._queued:
                 self._paced.notify()
@@ -199,7 +200,7 @@ class DaqPty:
             try:
                 _, writable, _ = select.select([], [self.master_fd], [], 0.05)
             except (OSError, ValueError):
-                writable = [True]       # the fd went with a hang-up: _write_queued drops the queue
+                writable = [True]  # the fd went with a hang-up: _write_queued drops the queue
             if writable:
                 with self._fd_lock, self._paced:
                     self._write_queued()
@@ -207,7 +208,7 @@ class DaqPty:
     def _write_queued(self) -> None:
         """One non-blocking write of the queue's head (the caller holds _fd_lock and _paced)."""
         if self._closed or self._hung:
-            self._queued.clear()        # unplugged: what the DAQ produces meanwhile is lost
+            self._queued.clear()  # unplugged: what the DAQ produces meanwhile is lost
             return
         try:
             n = os.write(self.master_fd, self._queued[:PACED_WRITE_MAX_BYTES])
@@ -258,7 +259,7 @@ class DaqPty:
         with self._fd_lock:
             was_hung = self._hung
             self._closed = True
-        for fd in (() if was_hung else (self.master_fd, self.slave_fd)):
+        for fd in () if was_hung else (self.master_fd, self.slave_fd):
             try:
                 os.close(fd)
             except OSError:

@@ -28,6 +28,7 @@ Safety: power (torque, injection) only in OPERATION_ENABLED with U_dc >= udc_min
 -> FAULT, EMCY 0x8130, target torque 0 and injection mode off (applied at once, without toggles:
 this is the drive's reaction, not a service setpoint).
 """
+
 from __future__ import annotations
 
 import logging
@@ -44,7 +45,7 @@ from drivers.cia402 import State402
 from . import physics as ph
 from .cia402_device import ABORT_VALUE_RANGE, Cia402Device
 
-ABORT_CANNOT_STORE = 0x08000020     # data cannot be transferred or stored to the application
+ABORT_CANNOT_STORE = 0x08000020  # data cannot be transferred or stored to the application
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ class DriveFirmware(Cia402Device):
         self.commit_count = 0
         self.events_applied = 0
         self._events: deque[tuple[str, object]] = deque()
-        self.setpoint_written = threading.Event()   # set with every event: wakes the paced plant thread
+        self.setpoint_written = threading.Event()  # set with every event: wakes the paced plant thread
         # LUT in force (None: no LUT)
         self.lut: lut_image.Lut | None = None
         self.lut_blob = b""
@@ -130,9 +131,16 @@ class DriveFirmware(Cia402Device):
             self.lut = lut
             self.lut_blob = blob
             self.lut_status = 1
-            log.info("drive: LUT of map %d in force (format_version %d, %s interpolation, %d ok and %d filled "
-                     "entries of %d cells)", lut.map_id, lut.format_version, lut.interpolation,
-                     int(lut.valid.sum()), int(lut.filled.sum()), lut.flags.size)
+            log.info(
+                "drive: LUT of map %d in force (format_version %d, %s interpolation, %d ok and %d filled "
+                "entries of %d cells)",
+                lut.map_id,
+                lut.format_version,
+                lut.interpolation,
+                int(lut.valid.sum()),
+                int(lut.filled.sum()),
+                lut.flags.size,
+            )
 
     def _write_injection(self, subindex: int, value) -> None:
         if subindex == 1:

@@ -44,6 +44,7 @@ system-wide, so a tool in another process can time fault -> safe against `drive_
 
 The service never uses this socket; tests, reliability tools and the paper report (its scope) do. Only 127.0.0.1, ever.
 """
+
 from __future__ import annotations
 
 import json
@@ -104,7 +105,7 @@ class FaultState:
             k = int(self.rng.binomial(n, min(corrupt, 1.0)))
             if k:
                 pos = self.rng.integers(0, n, size=k)
-                buf[pos] ^= (np.uint8(1) << self.rng.integers(0, 8, size=k).astype(np.uint8))
+                buf[pos] ^= np.uint8(1) << self.rng.integers(0, 8, size=k).astype(np.uint8)
                 self.bytes_corrupted += k
         if drop > 0.0:
             k = int(self.rng.binomial(n, min(drop, 1.0)))
@@ -117,7 +118,7 @@ class FaultState:
 
     # -- commands ----------------------------------------------------------------------------------
     def command(self, cmd: dict) -> dict:
-        at = time.monotonic()           # before the fault acts: fault -> safe is timed from here
+        at = time.monotonic()  # before the fault acts: fault -> safe is timed from here
         try:
             reply = self._command(cmd)
         except (KeyError, TypeError, ValueError) as exc:
@@ -185,19 +186,29 @@ class FaultState:
         return {"ok": True}
 
     def snapshot(self) -> dict:
-        return {"daq_drop_bytes_rate": self.drop_rate, "daq_corrupt_rate": self.corrupt_rate,
-                "sdo_delay_s": self.sdo_delay_s, "heartbeat_stopped": sorted(self.heartbeat_stopped),
-                "daq_disconnected": self.daq_disconnected, "bytes_dropped": self.bytes_dropped,
-                "bytes_corrupted": self.bytes_corrupted, "pending_events": len(self.events),
-                "drive_state": self.emu.drive.state.value, "drive_power_off_at": self.emu.drive.power_off_at,
-                "drive_injection_mode": self.emu.drive.inj_mode, "drive_torque_nm": self.emu.drive.torque_nm,
-                "drive_theta_rad": list(self.emu.drive.effective_theta()), "drive_speed_rpm": self.emu.drive.speed_rpm,
-                "load_state": self.emu.load.state.value,
-                # whose heartbeat each device consumes, and how long it waits (0: it does not)
-                "drive_heartbeat_consumer_ms": self.emu.drive.heartbeat_consumer_ms,
-                "load_heartbeat_consumer_ms": self.emu.load.heartbeat_consumer_ms,
-                "supply": self.emu.supply.snapshot(),
-                "plant_samples": self.emu.samples, "daq_frames_dropped": self.emu.daq.frames_dropped}
+        return {
+            "daq_drop_bytes_rate": self.drop_rate,
+            "daq_corrupt_rate": self.corrupt_rate,
+            "sdo_delay_s": self.sdo_delay_s,
+            "heartbeat_stopped": sorted(self.heartbeat_stopped),
+            "daq_disconnected": self.daq_disconnected,
+            "bytes_dropped": self.bytes_dropped,
+            "bytes_corrupted": self.bytes_corrupted,
+            "pending_events": len(self.events),
+            "drive_state": self.emu.drive.state.value,
+            "drive_power_off_at": self.emu.drive.power_off_at,
+            "drive_injection_mode": self.emu.drive.inj_mode,
+            "drive_torque_nm": self.emu.drive.torque_nm,
+            "drive_theta_rad": list(self.emu.drive.effective_theta()),
+            "drive_speed_rpm": self.emu.drive.speed_rpm,
+            "load_state": self.emu.load.state.value,
+            # whose heartbeat each device consumes, and how long it waits (0: it does not)
+            "drive_heartbeat_consumer_ms": self.emu.drive.heartbeat_consumer_ms,
+            "load_heartbeat_consumer_ms": self.emu.load.heartbeat_consumer_ms,
+            "supply": self.emu.supply.snapshot(),
+            "plant_samples": self.emu.samples,
+            "daq_frames_dropped": self.emu.daq.frames_dropped,
+        }
 
     def sdo_delay_for(self, can_id: int) -> float:
         """Delay for a frame the emulator sends (SDO responses 0x580 + node of its nodes)."""
@@ -239,7 +250,7 @@ class ControlServer(TcpServer):
             return
         try:
             reply = self.faults.command(cmd)
-        except Exception as exc:   # a broken command must not take the server down
+        except Exception as exc:  # a broken command must not take the server down
             log.exception("control command %r", cmd)
             reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         self._reply_obj(sock, reply)

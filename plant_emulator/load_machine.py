@@ -8,6 +8,7 @@ positive in the direction of rotation, i.e. negative while it brakes a motoring 
 
 Heartbeat loss: FAULT_REACTION_ACTIVE, ramp to standstill with the speed loop still on, then FAULT.
 """
+
 from __future__ import annotations
 
 import math

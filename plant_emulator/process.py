@@ -32,6 +32,7 @@ pending, pieces of EVENT_PIECE_SAMPLES apply them one per piece start. The firmw
 task runs at each piece start (and every chunk within a piece); the 0x2010 mean, the published speed,
 the fault tick and the scope take each piece's own length.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -66,31 +67,37 @@ log = logging.getLogger("plant_emulator")
 
 DRIVE_NODE = 5
 LOAD_NODE = 6
-CHUNK_SAMPLES = 256           # physics chunk: setpoints are taken at chunk starts (16 ms at 16 kHz)
-FRAME_BATCH_CHUNKS = 16       # chunks per numba call + write when running fast (256 ms plant time)
-U_REF_MEAN_SAMPLES = 1024     # 0x2010: mean over the last 1024 periods
-PACED_WAKE_S = 0.002          # paced: the plant thread simulates what is due this often (wall time)
-EVENT_PIECE_SAMPLES = 16      # paced: piece length while setpoint events wait (one applies per piece start)
+CHUNK_SAMPLES = 256  # physics chunk: setpoints are taken at chunk starts (16 ms at 16 kHz)
+FRAME_BATCH_CHUNKS = 16  # chunks per numba call + write when running fast (256 ms plant time)
+U_REF_MEAN_SAMPLES = 1024  # 0x2010: mean over the last 1024 periods
+PACED_WAKE_S = 0.002  # paced: the plant thread simulates what is due this often (wall time)
+EVENT_PIECE_SAMPLES = 16  # paced: piece length while setpoint events wait (one applies per piece start)
 PACED_MAX_PIECE_SAMPLES = 4096  # paced: most samples per numba call when catching up
-PACED_MAX_WAIT_S = 0.1        # paced: longest sleep (stop and very slow speedups)
-PACED_BEHIND_RESET_S = 1.0    # paced: this far behind the wall clock (machine busy), do not catch up
-DAQ_FIFO_S = 0.25             # paced: the DAQ's FIFO holds this much stream (wall time) before it overflows
+PACED_MAX_WAIT_S = 0.1  # paced: longest sleep (stop and very slow speedups)
+PACED_BEHIND_RESET_S = 1.0  # paced: this far behind the wall clock (machine busy), do not catch up
+DAQ_FIFO_S = 0.25  # paced: the DAQ's FIFO holds this much stream (wall time) before it overflows
 DAQ_FIFO_MIN_BYTES = 1 << 16
-FAST_STALL_S = DAQ_FIFO_S     # fast: the pty took nothing for this long (nobody reads): real time, frames dropped
+FAST_STALL_S = DAQ_FIFO_S  # fast: the pty took nothing for this long (nobody reads): real time, frames dropped
 WATCHDOG_PERIOD_S = 0.02
 RAD_S_TO_RPM = 60.0 / (2.0 * math.pi)
 
 
 class Emulator:
-    def __init__(self, sc: scn.Scenario, speedup: float = 1.0, can_port: int = 0, supply_port: int = 0,
-                 chunk_samples: int = CHUNK_SAMPLES, control_port: int = 0):
+    def __init__(
+        self,
+        sc: scn.Scenario,
+        speedup: float = 1.0,
+        can_port: int = 0,
+        supply_port: int = 0,
+        chunk_samples: int = CHUNK_SAMPLES,
+        control_port: int = 0,
+    ):
         self.scenario = sc
         self.speedup = float(speedup)
         self.chunk = int(chunk_samples)
         self.params, self.tab = scn.build(sc)
         self.sample_rate_hz = sc.sample_rate_hz
-        self.plant = ph.Plant(self.params, self.tab, noise_seed=sc.seed if sc.seed is not None else 0,
-                              chunk=self.chunk)
+        self.plant = ph.Plant(self.params, self.tab, noise_seed=sc.seed if sc.seed is not None else 0, chunk=self.chunk)
         self.sp = ph.new_setpoints(0.0)
         self.stop_event = threading.Event()
         self.samples = 0
@@ -103,8 +110,12 @@ class Emulator:
         self.network.connect(interface="virtual", channel=self.bus_channel, receive_own_messages=False)
         fw = sc.section("firmware")
         self.drive = DriveFirmware(self.network, DRIVE_NODE, str(DRIVE_EDS), udc_min_v=float(fw.get("udc_min_v", 6.0)))
-        self.load = LoadMachineFirmware(self.network, LOAD_NODE, str(LOAD_EDS),
-                                        ramp_rpm_per_s=float(self.params[ph.P_LOAD_RAMP]) * 60.0 / (2.0 * math.pi))
+        self.load = LoadMachineFirmware(
+            self.network,
+            LOAD_NODE,
+            str(LOAD_EDS),
+            ramp_rpm_per_s=float(self.params[ph.P_LOAD_RAMP]) * 60.0 / (2.0 * math.pi),
+        )
         # paced, the DAQ's FIFO is sized in wall time: what the reader may fall behind before frames drop
         fifo_bytes = int(DAQ_FIFO_S * self.sample_rate_hz * self.speedup) * ph.FRAME_BYTES
         self.daq = DaqPty(max_pending_bytes=max(DAQ_FIFO_MIN_BYTES, fifo_bytes))
@@ -118,9 +129,13 @@ class Emulator:
     # -- endpoints -----------------------------------------------------------------------------------
     def endpoints(self) -> dict:
         return {
-            "can": {"interface": "socketcand", "host": self.can_server.host, "port": self.can_server.port,
-                    "channel": self.can_server.channel},
-            "daq": self.daq.link,            # stable path (symlink) that survives reconnects
+            "can": {
+                "interface": "socketcand",
+                "host": self.can_server.host,
+                "port": self.can_server.port,
+                "channel": self.can_server.channel,
+            },
+            "daq": self.daq.link,  # stable path (symlink) that survives reconnects
             "daq_device": self.daq.name,
             "supply": self.scpi.url,
             "control": self.control.url,
@@ -139,8 +154,10 @@ class Emulator:
         self.control.start()
         self.drive.boot()
         self.load.boot()
-        self._threads = [threading.Thread(target=self._plant_loop, name="plant", daemon=True),
-                         threading.Thread(target=self._watchdog, name="heartbeat-watchdog", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._plant_loop, name="plant", daemon=True),
+            threading.Thread(target=self._watchdog, name="heartbeat-watchdog", daemon=True),
+        ]
         for t in self._threads:
             t.start()
         return self
@@ -152,8 +169,15 @@ class Emulator:
         self.stop_event.set()
         for t in self._threads:
             t.join(timeout=3.0)
-        for closer in (self.drive.shutdown, self.load.shutdown, self.network.disconnect, self.can_server.close,
-                       self.scpi.close, self.control.close, self.daq.close):
+        for closer in (
+            self.drive.shutdown,
+            self.load.shutdown,
+            self.network.disconnect,
+            self.can_server.close,
+            self.scpi.close,
+            self.control.close,
+            self.daq.close,
+        ):
             try:
                 closer()
             except Exception:
@@ -164,7 +188,7 @@ class Emulator:
         woke = time.monotonic()
         while not self.stop_event.wait(WATCHDOG_PERIOD_S):
             now = time.monotonic()
-            stalled_s, woke = max(0.0, now - woke - WATCHDOG_PERIOD_S), now     # our own lateness
+            stalled_s, woke = max(0.0, now - woke - WATCHDOG_PERIOD_S), now  # our own lateness
             try:
                 self.drive.check_heartbeat(now, stalled_s)
                 self.load.check_heartbeat(now, stalled_s)
@@ -213,10 +237,10 @@ class Emulator:
         the DAQ bytes as the wire delivers them."""
         n = self.chunk
         noise = self.plant.rng.standard_normal(k) if self._noise_on else self._zeros[:k]
-        scoping = self.scope.recording      # the oscilloscope wants this piece's samples
+        scoping = self.scope.recording  # the oscilloscope wants this piece's samples
         trace = np.zeros((k, ph.N_TRACE)) if scoping else self._no_trace
         rows = -(-k // n)
-        frames, summary = self._frames[:k * ph.FRAME_BYTES], self._summary[:rows]
+        frames, summary = self._frames[: k * ph.FRAME_BYTES], self._summary[:rows]
         ph.simulate(self.plant.x, self.params, self.tab, self.sp, noise, n, self.samples, frames, summary, trace)
         if scoping:
             self.scope.feed(trace)
@@ -232,8 +256,13 @@ class Emulator:
         filled = self._uref_samples
         last, last_count = summary[rows - 1], k - (rows - 1) * n
         speed_rpm = float(last[ph.Y_OMEGA_SUM]) / last_count * RAD_S_TO_RPM
-        self.drive.publish(speed_rpm, float(last[ph.Y_TORQUE_EST_SUM]) / last_count, udc,
-                           sum(r[0] for r in uref) / filled, sum(r[1] for r in uref) / filled)
+        self.drive.publish(
+            speed_rpm,
+            float(last[ph.Y_TORQUE_EST_SUM]) / last_count,
+            udc,
+            sum(r[0] for r in uref) / filled,
+            sum(r[1] for r in uref) / filled,
+        )
         self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / last_count)
         return self.faults.apply_daq(frames.tobytes())
 
@@ -247,8 +276,8 @@ class Emulator:
         out = bytearray()
         out_limit = n * batch * ph.FRAME_BYTES
         self.daq.start_writer(self.stop_event)
-        stalled_at: float | None = None      # wall time the DAQ stalled (nobody reads); None: it is read
-        pace = (0.0, 0)                      # while stalled: (wall time, plant sample) the 1x clock started at
+        stalled_at: float | None = None  # wall time the DAQ stalled (nobody reads); None: it is read
+        pace = (0.0, 0)  # while stalled: (wall time, plant sample) the 1x clock started at
         while not self.stop_event.is_set():
             udc = self._piece_start()
             # one chunk while a setpoint event waits (it is applied at this chunk's start, the next one
@@ -257,7 +286,7 @@ class Emulator:
             self._take_setpoints(udc)
             out += self._advance(m * n, udc)
             if len(out) < out_limit and self.drive.has_pending() and stalled_at is None:
-                continue      # keep single event chunks together in one write
+                continue  # keep single event chunks together in one write
             data = bytes(out)
             out.clear()
             if self.faults.daq_disconnected:
@@ -271,9 +300,10 @@ class Emulator:
                     self.daq.drop(data)
                     pace = self._keep_real_time(*pace)
                     continue
-                log.info("DAQ read again: running as fast as it is read (%d frames dropped so far)",
-                         self.daq.frames_dropped)
-                stalled_at = None     # this batch is the first after the gap
+                log.info(
+                    "DAQ read again: running as fast as it is read (%d frames dropped so far)", self.daq.frames_dropped
+                )
+                stalled_at = None  # this batch is the first after the gap
             result = self.daq.offer(data, stall_s=FAST_STALL_S)
             if result == STOPPED:
                 break
@@ -281,8 +311,7 @@ class Emulator:
                 stalled_at = time.monotonic()
                 pace = (stalled_at, self.samples)
                 self.daq.drop(data)
-                log.info("DAQ not read for %.2f s: the plant runs in real time, its frames are dropped",
-                         FAST_STALL_S)
+                log.info("DAQ not read for %.2f s: the plant runs in real time, its frames are dropped", FAST_STALL_S)
 
     def _keep_real_time(self, t0: float, plant_t0: int) -> tuple[float, int]:
         """Sleep until the wall clock has caught up with the plant (1x since (t0, plant_t0)); returns the
@@ -298,14 +327,14 @@ class Emulator:
     def _run_paced(self) -> None:
         """--speedup X > 0: the samples due by the wall clock, in pieces of ~PACED_WAKE_S, cut where a
         setpoint is written; written to the DAQ's FIFO at once."""
-        rate = self.sample_rate_hz * self.speedup            # samples per wall second
+        rate = self.sample_rate_hz * self.speedup  # samples per wall second
         wake_samples = max(1, int(round(PACED_WAKE_S * rate)))
         self._alloc_pieces(PACED_MAX_PIECE_SAMPLES)
         written = self.drive.setpoint_written
         t0, plant_t0 = time.monotonic(), self.samples
-        event_from = None     # first sample the pending setpoint events may apply at (due when first seen)
+        event_from = None  # first sample the pending setpoint events may apply at (due when first seen)
         while not self.stop_event.is_set():
-            written.clear()   # before looking: a write from now on wakes the wait below
+            written.clear()  # before looking: a write from now on wakes the wait below
             now = time.monotonic()
             due = plant_t0 + int((now - t0) * rate)
             if due - self.samples > rate * PACED_BEHIND_RESET_S:
@@ -316,10 +345,10 @@ class Emulator:
             if not pending:
                 event_from = None
             elif event_from is None:
-                event_from = max(due, self.samples)           # written by now: effective from the next sample
+                event_from = max(due, self.samples)  # written by now: effective from the next sample
             take = pending and self.samples >= event_from
             if pending and not take:
-                end = event_from          # the samples before the write, with the setpoints before it
+                end = event_from  # the samples before the write, with the setpoints before it
             else:
                 want = EVENT_PIECE_SAMPLES if take else wake_samples
                 if due - self.samples < want:
@@ -331,7 +360,7 @@ class Emulator:
             k = min(end - self.samples, PACED_MAX_PIECE_SAMPLES)
             udc = self._piece_start()
             if self._take_setpoints(udc, take_event=take) and self.drive.has_pending():
-                k = min(k, EVENT_PIECE_SAMPLES)               # the next event at the next piece start, soon
+                k = min(k, EVENT_PIECE_SAMPLES)  # the next event at the next piece start, soon
             self.daq.write_paced(self._advance(k, udc))
 
 
@@ -344,26 +373,36 @@ def warm_up() -> None:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m plant_emulator",
-                                 description="Emulated PMSM test bench: socketcand CANopen, DAQ pty, SCPI supply.")
+    ap = argparse.ArgumentParser(
+        prog="python -m plant_emulator",
+        description="Emulated PMSM test bench: socketcand CANopen, DAQ pty, SCPI supply.",
+    )
     ap.add_argument("--scenario", default=scn.DEFAULT_SCENARIO, help="scenario name or TOML path (default paper-bench)")
     ap.add_argument("--seed", type=int, default=None, help="perturb the truth within the scenario's [seed] ranges")
-    ap.add_argument("--speedup", type=float, default=1.0,
-                    help="X times real time, paced like a real drive and DAQ: setpoints take effect at the next "
-                         "control period after their write, and what the reader leaves unread for more than "
-                         "0.25 s (the DAQ's FIFO) is dropped in whole frames. Measured on 2 cores with a DaqReader "
-                         "consuming as fast as it can: no frame lost at 1x, 5x, 10x or 20x (beyond about 170x the "
-                         "emulator itself falls behind); 0 = as fast as the DAQ reader consumes, the way to run "
-                         "faster than real time (while nobody reads for 0.25 s: real time, frames dropped) "
-                         "(default 1)")
+    ap.add_argument(
+        "--speedup",
+        type=float,
+        default=1.0,
+        help="X times real time, paced like a real drive and DAQ: setpoints take effect at the next "
+        "control period after their write, and what the reader leaves unread for more than "
+        "0.25 s (the DAQ's FIFO) is dropped in whole frames. Measured on 2 cores with a DaqReader "
+        "consuming as fast as it can: no frame lost at 1x, 5x, 10x or 20x (beyond about 170x the "
+        "emulator itself falls behind); 0 = as fast as the DAQ reader consumes, the way to run "
+        "faster than real time (while nobody reads for 0.25 s: real time, frames dropped) "
+        "(default 1)",
+    )
     ap.add_argument("--can-port", type=int, default=0, help="socketcand TCP port on 127.0.0.1 (0: free port)")
     ap.add_argument("--supply-port", type=int, default=0, help="SCPI TCP port on 127.0.0.1 (0: free port)")
-    ap.add_argument("--control-port", type=int, default=0,
-                    help="fault control socket (JSON lines) on 127.0.0.1 (0: free port)")
+    ap.add_argument(
+        "--control-port", type=int, default=0, help="fault control socket (JSON lines) on 127.0.0.1 (0: free port)"
+    )
     ap.add_argument("--log-level", default="WARNING", help="logging level on stderr (default WARNING)")
-    ap.add_argument("--exit-on-stdin-eof", action="store_true",
-                    help="stop when stdin reaches EOF: a parent holding the pipe's other end takes the emulator "
-                         "with it when it dies, also by kill -9 (the kernel closes the pipe)")
+    ap.add_argument(
+        "--exit-on-stdin-eof",
+        action="store_true",
+        help="stop when stdin reaches EOF: a parent holding the pipe's other end takes the emulator "
+        "with it when it dies, also by kill -9 (the kernel closes the pipe)",
+    )
     args = ap.parse_args(argv)
     if args.speedup < 0:
         ap.error("--speedup must be >= 0")
@@ -384,8 +423,11 @@ def _watch_parent_pipe(stop: threading.Event) -> None:
 def main(argv=None) -> int:
     args = parse_args(argv)
     one_blas_thread()
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+        stream=sys.stderr,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
     stop = threading.Event()
 
     def on_signal(signum, frame):
@@ -396,8 +438,9 @@ def main(argv=None) -> int:
     if args.exit_on_stdin_eof:
         threading.Thread(target=_watch_parent_pipe, args=(stop,), name="parent-pipe", daemon=True).start()
     sc = scn.load(args.scenario, seed=args.seed)
-    emu = Emulator(sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port,
-                   control_port=args.control_port)
+    emu = Emulator(
+        sc, speedup=args.speedup, can_port=args.can_port, supply_port=args.supply_port, control_port=args.control_port
+    )
     try:
         emu.start()
         sys.stdout.write(json.dumps(emu.endpoints()) + "\n")

@@ -8,6 +8,7 @@ section: R_s, L_d, L_q, psi_p by +-`r_s_rel`, `inductance_rel`, `psi_p_rel`; the
 +-`disturbance_amplitude_rel` and phase offset +-`disturbance_phase_rad`, plus per cell
 +-`disturbance_cell_rel` / +-`disturbance_cell_phase_rad`.
 """
+
 from __future__ import annotations
 
 import copy
@@ -108,8 +109,12 @@ def perturb(sc: Scenario, seed: int) -> None:
     dist["amplitude_nm"] = amp.tolist()
     dist["phase_deg"] = ph_deg.tolist()
     dist["phase_2h_rad"] = float(dist.get("phase_2h_rad", 0.0)) + rng.uniform(-span_phase, span_phase)
-    sc.perturbation = {**{k: v for k, v in factors.items()}, "resonance": f_res, "disturbance_amplitude": f_amp,
-                       "disturbance_phase_rad": d_phase}
+    sc.perturbation = {
+        **{k: v for k, v in factors.items()},
+        "resonance": f_res,
+        "disturbance_amplitude": f_amp,
+        "disturbance_phase_rad": d_phase,
+    }
     sc.data = data
 
 
@@ -148,8 +153,14 @@ def tables(sc: Scenario) -> tuple[np.ndarray, dict]:
     sat = sc.section("saturation")
     if sat:
         axis = np.asarray(sat["current_a"], dtype=float)
-        block = np.concatenate([axis, np.asarray(sat["l_d_factor"], float), np.asarray(sat["l_q_factor"], float),
-                                np.asarray(sat["psi_p_factor"], float)])
+        block = np.concatenate(
+            [
+                axis,
+                np.asarray(sat["l_d_factor"], float),
+                np.asarray(sat["l_q_factor"], float),
+                np.asarray(sat["psi_p_factor"], float),
+            ]
+        )
         meta["sat"] = (len(axis), off)
         parts.append(block)
         off += len(block)
@@ -206,8 +217,9 @@ def build(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
     j = float(mech["inertia_kgm2"])
     p[ph.P_J] = j
     p[ph.P_B] = float(mech.get("viscous_nm_s_per_rad", 0.0))
-    b0, b1, b2, a1, a2 = ph.sensor_biquad(float(sensor["zero_rad_s"]), float(sensor["pole_re_rad_s"]),
-                                          float(sensor["pole_im_rad_s"]), ts)
+    b0, b1, b2, a1, a2 = ph.sensor_biquad(
+        float(sensor["zero_rad_s"]), float(sensor["pole_re_rad_s"]), float(sensor["pole_im_rad_s"]), ts
+    )
     p[ph.P_H_B0], p[ph.P_H_B1], p[ph.P_H_B2], p[ph.P_H_A1], p[ph.P_H_A2] = b0, b1, b2, a1, a2
     fs = float(sensor["full_scale_rad_s2"])
     p[ph.P_ALPHA_FS] = fs

@@ -11,6 +11,7 @@ Protocol (control socket, JSON lines):
                                      then {"ok": true, "ready": true, "sample_rate_hz": f,
                                      "channels": {name: [values]}} (SI units, names in CHANNELS)
 """
+
 from __future__ import annotations
 
 import threading
@@ -19,15 +20,21 @@ import numpy as np
 
 from . import physics as ph
 
-MAX_SAMPLES = 65536          # 4 s at 16 kHz; one reply line of a few MB at most
+MAX_SAMPLES = 65536  # 4 s at 16 kHz; one reply line of a few MB at most
 
 # channel name (unit in the suffix) -> column of the physics trace
 CHANNELS = {
-    "i_d_a": ph.TR_ID, "i_q_a": ph.TR_IQ,
-    "u_d_v": ph.TR_UD, "u_q_v": ph.TR_UQ,                      # nominal control output u_dq
-    "u_d_star_v": ph.TR_UD_STAR, "u_q_star_v": ph.TR_UQ_STAR,  # after injection: what the inverter is told
-    "torque_nm": ph.TR_TORQUE, "disturbance_nm": ph.TR_DIST,
-    "alpha_rad_s2": ph.TR_ALPHA_MEAS, "phi_e_rad": ph.TR_PHI_E, "v_inj_rad": ph.TR_V_INJ,
+    "i_d_a": ph.TR_ID,
+    "i_q_a": ph.TR_IQ,
+    "u_d_v": ph.TR_UD,
+    "u_q_v": ph.TR_UQ,  # nominal control output u_dq
+    "u_d_star_v": ph.TR_UD_STAR,
+    "u_q_star_v": ph.TR_UQ_STAR,  # after injection: what the inverter is told
+    "torque_nm": ph.TR_TORQUE,
+    "disturbance_nm": ph.TR_DIST,
+    "alpha_rad_s2": ph.TR_ALPHA_MEAS,
+    "phi_e_rad": ph.TR_PHI_E,
+    "v_inj_rad": ph.TR_V_INJ,
 }
 
 
@@ -69,8 +76,13 @@ class Scope:
             if self._recorded < self._wanted:
                 return {"ok": True, "ready": False, "recorded": self._recorded, "samples": self._wanted}
             data = np.concatenate(self._rows)
-        return {"ok": True, "ready": True, "sample_rate_hz": self.sample_rate_hz, "samples": len(data),
-                "channels": {name: np.round(data[:, col], 7).tolist() for name, col in CHANNELS.items()}}
+        return {
+            "ok": True,
+            "ready": True,
+            "sample_rate_hz": self.sample_rate_hz,
+            "samples": len(data),
+            "channels": {name: np.round(data[:, col], 7).tolist() for name, col in CHANNELS.items()},
+        }
 
     def command(self, cmd: dict) -> dict:
         action = cmd.get("scope")

@@ -28,6 +28,7 @@ does not clear them, as a reset command does not repair a supply):
 - `clear_faults()`: both gone; the output follows the setpoint again, and a tripped output stays off
   until OUTP ON (a tripped supply does not switch itself back on).
 """
+
 from __future__ import annotations
 
 import logging
@@ -54,8 +55,8 @@ class DcSupply:
         self._lock = threading.Lock()
         self.setpoint_v = float(voltage_v)
         self.output_on = False
-        self.drift_v: float | None = None   # fault: the output sits here instead of at the setpoint
-        self.tripped = False                # fault: output protection tripped (output held off)
+        self.drift_v: float | None = None  # fault: the output sits here instead of at the setpoint
+        self.tripped = False  # fault: output protection tripped (output held off)
         self._noise_v = noise_v
         self._rng = random.Random(seed)
         self.errors: deque[str] = deque(maxlen=ERROR_QUEUE_LEN)
@@ -117,8 +118,13 @@ class DcSupply:
     def snapshot(self) -> dict:
         """The supply's state for the control socket's status."""
         with self._lock:
-            return {"setpoint_v": self.setpoint_v, "output_on": self.output_on, "actual_v": self._output_v(),
-                    "drift_v": self.drift_v, "tripped": self.tripped}
+            return {
+                "setpoint_v": self.setpoint_v,
+                "output_on": self.output_on,
+                "actual_v": self._output_v(),
+                "drift_v": self.drift_v,
+                "tripped": self.tripped,
+            }
 
     # -- SCPI ---------------------------------------------------------------------------------------
     def handle_line(self, line: str) -> list[str]:

@@ -16,6 +16,7 @@ emulator's canopen Network listens) and to every other client; frames the emulat
 virtual bus go to all clients. Malformed lines are logged and dropped; a client that disconnects or
 stops reading is dropped, never the server.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -40,7 +41,7 @@ class _Client:
         self.sock = sock
         self.addr = addr
         self.rx = ""
-        self.state = "hello"          # hello -> open -> raw
+        self.state = "hello"  # hello -> open -> raw
         self.ready_at = 0.0
         self.queued: list[str] = []
         self.lock = threading.Lock()
@@ -75,7 +76,8 @@ class _Client:
 
 
 def format_frame(msg: can.Message) -> str:
-    """`< frame ID SECONDS.USECS DATA >` with DATA one contiguous hex string (DESIGN 5)."""
+    """`< frame ID SECONDS.USECS DATA >` with DATA one contiguous hex string (as socketcand
+    sends it: module doc)."""
     if msg.is_extended_id:
         can_id = f"{msg.arbitration_id & 0x1FFFFFFF:08X}"
     else:
@@ -153,15 +155,15 @@ class SocketcandServer(TcpServer):
             end = client.rx.find(">", start)
             if end < 0:
                 if len(client.rx) - start > MAX_LINE_CHARS:
-                    log.warning("socketcand: dropping over-long command %r...", client.rx[start:start + 80])
+                    log.warning("socketcand: dropping over-long command %r...", client.rx[start : start + 80])
                     client.rx = ""
                 else:
                     client.rx = client.rx[start:]
                 break
             if client.rx[:start].strip():
                 log.warning("socketcand: dropping garbage %r", client.rx[:start][:80])
-            body = client.rx[start + 1:end].strip()
-            client.rx = client.rx[end + 1:]
+            body = client.rx[start + 1 : end].strip()
+            client.rx = client.rx[end + 1 :]
             self._command(client, body)
 
     def client_closed(self, sock: socket.socket) -> None:

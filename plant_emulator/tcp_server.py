@@ -12,6 +12,7 @@ Subclasses override the hooks they need:
 
 A hook that raises drops that client (logged), never the server.
 """
+
 from __future__ import annotations
 
 import logging
@@ -21,7 +22,7 @@ import threading
 
 log = logging.getLogger(__name__)
 
-CLIENT_TIMEOUT_S = 2.0        # blocking sends to a client that stops reading give up after this
+CLIENT_TIMEOUT_S = 2.0  # blocking sends to a client that stops reading give up after this
 SELECT_TIMEOUT_S = 0.1
 RECV_BYTES = 4096
 
@@ -30,7 +31,7 @@ class TcpServer:
     """Listening socket + selector thread; `_clients` maps each client socket to its state."""
 
     max_line_bytes = 4096
-    log = log                 # subclasses log to their own module's logger
+    log = log  # subclasses log to their own module's logger
 
     def __init__(self, name: str, host: str = "127.0.0.1", port: int = 0, backlog: int = 4):
         self.name = name
@@ -146,7 +147,7 @@ class TcpServer:
         if buf is None:
             return
         buf += data
-        while self._clients.get(sock) is buf:   # stop once a reply failed and dropped the client
+        while self._clients.get(sock) is buf:  # stop once a reply failed and dropped the client
             nl = buf.find(b"\n")
             if nl < 0:
                 if len(buf) > self.max_line_bytes:
@@ -154,7 +155,7 @@ class TcpServer:
                     self.line_too_long(sock)
                 break
             line = bytes(buf[:nl])
-            del buf[:nl + 1]
+            del buf[: nl + 1]
             self.handle_line(sock, line)
 
     def send(self, sock: socket.socket, text: str) -> bool:

@@ -1,6 +1,8 @@
 """ripplecal service: identification methods, sweep plans and their runner, storage, LUT export,
 scheduler, REST API and CLI."""
-from importlib.metadata import PackageNotFoundError, version as _version
+
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _version
 
 try:
     __version__ = _version("ripplecal")

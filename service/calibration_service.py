@@ -4,6 +4,7 @@ API routes and the CLI call this; they hold no logic of their own. With `bench_m
 the emulator is started as a child process and its endpoints fill the bench settings, so the rest
 of the service sees only wires and settings strings.
 """
+
 from __future__ import annotations
 
 import logging
@@ -14,13 +15,25 @@ from typing import Any
 from drivers.canopen_bus import one_blas_thread
 from service import __version__
 from service.bench.bench import Bench, BenchUnreachable
-from service.store.db_claim import DatabaseClaim
 from service.bench.emulator_process import EmulatorProcess
+from service.maps.compare import compare_maps
+from service.runs import lut_download, schedules
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
-from service.store.recordings import RecordingStore, recordings_directory
 from service.runs.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
+from service.store.db_claim import DatabaseClaim
+from service.store.recordings import RecordingStore, RecordingUnavailable, recordings_directory
+from service.store.records import (
+    JobRecord,
+    MapRecord,
+    MapSummaryRecord,
+    ResultRecord,
+    ScheduleRecord,
+    ScheduleRunRecord,
+    SweepRecord,
+    ValidationRecord,
+)
 from service.store.storage import Storage
 
 log = logging.getLogger(__name__)
@@ -28,26 +41,47 @@ log = logging.getLogger(__name__)
 
 def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Settings:
     can = endpoints["can"]
-    return settings.model_copy(update={
-        "can": settings.can.model_copy(update={"interface": can["interface"], "channel": can["channel"],
-                                               "host": can.get("host"), "port": can.get("port"),
-                                               "drive_node": endpoints.get("drive_node", 5),
-                                               "load_node": endpoints.get("load_node", 6)}),
-        "daq": settings.daq.model_copy(update={"url": endpoints["daq"],
-                                               "sample_rate_hz": endpoints.get("sample_rate_hz", settings.daq.sample_rate_hz)}),
-        "supply": settings.supply.model_copy(update={"url": endpoints["supply"]}),
-    })
+    return settings.model_copy(
+        update={
+            "can": settings.can.model_copy(
+                update={
+                    "interface": can["interface"],
+                    "channel": can["channel"],
+                    "host": can.get("host"),
+                    "port": can.get("port"),
+                    "drive_node": endpoints.get("drive_node", 5),
+                    "load_node": endpoints.get("load_node", 6),
+                }
+            ),
+            "daq": settings.daq.model_copy(
+                update={
+                    "url": endpoints["daq"],
+                    "sample_rate_hz": endpoints.get("sample_rate_hz", settings.daq.sample_rate_hz),
+                }
+            ),
+            "supply": settings.supply.model_copy(update={"url": endpoints["supply"]}),
+        }
+    )
 
 
 class CalibrationService:
-    def __init__(self, settings: Settings, clock: Clock = utc_now, storage: Storage | None = None,
-                 claim: DatabaseClaim | None = None):
+    def __init__(
+        self,
+        settings: Settings,
+        clock: Clock = utc_now,
+        storage: Storage | None = None,
+        claim: DatabaseClaim | None = None,
+    ):
         """`storage`: the database, already opened by the caller (the CLI opens it first, to name what is
         wrong with it in one line); else opened here, from settings.server.db_path. `claim`: the
         database's claim, already taken by the caller (the CLI takes it before even migrating)."""
         self.settings = settings
-        self.clock = clock              # the scheduler's time (tests step a fake one)
-        self.storage = storage if storage is not None else Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
+        self.clock = clock  # the scheduler's time (tests step a fake one)
+        self.storage = (
+            storage
+            if storage is not None
+            else Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
+        )
         self.broker = EventBroker()
         self.emulator: EmulatorProcess | None = None
         self.bench: Bench | None = None
@@ -57,7 +91,7 @@ class CalibrationService:
         self.version = __version__
         self._status_stop = threading.Event()
         self._status_thread: threading.Thread | None = None
-        self.shutdown_reason = "service shut down"     # the CLI names the signal (e.g. SIGTERM)
+        self.shutdown_reason = "service shut down"  # the CLI names the signal (e.g. SIGTERM)
         self.claim = claim
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
@@ -77,18 +111,25 @@ class CalibrationService:
             self.emulator = EmulatorProcess(em.scenario, em.seed, em.speedup, em.start_timeout_s)
             endpoints = self.emulator.start()
             settings = settings_with_emulator(settings, endpoints)
-            identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (f":seed={em.seed}" if em.seed is not None else "")
+            identity = f"emulated:{endpoints.get('scenario', em.scenario)}" + (
+                f":seed={em.seed}" if em.seed is not None else ""
+            )
         self.settings = settings
         rec = settings.recordings
-        self.recordings = RecordingStore(self.storage, recordings_directory(rec.directory, settings.server.db_path),
-                                         rec.keep_gb, settings.daq.sample_rate_hz, settings.daq.accel_full_scale_rad_s2,
-                                         enabled=rec.enabled)
+        self.recordings = RecordingStore(
+            self.storage,
+            recordings_directory(rec.directory, settings.server.db_path),
+            rec.keep_gb,
+            settings.daq.sample_rate_hz,
+            settings.daq.accel_full_scale_rad_s2,
+            enabled=rec.enabled,
+        )
         try:
             self.bench = Bench(settings, identity, on_trip=self._on_trip)
             try:
                 self.bench.connect()
             except BenchUnreachable as exc:
-                if self.emulator is not None:    # our own emulator not answering is a bug, not a bench to check
+                if self.emulator is not None:  # our own emulator not answering is a bug, not a bench to check
                     raise
                 log.error("%s", exc)
             self.engine = Engine(self.storage, self.bench, settings, self.broker, recordings=self.recordings)
@@ -100,8 +141,9 @@ class CalibrationService:
             self.stop()
             raise
         if status_period_s:
-            self._status_thread = threading.Thread(target=self._poll_status, args=(status_period_s,),
-                                                   name="ripplecal-status", daemon=True)
+            self._status_thread = threading.Thread(
+                target=self._poll_status, args=(status_period_s,), name="ripplecal-status", daemon=True
+            )
             self._status_thread.start()
 
     def claim_database(self) -> None:
@@ -115,11 +157,11 @@ class CalibrationService:
     def stop(self) -> None:
         self._status_stop.set()
         if self.scheduler is not None:
-            self.scheduler.stop()       # first: no firing into an engine that is stopping
+            self.scheduler.stop()  # first: no firing into an engine that is stopping
         if self.engine is not None:
             self.engine.stop(self.shutdown_reason)
         if self.bench is not None:
-            self.bench.close()          # leaves the bench safe (torque off, injection off)
+            self.bench.close()  # leaves the bench safe (torque off, injection off)
         if self.emulator is not None:
             self.emulator.stop()
         if self.claim is not None:
@@ -139,6 +181,104 @@ class CalibrationService:
         self.broker.publish("bench.fault_reset", result)
         self.broker.publish("bench.status", self.bench.status())
         return result
+
+    # --- what the API routes call: commands ----------------------------------------------------------
+    # (routes never reach into the parts: the engine, the bench, the storage are this layer's business)
+    def bench_status(self) -> dict[str, Any]:
+        return self.bench.status()
+
+    def bench_identity(self) -> str:
+        return self.bench.identity
+
+    def submit_identification(self, op, method: str, options) -> int:
+        return self.engine.submit_identification(op, method, options)
+
+    def cancel_job(self, job_id: int) -> None:
+        self.engine.cancel_job(job_id)
+
+    def submit_sweep(self, grid, method: str, options, regime=None) -> int:
+        return self.engine.submit_sweep(grid, method, options, regime=regime)
+
+    def control_sweep(self, sweep_id: int, action: str) -> None:
+        """`action`: pause | resume | cancel."""
+        {"pause": self.engine.pause_sweep, "resume": self.engine.resume_sweep, "cancel": self.engine.cancel_sweep}[
+            action
+        ](sweep_id)
+
+    def submit_validation(self, map_id: int, force: bool, options) -> int:
+        return self.engine.submit_validation(map_id, force, options)
+
+    def submit_refinement(self, map_id: int, request) -> int:
+        return self.engine.submit_refinement(map_id, request)
+
+    def download_map(self, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None):
+        return lut_download.download_map(
+            self.storage, self.bench, map_id, force, fill=fill, interpolation=interpolation
+        )
+
+    def compare_maps(self, map_a: int, map_b: int):
+        return compare_maps(self.storage, map_a, map_b)
+
+    def open_recording(self, result_id: int):
+        """The result's raw recording, open for reading (RecordingUnavailable says why there is none)."""
+        if self.recordings is None:
+            raise RecordingUnavailable("recordings are not available: the service has not started")
+        return self.recordings.open(result_id)
+
+    def create_schedule(self, name: str, cron: str, timezone: str, sweep, enabled: bool) -> int:
+        return schedules.create_schedule(self.storage, self.settings, self.now(), name, cron, timezone, sweep, enabled)
+
+    def update_schedule(self, schedule_id: int, changes: dict[str, Any]) -> None:
+        schedules.update_schedule(self.storage, self.settings, self.now(), schedule_id, changes)
+
+    def delete_schedule(self, schedule_id: int) -> None:
+        schedules.delete_schedule(self.storage, self.now(), schedule_id)
+
+    # --- what the API routes call: reads (the public shapes are built from these, service/api/public.py) --
+    def token_role(self, token: str) -> str | None:
+        return self.storage.token_role(token)
+
+    def get_job(self, job_id: int) -> JobRecord | None:
+        return self.storage.get_job(job_id)
+
+    def list_jobs(self, limit: int) -> list[JobRecord]:
+        return self.storage.list_jobs(limit)
+
+    def get_result(self, result_id: int) -> ResultRecord | None:
+        return self.storage.get_result(result_id)
+
+    def validation_of_job(self, job_id: int) -> ValidationRecord | None:
+        return self.storage.validation_of_job(job_id)
+
+    def get_sweep(self, sweep_id: int) -> SweepRecord | None:
+        return self.storage.get_sweep(sweep_id)
+
+    def list_sweeps(self, limit: int) -> list[SweepRecord]:
+        return self.storage.list_sweeps(limit)
+
+    def sweep_results(self, sweep_id: int) -> list[ResultRecord]:
+        return self.storage.sweep_results(sweep_id)
+
+    def sweep_outcome(self, sweep_id: int) -> dict:
+        return self.storage.sweep_outcome(sweep_id)
+
+    def get_map(self, map_id: int) -> MapRecord | None:
+        return self.storage.get_map(map_id)
+
+    def list_maps(self, limit: int) -> list[MapSummaryRecord]:
+        return self.storage.list_maps(limit)
+
+    def latest_validation(self, map_id: int) -> ValidationRecord | None:
+        return self.storage.latest_validation(map_id)
+
+    def get_schedule(self, schedule_id: int) -> ScheduleRecord | None:
+        return self.storage.get_schedule(schedule_id)
+
+    def list_schedules(self, limit: int) -> list[ScheduleRecord]:
+        return self.storage.list_schedules(limit)
+
+    def schedule_runs(self, schedule_id: int, limit: int) -> list[ScheduleRunRecord]:
+        return self.storage.schedule_runs(schedule_id, limit)
 
     def _poll_status(self, period_s: float) -> None:
         # fixed rate (not period + read time), so slow reads do not drop the rate below 1/period_s

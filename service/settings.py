@@ -6,6 +6,7 @@ The `motor`, `control` and `mechanics` sections are the bench's NOMINAL paramete
 commissioning): the identification's model S_hat (eq. 14-20) is computed from them, never from the
 emulator's truth.
 """
+
 from __future__ import annotations
 
 import os
@@ -32,8 +33,10 @@ class CanSettings(_Section):
     load_node: int = Field(6, ge=1, le=127)
     sdo_timeout_s: float = Field(0.5, gt=0)
     options: dict[str, str | int | float | bool] = Field(
-        default_factory=dict, description="further keyword arguments of the python-can interface (they override "
-                                          "drivers.canopen_bus.INTERFACE_DEFAULTS, e.g. tcp_tune for socketcand)")
+        default_factory=dict,
+        description="further keyword arguments of the python-can interface (they override "
+        "drivers.canopen_bus.INTERFACE_DEFAULTS, e.g. tcp_tune for socketcand)",
+    )
 
 
 class DaqSettings(_Section):
@@ -42,7 +45,9 @@ class DaqSettings(_Section):
     accel_full_scale_rad_s2: float = Field(500.0, gt=0)
     read_timeout_s: float = Field(5.0, gt=0)
     sync_input: bool = Field(True, description="the drive's sync line is wired to the DAQ (flag bit 2)")
-    no_sync_settle_s: float = Field(0.4, gt=0, description="without the sync line: plant time to let pass after a setpoint")
+    no_sync_settle_s: float = Field(
+        0.4, gt=0, description="without the sync line: plant time to let pass after a setpoint"
+    )
 
 
 class SupplySettings(_Section):
@@ -52,6 +57,7 @@ class SupplySettings(_Section):
 
 class MotorSettings(_Section):
     """Nominal machine parameters (paper Table 1 bench)."""
+
     pole_pairs: int = Field(4, ge=1)
     r_s_ohm: float = Field(0.010, gt=0)
     l_d_h: float = Field(20e-6, gt=0)
@@ -64,16 +70,23 @@ class MotorSettings(_Section):
 class ControlSettings(_Section):
     """Nominal current control: bandwidth, controller rate, total control delay (eq. 17), and the voltage margin
     of the firmware's field weakening."""
+
     bandwidth_hz: float = Field(160.0, gt=0)
     control_rate_hz: float = Field(16_000.0, gt=0)
     delay_periods: float = Field(1.5, ge=0)
-    voltage_margin: float = Field(0.95, gt=0.5, le=1.0, description="the firmware's field weakening keeps the nominal "
-                                  "steady |u_dq| at this fraction of U_dc/sqrt(3) (the rest is headroom for its PI); "
-                                  "the predicted field-weakening onset of a sweep plan uses it")
+    voltage_margin: float = Field(
+        0.95,
+        gt=0.5,
+        le=1.0,
+        description="the firmware's field weakening keeps the nominal "
+        "steady |u_dq| at this fraction of U_dc/sqrt(3) (the rest is headroom for its PI); "
+        "the predicted field-weakening onset of a sweep plan uses it",
+    )
 
 
 class MechanicsSettings(_Section):
     """G_Salpha(s): torque (Nm) -> measured angular acceleration (rad/s^2), paper sec. 2.3."""
+
     inertia_kg_m2: float = Field(2.0e-3, gt=0)
     zero_rad_s: float = -35954.0
     pole_re_rad_s: float = -19.6
@@ -83,26 +96,40 @@ class MechanicsSettings(_Section):
 class IdentificationSettings(_Section):
     harmonic_order: int = Field(6, ge=1, le=60)
     gamma_max_deg: float = Field(15.0, gt=0, le=45)
-    decoupling: bool = Field(False, description="run the drive with decoupling of nominal control and injection (sec. 3.1)")
+    decoupling: bool = Field(
+        False, description="run the drive with decoupling of nominal control and injection (sec. 3.1)"
+    )
     s_model: Literal["auto", "paper", "closed_loop"] = Field(
-        "auto", description="S_hat: eq. 14-20 as written (paper), with the nominal current loop closed around the "
-                            "machine (closed_loop), or auto: closed_loop unless the drive decouples")
+        "auto",
+        description="S_hat: eq. 14-20 as written (paper), with the nominal current loop closed around the "
+        "machine (closed_loop), or auto: closed_loop unless the drive decouples",
+    )
 
 
 class SafetySettings(_Section):
     """Limits every setpoint is checked against before anything is sent (also in a sweep's dry run)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     max_torque_nm: float = Field(5.0, gt=0)
     torque_sign: Literal["both", "positive", "negative"] = Field(
-        "both", description="torque directions the bench may command; zero torque is always allowed")
-    min_speed_rpm: float = Field(100.0, gt=0, description="slowest speed a run may ask for: below it a harmonic "
-                                                           "period has no useful number of samples")
+        "both", description="torque directions the bench may command; zero torque is always allowed"
+    )
+    min_speed_rpm: float = Field(
+        100.0,
+        gt=0,
+        description="slowest speed a run may ask for: below it a harmonic period has no useful number of samples",
+    )
     max_speed_rpm: float = Field(6000.0, gt=0)
     min_udc_v: float = Field(6.0, ge=0)
     max_udc_v: float = Field(60.0, gt=0)
     max_sweep_points_unconfirmed: int = Field(400, ge=1, description="a bigger sweep needs confirm_large = true")
-    max_plant_s_per_point: float = Field(600.0, gt=0, le=86_400, description="most plant time a method's options may "
-                                         "ask for at one operating point (their worst case, checked before queueing)")
+    max_plant_s_per_point: float = Field(
+        600.0,
+        gt=0,
+        le=86_400,
+        description="most plant time a method's options may "
+        "ask for at one operating point (their worst case, checked before queueing)",
+    )
 
     @model_validator(mode="after")
     def _ordered(self):
@@ -115,13 +142,22 @@ class SafetySettings(_Section):
 
 class InterlockSettings(_Section):
     """Interlocks: how they are watched, and whether a drive fault may ever be reset without a person."""
+
     monitor_period_s: float = Field(0.05, gt=0, le=1.0, description="period of the interlock monitor thread")
-    stall_s: float = Field(1.0, gt=0, description="a monitor gap this long trips the run: twice the drive's 500 ms "
-                           "heartbeat consumer time, so the drive has surely lost our heartbeat (a shorter gap that "
-                           "the drive noticed trips through its EMCY; one it did not notice harms no measurement)")
-    supply_tolerance_fraction: float = Field(0.1, gt=0, le=1.0, description="supply trips outside +-this fraction of its setpoint")
+    stall_s: float = Field(
+        1.0,
+        gt=0,
+        description="a monitor gap this long trips the run: twice the drive's 500 ms "
+        "heartbeat consumer time, so the drive has surely lost our heartbeat (a shorter gap that "
+        "the drive noticed trips through its EMCY; one it did not notice harms no measurement)",
+    )
+    supply_tolerance_fraction: float = Field(
+        0.1, gt=0, le=1.0, description="supply trips outside +-this fraction of its setpoint"
+    )
     supply_tolerance_v: float = Field(0.5, gt=0, description="... or outside +-this many volts, whichever is wider")
-    auto_fault_reset: bool = Field(False, description="reset a drive/load FAULT without a person (off: POST /bench/fault-reset)")
+    auto_fault_reset: bool = Field(
+        False, description="reset a drive/load FAULT without a person (off: POST /bench/fault-reset)"
+    )
     auto_fault_reset_per_hour: int = Field(2, ge=0, le=60, description="at most this many automatic resets per hour")
 
 
@@ -130,25 +166,42 @@ class EngineSettings(_Section):
 
 
 class SchedulesSettings(_Section):
-    missed_grace_s: float = Field(3600.0, ge=0, le=7 * 86_400, description="a firing missed while the service was "
-                                  "down still runs once at start if it fell due at most this long ago; older: recorded as missed")
+    missed_grace_s: float = Field(
+        3600.0,
+        ge=0,
+        le=7 * 86_400,
+        description="a firing missed while the service was "
+        "down still runs once at start if it fell due at most this long ago; older: recorded as missed",
+    )
     tick_s: float = Field(1.0, gt=0, le=60, description="how often the scheduler looks for due firings")
 
 
 class RecordingsSettings(_Section):
     """Raw recordings of every identification (MF4, service/store/recordings.py) and their retention."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     enabled: bool = Field(True, description="keep the raw DAQ samples and theta setpoints of every identification")
-    directory: str | None = Field(None, description="where the MF4 files go (default: 'recordings' next to the database)")
-    keep_gb: float = Field(20.0, gt=0, description="keep the newest recordings up to this many GB (1e9 bytes); "
-                           "older ones are deleted after each write (the newest one is always kept)")
+    directory: str | None = Field(
+        None, description="where the MF4 files go (default: 'recordings' next to the database)"
+    )
+    keep_gb: float = Field(
+        20.0,
+        gt=0,
+        description="keep the newest recordings up to this many GB (1e9 bytes); "
+        "older ones are deleted after each write (the newest one is always kept)",
+    )
 
 
 class EmulatorSettings(_Section):
     scenario: str = "paper-bench"
     seed: int | None = None
-    speedup: float = Field(1.0, ge=0, le=1000, description="1: the emulator streams in real time, as a real bench "
-                           "(what a bench pays is measured there); 0: as fast as the DAQ is read (simulation)")
+    speedup: float = Field(
+        1.0,
+        ge=0,
+        le=1000,
+        description="1: the emulator streams in real time, as a real bench "
+        "(what a bench pays is measured there); 0: as fast as the DAQ is read (simulation)",
+    )
     start_timeout_s: float = Field(60.0, gt=0)
 
 
@@ -164,11 +217,17 @@ class ServerSettings(_Section):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     db_path: str = Field(default_factory=default_db_path)
-    max_body_bytes: int = Field(1_048_576, ge=1024, description="larger request bodies get 413 before they are "
-                                                                "parsed or authenticated")
-    db_busy_timeout_s: float = Field(10.0, gt=0, le=600, description="how long a database access waits for another "
-                                     "process's lock before the service treats the database as unavailable (a sweep "
-                                     "then waits with the bench safe, the API answers 503)")
+    max_body_bytes: int = Field(
+        1_048_576, ge=1024, description="larger request bodies get 413 before they are parsed or authenticated"
+    )
+    db_busy_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        le=600,
+        description="how long a database access waits for another "
+        "process's lock before the service treats the database as unavailable (a sweep "
+        "then waits with the bench safe, the API answers 503)",
+    )
 
 
 class Settings(_Section):
@@ -187,7 +246,7 @@ class Settings(_Section):
     schedules: SchedulesSettings = SchedulesSettings()
     recordings: RecordingsSettings = RecordingsSettings()
     emulator: EmulatorSettings = EmulatorSettings()
-    server: ServerSettings = Field(default_factory=ServerSettings)   # the db default read when loaded, not at import
+    server: ServerSettings = Field(default_factory=ServerSettings)  # the db default read when loaded, not at import
 
 
 class SettingsError(ValueError):
@@ -204,8 +263,9 @@ def _parse_env_value(text: str) -> Any:
         return text
 
 
-def load_settings(path: str | Path | None = None, environ: dict[str, str] | None = None,
-                  overrides: dict[str, Any] | None = None) -> Settings:
+def load_settings(
+    path: str | Path | None = None, environ: dict[str, str] | None = None, overrides: dict[str, Any] | None = None
+) -> Settings:
     """Settings from defaults <- TOML file <- environment <- explicit overrides (CLI flags). A problem is
     a SettingsError of one line naming the file (or the environment variable, or the command line) and
     the key."""
@@ -224,12 +284,12 @@ def load_settings(path: str | Path | None = None, environ: dict[str, str] | None
             raise SettingsError(f"settings file {p} cannot be read ({exc.strerror or type(exc).__name__})") from None
         except tomllib.TOMLDecodeError as exc:
             raise SettingsError(f"settings file {p} is not valid TOML: {exc}") from None
-    sources: dict[tuple[str, ...], str] = {}        # key path -> where it came from, if not from the file
+    sources: dict[tuple[str, ...], str] = {}  # key path -> where it came from, if not from the file
     env = os.environ if environ is None else environ
     for key, raw in env.items():
         if not key.startswith(ENV_PREFIX):
             continue
-        parts = key[len(ENV_PREFIX):].lower().split("__")
+        parts = key[len(ENV_PREFIX) :].lower().split("__")
         _put(data, parts, _parse_env_value(raw), f"environment {key}", p)
         sources[tuple(parts)] = f"environment {key}"
     for dotted, value in (overrides or {}).items():

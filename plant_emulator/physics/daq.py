@@ -1,11 +1,12 @@
 """The DAQ side of the emulator: accelerometer counts and the 12-byte frames on the wire.
 
 The frame layout is not written here: sync bytes, field offsets, CRC table and CRC step, flag bits and
-the count scales come from drivers/daq_protocol.py (DESIGN section 5), the module the service's
+the count scales come from drivers/daq_protocol.py (docs/interfaces.md, "DAQ stream frame"), the module the service's
 reader decodes with; numba compiles them in as constants, and `write_frame` jits
 `daq_protocol.crc16_step` itself. Counts: alpha_meas / full scale * 32767, clipped to +-32767
 (over-range flag), rounded half away from zero; angle phi_e * 65536 / (2 pi) rounded, modulo 65536.
 """
+
 from __future__ import annotations
 
 import math
@@ -15,10 +16,10 @@ from numba import njit
 from drivers import daq_protocol as wire
 
 # ---- parameters (indices into p) ----
-P_ALPHA_FS = 22     # rad/s^2, sensor full scale (+-32767 counts)
+P_ALPHA_FS = 22  # rad/s^2, sensor full scale (+-32767 counts)
 
 # ---- setpoints (indices into sp) ----
-S_SYNC = 9          # 0/1, level of the DAQ sync flag during this call
+S_SYNC = 9  # 0/1, level of the DAQ sync flag during this call
 
 FRAME_BYTES = wire.FRAME_BYTES
 SYNC_FLAG = wire.FLAG_SYNC_INPUT

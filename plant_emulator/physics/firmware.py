@@ -23,6 +23,7 @@ Per control period k (paper section 2, Fig. 3):
   estimate   `torque_estimate`: 0x6077 from the measured currents and the nominal parameters.
 Units: V, A, Ohm, H, Wb, Nm, rad, rad/s.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,41 +35,41 @@ from .machine import torque as _torque_of
 SQRT3 = math.sqrt(3.0)
 
 # ---- parameters (indices into p) ----
-P_TS = 0            # s, control period (the whole emulator steps at the controller rate)
-P_R_NOM = 6         # Ohm, the firmware's nominal values
-P_LD_NOM = 7        # H
-P_LQ_NOM = 8        # H
-P_PSI_NOM = 9       # Wb
-P_KP_D = 10         # V/A
+P_TS = 0  # s, control period (the whole emulator steps at the controller rate)
+P_R_NOM = 6  # Ohm, the firmware's nominal values
+P_LD_NOM = 7  # H
+P_LQ_NOM = 8  # H
+P_PSI_NOM = 9  # Wb
+P_KP_D = 10  # V/A
 P_KP_Q = 11
-P_KI_D = 12         # V/(A s)
+P_KI_D = 12  # V/(A s)
 P_KI_Q = 13
-P_IMAX = 14         # A, current vector limit
-P_V_MARGIN = 39     # field weakening targets margin * U_dc/sqrt(3)
-P_W_BW = 41         # rad/s, nominal current-loop bandwidth (G_cl of eq. 11)
-P_FW_BW = 48        # rad/s, bandwidth of the closed-loop field weakening (0: feed-forward only)
-P_FW_TARGET = 49    # the voltage loop holds |u| <= target * U_dc/sqrt(3)
+P_IMAX = 14  # A, current vector limit
+P_V_MARGIN = 39  # field weakening targets margin * U_dc/sqrt(3)
+P_W_BW = 41  # rad/s, nominal current-loop bandwidth (G_cl of eq. 11)
+P_FW_BW = 48  # rad/s, bandwidth of the closed-loop field weakening (0: feed-forward only)
+P_FW_TARGET = 49  # the voltage loop holds |u| <= target * U_dc/sqrt(3)
 
 # ---- setpoints (indices into sp), constant over one call ----
-S_POWER = 0         # 1: power stage on (OPERATION_ENABLED and DC link ok)
-S_TORQUE_NM = 1     # torque command T*
-S_THETA_COS = 2     # rad, already clamped and zero when injection is off
+S_POWER = 0  # 1: power stage on (OPERATION_ENABLED and DC link ok)
+S_TORQUE_NM = 1  # torque command T*
+S_THETA_COS = 2  # rad, already clamped and zero when injection is off
 S_THETA_SIN = 3
-S_H = 4             # harmonic order used by the firmware's injection
-S_DECOUPLING = 5    # 0/1
-S_UDC_V = 6         # DC-link voltage
-S_VEST = 10         # 0/1, eq. 11: G_comp from the estimate u_hat_dq,0 instead of the PI output
+S_H = 4  # harmonic order used by the firmware's injection
+S_DECOUPLING = 5  # 0/1
+S_UDC_V = 6  # DC-link voltage
+S_VEST = 10  # 0/1, eq. 11: G_comp from the estimate u_hat_dq,0 instead of the PI output
 
 # ---- state (indices into x) ----
-X_INT_D = 4         # V, PI integrators
+X_INT_D = 4  # V, PI integrators
 X_INT_Q = 5
-X_VD_APP = 12       # V, injection part u* - u being applied (decoupling estimator input)
+X_VD_APP = 12  # V, injection part u* - u being applied (decoupling estimator input)
 X_VQ_APP = 13
-X_IHAT_D = 14       # A, estimated injection-caused currents (decoupling)
+X_IHAT_D = 14  # A, estimated injection-caused currents (decoupling)
 X_IHAT_Q = 15
-X_IF_D = 18         # A, eq. 11: i* through the nominal closed loop G_cl
+X_IF_D = 18  # A, eq. 11: i* through the nominal closed loop G_cl
 X_IF_Q = 19
-X_FW_DID = 20       # A, closed-loop field weakening: i_d correction (<= 0)
+X_FW_DID = 20  # A, closed-loop field weakening: i_d correction (<= 0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,8 +190,9 @@ def current_reference(torque_nm, w_e, udc_v, r, ld, lq, psi, n_p, i_max, margin)
         for _ in range(60):
             m1 = hi - g * (hi - lo)
             m2 = lo + g * (hi - lo)
-            if (_u_mag(m1, _iq_for_torque(t, m1, psi, ld, lq, n_p), aw, r, ld, lq, psi)
-                    < _u_mag(m2, _iq_for_torque(t, m2, psi, ld, lq, n_p), aw, r, ld, lq, psi)):
+            if _u_mag(m1, _iq_for_torque(t, m1, psi, ld, lq, n_p), aw, r, ld, lq, psi) < _u_mag(
+                m2, _iq_for_torque(t, m2, psi, ld, lq, n_p), aw, r, ld, lq, psi
+            ):
                 hi = m2
             else:
                 lo = m1
@@ -227,8 +229,7 @@ def current_reference(torque_nm, w_e, udc_v, r, ld, lq, psi, n_p, i_max, margin)
 
 
 @njit(cache=True, inline="always")
-def pi_current(id_ref, iq_ref, id_fb, iq_fb, int_d, int_q, w_e, kp_d, kp_q, ki_d, ki_q, ld_nom, lq_nom,
-               psi_nom, u_lim):
+def pi_current(id_ref, iq_ref, id_fb, iq_fb, int_d, int_q, w_e, kp_d, kp_q, ki_d, ki_q, ld_nom, lq_nom, psi_nom, u_lim):
     """The dq current PI with feed-forward (paper Fig. 3). ki_d, ki_q are K_i T_s (V/A).
 
     u_d = K_p,d e_d + integral_d - w_e L_q,nom i_q*

@@ -11,6 +11,7 @@ linear within the larger of +-i_zc and half the current change per period), tran
 the electrical angle at the middle of the period: its own 6k harmonics (`dead_time_voltage`).
 Units: V, A, s, rad, rad/s.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,13 +21,13 @@ from numba import njit
 SQRT3 = math.sqrt(3.0)
 
 # ---- parameters (indices into p) ----
-P_T_DEAD = 36       # s, inverter dead time (0: off)
-P_F_PWM = 37        # Hz, PWM frequency
-P_I_ZC = 38         # A, dead-time sign(i) is linear within +-i_zc
-P_ANGLE_COMP = 40   # 1: inverse Park with the angle advanced by 1.5 w_e T_s
+P_T_DEAD = 36  # s, inverter dead time (0: off)
+P_F_PWM = 37  # Hz, PWM frequency
+P_I_ZC = 38  # A, dead-time sign(i) is linear within +-i_zc
+P_ANGLE_COMP = 40  # 1: inverse Park with the angle advanced by 1.5 w_e T_s
 
 # ---- state (indices into x) ----
-X_UD_APP = 2        # V, voltage computed last period, applied (ZOH) during this one
+X_UD_APP = 2  # V, voltage computed last period, applied (ZOH) during this one
 X_UQ_APP = 3
 
 

@@ -20,6 +20,7 @@ stage that owns it (numba compiles them as constants); the scenario's tables (sa
 disturbance map) live in one flat array `tab` whose offsets are in `p`. Units: SI (V, A, Ohm, H, Wb,
 Nm, rad, rad/s, rad/s^2, kg m^2).
 """
+
 from __future__ import annotations
 
 import math
@@ -31,52 +32,116 @@ from drivers.daq_protocol import FRAME_DTYPE
 
 from . import daq, firmware, inverter, machine, mechanics
 from .daq import FRAME_BYTES, OVER_RANGE_FLAG, P_ALPHA_FS, S_SYNC, SYNC_FLAG
-from .firmware import (P_FW_BW, P_FW_TARGET, P_IMAX, P_KI_D, P_KI_Q, P_KP_D, P_KP_Q, P_LD_NOM, P_LQ_NOM,
-                       P_PSI_NOM, P_R_NOM, P_TS, P_V_MARGIN, P_W_BW, S_DECOUPLING, S_H, S_POWER, S_THETA_COS,
-                       S_THETA_SIN, S_TORQUE_NM, S_UDC_V, S_VEST, X_FW_DID, X_IF_D, X_IF_Q, X_IHAT_D, X_IHAT_Q,
-                       X_INT_D, X_INT_Q, X_VD_APP, X_VQ_APP)
+from .firmware import (
+    P_FW_BW,
+    P_FW_TARGET,
+    P_IMAX,
+    P_KI_D,
+    P_KI_Q,
+    P_KP_D,
+    P_KP_Q,
+    P_LD_NOM,
+    P_LQ_NOM,
+    P_PSI_NOM,
+    P_R_NOM,
+    P_TS,
+    P_V_MARGIN,
+    P_W_BW,
+    S_DECOUPLING,
+    S_H,
+    S_POWER,
+    S_THETA_COS,
+    S_THETA_SIN,
+    S_TORQUE_NM,
+    S_UDC_V,
+    S_VEST,
+    X_FW_DID,
+    X_IF_D,
+    X_IF_Q,
+    X_IHAT_D,
+    X_IHAT_Q,
+    X_INT_D,
+    X_INT_Q,
+    X_VD_APP,
+    X_VQ_APP,
+)
 from .inverter import P_ANGLE_COMP, P_F_PWM, P_I_ZC, P_T_DEAD, X_UD_APP, X_UQ_APP
-from .machine import (P_D2_RATIO, P_DMAP_NN, P_DMAP_NT, P_H_DIST, P_LD, P_LQ, P_NP, P_OFF_DECAY, P_PHI_D2, P_PSI,
-                      P_R, P_SAT_DECAY, P_SAT_N, X_ID, X_IMAG_F, X_IQ)
-from .mechanics import (P_B, P_H_A1, P_H_A2, P_H_B0, P_H_B1, P_H_B2, P_J, P_LOAD_KI, P_LOAD_KP, P_LOAD_RAMP,
-                        P_LOAD_TMAX, P_NOISE, S_LOAD_ON, S_LOAD_SPEED, X_H_S1, X_H_S2, X_LOAD_INT, X_LOAD_REF,
-                        X_OMEGA_M, X_PHI_E)
+from .machine import (
+    P_D2_RATIO,
+    P_DMAP_NN,
+    P_DMAP_NT,
+    P_H_DIST,
+    P_LD,
+    P_LQ,
+    P_NP,
+    P_OFF_DECAY,
+    P_PHI_D2,
+    P_PSI,
+    P_R,
+    P_SAT_DECAY,
+    P_SAT_N,
+    X_ID,
+    X_IMAG_F,
+    X_IQ,
+)
+from .mechanics import (
+    P_B,
+    P_H_A1,
+    P_H_A2,
+    P_H_B0,
+    P_H_B1,
+    P_H_B2,
+    P_J,
+    P_LOAD_KI,
+    P_LOAD_KP,
+    P_LOAD_RAMP,
+    P_LOAD_TMAX,
+    P_NOISE,
+    S_LOAD_ON,
+    S_LOAD_SPEED,
+    X_H_S1,
+    X_H_S2,
+    X_LOAD_INT,
+    X_LOAD_REF,
+    X_OMEGA_M,
+    X_PHI_E,
+)
 
 SQRT3 = math.sqrt(3.0)
 TWO_PI = 2.0 * math.pi
 
-N_PARAMS = 50       # p: indices declared by the stages (25, 26 unused)
-N_SETPOINTS = 11    # sp
-X_SAMPLES = 16      # samples simulated so far
-N_STATE = 21        # x
+N_PARAMS = 50  # p: indices declared by the stages (25, 26 unused)
+N_SETPOINTS = 11  # sp
+X_SAMPLES = 16  # samples simulated so far
+N_STATE = 21  # x
 
 # ---- per-chunk summary (rows of summary[n_chunks, N_SUMMARY]) ----
-Y_UD_SUM = 0        # sum of nominal u_d over the chunk (V)
+Y_UD_SUM = 0  # sum of nominal u_d over the chunk (V)
 Y_UQ_SUM = 1
 Y_TORQUE_EST_SUM = 2  # firmware torque estimate from measured currents, nominal params (Nm)
 Y_OMEGA_SUM = 3
 Y_LOAD_TORQUE_SUM = 4
-Y_OVER_RANGE = 5    # count of clipped samples
-Y_ID_REF = 6        # current references of the chunk (A)
+Y_OVER_RANGE = 5  # count of clipped samples
+Y_ID_REF = 6  # current references of the chunk (A)
 Y_IQ_REF = 7
 N_SUMMARY = 8
 
 # ---- optional per-sample trace ----
 TR_ID = 0
 TR_IQ = 1
-TR_UD = 2           # nominal control output u_dq (before injection)
+TR_UD = 2  # nominal control output u_dq (before injection)
 TR_UQ = 3
-TR_UD_STAR = 4      # after injection (what the inverter is told)
+TR_UD_STAR = 4  # after injection (what the inverter is told)
 TR_UQ_STAR = 5
-TR_TORQUE = 6       # T_em including d
-TR_DIST = 7         # d
-TR_ALPHA = 8        # true dw_m/dt
-TR_ALPHA_MEAS = 9   # sensor output before quantisation
+TR_TORQUE = 6  # T_em including d
+TR_DIST = 7  # d
+TR_ALPHA = 8  # true dw_m/dt
+TR_ALPHA_MEAS = 9  # sensor output before quantisation
 TR_PHI_E = 10
 TR_OMEGA_M = 11
 TR_V_INJ = 12
-TR_T_LOAD = 13      # load machine torque T_lm
-TR_UD_DT = 14       # dead-time voltage error in dq (applied with u*)
+TR_T_LOAD = 13  # load machine torque T_lm
+TR_UD_DT = 14  # dead-time voltage error in dq (applied with u*)
 TR_UQ_DT = 15
 N_TRACE = 16
 
@@ -198,11 +263,11 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
     d_y = 0.0
     d_on = False
     w_zoh = 0.0
-    zoh_true = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)   # machine, true parameters
-    zoh_nom = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)    # the firmware's nominal model (decoupling)
-    app_c = 1.0     # inverter: dq average of the applied voltage = u* (app_c + j app_s)
+    zoh_true = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # machine, true parameters
+    zoh_nom = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # the firmware's nominal model (decoupling)
+    app_c = 1.0  # inverter: dq average of the applied voltage = u* (app_c + j app_s)
     app_s = 0.0
-    rot_c = 1.0     # rotation by half a period (dead-time error at the middle of the period)
+    rot_c = 1.0  # rotation by half a period (dead-time error at the middle of the period)
     rot_s = 0.0
     s_ud = s_uq = s_te = s_w = s_tl = 0.0
     n_over = 0
@@ -213,8 +278,9 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
             countdown = chunk
             # ---------------- chunk-rate firmware task and slow plant parameters ----------------
             if power:
-                id_ff, iq_ff = firmware.current_reference(torque_ref, w_e, udc, r_nom, ld_nom, lq_nom, psi_nom,
-                                                          n_p, p[P_IMAX], p[P_V_MARGIN])
+                id_ff, iq_ff = firmware.current_reference(
+                    torque_ref, w_e, udc, r_nom, ld_nom, lq_nom, psi_nom, n_p, p[P_IMAX], p[P_V_MARGIN]
+                )
             else:
                 id_ff = 0.0
                 iq_ff = 0.0
@@ -254,15 +320,17 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
                 # section 3.1: the estimated injection-caused currents are not fed back
                 id_fb -= ihat_d
                 iq_fb -= ihat_q
-            u_d, u_q, mag, int_d, int_q = firmware.pi_current(id_ref, iq_ref, id_fb, iq_fb, int_d, int_q, w_e,
-                                                              kp_d, kp_q, ki_d, ki_q, ld_nom, lq_nom, psi_nom,
-                                                              u_lim)
+            u_d, u_q, mag, int_d, int_q = firmware.pi_current(
+                id_ref, iq_ref, id_fb, iq_fb, int_d, int_q, w_e, kp_d, kp_q, ki_d, ki_q, ld_nom, lq_nom, psi_nom, u_lim
+            )
             if fw_gain > 0.0:
-                fw_did, id_ref, iq_ref = firmware.field_weakening(fw_did, mag, fw_gain, u_fw_target, fw_did_min,
-                                                                  id_ff, iq_ff, i_max2)
+                fw_did, id_ref, iq_ref = firmware.field_weakening(
+                    fw_did, mag, fw_gain, u_fw_target, fw_did_min, id_ff, iq_ff, i_max2
+                )
             if vest:
-                uh_d, uh_q, if_d, if_q = firmware.voltage_estimate(id_ref, iq_ref, if_d, if_q, w_e, w_bw, g_cl,
-                                                                   r_nom, ld_nom, lq_nom, psi_nom, u_lim)
+                uh_d, uh_q, if_d, if_q = firmware.voltage_estimate(
+                    id_ref, iq_ref, if_d, if_q, w_e, w_bw, g_cl, r_nom, ld_nom, lq_nom, psi_nom, u_lim
+                )
             else:
                 uh_d = u_d
                 uh_q = u_q
@@ -298,8 +366,9 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
                 cx, sx = machine.harmonic(cphi, sphi, h_dist_int)
             dist = machine.disturbance(d_x, d_y, d2_ratio, cx, sx, cos_pd2, sin_pd2)
         t_em = machine.torque(i_d, i_q, psi, ld, lq, n_p) + dist
-        t_lm, load_ref, load_int = mechanics.load_machine(load_on, load_ref, load_int, load_target, w_m, ramp,
-                                                          load_kp, load_ki, j_shaft, ts, tmax)
+        t_lm, load_ref, load_int = mechanics.load_machine(
+            load_on, load_ref, load_int, load_target, w_m, ramp, load_kp, load_ki, j_shaft, ts, tmax
+        )
         alpha = mechanics.shaft_acceleration(t_em, t_lm, b_fric, w_m, j_shaft)
         y, hs1, hs2 = mechanics.sensor_step(alpha, b0, b1, b2, a1, a2, hs1, hs2)
         a_meas = y + sigma * noise[k]
@@ -418,16 +487,18 @@ def new_setpoints(udc_v: float = 0.0) -> np.ndarray:
     return sp
 
 
-def steady_state_init(x: np.ndarray, p: np.ndarray, torque_nm: float, speed_rpm: float,
-                      udc_v: float, tab: np.ndarray | None = None) -> None:
+def steady_state_init(
+    x: np.ndarray, p: np.ndarray, torque_nm: float, speed_rpm: float, udc_v: float, tab: np.ndarray | None = None
+) -> None:
     """Put the state near the steady state of an operating point (no injection, no d, no dead time):
     the firmware's current references, integrators at what the true machine needs beyond the
     feed-forward, shaft at speed with the load machine holding it. Saves settling time in tests and
     calibration (the remaining transient, e.g. the dead-time voltage, settles within ~10 ms)."""
     w_m = speed_rpm * TWO_PI / 60.0
     w_e = p[P_NP] * w_m
-    i_d, i_q = firmware.current_reference(torque_nm, w_e, udc_v, p[P_R_NOM], p[P_LD_NOM], p[P_LQ_NOM],
-                                          p[P_PSI_NOM], p[P_NP], p[P_IMAX], p[P_V_MARGIN])
+    i_d, i_q = firmware.current_reference(
+        torque_nm, w_e, udc_v, p[P_R_NOM], p[P_LD_NOM], p[P_LQ_NOM], p[P_PSI_NOM], p[P_NP], p[P_IMAX], p[P_V_MARGIN]
+    )
     ld, lq, psi = p[P_LD], p[P_LQ], p[P_PSI]
     if tab is not None:
         ld, lq, psi = machine.saturated_params(p, tab, math.hypot(i_d, i_q))
@@ -452,11 +523,10 @@ def steady_state_init(x: np.ndarray, p: np.ndarray, torque_nm: float, speed_rpm:
 class Plant:
     """Stateful convenience wrapper around `simulate` (used by tests, calibration and benchmarks)."""
 
-    def __init__(self, params: np.ndarray, tab: np.ndarray | None = None, noise_seed: int | None = 0,
-                 chunk: int = 256):
+    def __init__(self, params: np.ndarray, tab: np.ndarray | None = None, noise_seed: int | None = 0, chunk: int = 256):
         self.p = np.asarray(params, dtype=np.float64).copy()
         self.tab = np.zeros(1) if tab is None else np.asarray(tab, dtype=np.float64)
-        if tab is None:   # no tables: unsaturated machine, no disturbance map
+        if tab is None:  # no tables: unsaturated machine, no disturbance map
             self.p[P_SAT_N] = self.p[P_DMAP_NT] = self.p[P_DMAP_NN] = 0.0
         self.x = new_state()
         self.rng = np.random.default_rng(noise_seed)
@@ -477,8 +547,18 @@ class Plant:
         fr = np.empty(m * FRAME_BYTES, dtype=np.uint8) if frames else self._no_frames
         tr = np.zeros((m, N_TRACE)) if trace else self._no_trace
         self.summary = np.zeros((-(-m // self.chunk), N_SUMMARY))
-        simulate(self.x, self.p, self.tab, np.asarray(sp, dtype=np.float64), noise, self.chunk, self.samples,
-                 fr, self.summary, tr)
+        simulate(
+            self.x,
+            self.p,
+            self.tab,
+            np.asarray(sp, dtype=np.float64),
+            noise,
+            self.chunk,
+            self.samples,
+            fr,
+            self.summary,
+            tr,
+        )
         self.samples += m
         if frames:
             f = np.frombuffer(fr.tobytes(), dtype=FRAME_DTYPE)

@@ -14,6 +14,7 @@ with D, phi_D bilinear in the disturbance map over (T*, mechanical speed), inter
 Units: V, A, Ohm, H, Wb, Nm, rad, rad/s. The scenario's tables live in the flat array `tab` at the
 offsets P_SAT_OFF and P_DMAP_OFF.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,28 +22,28 @@ import math
 from numba import njit
 
 # ---- parameters (indices into p) ----
-P_NP = 1            # pole pairs
-P_R = 2             # Ohm, true stator resistance
-P_LD = 3            # H, true L_d at zero current (times the saturation table factor)
-P_LQ = 4            # H
-P_PSI = 5           # Wb, true PM flux linkage at zero current (times the table factor)
-P_DIST_SCALE = 24   # factor on the whole disturbance map (1; tests/calibration set 0)
-P_D2_RATIO = 27     # D_2 / D
-P_PHI_D2 = 28       # rad
-P_T_RATED = 29      # Nm
-P_H_DIST = 30       # order of the true torque harmonic
-P_OFF_DECAY = 35    # per-period factor of the currents with the inverter off
-P_SAT_DECAY = 42    # per-period factor of the |i| low-pass that drives the saturation tables
-P_SAT_N = 43        # number of points of the saturation tables
-P_SAT_OFF = 44      # offset of [i_axis, ld_rel, lq_rel, psi_rel] in tab
-P_DMAP_NT = 45      # disturbance map: torque axis length
-P_DMAP_NN = 46      # speed axis length
-P_DMAP_OFF = 47     # offset of [torque axis, speed axis (rad/s mech), X (nn*nt), Y (nn*nt)] in tab
+P_NP = 1  # pole pairs
+P_R = 2  # Ohm, true stator resistance
+P_LD = 3  # H, true L_d at zero current (times the saturation table factor)
+P_LQ = 4  # H
+P_PSI = 5  # Wb, true PM flux linkage at zero current (times the table factor)
+P_DIST_SCALE = 24  # factor on the whole disturbance map (1; tests/calibration set 0)
+P_D2_RATIO = 27  # D_2 / D
+P_PHI_D2 = 28  # rad
+P_T_RATED = 29  # Nm
+P_H_DIST = 30  # order of the true torque harmonic
+P_OFF_DECAY = 35  # per-period factor of the currents with the inverter off
+P_SAT_DECAY = 42  # per-period factor of the |i| low-pass that drives the saturation tables
+P_SAT_N = 43  # number of points of the saturation tables
+P_SAT_OFF = 44  # offset of [i_axis, ld_rel, lq_rel, psi_rel] in tab
+P_DMAP_NT = 45  # disturbance map: torque axis length
+P_DMAP_NN = 46  # speed axis length
+P_DMAP_OFF = 47  # offset of [torque axis, speed axis (rad/s mech), X (nn*nt), Y (nn*nt)] in tab
 
 # ---- state (indices into x) ----
-X_ID = 0            # A, true currents
+X_ID = 0  # A, true currents
 X_IQ = 1
-X_IMAG_F = 17       # A, low-pass filtered current magnitude (saturation)
+X_IMAG_F = 17  # A, low-pass filtered current magnitude (saturation)
 
 
 @njit(cache=True)
@@ -89,8 +90,7 @@ def current_step(zoh, i_d, i_q, u_d, u_q):
     voltage u + [0, -w_e psi_p] this is the machine (eq. 18-19); the firmware's decoupling runs the
     same step on its nominal model with the injection voltage alone."""
     a00, a01, a10, a11, b00, b01, b10, b11 = zoh
-    return (a00 * i_d + a01 * i_q + b00 * u_d + b01 * u_q,
-            a10 * i_d + a11 * i_q + b10 * u_d + b11 * u_q)
+    return (a00 * i_d + a01 * i_q + b00 * u_d + b01 * u_q, a10 * i_d + a11 * i_q + b10 * u_d + b11 * u_q)
 
 
 @njit(cache=True, inline="always")
@@ -184,10 +184,18 @@ def disturbance_phasor(p, tab, torque_nm, w_m):
     w01 = ft * (1.0 - fn)
     w10 = (1.0 - ft) * fn
     w11 = ft * fn
-    x = (w00 * tab[xo + jn * nt + jt] + w01 * tab[xo + jn * nt + jt1]
-         + w10 * tab[xo + jn1 * nt + jt] + w11 * tab[xo + jn1 * nt + jt1])
-    y = (w00 * tab[yo + jn * nt + jt] + w01 * tab[yo + jn * nt + jt1]
-         + w10 * tab[yo + jn1 * nt + jt] + w11 * tab[yo + jn1 * nt + jt1])
+    x = (
+        w00 * tab[xo + jn * nt + jt]
+        + w01 * tab[xo + jn * nt + jt1]
+        + w10 * tab[xo + jn1 * nt + jt]
+        + w11 * tab[xo + jn1 * nt + jt1]
+    )
+    y = (
+        w00 * tab[yo + jn * nt + jt]
+        + w01 * tab[yo + jn * nt + jt1]
+        + w10 * tab[yo + jn1 * nt + jt]
+        + w11 * tab[yo + jn1 * nt + jt1]
+    )
     s = p[P_DIST_SCALE]
     return s * x, s * y
 
@@ -199,5 +207,8 @@ def saturated_params(p, tab, i_mag):
     if n == 0:
         return p[P_LD], p[P_LQ], p[P_PSI]
     off = int(p[P_SAT_OFF])
-    return (p[P_LD] * _interp_tab(tab, off, n, 1, i_mag), p[P_LQ] * _interp_tab(tab, off, n, 2, i_mag),
-            p[P_PSI] * _interp_tab(tab, off, n, 3, i_mag))
+    return (
+        p[P_LD] * _interp_tab(tab, off, n, 1, i_mag),
+        p[P_LQ] * _interp_tab(tab, off, n, 2, i_mag),
+        p[P_PSI] * _interp_tab(tab, off, n, 3, i_mag),
+    )

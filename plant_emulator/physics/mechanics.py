@@ -9,6 +9,7 @@ Sensor: alpha_meas = H(z) dw_m/dt + noise, H = J G_Salpha (zero z, poles p, H(0)
 paper: z = -35954, p = -19.6 +- j6746.2 rad/s), bilinear with pre-warping at |p| (`sensor_biquad`),
 run in direct form II transposed (`sensor_step`). Units: Nm, rad/s, rad/s^2, kg m^2, s.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,29 +22,29 @@ from .firmware import P_TS
 TWO_PI = 2.0 * math.pi
 
 # ---- parameters (indices into p) ----
-P_J = 15            # kg m^2
-P_B = 16            # Nm/(rad/s), viscous friction
-P_H_B0 = 17         # sensor biquad (direct form II transposed), normalised a0 = 1
+P_J = 15  # kg m^2
+P_B = 16  # Nm/(rad/s), viscous friction
+P_H_B0 = 17  # sensor biquad (direct form II transposed), normalised a0 = 1
 P_H_B1 = 18
 P_H_B2 = 19
 P_H_A1 = 20
 P_H_A2 = 21
-P_NOISE = 23        # rad/s^2, sensor noise standard deviation
-P_LOAD_KP = 31      # Nm/(rad/s)
-P_LOAD_KI = 32      # Nm/rad
-P_LOAD_RAMP = 33    # rad/s^2 (mechanical), ramp of the speed reference
-P_LOAD_TMAX = 34    # Nm
+P_NOISE = 23  # rad/s^2, sensor noise standard deviation
+P_LOAD_KP = 31  # Nm/(rad/s)
+P_LOAD_KI = 32  # Nm/rad
+P_LOAD_RAMP = 33  # rad/s^2 (mechanical), ramp of the speed reference
+P_LOAD_TMAX = 34  # Nm
 
 # ---- setpoints (indices into sp) ----
-S_LOAD_ON = 7       # 1: load machine speed loop active
-S_LOAD_SPEED = 8    # rad/s, mechanical target speed of the load machine
+S_LOAD_ON = 7  # 1: load machine speed loop active
+S_LOAD_SPEED = 8  # rad/s, mechanical target speed of the load machine
 
 # ---- state (indices into x) ----
-X_PHI_E = 6         # rad, electrical angle in [0, 2 pi)
-X_OMEGA_M = 7       # rad/s, mechanical speed
-X_LOAD_INT = 8      # Nm, load speed-loop integrator
-X_LOAD_REF = 9      # rad/s, ramped speed reference
-X_H_S1 = 10         # sensor biquad states
+X_PHI_E = 6  # rad, electrical angle in [0, 2 pi)
+X_OMEGA_M = 7  # rad/s, mechanical speed
+X_LOAD_INT = 8  # Nm, load speed-loop integrator
+X_LOAD_REF = 9  # rad/s, ramped speed reference
+X_H_S1 = 10  # sensor biquad states
 X_H_S2 = 11
 
 
@@ -109,7 +110,7 @@ def sensor_biquad(zero_rad_s: float, pole_re_rad_s: float, pole_im_rad_s: float,
     the lightly damped resonance lands at the right frequency. Returns (b0, b1, b2, a1, a2)."""
     from scipy.signal import bilinear
 
-    w0_sq = pole_re_rad_s ** 2 + pole_im_rad_s ** 2
+    w0_sq = pole_re_rad_s**2 + pole_im_rad_s**2
     w0 = math.sqrt(w0_sq)
     num = np.array([1.0, -zero_rad_s]) * (w0_sq / (-zero_rad_s))
     den = np.array([1.0, -2.0 * pole_re_rad_s, w0_sq])
@@ -124,6 +125,6 @@ def sensor_biquad(zero_rad_s: float, pole_re_rad_s: float, pole_im_rad_s: float,
 def sensor_response(p: np.ndarray, omega_rad_s: float) -> complex:
     """Frequency response of the discrete sensor path H(e^{j w T_s}) (for tests / calibration)."""
     z = np.exp(1j * omega_rad_s * p[P_TS])
-    num = p[P_H_B0] + p[P_H_B1] / z + p[P_H_B2] / z ** 2
-    den = 1.0 + p[P_H_A1] / z + p[P_H_A2] / z ** 2
+    num = p[P_H_B0] + p[P_H_B1] / z + p[P_H_B2] / z**2
+    den = 1.0 + p[P_H_A1] / z + p[P_H_A2] / z**2
     return complex(num / den)

@@ -1,5 +1,6 @@
 """FastAPI application: the routes, the dashboard's static files, Plotly.js from the plotly package,
 /docs with its assets from the fastapi-offline package (benches are offline: no CDN)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -37,11 +38,17 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
             if manage_lifecycle:
                 service.stop()
 
-    app = FastAPI(title="ripplecal", version=__version__, lifespan=lifespan, docs_url=None, redoc_url=None,
-                  description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.")
+    app = FastAPI(
+        title="ripplecal",
+        version=__version__,
+        lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
+        description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.",
+    )
     app.state.service = service
     for router in ROUTERS:
-        app.include_router(router, responses=EVERY_ROUTE)        # every route documents 500 and 503
+        app.include_router(router, responses=EVERY_ROUTE)  # every route documents 500 and 503
     app.add_exception_handler(RequestValidationError, request_validation_error)
     app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
     # added last: outermost, so an error anywhere below (the body limit too) is a JSON answer, never plain text
@@ -68,12 +75,16 @@ def _add_docs(app: FastAPI) -> None:
 
     @app.get("/docs", include_in_schema=False)
     def swagger_ui() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} - API",
-                                   oauth2_redirect_url=app.swagger_ui_oauth2_redirect_url,
-                                   swagger_js_url=f"{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
-                                   swagger_css_url=f"{DOCS_ASSETS_URL}/swagger-ui.css", swagger_favicon_url=favicon,
-                                   # no validator badge: it would call validator.swagger.io
-                                   swagger_ui_parameters={"validatorUrl": None})
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url,
+            title=f"{app.title} - API",
+            oauth2_redirect_url=app.swagger_ui_oauth2_redirect_url,
+            swagger_js_url=f"{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS_URL}/swagger-ui.css",
+            swagger_favicon_url=favicon,
+            # no validator badge: it would call validator.swagger.io
+            swagger_ui_parameters={"validatorUrl": None},
+        )
 
     @app.get(app.swagger_ui_oauth2_redirect_url, include_in_schema=False)
     def swagger_ui_redirect() -> HTMLResponse:

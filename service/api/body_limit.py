@@ -1,5 +1,6 @@
 """Request body size limit as pure ASGI middleware: it runs before routing, parsing and authentication,
 so an oversized body (declared by Content-Length, or streamed chunked without one) costs nothing."""
+
 from __future__ import annotations
 
 import json
@@ -46,7 +47,7 @@ class BodySizeLimit:
         async def guarded_send(message):
             nonlocal started
             if too_large:
-                return      # whatever the app makes of a cut-off body is replaced by the 413 below
+                return  # whatever the app makes of a cut-off body is replaced by the 413 below
             if message["type"] == "http.response.start":
                 started = True
             await send(message)
@@ -66,7 +67,15 @@ class BodySizeLimit:
     @staticmethod
     async def _refuse(send, status: int, detail: str) -> None:
         body = json.dumps({"detail": detail}).encode()
-        await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                                (b"connection", b"close")]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": status,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})

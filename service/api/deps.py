@@ -1,4 +1,5 @@
 """Annotated dependencies: the service layer and bearer-token roles (viewer < operator < admin)."""
+
 from __future__ import annotations
 
 from typing import Annotated
@@ -23,18 +24,24 @@ ResourceId = Annotated[int, Path(ge=1, le=2**63 - 1, description="id (a positive
 
 
 def require_role(minimum: str):
-    def check(service: ServiceDep,
-              credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
+    def check(
+        service: ServiceDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+    ) -> str:
         if credentials is None or credentials.scheme.lower() != "bearer":
-            raise HTTPException(status.HTTP_401_UNAUTHORIZED, "a bearer token is required for this route",
-                                headers={"WWW-Authenticate": "Bearer"})
-        role = service.storage.token_role(credentials.credentials)
+            raise HTTPException(
+                status.HTTP_401_UNAUTHORIZED,
+                "a bearer token is required for this route",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
+        role = service.token_role(credentials.credentials)
         if role is None:
-            raise HTTPException(status.HTTP_401_UNAUTHORIZED, "token unknown or revoked",
-                                headers={"WWW-Authenticate": "Bearer"})
+            raise HTTPException(
+                status.HTTP_401_UNAUTHORIZED, "token unknown or revoked", headers={"WWW-Authenticate": "Bearer"}
+            )
         if ROLE_RANK[role] < ROLE_RANK[minimum]:
             raise HTTPException(status.HTTP_403_FORBIDDEN, f"role {role} may not do this; {minimum} or higher needed")
         return role
+
     return check
 
 

@@ -2,6 +2,7 @@
 422 handler that can always serialise what it refuses (NaN, inf, deep or huge inputs). Never a plain-text
 500: storage trouble that passes is a 503 with Retry-After, anything unexpected a JSON 500 whose
 `error_id` is in the log line with the traceback."""
+
 from __future__ import annotations
 
 import json
@@ -24,13 +25,17 @@ log = logging.getLogger(__name__)
 
 class UnavailablePublic(BaseModel):
     """503: the database cannot be used now, for a reason that passes; try again after Retry-After."""
-    detail: str = Field(..., description="what is wrong with the database, e.g. 'database ripplecal.db: its disk is full (...)'")
+
+    detail: str = Field(
+        ..., description="what is wrong with the database, e.g. 'database ripplecal.db: its disk is full (...)'"
+    )
     cause: str = Field(..., description="locked | read_only | disk_full | io_error | cannot_open")
     retry_after_s: float = Field(..., description="try again after this many seconds (also the Retry-After header)")
 
 
 class InternalErrorPublic(BaseModel):
     """500: a fault of the service; the service's log has the traceback under the same error_id."""
+
     detail: str = Field("internal error", description="always 'internal error' (the cause is in the log)")
     error_id: str = Field(..., description="the id of the log line with the traceback")
 
@@ -45,7 +50,7 @@ _DESCRIPTIONS = {
     500: "Internal error: the body's error_id names the log line with the traceback",
     502: "The drive refused or did not answer",
     503: "The database cannot be used now (locked by another process, read-only or full filesystem, I/O error): "
-         "try again after Retry-After",
+    "try again after Retry-After",
 }
 _MODELS: dict[int, type[BaseModel]] = {500: InternalErrorPublic, 503: UnavailablePublic}
 _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying again", "schema": {"type": "integer"}}}
@@ -53,8 +58,14 @@ _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying ag
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """`responses=` for a route: each status it can answer besides its success."""
-    return {code: {"model": _MODELS.get(code, ErrorPublic), "description": _DESCRIPTIONS[code],
-                   **({"headers": _RETRY_AFTER} if code == 503 else {})} for code in codes}
+    return {
+        code: {
+            "model": _MODELS.get(code, ErrorPublic),
+            "description": _DESCRIPTIONS[code],
+            **({"headers": _RETRY_AFTER} if code == 503 else {}),
+        }
+        for code in codes
+    }
 
 
 # every route can meet storage trouble or a fault of its own (app.include_router adds them to each)
@@ -69,7 +80,7 @@ def validation_error(loc: list[str | int], msg: str, type_: str = "value_error")
 def _json_safe(value: Any) -> bool:
     """Echo an input back only when it is a small scalar JSON can carry (NaN and inf cannot)."""
     if value is None or isinstance(value, (bool, int)):
-        return not isinstance(value, int) or abs(value) < 2 ** 63
+        return not isinstance(value, int) or abs(value) < 2**63
     if isinstance(value, float):
         return math.isfinite(value)
     return isinstance(value, str) and len(value) <= 200
@@ -85,7 +96,7 @@ async def request_validation_error(request: Request, exc: RequestValidationError
         if len(loc) > at and loc[0] == "body" and loc[at] in METHODS:
             del loc[at]
         elif loc in (["body"], ["body", "sweep"]) and e["type"] == "union_tag_invalid":
-            loc = [*loc, "method"]          # an unknown method
+            loc = [*loc, "method"]  # an unknown method
         item = validation_error(loc, e["msg"], e["type"])
         if "input" in e and _json_safe(e["input"]):
             item["input"] = e["input"]
@@ -115,15 +126,18 @@ class ErrorAnswers:
                 started = True
             await send(message)
 
-        what = f"{scope.get('method', '?')} {scope.get('path', '?')}"       # never the query: it may hold a token
+        what = f"{scope.get('method', '?')} {scope.get('path', '?')}"  # never the query: it may hold a token
         try:
             await self.app(scope, receive, tracked_send)
         except StorageUnavailable as exc:
             log.warning("%s: 503, %s", what, exc)
             if not started:
-                await _answer(send, 503, {"detail": exc.public, "cause": exc.cause,
-                                          "retry_after_s": exc.retry_after_s},
-                              [(b"retry-after", str(max(1, math.ceil(exc.retry_after_s))).encode())])
+                await _answer(
+                    send,
+                    503,
+                    {"detail": exc.public, "cause": exc.cause, "retry_after_s": exc.retry_after_s},
+                    [(b"retry-after", str(max(1, math.ceil(exc.retry_after_s))).encode())],
+                )
         except Exception as exc:  # noqa: BLE001 - the one place an unexpected fault becomes an answer
             error_id = secrets.token_hex(4)
             log.error("internal error %s answering %s: %s: %s", error_id, what, type(exc).__name__, exc, exc_info=exc)
@@ -133,7 +147,11 @@ class ErrorAnswers:
 
 async def _answer(send, status: int, body: dict[str, Any], headers: list[tuple[bytes, bytes]] = ()) -> None:
     data = json.dumps(body).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()),
-                            *headers]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()), *headers],
+        }
+    )
     await send({"type": "http.response.body", "body": data})

@@ -1,4 +1,5 @@
 """Refusals the routes share: 422 items naming the field at fault (bench limits, plant time)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -8,8 +9,8 @@ from fastapi import HTTPException, status
 
 from service.api.errors import validation_error
 from service.bench.bench import BenchUnreachable
-from service.runs.identify import PlantTimeError
 from service.model.limits import LimitError
+from service.runs.identify import PlantTimeError
 
 
 def unprocessable(*errors: dict[str, Any]) -> HTTPException:
@@ -20,8 +21,9 @@ def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
     """The bench's safety limits refused a setpoint: one 422 item per operating-point field at fault."""
     if not exc.problems:
         return unprocessable(validation_error(where, str(exc), "value_error.bench_limits"))
-    return unprocessable(*(validation_error([*where, field], msg, "value_error.bench_limits")
-                           for field, msg in exc.problems))
+    return unprocessable(
+        *(validation_error([*where, field], msg, "value_error.bench_limits") for field, msg in exc.problems)
+    )
 
 
 @contextlib.contextmanager

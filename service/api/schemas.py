@@ -1,9 +1,10 @@
-"""Request schemas (the Create family) and the error answer; the Public family lives in service.public.
+"""Request schemas (the Create family) and the error answer; the Public family lives in service.api.public.
 
 A request names its method and carries that method's options: a discriminated union built from the
 method registry, so /docs lists every method's options with their bounds and units, and a new
 method appears here by being registered. `method` may be left out: it defaults to "adaptive".
 """
+
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
@@ -11,10 +12,10 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
 
 from service.identification.registry import METHODS
-from service.runs.validation import ValidationOptions
 from service.model.operating_point import OperatingPoint
 from service.runs.plans import Grid, RegimePlacement
 from service.runs.schedules import check_cron, check_timezone
+from service.runs.validation import ValidationOptions
 
 MethodName = Literal[tuple(METHODS)]
 DEFAULT_METHOD = "adaptive"
@@ -44,26 +45,50 @@ def _per_method(kind: str, fields: dict[str, Any], example: dict) -> Any:
 
 
 IdentificationCreate = _per_method(
-    "Identification", {"operating_point": (OperatingPoint, ...)},
-    {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "options": {}})
+    "Identification",
+    {"operating_point": (OperatingPoint, ...)},
+    {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "options": {}},
+)
 
 SweepCreate = _per_method(
-    "Sweep", {"grid": (Grid, ...),
-              "confirm_large": (bool, Field(False, description="required for a grid above "
-                                                               "safety.max_sweep_points_unconfirmed points (a run of "
-                                                               "hours is started on purpose)")),
-              "regime": (RegimePlacement | None, Field(None, description="place speed values around the predicted "
-                                                       "field-weakening onset of each torque (service.plans.plan_grid); "
-                                                       "the sweep stores and measures the planned grid (POST "
-                                                       "/sweeps/preview shows it)"))},
-    {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}})
+    "Sweep",
+    {
+        "grid": (Grid, ...),
+        "confirm_large": (
+            bool,
+            Field(
+                False,
+                description="required for a grid above "
+                "safety.max_sweep_points_unconfirmed points (a run of "
+                "hours is started on purpose)",
+            ),
+        ),
+        "regime": (
+            RegimePlacement | None,
+            Field(
+                None,
+                description="place speed values around the predicted "
+                "field-weakening onset of each torque "
+                "(service.runs.plans.plan_grid); the sweep stores and measures the planned grid (POST "
+                "/sweeps/preview shows it)",
+            ),
+        ),
+    },
+    {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000, 2500], "udc_v": [12]}},
+)
 
 
-_SCHEDULE_EXAMPLE = {"name": "nightly OP map", "cron": "0 2 * * 1-5", "timezone": "Europe/Berlin",
-                     "sweep": {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000], "udc_v": [12]},
-                               "method": "adaptive"}, "enabled": True}
-_CRON = ("cron in 5 fields: minute hour day-of-month month day-of-week, Debian cron semantics (across DST a time "
-         "that does not exist runs once right after the change, a time that repeats runs once)")
+_SCHEDULE_EXAMPLE = {
+    "name": "nightly OP map",
+    "cron": "0 2 * * 1-5",
+    "timezone": "Europe/Berlin",
+    "sweep": {"grid": {"torque_nm": [1, 2.5, 4], "speed_rpm": [1000, 2000], "udc_v": [12]}, "method": "adaptive"},
+    "enabled": True,
+}
+_CRON = (
+    "cron in 5 fields: minute hour day-of-month month day-of-week, Debian cron semantics (across DST a time "
+    "that does not exist runs once right after the change, a time that repeats runs once)"
+)
 
 
 class _ScheduleFields(BaseModel):
@@ -81,6 +106,7 @@ class _ScheduleFields(BaseModel):
 
 class ScheduleCreate(_ScheduleFields):
     """A sweep submitted at the times of a cron expression; `sweep` is checked exactly as POST /sweeps is."""
+
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_SCHEDULE_EXAMPLE]})
     name: str = Field(..., min_length=1, max_length=100, description="unique among the schedules")
     cron: str = Field(..., min_length=1, max_length=200, description=_CRON)
@@ -91,6 +117,7 @@ class ScheduleCreate(_ScheduleFields):
 
 class ScheduleUpdate(_ScheduleFields):
     """The fields to change; the others stay. A new cron or zone, or enabling, counts from now."""
+
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"enabled": False}]})
     name: str = Field(None, min_length=1, max_length=100)
     cron: str = Field(None, min_length=1, max_length=200, description=_CRON)
@@ -101,6 +128,7 @@ class ScheduleUpdate(_ScheduleFields):
 
 class ValidationCreate(BaseModel):
     """Validate a map in the drive's LUT mode: its LUT is downloaded first (CRC-32 read back)."""
+
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"force": False, "options": {}}]})
     force: bool = Field(False, description="validate a partial map (cells not ok carry no injection)")
     options: ValidationOptions = Field(default_factory=ValidationOptions)
@@ -108,4 +136,5 @@ class ValidationCreate(BaseModel):
 
 class ErrorPublic(BaseModel):
     """Every refusal except 422 (which lists one item per field, see HTTPValidationError)."""
+
     detail: str = Field(..., description="what was refused and why")

@@ -4,6 +4,7 @@ The child dies with the service, also when the service is killed with SIGKILL: i
 `--exit-on-stdin-eof` and its stdin is a pipe only this process holds, so the kernel closing that
 pipe at our death (any death) stops it. It runs in its own session so that a terminal's Ctrl-C goes
 to the service, which then stops it in order (bench safe first)."""
+
 from __future__ import annotations
 
 import json
@@ -31,19 +32,36 @@ class EmulatorProcess:
     endpoints: dict[str, Any] | None = None
 
     def start(self) -> dict[str, Any]:
-        cmd = [sys.executable, "-m", "plant_emulator", "--scenario", self.scenario, "--speedup", str(self.speedup),
-               "--exit-on-stdin-eof"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "plant_emulator",
+            "--scenario",
+            self.scenario,
+            "--speedup",
+            str(self.speedup),
+            "--exit-on-stdin-eof",
+        ]
         if self.seed is not None:
             cmd += ["--seed", str(self.seed)]
-        self.process = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None, text=True,
-                                        start_new_session=True, close_fds=True)
+        self.process = subprocess.Popen(
+            cmd,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=None,
+            text=True,
+            start_new_session=True,
+            close_fds=True,
+        )
         sel = selectors.DefaultSelector()
         sel.register(self.process.stdout, selectors.EVENT_READ)
         deadline = time.monotonic() + self.start_timeout_s
         line = ""
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
-                raise EmulatorError(f"plant_emulator exited with code {self.process.returncode} before naming its endpoints")
+                raise EmulatorError(
+                    f"plant_emulator exited with code {self.process.returncode} before naming its endpoints"
+                )
             if sel.select(timeout=0.2):
                 line = self.process.stdout.readline()
                 break
@@ -64,7 +82,7 @@ class EmulatorProcess:
             return
         if proc.stdin is not None:
             try:
-                proc.stdin.close()          # the child's cue as well, should the signal not reach it
+                proc.stdin.close()  # the child's cue as well, should the signal not reach it
             except OSError:
                 pass
         if proc.poll() is not None:

@@ -12,6 +12,7 @@ it (POST /bench/fault-reset), the others clear when their condition does.
 thread), keeps the first trip of the run in flight (`run_trip`, read by the bench's guard before every
 DAQ read) and calls `on_trip` at once, so the bench goes safe without waiting for the run to notice.
 """
+
 from __future__ import annotations
 
 import logging
@@ -33,10 +34,11 @@ _NO_READING = object()
 @dataclass(frozen=True)
 class Trip:
     """One interlock trip: which interlock, why (the first cause), whether a person must acknowledge it."""
+
     interlock: str
     reason: str
     latched: bool
-    at: str                     # ISO 8601 UTC
+    at: str  # ISO 8601 UTC
     monotonic: float
 
     def public(self) -> dict[str, Any]:
@@ -51,7 +53,7 @@ class InterlockTripped(RuntimeError):
     def __init__(self, trip: Trip, refused: bool = False, outcome: str | None = None):
         self.trip = trip
         self.refused = refused
-        self.outcome = outcome      # make_safe's outcome, added to (never substituted for) the cause
+        self.outcome = outcome  # make_safe's outcome, added to (never substituted for) the cause
         prefix = "refused: interlock tripped: " if refused else "interlock tripped: "
         # only a person clears a latched trip: a refusal says how
         hint = "; a person acknowledges it: POST /api/v1/bench/fault-reset" if refused and trip.latched else ""
@@ -68,7 +70,7 @@ class Interlock(ABC):
     armed_only = False
 
     def __init__(self) -> None:
-        self.reason: str | None = None      # set while tripped
+        self.reason: str | None = None  # set while tripped
         self._next_read = 0.0
 
     @abstractmethod
@@ -245,7 +247,7 @@ class SupplyOutOfRange(Interlock):
         self.supply = supply
         self.tolerance_fraction = tolerance_fraction
         self.tolerance_v = tolerance_v
-        self.expected_v: float | None = None      # set by the bench once the supply has reached it
+        self.expected_v: float | None = None  # set by the bench once the supply has reached it
 
     def band(self, expected_v: float) -> float:
         return max(self.tolerance_fraction * abs(expected_v), self.tolerance_v)
@@ -262,12 +264,14 @@ class SupplyOutOfRange(Interlock):
         return value is not None and abs(value[0] - value[1]) > self.band(value[1])
 
     def should_clear(self, value) -> bool:
-        return value is None or abs(value[0] - value[1]) <= 0.5 * self.band(value[1])   # hysteresis
+        return value is None or abs(value[0] - value[1]) <= 0.5 * self.band(value[1])  # hysteresis
 
     def justification(self, value) -> str:
         measured_v, expected_v = value
-        return (f"DC supply out of range: measures {measured_v:.2f} V, set {expected_v:.2f} V "
-                f"(band +-{self.band(expected_v):.2f} V)")
+        return (
+            f"DC supply out of range: measures {measured_v:.2f} V, set {expected_v:.2f} V "
+            f"(band +-{self.band(expected_v):.2f} V)"
+        )
 
 
 class InterlockMonitor:
@@ -279,8 +283,9 @@ class InterlockMonitor:
     missed our heartbeat for about that long, which trips the run in flight.
     """
 
-    def __init__(self, interlocks: list[Interlock], on_trip: Callable[[Trip], None],
-                 period_s: float = 0.05, stall_s: float = 0.5):
+    def __init__(
+        self, interlocks: list[Interlock], on_trip: Callable[[Trip], None], period_s: float = 0.05, stall_s: float = 0.5
+    ):
         self.interlocks = interlocks
         self.on_trip = on_trip
         self.period_s = period_s
@@ -289,7 +294,7 @@ class InterlockMonitor:
         self._armed = False
         self._run_trip: Trip | None = None
         self._last_trip: Trip | None = None
-        self._reported: dict[str, str] = {}     # interlock -> reason already reported (no repeats while it holds)
+        self._reported: dict[str, str] = {}  # interlock -> reason already reported (no repeats while it holds)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -313,8 +318,11 @@ class InterlockMonitor:
             with self._lock:
                 armed = self._armed
             if armed and overslept > self.stall_s:
-                self._tripped("service_stall", f"heartbeat lost: the service stalled for {overslept:.1f} s "
-                                               "(its heartbeat to the drive lapsed)", latched=False)
+                self._tripped(
+                    "service_stall",
+                    f"heartbeat lost: the service stalled for {overslept:.1f} s (its heartbeat to the drive lapsed)",
+                    latched=False,
+                )
             try:
                 self.check_now()
             except Exception:  # noqa: BLE001 - the watchdog must outlive any one bad reading
@@ -381,8 +389,9 @@ class InterlockMonitor:
             self._tripped(interlock.name, interlock.reason or reason, latched=True)
 
     def _tripped(self, name: str, reason: str, latched: bool) -> None:
-        trip = Trip(name, reason, latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
-                    time.monotonic())
+        trip = Trip(
+            name, reason, latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"), time.monotonic()
+        )
         with self._lock:
             new_for_run = self._armed and self._run_trip is None
             if new_for_run:
@@ -408,8 +417,9 @@ class InterlockMonitor:
                 continue
             reason = lock.evaluate()
             if reason is not None:
-                return Trip(lock.name, reason, lock.latched,
-                            datetime.now(timezone.utc).isoformat(timespec="milliseconds"), now)
+                return Trip(
+                    lock.name, reason, lock.latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"), now
+                )
         return None
 
     def reset_latched(self) -> Trip | None:
@@ -426,7 +436,12 @@ class InterlockMonitor:
     def snapshot(self) -> dict[str, Any]:
         with self._lock:
             run_trip, last = self._run_trip, self._last_trip
-        return {"tripped": [{"interlock": lock.name, "reason": lock.reason, "latched": lock.latched}
-                            for lock in self.interlocks if lock.reason is not None],
-                "run_trip": run_trip.public() if run_trip else None,
-                "last_trip": last.public() if last else None}
+        return {
+            "tripped": [
+                {"interlock": lock.name, "reason": lock.reason, "latched": lock.latched}
+                for lock in self.interlocks
+                if lock.reason is not None
+            ],
+            "run_trip": run_trip.public() if run_trip else None,
+            "last_trip": last.public() if last else None,
+        }

@@ -4,19 +4,20 @@ Written from several threads (the status poller's SDO/SCPI reads, a run's sessio
 publisher it is handed, the bench's own commands), read by `Bench.status()`: each value carries its
 age, so a value nobody refreshed reads as stale instead of as current.
 """
+
 from __future__ import annotations
 
 import threading
 import time
 from typing import Any, Callable
 
-STALE_AFTER_S = 3.0     # a value older than this is marked stale (the poller refreshes at 1 Hz)
+STALE_AFTER_S = 3.0  # a value older than this is marked stale (the poller refreshes at 1 Hz)
 
 
 class LiveValues:
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._values: dict[str, dict[str, tuple[Any, float]]] = {}   # group -> field -> (value, monotonic)
+        self._values: dict[str, dict[str, tuple[Any, float]]] = {}  # group -> field -> (value, monotonic)
 
     def publish(self, group: str, **values: Any) -> None:
         now = time.monotonic()
@@ -34,5 +35,4 @@ class LiveValues:
         now = time.monotonic()
         with self._lock:
             fields = dict(self._values.get(group, {}))
-        return ({k: v for k, (v, _) in fields.items()},
-                {k: round(now - t, 2) for k, (_, t) in fields.items()})
+        return ({k: v for k, (v, _) in fields.items()}, {k: round(now - t, 2) for k, (_, t) in fields.items()})

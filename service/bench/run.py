@@ -21,6 +21,7 @@ before the session is handed out names the move.
 Each point's wall time is split (PointTiming): move (commands until the last setpoint is written),
 accounting, settle (from there to steady), measurement (the caller's use of the session).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -28,21 +29,21 @@ import math
 import threading
 import time
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import Callable, Iterator
 
-from service.identification.session import MeasurementError
+from service.bench.contracts import RunBench
 from service.bench.interlocks import InterlockTripped
+from service.bench.measurement import OperatingPointSession, SessionSettings
+from service.bench.point_stream import PointStream
+from service.identification.session import MeasurementError
 from service.model.limits import LimitError, check_limits
-from service.bench.measurement import OperatingPointSession, PointStream
 from service.model.operating_point import OperatingPoint
-
-if TYPE_CHECKING:
-    from service.bench.bench import Bench
 
 
 @dataclass
 class PointTiming:
     """Wall seconds of one point of a run, by what they were spent on."""
+
     move_s: float = 0.0
     accounting_s: float = 0.0
     settle_s: float = 0.0
@@ -53,28 +54,35 @@ class PointTiming:
 
 
 class BenchRun:
-    """A run in progress (module doc). Created by Bench.run only; also the session's DriveCommands."""
+    """A run in progress (module doc). Created by Bench.run only, given the bench as a RunBench
+    (service/bench/contracts.py); it is also its sessions' DriveCommands."""
 
-    def __init__(self, bench: "Bench", harmonic_order: int, gamma_max_rad: float, decoupling: bool,
-                 cancel: threading.Event | None):
+    def __init__(
+        self,
+        bench: RunBench,
+        harmonic_order: int,
+        gamma_max_rad: float,
+        decoupling: bool,
+        cancel: threading.Event | None,
+    ):
         self.bench = bench
         self.harmonic_order = harmonic_order
         self.gamma_max_rad = gamma_max_rad
         self.decoupling = decoupling
         self.cancel = cancel
-        self.at: OperatingPoint | None = None       # where the run stands (None: not moved yet)
-        self.theta: tuple[float, float] | None = None   # what the drive applies in manual mode (None: unknown)
+        self.at: OperatingPoint | None = None  # where the run stands (None: not moved yet)
+        self.theta: tuple[float, float] | None = None  # what the drive applies in manual mode (None: unknown)
         self.mode: str | None = None
         self.points = 0
-        self.timing = PointTiming()                 # of the last point
+        self.timing = PointTiming()  # of the last point
         self.accounting_reports: list[dict] = []
 
     def guard(self) -> None:
-        self.bench._guard(self.cancel)
+        self.bench.guard(self.cancel)
 
     # --- DriveCommands (what a session sends) -------------------------------------------------------
     def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        self.theta = None       # unknown until written: a refused or lost write leaves it so
+        self.theta = None  # unknown until written: a refused or lost write leaves it so
         self.bench.send_theta(theta_cos_rad, theta_sin_rad, self.cancel)
         self.theta = (float(theta_cos_rad), float(theta_sin_rad))
 
@@ -85,8 +93,9 @@ class BenchRun:
 
     # --- points --------------------------------------------------------------------------------------
     @contextlib.contextmanager
-    def operating_point(self, op: OperatingPoint, target_db: float = 40.0,
-                        on_window: Callable | None = None) -> Iterator[OperatingPointSession]:
+    def operating_point(
+        self, op: OperatingPoint, target_db: float = 40.0, on_window: Callable | None = None
+    ) -> Iterator[OperatingPointSession]:
         """Move to `op` and settle (module doc), then yield a session whose plant time starts at zero.
         An interlock that tripped during the point ends it in InterlockTripped even if the caller
         finished: its data are not good. After an error the drive's theta and mode are unknown (the
@@ -95,12 +104,18 @@ class BenchRun:
         self.timing = timing = PointTiming()
         bench, s = self.bench, self.bench.settings
         stream = PointStream(bench.accounting, s.daq.sample_rate_hz, guard=self.guard)
-        session = OperatingPointSession(stream, self, self.harmonic_order, s.motor.pole_pairs,
-                                        sync_input=s.daq.sync_input, no_sync_settle_s=s.daq.no_sync_settle_s,
-                                        resonance=bench.resonance, observe=bench.live.publisher("run"),
-                                        on_window=on_window)
-        bench.live.publish("run", operating_point=op.model_dump(), speed_rpm=None, harmonic_amplitude_fs=None,
-                           plant_time_s=None)
+        settings = SessionSettings(
+            self.harmonic_order,
+            s.motor.pole_pairs,
+            sync_input=s.daq.sync_input,
+            no_sync_settle_s=s.daq.no_sync_settle_s,
+        )
+        session = OperatingPointSession(
+            stream, self, settings, bench.resonance, observe=bench.live.publisher("run"), on_window=on_window
+        )
+        bench.live.publish(
+            "run", operating_point=op.model_dump(), speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None
+        )
         try:
             try:
                 self._move(op, timing)
@@ -135,15 +150,15 @@ class BenchRun:
             raise
 
     def _move(self, op: OperatingPoint, timing: PointTiming) -> None:
-        bench, s = self.bench, self.bench.settings
+        bench = self.bench
         drive, load = bench.drive, bench.load
         t0 = time.perf_counter()
-        at, self.at = self.at, None          # unknown until the move is through
+        at, self.at = self.at, None  # unknown until the move is through
         first = at is None
         self.guard()
         if first or op.udc_v != at.udc_v:
             if self.points:
-                drive.set_torque_nm(0.0)       # no torque while the DC link changes
+                drive.set_torque_nm(0.0)  # no torque while the DC link changes
             bench.set_dc_link(op.udc_v)
         self.guard()
         if first:
@@ -153,7 +168,7 @@ class BenchRun:
         self.guard()
         if first:
             drive.enable()
-            drive.set_gamma_max_rad(self.gamma_max_rad)     # no toggle: it only clamps |theta|
+            drive.set_gamma_max_rad(self.gamma_max_rad)  # no toggle: it only clamps |theta|
         if bench.accounting.in_doubt:
             t1 = time.perf_counter()
             self.accounting_reports.append(bench.accounting.establish(self.guard))

@@ -18,6 +18,7 @@ reaction), and the window is twice the largest of the recent ones. Before any se
 (at connect) it is INITIAL_QUIET_SAMPLES, the deepest DAQ path we know of (the emulator run as
 fast as it is read holds about 16000 samples between its plant and the reader).
 """
+
 from __future__ import annotations
 
 import collections
@@ -31,9 +32,9 @@ from drivers.daq_protocol import FLAG_SYNC_INPUT, DecodedSamples
 
 log = logging.getLogger(__name__)
 
-INITIAL_QUIET_SAMPLES = 20480   # 1.28 s at 16 kHz; only until the first setpoint was timed
-MIN_QUIET_SAMPLES = 512         # never less: the emulator applies one queued setpoint per 256-sample chunk
-QUIET_PER_LATENCY = 2.0         # the window spans twice the largest recent setpoint latency
+INITIAL_QUIET_SAMPLES = 20480  # 1.28 s at 16 kHz; only until the first setpoint was timed
+MIN_QUIET_SAMPLES = 512  # never less: the emulator applies one queued setpoint per 256-sample chunk
+QUIET_PER_LATENCY = 2.0  # the window spans twice the largest recent setpoint latency
 LATENCIES_KEPT = 64
 MAX_ESTABLISH_SAMPLES = 131072  # a line that toggles for 8 s of plant time with nothing written is not ours
 
@@ -45,8 +46,8 @@ class AccountingError(RuntimeError):
 @dataclass
 class Chunk:
     samples: DecodedSamples
-    toggle_offsets: np.ndarray     # offsets within the chunk where the sync level changed
-    gap_offsets: np.ndarray        # offsets of samples with lost samples or a bad frame just before them
+    toggle_offsets: np.ndarray  # offsets within the chunk where the sync level changed
+    gap_offsets: np.ndarray  # offsets of samples with lost samples or a bad frame just before them
 
 
 class DaqCursor:
@@ -57,13 +58,12 @@ class DaqCursor:
     them once the caller has shown they happened (OperatingPointSession.wait_for_effect).
     `on_toggles(first_number, indices)` hears every toggle counted, with its running number."""
 
-    def __init__(self, reader, read_timeout_s: float,
-                 on_toggles: Callable[[int, np.ndarray], None] | None = None):
+    def __init__(self, reader, read_timeout_s: float, on_toggles: Callable[[int, np.ndarray], None] | None = None):
         self.reader = reader
         self.read_timeout_s = read_timeout_s
         self.on_toggles = on_toggles
         self.toggles_seen = 0
-        self.toggles_hidden = 0        # added by count_hidden_toggles: lost in gaps, for the log and the run
+        self.toggles_hidden = 0  # added by count_hidden_toggles: lost in gaps, for the log and the run
         self.gaps_seen = 0
         self.last_index = -1
         self._level: int | None = None
@@ -111,14 +111,15 @@ class SetpointAccounting:
     its commit counter); note_write(number) is to be called after each setpoint write (the drive
     client's listener), so that its toggle's latency can be measured."""
 
-    def __init__(self, reader, read_timeout_s: float, setpoints_written: Callable[[], int],
-                 resync_drive: Callable[[int], dict]):
+    def __init__(
+        self, reader, read_timeout_s: float, setpoints_written: Callable[[], int], resync_drive: Callable[[int], dict]
+    ):
         self.cursor = DaqCursor(reader, read_timeout_s, on_toggles=self._on_toggles)
         self._setpoints_written = setpoints_written
         self._resync_drive = resync_drive
         self.doubt_reason: str | None = "not established since the bench was connected"
-        self._write_marks: dict[int, int] = {}      # setpoint number -> newest sample read at its write
-        self.latencies = collections.deque(maxlen=LATENCIES_KEPT)   # samples from write to its toggle
+        self._write_marks: dict[int, int] = {}  # setpoint number -> newest sample read at its write
+        self.latencies = collections.deque(maxlen=LATENCIES_KEPT)  # samples from write to its toggle
         self.establishments = 0
 
     # --- the count -------------------------------------------------------------------------------
@@ -131,7 +132,7 @@ class SetpointAccounting:
         if self.doubt_reason is None:
             log.info("setpoint accounting in doubt: %s", reason)
             self.doubt_reason = reason
-        self._write_marks.clear()       # toggles no longer match their writes by number: time none of them
+        self._write_marks.clear()  # toggles no longer match their writes by number: time none of them
 
     def pending(self) -> int:
         """Setpoints written whose toggle has not been seen yet."""
@@ -143,7 +144,7 @@ class SetpointAccounting:
         if self.in_doubt:
             return
         self._write_marks[number] = self.cursor.last_index
-        if len(self._write_marks) > 4 * LATENCIES_KEPT:    # toggles lost in gaps leave marks behind
+        if len(self._write_marks) > 4 * LATENCIES_KEPT:  # toggles lost in gaps leave marks behind
             for stale in sorted(self._write_marks)[:-LATENCIES_KEPT]:
                 del self._write_marks[stale]
 
@@ -155,7 +156,7 @@ class SetpointAccounting:
             if mark is not None and mark >= 0:
                 self.latencies.append(int(index) - mark)
         for number in [n for n in self._write_marks if n < first_number]:
-            del self._write_marks[number]       # their toggles were hidden in gaps: no latency to learn
+            del self._write_marks[number]  # their toggles were hidden in gaps: no latency to learn
 
     def quiet_samples(self) -> int:
         """Quiet (no toggle, no gap) that shows nothing is pending: twice the largest recent setpoint
@@ -193,7 +194,7 @@ class SetpointAccounting:
         quiet_needed = self.quiet_samples()
         self.cursor.discard_buffered()
         start = None
-        last_event = None        # index of the last toggle or gap
+        last_event = None  # index of the last toggle or gap
         while True:
             guard()
             chunk = self.cursor.read_available(4096)
@@ -207,13 +208,18 @@ class SetpointAccounting:
             if int(index[-1]) - last_event >= quiet_needed:
                 break
             if int(index[-1]) - start > MAX_ESTABLISH_SAMPLES:
-                raise AccountingError(f"the DAQ sync line never stayed quiet for {quiet_needed} samples in "
-                                      f"{int(index[-1]) - start} samples with no setpoint written "
-                                      f"({self.cursor.toggles_seen} toggles): setpoints cannot be counted")
+                raise AccountingError(
+                    f"the DAQ sync line never stayed quiet for {quiet_needed} samples in "
+                    f"{int(index[-1]) - start} samples with no setpoint written "
+                    f"({self.cursor.toggles_seen} toggles): setpoints cannot be counted"
+                )
         report = self._resync_drive(self.cursor.toggles_seen)
         if report.get("commits_expected") is not None and report["commits_expected"] != report["commits_reported"]:
-            log.warning("drive commit counter %d, expected %d: setpoint count re-established from the drive",
-                        report["commits_reported"], report["commits_expected"])
+            log.warning(
+                "drive commit counter %d, expected %d: setpoint count re-established from the drive",
+                report["commits_reported"],
+                report["commits_expected"],
+            )
         self._write_marks.clear()
         self.doubt_reason = None
         self.establishments += 1

@@ -1,17 +1,17 @@
-"""Adaptive identification (paper sec. 2.3) in the block form of DESIGN section 3.
+"""Adaptive identification (paper sec. 2.3) in block form (docs/conventions.md, Adaptive law).
 
 Continuous law (eq. 16): d(theta)/dt = -2 mu S_hat^+ x(t) alpha(t). Averaged over whole periods of
 the harmonic, x(t) alpha(t) averages to a/2 with a = [a_c, a_s], so over one block of length
 T_block the update is
 
-    theta <- theta - mu * T_block * S_hat^+ a                                  (DESIGN 3)
+    theta <- theta - mu * T_block * S_hat^+ a
 
 With S_hat = S this is a contraction by (1 - g), g = mu T_block, per block; with a phase error phi it
 is |1 - g (|S|/|S_hat|) e^{j phi}|, which is < 1 for small g iff |phi| < 90 deg. Blocks last
 `block_s` of plant time (whole electrical turns), so g does not depend on the speed.
 
-S_hat (DESIGN 3 (c)): it starts as the model of eq. 14-20 (or as the S measured at the neighbouring
-cells of a sweep) and is replaced by the S_ss fitted over the run's own blocks (the affine model
+S_hat (docs/conventions.md, Beyond the paper (c)): it starts as the model of eq. 14-20 (or as the
+S measured at the neighbouring cells of a sweep) and is replaced by the S_ss fitted over the run's own blocks (the affine model
 a = S_ss theta + b by least squares, common.affine_s_from_history) once the thetas span both
 directions and the two disagree by more than `s_refine_tolerance`; the result reports the model
 against the measured S.
@@ -24,6 +24,7 @@ stopped when it no longer falls (noise floor) or after `max_blocks`; diverged wh
 well above the best seen or theta runs into gamma_max without the residual falling -- then the best
 theta seen is restored and the probe method takes over from there.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,9 +32,24 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (done, stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, affine_s_from_history, clamp,
-                                           measure_reference, measure_step, meets, noise_floor_db, periods_for, spectrum_traces,
-                                           target_amplitude, time_to_suppression, verdict)
+from service.identification.common import (
+    PRECISION_FOR_TARGET,
+    Conditions,
+    MethodOptions,
+    Prior,
+    affine_s_from_history,
+    clamp,
+    done,
+    measure_reference,
+    measure_step,
+    noise_floor_db,
+    periods_for,
+    spectrum_traces,
+    stop_amplitude,
+    target_amplitude,
+    time_to_suppression,
+    verdict,
+)
 from service.identification.probe import HISTORY_COLUMNS, ProbeOptions, identify_probe
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementError, MeasurementSession, Window
@@ -46,14 +62,23 @@ class AdaptiveOptions(MethodOptions):
     max_blocks: int = Field(40, ge=1, le=1000)
     stall_blocks: int = Field(6, ge=2, le=1000, description="blocks without a 10 % better residual that end the run")
     max_plant_s: float = Field(5.0, gt=0, le=60, description="plant time after which the run ends with what it has")
-    divergence_factor: float = Field(2.0, gt=1, le=100, description="residual above this times the best seen counts as growing")
+    divergence_factor: float = Field(
+        2.0, gt=1, le=100, description="residual above this times the best seen counts as growing"
+    )
     divergence_blocks: int = Field(3, ge=1, le=100, description="consecutive growing blocks that mean divergence")
     fallback: bool = Field(True, description="on divergence, fall back to the probe method")
-    s_refine: bool = Field(True, description="replace S_hat by the S fitted over the run's own blocks (DESIGN 3 (c))")
-    s_refine_tolerance: float = Field(0.15, gt=0, le=10, description="relative |S_fit - S_hat| that triggers the replacement")
+    s_refine: bool = Field(
+        True,
+        description="replace S_hat by the S fitted over the run's own blocks where the two "
+        "disagree by more than s_refine_tolerance",
+    )
+    s_refine_tolerance: float = Field(
+        0.15, gt=0, le=10, description="relative |S_fit - S_hat| that triggers the replacement"
+    )
     use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
-    s_hat_phase_offset_deg: float = Field(0.0, ge=-180, le=180,
-                                          description="deliberate phase error added to S_hat (robustness tests)")
+    s_hat_phase_offset_deg: float = Field(
+        0.0, ge=-180, le=180, description="deliberate phase error added to S_hat (robustness tests)"
+    )
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
         """Worst-case plant time (s): the blocks stop once max_plant_s is passed (one block late at
@@ -67,15 +92,23 @@ def _row(w: Window, theta: np.ndarray) -> list:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
 
 
-def identify_adaptive(session: MeasurementSession, s_hat: complex, options: AdaptiveOptions, gamma_max_rad: float, *,
-                      prior: Prior | None = None, conditions: Conditions | None = None) -> IdentificationResult:
+def identify_adaptive(
+    session: MeasurementSession,
+    s_hat: complex,
+    options: AdaptiveOptions,
+    gamma_max_rad: float,
+    *,
+    prior: Prior | None = None,
+    conditions: Conditions | None = None,
+) -> IdentificationResult:
     session.settle_after_theta_s = options.settle_s
     prior = prior if options.use_prior else None
     block_periods = periods_for(session, options.block_s)
     max_periods = max(block_periods, periods_for(session, options.max_window_s))
-    gain = min(options.mu_per_s * block_periods / session.harmonic_frequency_hz, 1.0)    # g = mu T_block
-    offset = complex(math.cos(math.radians(options.s_hat_phase_offset_deg)),
-                     math.sin(math.radians(options.s_hat_phase_offset_deg)))
+    gain = min(options.mu_per_s * block_periods / session.harmonic_frequency_hz, 1.0)  # g = mu T_block
+    offset = complex(
+        math.cos(math.radians(options.s_hat_phase_offset_deg)), math.sin(math.radians(options.s_hat_phase_offset_deg))
+    )
     s_model = s_matrix(s_hat * offset)
     s_used = prior.s() if prior is not None and prior.s_matrix is not None else s_model
     s_source = prior.source if s_used is not s_model else "model (eq. 14-20)"
@@ -85,9 +118,16 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         if not exc.over_range or prior is None:
             raise
         # next to the resonance: the probe method starts from the neighbours and estimates A_0 (its doc)
-        result = identify_probe(session, s_hat, ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s),
-                                gamma_max_rad, prior=prior, conditions=conditions, method="adaptive",
-                                details={"fallback": "probe", "fallback_reason": "sensor over range at theta = 0"})
+        result = identify_probe(
+            session,
+            s_hat,
+            ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s),
+            gamma_max_rad,
+            prior=prior,
+            conditions=conditions,
+            method="adaptive",
+            details={"fallback": "probe", "fallback_reason": "sensor over range at theta = 0"},
+        )
         result.message = f"sensor over range at theta = 0, probe from the neighbours: {result.message}"
         return result
     history = [_row(before, np.zeros(2))]
@@ -98,18 +138,34 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     needed_gamma = abs(before.phasor.complex / s_hat)
     if needed_gamma > 1.5 * gamma_max_rad:
         # sec. 2.4: hold the adaptation off; nothing above 0 is sent
-        message = (f"model needs gamma = {math.degrees(needed_gamma):.1f} deg > gamma_max = "
-                   f"{math.degrees(gamma_max_rad):.1f} deg: adaptation held off (sec. 2.4)")
-        return _result(session, "no_authority", message, np.zeros(2), before, before, history, s_hat, None,
-                       options, {"blocks": 0, "needed_gamma_deg": math.degrees(needed_gamma)})
+        message = (
+            f"model needs gamma = {math.degrees(needed_gamma):.1f} deg > gamma_max = "
+            f"{math.degrees(gamma_max_rad):.1f} deg: adaptation held off (sec. 2.4)"
+        )
+        return _result(
+            session,
+            "no_authority",
+            message,
+            np.zeros(2),
+            before,
+            before,
+            history,
+            s_hat,
+            None,
+            options,
+            {"blocks": 0, "needed_gamma_deg": math.degrees(needed_gamma)},
+        )
 
     theta, window = np.zeros(2), before
     thetas, phasors = [theta.copy()], [before.phasor.vector]
     if prior is not None and np.any(prior.theta):
         theta, _ = clamp(prior.theta, gamma_max_rad)
         session.apply_theta(*theta)
-        window = session.measure(block_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, uncompensated / 200),
-                                 max_periods=max_periods)
+        window = session.measure(
+            block_periods,
+            max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, uncompensated / 200),
+            max_periods=max_periods,
+        )
         history.append(_row(window, theta))
         thetas.append(theta.copy())
         phasors.append(window.phasor.vector)
@@ -123,7 +179,7 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         if final is not None:
             break
         a = window.phasor.vector
-        step = gain * (np.linalg.pinv(s_used) @ a)                      # eq. 16, block form
+        step = gain * (np.linalg.pinv(s_used) @ a)  # eq. 16, block form
         theta, limited = clamp(theta - step, gamma_max_rad)
         session.apply_theta(*theta)
         expected = max((1.0 - 0.7 * gain) * window.phasor.amplitude, limit)
@@ -146,8 +202,9 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
             final = window
             break
         if options.s_refine:
-            fitted = affine_s_from_history(np.array(thetas), np.array(phasors),
-                                           min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4))
+            fitted = affine_s_from_history(
+                np.array(thetas), np.array(phasors), min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4)
+            )
             if fitted is not None and abs(np.linalg.det(fitted)) > 1e-30:
                 difference = np.linalg.norm(fitted - s_used) / np.linalg.norm(s_used)
                 if difference > options.s_refine_tolerance:
@@ -166,20 +223,42 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
         if amp <= 3.0 * math.sqrt(2.0) * window.noise_std_fs and window.noise_std_fs <= limit / PRECISION_FOR_TARGET:
             break
 
-    details = {"blocks": blocks, "mu_per_s": options.mu_per_s, "block_periods": block_periods, "gain_per_block": gain,
-               "converged": final is not None, "diverged": diverged, "s_used": s_source,
-               "s_replaced_after_blocks": s_replaced_after, "s_hat_phase_offset_deg": options.s_hat_phase_offset_deg,
-               "prior": None if prior is None else prior.source,
-               "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0)}
+    details = {
+        "blocks": blocks,
+        "mu_per_s": options.mu_per_s,
+        "block_periods": block_periods,
+        "gain_per_block": gain,
+        "converged": final is not None,
+        "diverged": diverged,
+        "s_used": s_source,
+        "s_replaced_after_blocks": s_replaced_after,
+        "s_hat_phase_offset_deg": options.s_hat_phase_offset_deg,
+        "prior": None if prior is None else prior.source,
+        "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0),
+    }
     if diverged:
-        details["divergence"] = ("sensor over range after a step" if over_range else
-                                 "residual growing" if growing >= options.divergence_blocks else "theta held at gamma_max")
-        session.apply_theta(*best_theta)      # revert to the best theta seen
+        details["divergence"] = (
+            "sensor over range after a step"
+            if over_range
+            else "residual growing"
+            if growing >= options.divergence_blocks
+            else "theta held at gamma_max"
+        )
+        session.apply_theta(*best_theta)  # revert to the best theta seen
         if options.fallback:
             probe_opts = ProbeOptions(target_db=options.target_db, max_window_s=options.max_window_s)
-            result = identify_probe(session, s_hat, probe_opts, gamma_max_rad, before=before, conditions=conditions,
-                                    start_theta=tuple(best_theta), history=history, method="adaptive",
-                                    details={**details, "fallback": "probe"})
+            result = identify_probe(
+                session,
+                s_hat,
+                probe_opts,
+                gamma_max_rad,
+                before=before,
+                conditions=conditions,
+                start_theta=tuple(best_theta),
+                history=history,
+                method="adaptive",
+                details={**details, "fallback": "probe"},
+            )
             # the probe continued the same history, so its time_to_40db_s counts from the adaptive start
             result.message = f"adaptation diverged ({details['divergence']}); probe fallback: {result.message}"
             return result
@@ -194,26 +273,49 @@ def identify_adaptive(session: MeasurementSession, s_hat: complex, options: Adap
     status, message = verdict(suppression, options.target_db, final, uncompensated, conditions, limited)
     if diverged:
         status, message = "failed", f"adaptation diverged ({details['divergence']}); best theta restored: {message}"
-    how = f"{blocks} block(s)" + (f", S_hat replaced by the fitted S after {s_replaced_after}" if s_replaced_after else "")
+    how = f"{blocks} block(s)" + (
+        f", S_hat replaced by the fitted S after {s_replaced_after}" if s_replaced_after else ""
+    )
     # report the model against what the run measured: the S it switched to, or its own fit
-    s_fitted = s_used if s_used is not s_model else affine_s_from_history(
-        np.array(thetas), np.array(phasors), min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4))
-    return _result(session, status, f"{message} ({how})", theta, before, final, history, s_hat, s_fitted, options,
-                   details)
-
-
-def _result(session, status, message, theta, before, after, history, s_hat, s_fitted, options, details) -> IdentificationResult:
-    s_measured = None if s_fitted is None else rotation_part(s_fitted)
-    if s_measured is not None:
-        details = {**details, "s_matrix": s_fitted.tolist(),
-                   "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
-                   "model_phase_error_deg": phase_error_deg(s_hat, s_measured)}
-    return IdentificationResult(
-        method="adaptive", harmonic_order=session.harmonic_order, status=status, message=message,
-        theta_cos=float(theta[0]), theta_sin=float(theta[1]), residual=after.phasor, uncompensated=before.phasor,
-        plant_time_s=session.plant_time_s, windows_used=len(history), windows_discarded=session.windows_discarded,
-        s_model=s_hat, s_measured=s_measured, target_db=options.target_db,
-        noise_floor_db=noise_floor_db(after, before.phasor.amplitude), details=details,
-        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS, **spectrum_traces(before, after)},
+    s_fitted = (
+        s_used
+        if s_used is not s_model
+        else affine_s_from_history(
+            np.array(thetas), np.array(phasors), min_spread_rad=0.05 * max(float(np.hypot(*theta)), 1e-4)
+        )
+    )
+    return _result(
+        session, status, f"{message} ({how})", theta, before, final, history, s_hat, s_fitted, options, details
     )
 
+
+def _result(
+    session, status, message, theta, before, after, history, s_hat, s_fitted, options, details
+) -> IdentificationResult:
+    s_measured = None if s_fitted is None else rotation_part(s_fitted)
+    if s_measured is not None:
+        details = {
+            **details,
+            "s_matrix": s_fitted.tolist(),
+            "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
+            "model_phase_error_deg": phase_error_deg(s_hat, s_measured),
+        }
+    return IdentificationResult(
+        method="adaptive",
+        harmonic_order=session.harmonic_order,
+        status=status,
+        message=message,
+        theta_cos=float(theta[0]),
+        theta_sin=float(theta[1]),
+        residual=after.phasor,
+        uncompensated=before.phasor,
+        plant_time_s=session.plant_time_s,
+        windows_used=len(history),
+        windows_discarded=session.windows_discarded,
+        s_model=s_hat,
+        s_measured=s_measured,
+        target_db=options.target_db,
+        noise_floor_db=noise_floor_db(after, before.phasor.amplitude),
+        details=details,
+        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS, **spectrum_traces(before, after)},
+    )

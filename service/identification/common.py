@@ -4,11 +4,12 @@ the trace snippets.
 
 Target and noise (all amplitudes in sensor full scale, fs): the target amplitude is
 A_target = |A_0| 10^(-target_db/20) with A_0 the uncompensated phasor. A window's phasor carries
-white-ish noise of standard deviation sigma per component (service.demodulation); a residual counts
+white-ish noise of standard deviation sigma per component (service.model.demodulation); a residual counts
 as meeting the target only when |a| + 2 sigma <= A_target, so a lucky noise draw never makes a
 result `ok`. The noise floor of a result is the rms amplitude of a noise phasor, sqrt(2) sigma of
 its final window, in dB against |A_0|.
 """
+
 from __future__ import annotations
 
 import math
@@ -17,40 +18,55 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.model.harmonic import amplitude_spectrum
 from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.model.harmonic import amplitude_spectrum
 
 SPECTRUM_MAX_ORDER = 24
 SNIPPET_SAMPLES = 800
-CONFIDENCE_SIGMAS = 2.0         # |a| + 2 sigma <= A_target counts as met
-PRECISION_FOR_TARGET = 5.0      # a window meant to confirm the target has sigma <= A_target / 5
-MIN_PERIODS = 12                # two electrical turns at h = 6: every integer order but h averages out
+CONFIDENCE_SIGMAS = 2.0  # |a| + 2 sigma <= A_target counts as met
+PRECISION_FOR_TARGET = 5.0  # a window meant to confirm the target has sigma <= A_target / 5
+MIN_PERIODS = 12  # two electrical turns at h = 6: every integer order but h averages out
 
 
 class MethodOptions(BaseModel):
     """Options every method has: the target, the injection limit, the window bounds. Finite numbers
     only, every field bounded (no request can ask for unbounded plant time or memory)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     target_db: float = Field(40.0, ge=0, le=80, description="suppression the result must reach to be ok, dB")
     gamma_max_deg: float | None = Field(None, gt=0, le=45, description="defaults to the settings' gamma_max")
     max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window a precision need may extend to, plant s")
-    settle_s: float = Field(0.005, ge=0, le=2.0, description="plant time after each theta before measuring "
-                            "(the shaft mode a step excites is fitted, not waited out)")
-    stop_margin_db: float | None = Field(None, ge=0, le=20, description="keep improving until the residual is this "
-                                         "far below the target (ok is still judged at target_db): a cell meant for a "
-                                         "LUT must hold its target in a later session and in the drive's LUT mode. "
-                                         "Default: 0 for one identification, LUT_MARGIN_DB (6) for sweep and "
-                                         "refinement cells")
-    decoupling: bool | None = Field(None, description="drive decoupling of nominal control and injection (0x2000:6, "
-                                    "sec. 3.1) for this run; at low speed the nominal current loop counteracts the "
-                                    "injection without it (sec. 2.4). Default: the settings' identification.decoupling. "
-                                    "A map is valid in the drive only with the decoupling it was measured with")
+    settle_s: float = Field(
+        0.005,
+        ge=0,
+        le=2.0,
+        description="plant time after each theta before measuring "
+        "(the shaft mode a step excites is fitted, not waited out)",
+    )
+    stop_margin_db: float | None = Field(
+        None,
+        ge=0,
+        le=20,
+        description="keep improving until the residual is this "
+        "far below the target (ok is still judged at target_db): a cell meant for a "
+        "LUT must hold its target in a later session and in the drive's LUT mode. "
+        "Default: 0 for one identification, LUT_MARGIN_DB (6) for sweep and "
+        "refinement cells",
+    )
+    decoupling: bool | None = Field(
+        None,
+        description="drive decoupling of nominal control and injection (0x2000:6, "
+        "sec. 3.1) for this run; at low speed the nominal current loop counteracts the "
+        "injection without it (sec. 2.4). Default: the settings' identification.decoupling. "
+        "A map is valid in the drive only with the decoupling it was measured with",
+    )
 
 
 @dataclass(frozen=True)
 class Prior:
     """What a point starts from: theta (rad) and, if measured, the 2x2 S_ss (fs/rad), e.g. from the
-    neighbouring cells of a sweep (DESIGN 3 (c))."""
+    neighbouring cells of a sweep (docs/conventions.md, Beyond the paper (c))."""
+
     theta_cos: float
     theta_sin: float
     s_matrix: tuple[tuple[float, float], tuple[float, float]] | None = None
@@ -64,7 +80,7 @@ class Prior:
         return None if self.s_matrix is None else np.array(self.s_matrix, dtype=float)
 
 
-LUT_MARGIN_DB = 6.0     # sweep cells: their LUT entry holds 40 dB in a later session (measured: issue 17 note)
+LUT_MARGIN_DB = 6.0  # sweep cells: their LUT entry holds 40 dB in a later session (measured: issue 17 note)
 
 
 def target_amplitude(uncompensated_fs: float, target_db: float) -> float:
@@ -96,26 +112,30 @@ def periods_for(session: MeasurementSession, seconds: float) -> int:
     return max(MIN_PERIODS, periods)
 
 
-def measure_reference(session: MeasurementSession, min_periods: int, max_periods: int,
-                      relative_precision: float = 0.01) -> Window:
+def measure_reference(
+    session: MeasurementSession, min_periods: int, max_periods: int, relative_precision: float = 0.01
+) -> Window:
     """The uncompensated reference (theta = 0), its phasor known to `relative_precision` of itself
     (1 % = +-0.1 dB on every suppression figure) unless that needs more than `max_periods`."""
     session.apply_theta(0.0, 0.0)
     first = session.measure(min_periods)
     if first.noise_std_fs <= relative_precision * first.phasor.amplitude:
         return first
-    return session.measure(min_periods, max_noise_std_fs=relative_precision * first.phasor.amplitude,
-                           max_periods=max_periods)
+    return session.measure(
+        min_periods, max_noise_std_fs=relative_precision * first.phasor.amplitude, max_periods=max_periods
+    )
 
 
-def measure_step(session: MeasurementSession, periods: int, max_periods: int, target_fs: float,
-                 expected_fs: float) -> Window | None:
+def measure_step(
+    session: MeasurementSession, periods: int, max_periods: int, target_fs: float, expected_fs: float
+) -> Window | None:
     """The window after a step: resolve what the step is expected to leave to 1/20, never coarser than
     the target needs (1/PRECISION_FOR_TARGET of it). None where the step drove the sensor over range:
     a failed step, the caller steps back."""
     try:
-        return session.measure(periods, max_noise_std_fs=max(target_fs / PRECISION_FOR_TARGET, expected_fs / 20),
-                               max_periods=max_periods)
+        return session.measure(
+            periods, max_noise_std_fs=max(target_fs / PRECISION_FOR_TARGET, expected_fs / 20), max_periods=max_periods
+        )
     except MeasurementError as exc:
         if not exc.over_range:
             raise
@@ -131,30 +151,45 @@ def noise_floor_db(window: Window, uncompensated_fs: float) -> float | None:
 @dataclass(frozen=True)
 class Conditions:
     """What the verdict needs to know about the operating point (all from the service's own knowledge)."""
+
     harmonic_frequency_hz: float
     resonance_hz: float | None = None
     current_bandwidth_hz: float | None = None
     decoupling: bool = False
 
 
-RESONANCE_NEAR_HZ = 150.0       # closer than this, the shaft mode dominates every window after a step
-CURRENT_LOOP_NEAR = 2.0         # f_h below this times the current-loop bandwidth: the loop counteracts (sec. 2.4)
+RESONANCE_NEAR_HZ = 150.0  # closer than this, the shaft mode dominates every window after a step
+CURRENT_LOOP_NEAR = 2.0  # f_h below this times the current-loop bandwidth: the loop counteracts (sec. 2.4)
 
 
-def verdict(suppression_db: float, target_db: float, final: Window, uncompensated_fs: float,
-            conditions: Conditions | None, limited: bool) -> tuple[str, str]:
+def verdict(
+    suppression_db: float,
+    target_db: float,
+    final: Window,
+    uncompensated_fs: float,
+    conditions: Conditions | None,
+    limited: bool,
+) -> tuple[str, str]:
     """(status, reason). `ok` only when the final window met the target with confidence."""
     limit = target_amplitude(uncompensated_fs, target_db)
     if meets(final, limit):
         return "ok", f"{suppression_db:.1f} dB, target {target_db:g} dB met"
     counteracts = None
-    if (conditions is not None and conditions.current_bandwidth_hz and not conditions.decoupling
-            and conditions.harmonic_frequency_hz < CURRENT_LOOP_NEAR * conditions.current_bandwidth_hz):
-        counteracts = (f"the nominal current loop ({conditions.current_bandwidth_hz:.0f} Hz) counteracts at "
-                       f"{conditions.harmonic_frequency_hz:.0f} Hz: enable decoupling (option decoupling = true)")
+    if (
+        conditions is not None
+        and conditions.current_bandwidth_hz
+        and not conditions.decoupling
+        and conditions.harmonic_frequency_hz < CURRENT_LOOP_NEAR * conditions.current_bandwidth_hz
+    ):
+        counteracts = (
+            f"the nominal current loop ({conditions.current_bandwidth_hz:.0f} Hz) counteracts at "
+            f"{conditions.harmonic_frequency_hz:.0f} Hz: enable decoupling (option decoupling = true)"
+        )
     if limited:
-        return "no_authority", (f"gamma_max reached at {suppression_db:.1f} dB: the injection cannot cancel the "
-                                "harmonic here (sec. 2.4)" + (f"; {counteracts}" if counteracts else ""))
+        return "no_authority", (
+            f"gamma_max reached at {suppression_db:.1f} dB: the injection cannot cancel the "
+            "harmonic here (sec. 2.4)" + (f"; {counteracts}" if counteracts else "")
+        )
     reasons = []
     floor = noise_floor_db(final, uncompensated_fs)
     if floor is not None and final.phasor.amplitude <= 3.0 * math.sqrt(2.0) * final.noise_std_fs:
@@ -163,7 +198,9 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
         if conditions.resonance_hz is not None:
             distance = abs(conditions.harmonic_frequency_hz - conditions.resonance_hz)
             if distance < RESONANCE_NEAR_HZ:
-                reasons.append(f"harmonic {distance:.0f} Hz from the shaft resonance ({conditions.resonance_hz:.0f} Hz)")
+                reasons.append(
+                    f"harmonic {distance:.0f} Hz from the shaft resonance ({conditions.resonance_hz:.0f} Hz)"
+                )
         if counteracts:
             reasons.append(counteracts)
     if not reasons:
@@ -172,8 +209,10 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
         # the figure is at target but a noise draw could have made it so: say what is confirmed
         bound = final.phasor.amplitude + CONFIDENCE_SIGMAS * final.noise_std_fs
         confirmed_db = 20.0 * math.log10(uncompensated_fs / bound) if bound > 0 and uncompensated_fs > 0 else math.nan
-        head = (f"{suppression_db:.1f} dB, not confirmed at the {target_db:g} dB target (with {CONFIDENCE_SIGMAS:g} "
-                f"sigma of the window's noise, {confirmed_db:.1f} dB)")
+        head = (
+            f"{suppression_db:.1f} dB, not confirmed at the {target_db:g} dB target (with {CONFIDENCE_SIGMAS:g} "
+            f"sigma of the window's noise, {confirmed_db:.1f} dB)"
+        )
     else:
         head = f"{suppression_db:.1f} dB, below the {target_db:g} dB target"
     return "below_target", f"{head}: " + "; ".join(reasons)
@@ -181,15 +220,25 @@ def verdict(suppression_db: float, target_db: float, final: Window, uncompensate
 
 def spectrum_traces(before: Window | None, after: Window) -> dict:
     """Data for the paper's Fig. 10: alpha over a few periods and its order spectrum, before/after."""
+
     def snippet(w: Window) -> dict:
         n = min(SNIPPET_SAMPLES, len(w.alpha_fs))
-        return {"angle_rad": np.round(np.unwrap(w.angle_rad[:n]), 5).tolist(),
-                "alpha_fs": np.round(w.alpha_fs[:n], 6).tolist()}
-    traces = {"spectrum_after": amplitude_spectrum(after.alpha_fs, after.angle_rad, SPECTRUM_MAX_ORDER),
-              "alpha_after": snippet(after)}
+        return {
+            "angle_rad": np.round(np.unwrap(w.angle_rad[:n]), 5).tolist(),
+            "alpha_fs": np.round(w.alpha_fs[:n], 6).tolist(),
+        }
+
+    traces = {
+        "spectrum_after": amplitude_spectrum(after.alpha_fs, after.angle_rad, SPECTRUM_MAX_ORDER),
+        "alpha_after": snippet(after),
+    }
     if before is not None:
-        traces.update({"spectrum_before": amplitude_spectrum(before.alpha_fs, before.angle_rad, SPECTRUM_MAX_ORDER),
-                       "alpha_before": snippet(before)})
+        traces.update(
+            {
+                "spectrum_before": amplitude_spectrum(before.alpha_fs, before.angle_rad, SPECTRUM_MAX_ORDER),
+                "alpha_before": snippet(before),
+            }
+        )
     return traces
 
 
@@ -213,7 +262,8 @@ def clamp(theta: np.ndarray, gamma_max_rad: float) -> tuple[np.ndarray, bool]:
 
 def affine_s_from_history(thetas: np.ndarray, phasors: np.ndarray, min_spread_rad: float) -> np.ndarray | None:
     """S_ss (2x2) of the affine model a = S_ss theta + b fitted over a run's own windows (least
-    squares, DESIGN 3 (c)); None while the thetas do not span both directions by `min_spread_rad`."""
+    squares, docs/conventions.md, Beyond the paper (c)); None while the thetas do not span both
+    directions by `min_spread_rad`."""
     if len(thetas) < 3:
         return None
     centred = thetas - thetas.mean(axis=0)

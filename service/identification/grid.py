@@ -14,33 +14,43 @@ than the 40 dB target allows). The fit therefore uses Theta_eff = 2 J1(gamma) e^
 result back by solving 2 J1(gamma*) = |Theta_eff*|. A second fit over the points near theta* then
 removes what other non-linearity (dead time, saturation) leaves.
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy import optimize, special
 from pydantic import Field, ValidationInfo, field_validator
+from scipy import optimize, special
 
-from service.identification.common import (PRECISION_FOR_TARGET, Conditions, MethodOptions, measure_reference, noise_floor_db, periods_for,
-                                           spectrum_traces, target_amplitude, verdict)
+from service.identification.common import (
+    PRECISION_FOR_TARGET,
+    Conditions,
+    MethodOptions,
+    measure_reference,
+    noise_floor_db,
+    periods_for,
+    spectrum_traces,
+    target_amplitude,
+    verdict,
+)
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementSession
 from service.model.secondary_path import rotation_part, theta_from_gamma_delta, theta_parts
 
-
-MAX_GRID_POINTS = 2_000        # x about 30 ms of plant time each: about a minute per operating point
+MAX_GRID_POINTS = 2_000  # x about 30 ms of plant time each: about a minute per operating point
 
 
 def _count(start_deg: float, stop_deg: float, step_deg: float) -> int:
     """Values of start..stop (inclusive) by step, counted without building them (a subnormal step
     makes the ratio infinite: counted as more than any grid may have)."""
     ratio = (stop_deg - start_deg) / step_deg
-    return math.floor(ratio + 1e-9) + 1 if ratio < 1e12 else 10 ** 12
+    return math.floor(ratio + 1e-9) + 1 if ratio < 1e12 else 10**12
 
 
 class GridOptions(MethodOptions):
     """The paper's grid by default: gamma 0.5..10 deg step 0.5, delta 0..340 deg step 20 (360 points)."""
+
     gamma_start_deg: float = Field(0.5, ge=0, le=45)
     gamma_stop_deg: float = Field(10.0, ge=0, le=45)
     gamma_step_deg: float = Field(0.5, gt=0, validate_default=True)
@@ -48,8 +58,13 @@ class GridOptions(MethodOptions):
     delta_stop_deg: float = Field(340.0, ge=0, lt=360)
     delta_step_deg: float = Field(20.0, gt=0, validate_default=True)
     window_periods: int = Field(18, ge=2, le=2_000, description="harmonic periods per grid point")
-    settle_s: float = Field(0.01, ge=0, le=2.0, description="plant time after each grid point's theta before measuring "
-                            "(the shaft mode a theta step rings is fitted as a nuisance, not waited out)")
+    settle_s: float = Field(
+        0.01,
+        ge=0,
+        le=2.0,
+        description="plant time after each grid point's theta before measuring "
+        "(the shaft mode a theta step rings is fitted as a nuisance, not waited out)",
+    )
     result: str = Field("fit", pattern="^(fit|minimum)$", description="which theta the result reports and verifies")
 
     # counted before anything is allocated (a tiny step must not ask numpy for terabytes); field
@@ -76,8 +91,10 @@ class GridOptions(MethodOptions):
         g = [info.data.get(k) for k in ("gamma_start_deg", "gamma_stop_deg", "gamma_step_deg")]
         n_gamma = _count(*g) if None not in g else 1
         if n_gamma * _count(start, stop, step) > MAX_GRID_POINTS:
-            raise ValueError(f"the grid has {n_gamma} x {_count(start, stop, step)} points, more than "
-                             f"{MAX_GRID_POINTS}: choose larger steps")
+            raise ValueError(
+                f"the grid has {n_gamma} x {_count(start, stop, step)} points, more than "
+                f"{MAX_GRID_POINTS}: choose larger steps"
+            )
         return step
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
@@ -110,16 +127,16 @@ def gamma_from_effective(gamma_eff: float) -> float:
 
 
 def affine_fit(thetas: np.ndarray, phasors: np.ndarray) -> tuple[complex, complex, float, np.ndarray]:
-    """Least squares of the general real-affine model a = M theta_eff + b (2x2 real M, DESIGN 3's
-    S_ss without assuming its rotation structure: a machine with L_d != L_q, dead time or
-    saturation answers cos- and sin-injections differently). Returns (S, theta*, rms, M) where S is
+    """Least squares of the general real-affine model a = M theta_eff + b (2x2 real M, the
+    S_ss of docs/conventions.md, Secondary path, without assuming its rotation structure: a machine
+    with L_d != L_q, dead time or saturation answers cos- and sin-injections differently). Returns (S, theta*, rms, M) where S is
     the rotation part of M, (M11 + M22)/2 + j (M12 - M21)/2, and theta* = -M^-1 b mapped back from
     Theta_eff to gamma."""
     eff = effective_injection(thetas)
-    design = np.column_stack([eff.real, -eff.imag, np.ones(len(eff))])      # [theta_cos, theta_sin, 1]
-    target = np.column_stack([phasors.real, -phasors.imag])                 # [a_c, a_s]
+    design = np.column_stack([eff.real, -eff.imag, np.ones(len(eff))])  # [theta_cos, theta_sin, 1]
+    target = np.column_stack([phasors.real, -phasors.imag])  # [a_c, a_s]
     coef, *_ = np.linalg.lstsq(design, target, rcond=None)
-    m = coef[:2].T                                                          # a = m @ theta + b
+    m = coef[:2].T  # a = m @ theta + b
     b = coef[2]
     rms = float(np.sqrt(np.mean(np.sum((design @ coef - target) ** 2, axis=1))))
     theta_eff = -np.linalg.solve(m, b)
@@ -128,8 +145,9 @@ def affine_fit(thetas: np.ndarray, phasors: np.ndarray) -> tuple[complex, comple
     return rotation_part(m), complex(theta), rms, m
 
 
-def local_affine_fit(thetas: np.ndarray, phasors: np.ndarray, around: complex, radius_rad: float,
-                     min_points: int = 12) -> tuple[complex, complex, float, int, np.ndarray]:
+def local_affine_fit(
+    thetas: np.ndarray, phasors: np.ndarray, around: complex, radius_rad: float, min_points: int = 12
+) -> tuple[complex, complex, float, int, np.ndarray]:
     """The affine fit over the points within `radius_rad` of `around` (at least the `min_points` nearest)."""
     distance = np.abs(thetas - around)
     near = distance <= radius_rad
@@ -139,8 +157,15 @@ def local_affine_fit(thetas: np.ndarray, phasors: np.ndarray, around: complex, r
     return s, theta, rms, int(near.sum()), m
 
 
-def identify_grid(session: MeasurementSession, s_hat: complex | None, options: GridOptions,
-                  gamma_max_rad: float, *, prior=None, conditions: Conditions | None = None) -> IdentificationResult:
+def identify_grid(
+    session: MeasurementSession,
+    s_hat: complex | None,
+    options: GridOptions,
+    gamma_max_rad: float,
+    *,
+    prior=None,
+    conditions: Conditions | None = None,
+) -> IdentificationResult:
     """The paper's grid; `prior` is accepted for a common signature and not used (the grid is a cross-check)."""
     h = session.harmonic_order
     session.settle_after_theta_s = options.settle_s
@@ -170,29 +195,57 @@ def identify_grid(session: MeasurementSession, s_hat: complex | None, options: G
     fit_tc, fit_ts = theta_parts(theta_fit)
     tc, ts = (fit_tc, fit_ts) if options.result == "fit" else (min_tc, min_ts)
     session.apply_theta(tc, ts)
-    after = session.measure(options.window_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods)
+    after = session.measure(
+        options.window_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods
+    )
     suppression = 20.0 * math.log10(max(before.phasor.amplitude, 1e-300) / max(after.phasor.amplitude, 1e-300))
     status, message = verdict(suppression, options.target_db, after, before.phasor.amplitude, conditions, False)
     return IdentificationResult(
-        method="grid", harmonic_order=h, status=status, message=f"{message} ({len(points)} grid points, {options.result})",
-        target_db=options.target_db, noise_floor_db=noise_floor_db(after, before.phasor.amplitude),
-        theta_cos=tc, theta_sin=ts, residual=after.phasor, uncompensated=before.phasor,
-        plant_time_s=session.plant_time_s, windows_used=len(points) + 2,
-        windows_discarded=session.windows_discarded, s_model=s_hat, s_measured=s_fit,
+        method="grid",
+        harmonic_order=h,
+        status=status,
+        message=f"{message} ({len(points)} grid points, {options.result})",
+        target_db=options.target_db,
+        noise_floor_db=noise_floor_db(after, before.phasor.amplitude),
+        theta_cos=tc,
+        theta_sin=ts,
+        residual=after.phasor,
+        uncompensated=before.phasor,
+        plant_time_s=session.plant_time_s,
+        windows_used=len(points) + 2,
+        windows_discarded=session.windows_discarded,
+        s_model=s_hat,
+        s_measured=s_fit,
         details={
             "points": len(points),
-            "minimum": {"gamma_deg": float(grid[best, 0]), "delta_deg": float(grid[best, 1]),
-                        "theta_cos": min_tc, "theta_sin": min_ts, "amplitude_fs": float(amplitude[best])},
-            "fit": {"theta_cos": fit_tc, "theta_sin": fit_ts,
-                    "gamma_deg": math.degrees(abs(theta_fit)),
-                    "delta_deg": math.degrees(np.angle(theta_fit)) % 360.0, "rms_fs": fit_rms,
-                    "points": fit_points, "radius_deg": math.degrees(radius), "s_matrix": m_fit.tolist()},
-            "fit_global": {"gamma_deg": math.degrees(abs(theta_global)),
-                           "delta_deg": math.degrees(np.angle(theta_global)) % 360.0, "rms_fs": global_rms,
-                           "s": {"re": s_global.real, "im": s_global.imag}},
+            "minimum": {
+                "gamma_deg": float(grid[best, 0]),
+                "delta_deg": float(grid[best, 1]),
+                "theta_cos": min_tc,
+                "theta_sin": min_ts,
+                "amplitude_fs": float(amplitude[best]),
+            },
+            "fit": {
+                "theta_cos": fit_tc,
+                "theta_sin": fit_ts,
+                "gamma_deg": math.degrees(abs(theta_fit)),
+                "delta_deg": math.degrees(np.angle(theta_fit)) % 360.0,
+                "rms_fs": fit_rms,
+                "points": fit_points,
+                "radius_deg": math.degrees(radius),
+                "s_matrix": m_fit.tolist(),
+            },
+            "fit_global": {
+                "gamma_deg": math.degrees(abs(theta_global)),
+                "delta_deg": math.degrees(np.angle(theta_global)) % 360.0,
+                "rms_fs": global_rms,
+                "s": {"re": s_global.real, "im": s_global.imag},
+            },
             "reported": options.result,
         },
-        traces={"grid": np.round(grid[:, [0, 1, 4, 5]], 7).tolist(),
-                "grid_columns": ["gamma_deg", "delta_deg", "a_c", "a_s"],
-                **spectrum_traces(before, after)},
+        traces={
+            "grid": np.round(grid[:, [0, 1, 4, 5]], 7).tolist(),
+            "grid_columns": ["gamma_deg", "delta_deg", "a_c", "a_s"],
+            **spectrum_traces(before, after),
+        },
     )

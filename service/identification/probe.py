@@ -1,4 +1,4 @@
-"""Probe identification (ours, DESIGN section 3 "going beyond the paper", (a)).
+"""Probe identification (ours: docs/conventions.md, Beyond the paper (a)).
 
 The steady state is affine in theta (eq. 15): a = S_ss (theta_d + theta). Two probe injections
 p1 = [P, 0], p2 = [0, P] around the current theta measure the 2x2 real matrix S_ss column by
@@ -21,6 +21,7 @@ needed, the first Newton step starts from theta_prior. Where the sensor is over 
 (a harmonic next to the shaft resonance), the run starts from the prior theta and the uncompensated
 phasor is computed from the affine model, A_0 = a(theta) - S_ss theta, and reported as estimated.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,13 +29,26 @@ import math
 import numpy as np
 from pydantic import Field
 
-from service.identification.common import (done, stop_amplitude, PRECISION_FOR_TARGET, Conditions, MethodOptions, Prior, clamp, measure_reference,
-                                           measure_step, meets,
-                                           noise_floor_db, periods_for, spectrum_traces, target_amplitude,
-                                           time_to_suppression, verdict)
+from service.identification.common import (
+    PRECISION_FOR_TARGET,
+    Conditions,
+    MethodOptions,
+    Prior,
+    clamp,
+    done,
+    measure_reference,
+    measure_step,
+    noise_floor_db,
+    periods_for,
+    spectrum_traces,
+    stop_amplitude,
+    target_amplitude,
+    time_to_suppression,
+    verdict,
+)
 from service.identification.result import IdentificationResult
-from service.model.harmonic import Phasor
 from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.model.harmonic import Phasor
 from service.model.secondary_path import phase_error_deg, rotation_part, s_matrix
 
 HISTORY_COLUMNS = ["plant_time_s", "theta_cos", "theta_sin", "amplitude_fs"]
@@ -44,7 +58,9 @@ class ProbeOptions(MethodOptions):
     probe_fraction: float = Field(0.5, gt=0, le=1.0, description="probe size as a fraction of the model's |theta*|")
     probe_min_deg: float = Field(0.3, gt=0, le=10, description="smallest probe amplitude, deg")
     probe_max_deg: float = Field(4.0, gt=0, le=20, description="largest probe amplitude, deg (kept <= gamma_max/2)")
-    window_s: float = Field(0.01, gt=0, le=1.0, description="shortest window, plant s (whole electrical turns, >= 12 periods)")
+    window_s: float = Field(
+        0.01, gt=0, le=1.0, description="shortest window, plant s (whole electrical turns, >= 12 periods)"
+    )
     max_newton_steps: int = Field(6, ge=1, le=50)
     use_prior: bool = Field(True, description="start from the neighbours' theta and S when a sweep provides them")
 
@@ -58,18 +74,22 @@ def _row(w: Window, theta: np.ndarray) -> list:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
 
 
-PROBE_MAX_RESPONSE_FS = 0.2     # a probe moves alpha by at most this (model): it stays in the sensor's range
+PROBE_MAX_RESPONSE_FS = 0.2  # a probe moves alpha by at most this (model): it stays in the sensor's range
 
 
 def _probe_size(amplitude_fs: float, s_hat: complex, gamma_max_rad: float, options: ProbeOptions) -> float:
     """Probe amplitude (rad): a fraction of the model's |theta*|, within the options' bounds, half of
     gamma_max, and small enough that the model's response stays well inside the sensor's range."""
     model_theta_rad = amplitude_fs / abs(s_hat)
-    return min(max(options.probe_fraction * model_theta_rad, math.radians(options.probe_min_deg)),
-               math.radians(options.probe_max_deg), gamma_max_rad / 2, PROBE_MAX_RESPONSE_FS / abs(s_hat))
+    return min(
+        max(options.probe_fraction * model_theta_rad, math.radians(options.probe_min_deg)),
+        math.radians(options.probe_max_deg),
+        gamma_max_rad / 2,
+        PROBE_MAX_RESPONSE_FS / abs(s_hat),
+    )
 
 
-PROBE_HALVINGS = 3     # a probe that drives the sensor over range is halved, at most this often
+PROBE_HALVINGS = 3  # a probe that drives the sensor over range is halved, at most this often
 
 
 def _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_periods, history, notes):
@@ -77,21 +97,32 @@ def _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_pe
     the settings say) and a probe drives the sensor over range, the probe is halved and measured again."""
     for halvings in range(PROBE_HALVINGS + 1):
         try:
-            s_ss = measure_s_matrix(session, theta, a, probe_rad, min_periods, max_periods,
-                                    abs(s_hat) * probe_rad / 50, history)
+            s_ss = measure_s_matrix(
+                session, theta, a, probe_rad, min_periods, max_periods, abs(s_hat) * probe_rad / 50, history
+            )
         except MeasurementError as exc:
             if not exc.over_range or halvings == PROBE_HALVINGS:
                 raise
             probe_rad /= 2
             continue
         if halvings:
-            notes.append(f"probes halved {halvings} time(s) to {math.degrees(probe_rad):.2f} deg: the sensor went over range")
+            notes.append(
+                f"probes halved {halvings} time(s) to {math.degrees(probe_rad):.2f} deg: the sensor went over range"
+            )
         return s_ss, probe_rad
     raise AssertionError("unreachable")
 
 
-def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta: np.ndarray, probe_rad: float,
-                     periods: int, max_periods: int, noise_limit_fs: float, history: list) -> np.ndarray:
+def measure_s_matrix(
+    session: MeasurementSession,
+    theta: np.ndarray,
+    a_at_theta: np.ndarray,
+    probe_rad: float,
+    periods: int,
+    max_periods: int,
+    noise_limit_fs: float,
+    history: list,
+) -> np.ndarray:
     """S_ss measured by two probes around theta (one column each)."""
     columns = []
     for k in range(2):
@@ -104,10 +135,20 @@ def measure_s_matrix(session: MeasurementSession, theta: np.ndarray, a_at_theta:
     return np.column_stack(columns)
 
 
-def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOptions, gamma_max_rad: float, *,
-                   prior: Prior | None = None, conditions: Conditions | None = None, before: Window | None = None,
-                   start_theta: tuple[float, float] | None = None, history: list | None = None,
-                   method: str = "probe", details: dict | None = None) -> IdentificationResult:
+def identify_probe(
+    session: MeasurementSession,
+    s_hat: complex,
+    options: ProbeOptions,
+    gamma_max_rad: float,
+    *,
+    prior: Prior | None = None,
+    conditions: Conditions | None = None,
+    before: Window | None = None,
+    start_theta: tuple[float, float] | None = None,
+    history: list | None = None,
+    method: str = "probe",
+    details: dict | None = None,
+) -> IdentificationResult:
     """Probe + Newton. The adaptive method's fallback passes what it has already measured (the
     uncompensated window, its history) and the best theta it saw, to start from there."""
     h = session.harmonic_order
@@ -123,13 +164,20 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
             if not exc.over_range:
                 raise
             if prior is None:
-                raise MeasurementError("sensor over range without compensation and no neighbouring result to start "
-                                       "from: measure this point in a sweep with its neighbours, or at lower torque",
-                                       over_range=True) from None
-            notes.append("sensor over range at theta = 0: started from the neighbours' theta, uncompensated "
-                         "phasor estimated from the affine model")
-    history = history if history is not None else ([[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]]
-                                                   if before is not None else [])
+                raise MeasurementError(
+                    "sensor over range without compensation and no neighbouring result to start "
+                    "from: measure this point in a sweep with its neighbours, or at lower torque",
+                    over_range=True,
+                ) from None
+            notes.append(
+                "sensor over range at theta = 0: started from the neighbours' theta, uncompensated "
+                "phasor estimated from the affine model"
+            )
+    history = (
+        history
+        if history is not None
+        else ([[before.end_time_s, 0.0, 0.0, before.phasor.amplitude]] if before is not None else [])
+    )
     theta = np.zeros(2)
     a = before.phasor.vector if before is not None else None
     s_model = s_matrix(s_hat)
@@ -140,17 +188,19 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         theta, _ = clamp(start, gamma_max_rad)
         session.apply_theta(*theta)
         expected = abs(before.phasor.complex) if before is not None else None
-        w = session.measure(min_periods, max_noise_std_fs=None if expected is None else expected / 50,
-                            max_periods=max_periods)
+        w = session.measure(
+            min_periods, max_noise_std_fs=None if expected is None else expected / 50, max_periods=max_periods
+        )
         a = w.phasor.vector
         history.append(_row(w, theta))
     s_ss = prior.s() if prior is not None and prior.s_matrix is not None else None
     probe_rad = 0.0
     if s_ss is None:
         probe_rad = _probe_size(float(np.hypot(*a)), s_hat, gamma_max_rad, options)
-        theta, _ = clamp(theta, gamma_max_rad - probe_rad)     # the probes go around theta: stay inside gamma_max
-        s_ss, probe_rad = _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_periods,
-                                              history, notes)
+        theta, _ = clamp(theta, gamma_max_rad - probe_rad)  # the probes go around theta: stay inside gamma_max
+        s_ss, probe_rad = _probe_within_range(
+            session, theta, a, probe_rad, s_hat, min_periods, max_periods, history, notes
+        )
         s_probed = s_ss.copy()
     else:
         s_probed = None
@@ -193,18 +243,22 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         damping = 1.0 if improved else 0.5 * damping
         if failures >= 2:
             if s_probed is not None:
-                break       # the residual stopped improving: noise floor (or non-linearity) reached
+                break  # the residual stopped improving: noise floor (or non-linearity) reached
             # the neighbours' S does not hold here: measure it with the probes, around the best point
             probe_rad = _probe_size(float(np.hypot(*best_a)), s_hat, gamma_max_rad, options)
             theta, _ = clamp(best_theta, gamma_max_rad - probe_rad)
             if not np.allclose(theta, best_theta):
                 session.apply_theta(*theta)
-                w = session.measure(min_periods, max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, best_amp / 50),
-                                    max_periods=max_periods)
+                w = session.measure(
+                    min_periods,
+                    max_noise_std_fs=max(limit / PRECISION_FOR_TARGET, best_amp / 50),
+                    max_periods=max_periods,
+                )
                 history.append(_row(w, theta))
                 best_a = w.phasor.vector
-            s_ss, probe_rad = _probe_within_range(session, theta, best_a, probe_rad, s_hat, min_periods, max_periods,
-                                                  history, notes)
+            s_ss, probe_rad = _probe_within_range(
+                session, theta, best_a, probe_rad, s_hat, min_periods, max_periods, history, notes
+            )
             s_probed = s_ss.copy()
             notes.append("the neighbours' S did not hold here: measured by probes")
             failures, damping, a = 0, 1.0, best_a
@@ -217,7 +271,7 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
         final = session.measure(min_periods, max_noise_std_fs=limit / PRECISION_FOR_TARGET, max_periods=max_periods)
         history.append(_row(final, best_theta))
     if before is None:
-        uncompensated = float(np.hypot(*(a - s_ss @ theta)))      # the affine model with the refined S_ss
+        uncompensated = float(np.hypot(*(a - s_ss @ theta)))  # the affine model with the refined S_ss
         limit = target_amplitude(uncompensated, options.target_db)
     suppression = 20.0 * math.log10(max(uncompensated, 1e-300) / max(final.phasor.amplitude, 1e-300))
     status, message = verdict(suppression, options.target_db, final, uncompensated, conditions, limited)
@@ -227,19 +281,33 @@ def identify_probe(session: MeasurementSession, s_hat: complex, options: ProbeOp
     s_measured = rotation_part(s_reported)
     uncompensated_phasor = before.phasor if before is not None else Phasor(*map(float, a - s_ss @ theta), 0, 0)
     return IdentificationResult(
-        method=method, harmonic_order=h, status=status, message=message,
-        theta_cos=float(best_theta[0]), theta_sin=float(best_theta[1]), residual=final.phasor,
-        uncompensated=uncompensated_phasor, plant_time_s=session.plant_time_s, windows_used=len(history),
-        windows_discarded=session.windows_discarded, s_model=s_hat, s_measured=s_measured,
-        target_db=options.target_db, noise_floor_db=noise_floor_db(final, uncompensated),
-        details={**(details or {}), "probe_deg": math.degrees(probe_rad), "newton_steps": steps,
-                 "s_matrix": s_reported.tolist(), "s_matrix_refined": s_ss.tolist(),
-                 "s_model_matrix": s_model.tolist(),
-                 "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
-                 "model_phase_error_deg": phase_error_deg(s_hat, s_measured),
-                 "uncompensated_estimated": before is None, "prior": None if prior is None else prior.source,
-                 "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0)},
-        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS,
-                **spectrum_traces(before, final)},
+        method=method,
+        harmonic_order=h,
+        status=status,
+        message=message,
+        theta_cos=float(best_theta[0]),
+        theta_sin=float(best_theta[1]),
+        residual=final.phasor,
+        uncompensated=uncompensated_phasor,
+        plant_time_s=session.plant_time_s,
+        windows_used=len(history),
+        windows_discarded=session.windows_discarded,
+        s_model=s_hat,
+        s_measured=s_measured,
+        target_db=options.target_db,
+        noise_floor_db=noise_floor_db(final, uncompensated),
+        details={
+            **(details or {}),
+            "probe_deg": math.degrees(probe_rad),
+            "newton_steps": steps,
+            "s_matrix": s_reported.tolist(),
+            "s_matrix_refined": s_ss.tolist(),
+            "s_model_matrix": s_model.tolist(),
+            "model_gain_error_db": 20 * math.log10(abs(s_hat) / abs(s_measured)),
+            "model_phase_error_deg": phase_error_deg(s_hat, s_measured),
+            "uncompensated_estimated": before is None,
+            "prior": None if prior is None else prior.source,
+            "time_to_40db_s": time_to_suppression(history, uncompensated, 40.0),
+        },
+        traces={"theta_history": history, "theta_history_columns": HISTORY_COLUMNS, **spectrum_traces(before, final)},
     )
-

@@ -2,6 +2,7 @@
 API's request schemas, the CLI's choices, the dashboard (GET /api/v1/methods) and the docs read it.
 A new method is one entry here: its options model and the function that runs it over a
 MeasurementSession (session.py) with the signature of identify_probe."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,14 +24,29 @@ class Method:
     run: Callable
 
 
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("adaptive", "adaptive filter (paper eq. 16)",
-           "the paper's adaptive filter in block form; S_hat from eq. 14-20, replaced online by the measured S",
-           AdaptiveOptions, identify_adaptive),
-    Method("probe", "probe + Newton",
-           "two probe injections measure S as a 2x2; Newton steps with Broyden updates land on theta*",
-           ProbeOptions, identify_probe),
-    Method("grid", "grid search (paper Fig. 8)",
-           "the paper's grid of gamma x delta, its minimum and an affine least-squares fit",
-           GridOptions, identify_grid),
-)}
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method(
+            "adaptive",
+            "adaptive filter (paper eq. 16)",
+            "the paper's adaptive filter in block form; S_hat from eq. 14-20, replaced online by the measured S",
+            AdaptiveOptions,
+            identify_adaptive,
+        ),
+        Method(
+            "probe",
+            "probe + Newton",
+            "two probe injections measure S as a 2x2; Newton steps with Broyden updates land on theta*",
+            ProbeOptions,
+            identify_probe,
+        ),
+        Method(
+            "grid",
+            "grid search (paper Fig. 8)",
+            "the paper's grid of gamma x delta, its minimum and an affine least-squares fit",
+            GridOptions,
+            identify_grid,
+        ),
+    )
+}

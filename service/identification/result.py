@@ -1,4 +1,5 @@
 """The result of one identification, self-describing enough to store and to redraw its plots."""
+
 from __future__ import annotations
 
 import math
@@ -7,6 +8,7 @@ from typing import Any
 
 from service.model.harmonic import Phasor
 from service.model.secondary_path import gamma_delta
+
 
 def suppression_db(uncompensated: Phasor, residual: Phasor) -> float:
     """20 log10(|a_uncompensated| / |a_residual|), dB (positive = harmonic reduced)."""
@@ -17,19 +19,19 @@ def suppression_db(uncompensated: Phasor, residual: Phasor) -> float:
 class IdentificationResult:
     method: str
     harmonic_order: int
-    status: str                       # ok | below_target | no_authority | failed
-    theta_cos: float                  # rad
-    theta_sin: float                  # rad
-    residual: Phasor                  # h-th phasor with theta applied, full scale
-    uncompensated: Phasor             # h-th phasor with theta = 0, full scale
+    status: str  # ok | below_target | no_authority | failed
+    theta_cos: float  # rad
+    theta_sin: float  # rad
+    residual: Phasor  # h-th phasor with theta applied, full scale
+    uncompensated: Phasor  # h-th phasor with theta = 0, full scale
     plant_time_s: float
     windows_used: int
     windows_discarded: int = 0
     message: str = ""
-    s_model: complex | None = None    # S_hat of eq. 14-20, full scale per rad
+    s_model: complex | None = None  # S_hat of eq. 14-20, full scale per rad
     s_measured: complex | None = None
-    target_db: float = 40.0           # the suppression `ok` requires
-    noise_floor_db: float | None = None   # rms noise phasor of the final window against |uncompensated|
+    target_db: float = 40.0  # the suppression `ok` requires
+    noise_floor_db: float | None = None  # rms noise phasor of the final window against |uncompensated|
     details: dict[str, Any] = field(default_factory=dict)
     traces: dict[str, Any] = field(default_factory=dict)
 

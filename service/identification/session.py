@@ -1,4 +1,5 @@
 """What an identification method needs from the bench while it runs at one operating point."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -22,23 +23,24 @@ class MeasurementError(RuntimeError):
 @dataclass
 class Window:
     """One accepted measurement window: its phasor and the raw samples (to redraw plots)."""
+
     phasor: Phasor
     alpha_fs: np.ndarray
     angle_rad: np.ndarray
-    end_time_s: float          # plant time at the window's last sample, from the session start
+    end_time_s: float  # plant time at the window's last sample, from the session start
     noise_std_fs: float = 0.0  # standard deviation of each phasor component (noise), full scale
-    ring_fs: float = 0.0       # amplitude of the shaft mode fitted as a nuisance, full scale
+    ring_fs: float = 0.0  # amplitude of the shaft mode fitted as a nuisance, full scale
 
 
 class MeasurementSession(Protocol):
     harmonic_order: int
     sample_rate_hz: float
-    settle_after_theta_s: float      # plant time apply_theta lets pass after the setpoint took effect
+    settle_after_theta_s: float  # plant time apply_theta lets pass after the setpoint took effect
 
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         """Send theta to the drive and return once it is in effect and the plant has settled."""
 
-    harmonic_frequency_hz: float     # f_h at the operating point, Hz
+    harmonic_frequency_hz: float  # f_h at the operating point, Hz
 
     def measure(self, periods: int, max_noise_std_fs: float | None = None, max_periods: int | None = None) -> Window:
         """Next valid window of `periods` whole harmonic periods (bad windows are re-measured); with

@@ -20,6 +20,7 @@ The rule, per non-ok cell, first that applies:
    the map needs `force` for it, as for any hole).
 Units: theta in rad, suppression in dB, axes in Nm, rpm, V.
 """
+
 from __future__ import annotations
 
 import math
@@ -69,8 +70,11 @@ def fill_cells(cells: Iterable[dict], axes: dict[str, list[float]], interpolatio
     """{(torque, speed, udc): Fill} for the non-ok cells the rule fills (module doc). cells: dicts with
     the axes' keys, status, theta_cos, theta_sin and suppression_db (the cell's current result)."""
     cells = list(cells)
-    ok = {_key(c): (float(c["theta_cos"]), float(c["theta_sin"])) for c in cells
-          if c.get("status") == "ok" and c.get("theta_cos") is not None}
+    ok = {
+        _key(c): (float(c["theta_cos"]), float(c["theta_sin"]))
+        for c in cells
+        if c.get("status") == "ok" and c.get("theta_cos") is not None
+    }
     fills: dict[tuple[float, float, float], Fill] = {}
     for c in cells:
         status = c.get("status") or "missing"
@@ -94,20 +98,25 @@ def _measured(c: dict, status: str) -> Fill | None:
     floor = NO_AUTHORITY_MIN_DB if status == "no_authority" else MEASURED_MIN_DB
     if db < floor:
         return None
-    return Fill(float(c["theta_cos"]), float(c["theta_sin"]),
-                f"measured: its own theta ({status}, {db:.1f} dB against the uncompensated harmonic)")
+    return Fill(
+        float(c["theta_cos"]),
+        float(c["theta_sin"]),
+        f"measured: its own theta ({status}, {db:.1f} dB against the uncompensated harmonic)",
+    )
 
 
-def _interpolated(key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]],
-                  interpolation: str) -> Fill | None:
+def _interpolated(
+    key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]], interpolation: str
+) -> Fill | None:
     between = interpolate_between(key, ok, axes, interpolation)
     if between is not None:
         return between
     return _held(key, ok, axes)
 
 
-def interpolate_between(key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]],
-                        interpolation: str) -> Fill | None:
+def interpolate_between(
+    key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]], interpolation: str
+) -> Fill | None:
     """theta at `key` from the ok cells on either side of it along each axis of its lines (rule 2;
     ok: {(torque, speed, udc): (theta_cos, theta_sin)}); None where no axis has both sides."""
     per_axis: list[tuple[float, float]] = []
@@ -143,8 +152,11 @@ def _held(key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]
         return None
     _, other, axis = nearest
     theta = ok[other]
-    return Fill(theta[0], theta[1], f"held from the nearest ok cell along {axis} "
-                                    f"({other[0]:g} Nm, {other[1]:g} rpm, {other[2]:g} V)")
+    return Fill(
+        theta[0],
+        theta[1],
+        f"held from the nearest ok cell along {axis} ({other[0]:g} Nm, {other[1]:g} rpm, {other[2]:g} V)",
+    )
 
 
 def _with(key: tuple[float, float, float], i: int, value: float) -> tuple[float, float, float]:

@@ -9,22 +9,22 @@ Cells: `ok` cells carry their result's theta (VALID = 1). A filled cell (status 
 fill rule of service/maps/fill.py) carries its fill, flagged FILLED = 1 and VALID = 0 in every export:
 exports always show the fill, only a LUT download chooses whether it goes into the drive (`fill`).
 Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0."""
-from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable
+from __future__ import annotations
 
 import csv
 import io
 import json
 import math
 import re
+from dataclasses import dataclass
+from typing import Callable
 
 from drivers import lut_image as lut_codec
 from service import __version__
 from service.maps import quality as map_quality
 
-JSON_FORMAT_VERSION = 2     # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
+JSON_FORMAT_VERSION = 2  # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
 
 
 def cell_flag(c: dict | None, fill: bool = True) -> int:
@@ -74,8 +74,10 @@ def _gamma_delta_deg(c: dict) -> tuple[float, float]:
 
 
 def _interpolation_text(interpolation: str) -> str:
-    return {"cartesian": "cartesian: theta_cos and theta_sin multilinear",
-            "polar": "polar: gamma multilinear, delta multilinear along the shortest arc"}[interpolation]
+    return {
+        "cartesian": "cartesian: theta_cos and theta_sin multilinear",
+        "polar": "polar: gamma multilinear, delta multilinear along the shortest arc",
+    }[interpolation]
 
 
 def _filled_text(m: dict) -> str:
@@ -93,19 +95,28 @@ def _quality_text(m: dict) -> str:
     q = m.get("quality") or {}
 
     def where(quality: str) -> str:
-        cells = [f"{c['torque_nm']:g} Nm / {c['speed_rpm']:g} rpm / {c['udc_v']:g} V" for c in m["cells"]
-                 if c.get("quality") == quality]
+        cells = [
+            f"{c['torque_nm']:g} Nm / {c['speed_rpm']:g} rpm / {c['udc_v']:g} V"
+            for c in m["cells"]
+            if c.get("quality") == quality
+        ]
         return f" ({'; '.join(cells)})" if cells else ""
-    text = (f"quality: {q.get('outliers', 0)} outlier(s){where('outlier')}, {q.get('unchecked', 0)} unchecked, "
-            f"theta against the median of its ok neighbours, outlier beyond {q.get('outlier_factor', 0):g}x the expected step")
+
+    text = (
+        f"quality: {q.get('outliers', 0)} outlier(s){where('outlier')}, {q.get('unchecked', 0)} unchecked, "
+        f"theta against the median of its ok neighbours, outlier beyond {q.get('outlier_factor', 0):g}x the expected step"
+    )
     if m.get("smoothed"):
         text += f"; SMOOTHED view: {q.get('smoothed', 0)} outlier cell(s) carry their neighbours' median theta{where('smoothed')}"
     return text
 
 
 def _quality_json(m: dict) -> dict:
-    marked = [{key: c.get(key) for key in ("torque_nm", "speed_rpm", "udc_v", *map_quality.CELL_FIELDS)}
-              for c in m["cells"] if c.get("quality") in ("outlier", "smoothed")]
+    marked = [
+        {key: c.get(key) for key in ("torque_nm", "speed_rpm", "udc_v", *map_quality.CELL_FIELDS)}
+        for c in m["cells"]
+        if c.get("quality") in ("outlier", "smoothed")
+    ]
     return {**(m.get("quality") or {}), "smoothed_view": bool(m.get("smoothed")), "cells": marked}
 
 
@@ -119,14 +130,25 @@ def _validation_text(m: dict) -> str:
         k = v[kind]
         if k["median_db"] is None:
             return f"{kind} none measured of {k['cells']}"
-        return (f"{kind} median {k['median_db']:.1f} dB, min {k['min_db']:.1f} dB "
-                f"({k['measured']} of {k['cells']} measured)")
+        return (
+            f"{kind} median {k['median_db']:.1f} dB, min {k['min_db']:.1f} dB "
+            f"({k['measured']} of {k['cells']} measured)"
+        )
+
     worst = v.get("worst")
-    where = "" if not worst else (f"; worst {worst['suppression_db']:.1f} dB at {worst['operating_point']['torque_nm']:g} Nm, "
-                                  f"{worst['operating_point']['speed_rpm']:g} rpm, {worst['operating_point']['udc_v']:g} V "
-                                  f"({worst['kind']})")
-    return (f"validated in the drive's LUT mode (job {v['job_id']}, {v['finished_at']}, {v['state']}): "
-            f"{part('grid')}; {part('midpoint')}{where}")
+    where = (
+        ""
+        if not worst
+        else (
+            f"; worst {worst['suppression_db']:.1f} dB at {worst['operating_point']['torque_nm']:g} Nm, "
+            f"{worst['operating_point']['speed_rpm']:g} rpm, {worst['operating_point']['udc_v']:g} V "
+            f"({worst['kind']})"
+        )
+    )
+    return (
+        f"validated in the drive's LUT mode (job {v['job_id']}, {v['finished_at']}, {v['state']}): "
+        f"{part('grid')}; {part('midpoint')}{where}"
+    )
 
 
 def export_csv(m: dict, interpolation: str | None = None) -> str:
@@ -134,48 +156,93 @@ def export_csv(m: dict, interpolation: str | None = None) -> str:
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
     buf.write(f"# software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}\n")
-    buf.write(f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n")
+    buf.write(
+        f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n"
+    )
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
-    buf.write(f"# cells: {_counts_text(m)}; ok cells carry their theta (valid), filled cells their fill "
-              f"(filled = 1, not valid), the others 0; {_filled_text(m)}\n")
-    buf.write(f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_codec.FORMAT_VERSION})\n")
+    buf.write(
+        f"# cells: {_counts_text(m)}; ok cells carry their theta (valid), filled cells their fill "
+        f"(filled = 1, not valid), the others 0; {_filled_text(m)}\n"
+    )
+    buf.write(
+        f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_codec.FORMAT_VERSION})\n"
+    )
     buf.write(f"# {_quality_text(m)}\n")
     buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
     # filled and fill_source last: readers of the columns before them by position keep working
-    w.writerow(["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
-                "suppression_db", "status", "filled", "fill_source"])
+    w.writerow(
+        [
+            "torque_nm",
+            "speed_rpm",
+            "udc_v",
+            "theta_cos_rad",
+            "theta_sin_rad",
+            "gamma_deg",
+            "delta_deg",
+            "suppression_db",
+            "status",
+            "filled",
+            "fill_source",
+        ]
+    )
     for c in m["cells"]:
         flag = cell_flag(c)
         entry = flag != lut_codec.FLAG_NONE
         gamma, delta = _gamma_delta_deg(c) if entry else ("", "")
-        w.writerow([c["torque_nm"], c["speed_rpm"], c["udc_v"],
-                    repr(float(c["theta_cos"])) if entry else 0.0, repr(float(c["theta_sin"])) if entry else 0.0,
-                    gamma, delta,
-                    "" if c["suppression_db"] is None else round(c["suppression_db"], 2), c["status"],
-                    1 if flag == lut_codec.FLAG_FILLED else 0,
-                    (c.get("fill_source") or "") if flag == lut_codec.FLAG_FILLED else ""])
+        w.writerow(
+            [
+                c["torque_nm"],
+                c["speed_rpm"],
+                c["udc_v"],
+                repr(float(c["theta_cos"])) if entry else 0.0,
+                repr(float(c["theta_sin"])) if entry else 0.0,
+                gamma,
+                delta,
+                "" if c["suppression_db"] is None else round(c["suppression_db"], 2),
+                c["status"],
+                1 if flag == lut_codec.FLAG_FILLED else 0,
+                (c.get("fill_source") or "") if flag == lut_codec.FLAG_FILLED else "",
+            ]
+        )
     return buf.getvalue()
 
 
 def export_json(m: dict, interpolation: str | None = None) -> str:
     mode = lut_codec.check_interpolation(interpolation)
-    return json.dumps({
-        "format": "ripplecal-lut", "format_version": JSON_FORMAT_VERSION, "software_version": __version__,
-        "map_id": m["id"], "harmonic_order": m["harmonic_order"], "method": m["method"],
-        "bench": m["bench_identity"], "created_at": m["created_at"],
-        "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
-        "axes": m["axes"], "index_order": ["udc_v", "speed_rpm", "torque_nm"],
-        "interpolation": mode, "lut_format_version": lut_codec.FORMAT_VERSION,
-        "theta_cos_rad": _grid_values(m, "theta_cos"), "theta_sin_rad": _grid_values(m, "theta_sin"),
-        "valid": _grid_values(m, "valid"), "filled": _grid_values(m, "filled"), "status_counts": m.get("status_counts"),
-        "cells": [{**{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
-                   "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
-                   "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None}
-                  for c in m["cells"]],
-        "quality": _quality_json(m),
-        "validation": m.get("validation"),
-    }, indent=1)
+    return json.dumps(
+        {
+            "format": "ripplecal-lut",
+            "format_version": JSON_FORMAT_VERSION,
+            "software_version": __version__,
+            "map_id": m["id"],
+            "harmonic_order": m["harmonic_order"],
+            "method": m["method"],
+            "bench": m["bench_identity"],
+            "created_at": m["created_at"],
+            "units": {"torque": "Nm", "speed": "rpm (mechanical)", "udc": "V", "theta": "rad"},
+            "axes": m["axes"],
+            "index_order": ["udc_v", "speed_rpm", "torque_nm"],
+            "interpolation": mode,
+            "lut_format_version": lut_codec.FORMAT_VERSION,
+            "theta_cos_rad": _grid_values(m, "theta_cos"),
+            "theta_sin_rad": _grid_values(m, "theta_sin"),
+            "valid": _grid_values(m, "valid"),
+            "filled": _grid_values(m, "filled"),
+            "status_counts": m.get("status_counts"),
+            "cells": [
+                {
+                    **{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
+                    "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
+                    "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None,
+                }
+                for c in m["cells"]
+            ],
+            "quality": _quality_json(m),
+            "validation": m.get("validation"),
+        },
+        indent=1,
+    )
 
 
 def _c_array(values) -> str:
@@ -193,7 +260,7 @@ def _c_u8_array(values) -> str:
 def _c_float(value: float) -> str:
     text = f"{float(value):.9g}"
     if not any(ch in text for ch in ".en"):
-        text += ".0"            # "0f" is not a C literal; "0.0f" is
+        text += ".0"  # "0f" is not a C literal; "0.0f" is
     return text + "f"
 
 
@@ -217,8 +284,11 @@ def export_c(m: dict, interpolation: str | None = None) -> str:
         f" * {_quality_text(m)}.",
         f" * {_validation_text(m)}.",
         " */",
-        f"#ifndef {guard}", f"#define {guard}", "",
-        "#include <stdint.h>", "",
+        f"#ifndef {guard}",
+        f"#define {guard}",
+        "",
+        "#include <stdint.h>",
+        "",
         f"#define {macro}_ID {int(m['id'])}u",
         f'#define {macro}_SOFTWARE_VERSION "{version}"',
         f"#define {macro}_HARMONIC_ORDER {int(m['harmonic_order'])}u",
@@ -229,10 +299,12 @@ def export_c(m: dict, interpolation: str | None = None) -> str:
         f"#define {macro}_INTERPOLATION_CARTESIAN {lut_codec.INTERPOLATIONS.index('cartesian')}u",
         f"#define {macro}_INTERPOLATION_POLAR {lut_codec.INTERPOLATIONS.index('polar')}u",
         f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_{mode.upper()}",
-        f"#define {macro}_FILLED_CELLS {sum(1 for c in m['cells'] if cell_flag(c) == lut_codec.FLAG_FILLED)}u", "",
+        f"#define {macro}_FILLED_CELLS {sum(1 for c in m['cells'] if cell_flag(c) == lut_codec.FLAG_FILLED)}u",
+        "",
         f"/* torque axis, Nm */\nstatic const float {array}_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
         f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
-        f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};", "",
+        f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};",
+        "",
         f"/* theta_cos, rad (ok and filled cells; 0 elsewhere) */\n"
         f"static const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
         f"/* theta_sin, rad (ok and filled cells; 0 elsewhere) */\n"
@@ -241,7 +313,9 @@ def export_c(m: dict, interpolation: str | None = None) -> str:
         f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
         f"/* 1 where the cell holds a fill (not ok; service/maps/fill.py) */\n"
         f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'filled'))};",
-        "", f"#endif /* {guard} */", "",
+        "",
+        f"#endif /* {guard} */",
+        "",
     ]
     return "\n".join(lines)
 
@@ -259,26 +333,35 @@ def export_dcm(m: dict, interpolation: str | None = None) -> str:
     mode = lut_codec.check_interpolation(interpolation)
     axes = m["axes"]
     nt, nn = len(axes["torque_nm"]), len(axes["speed_rpm"])
-    out = [f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
-           f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
-           f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok); "
-           f"FILLED = 1 where a cell not ok carries a fill (THETA holds it); {_filled_text(m)}",
-           f"* LUT interpolation: {_interpolation_text(mode)}",
-           f"* {_quality_text(m)}",
-           f"* {_validation_text(m)}",
-           "KONSERVIERUNG_FORMAT 2.0", ""]
+    out = [
+        f"* ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}",
+        f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
+        f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok); "
+        f"FILLED = 1 where a cell not ok carries a fill (THETA holds it); {_filled_text(m)}",
+        f"* LUT interpolation: {_interpolation_text(mode)}",
+        f"* {_quality_text(m)}",
+        f"* {_validation_text(m)}",
+        "KONSERVIERUNG_FORMAT 2.0",
+        "",
+    ]
     planes = {key: _grid_values(m, key) for key in ("theta_cos", "theta_sin", "valid", "filled")}
     for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid"), ("FILLED", "filled")):
         for k, udc in enumerate(axes["udc_v"]):
             plane = planes[key][k]
-            out += [f"KENNFELD RIPPLECAL_H{m['harmonic_order']}_{name}_U{udc:g}V".replace(".", "P") + f" {nt} {nn}",
-                    f'   LANGNAME "{name.lower()} at U_dc = {udc:g} V"',
-                    '   EINHEIT_X "Nm"', '   EINHEIT_Y "rpm"', f'   EINHEIT_W "{"rad" if key.startswith("theta") else "-"}"',
-                    "   ST/X   " + "   ".join(_dcm_number(t) for t in axes["torque_nm"])]
+            out += [
+                f"KENNFELD RIPPLECAL_H{m['harmonic_order']}_{name}_U{udc:g}V".replace(".", "P") + f" {nt} {nn}",
+                f'   LANGNAME "{name.lower()} at U_dc = {udc:g} V"',
+                '   EINHEIT_X "Nm"',
+                '   EINHEIT_Y "rpm"',
+                f'   EINHEIT_W "{"rad" if key.startswith("theta") else "-"}"',
+                "   ST/X   " + "   ".join(_dcm_number(t) for t in axes["torque_nm"]),
+            ]
             for j, speed in enumerate(axes["speed_rpm"]):
                 values = plane[j] if key.startswith("theta") else [int(v) for v in plane[j]]
-                out += [f"   ST/Y   {_dcm_number(speed)}",
-                        "   WERT   " + "   ".join(f"{v:.9g}" if key.startswith("theta") else str(v) for v in values)]
+                out += [
+                    f"   ST/Y   {_dcm_number(speed)}",
+                    "   WERT   " + "   ".join(f"{v:.9g}" if key.startswith("theta") else str(v) for v in values),
+                ]
             out += ["END", ""]
     return "\n".join(out)
 
@@ -290,9 +373,15 @@ def lut_image(m: dict, fill: bool = True, interpolation: str | None = None) -> b
     interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
-    return lut_codec.encode(m["harmonic_order"], *(axes[key] for key in lut_codec.AXES),
-                            _grid_values(m, "theta_cos", fill), _grid_values(m, "theta_sin", fill),
-                            _grid_values(m, "flag", fill), map_id=m["id"], interpolation=interpolation)
+    return lut_codec.encode(
+        m["harmonic_order"],
+        *(axes[key] for key in lut_codec.AXES),
+        _grid_values(m, "theta_cos", fill),
+        _grid_values(m, "theta_sin", fill),
+        _grid_values(m, "flag", fill),
+        map_id=m["id"],
+        interpolation=interpolation,
+    )
 
 
 @dataclass(frozen=True)
@@ -301,17 +390,20 @@ class ExportFormat:
     display_name: str
     media_type: str
     extension: str
-    render: Callable[..., str]      # render(map_dict, interpolation=None) -> text
+    render: Callable[..., str]  # render(map_dict, interpolation=None) -> text
 
 
 # the one registry of export formats: the API's `format` parameter, the CLI's choices and the
 # dashboard (GET /api/v1/export-formats) read it
-EXPORT_FORMATS: dict[str, ExportFormat] = {f.name: f for f in (
-    ExportFormat("csv", "CSV", "text/csv", "csv", export_csv),
-    ExportFormat("json", "JSON", "application/json", "json", export_json),
-    ExportFormat("c", "C header", "text/x-csrc", "h", export_c),
-    ExportFormat("dcm", "DCM (INCA / CANape)", "text/plain", "dcm", export_dcm),
-)}
+EXPORT_FORMATS: dict[str, ExportFormat] = {
+    f.name: f
+    for f in (
+        ExportFormat("csv", "CSV", "text/csv", "csv", export_csv),
+        ExportFormat("json", "JSON", "application/json", "json", export_json),
+        ExportFormat("c", "C header", "text/x-csrc", "h", export_c),
+        ExportFormat("dcm", "DCM (INCA / CANape)", "text/plain", "dcm", export_dcm),
+    )
+}
 
 
 def export_map(m: dict, fmt: str, interpolation: str | None = None) -> str:

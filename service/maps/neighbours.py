@@ -7,9 +7,9 @@ next to the resonance). The secondary path S does not share that smoothness in s
 turns by 180 deg across the resonance), so a measured S is taken only from a cell at the same speed
 and DC-link voltage (the plan's innermost axis is torque: usually the point just measured).
 """
+
 from __future__ import annotations
 
-import json
 import math
 
 from drivers import lut_image
@@ -32,25 +32,29 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
         return max(max(values) - min(values), 1e-9)
 
     def distance(r: dict) -> float:
-        return math.sqrt(((r["torque_nm"] - op.torque_nm) / span("torque_nm")) ** 2
-                         + ((r["speed_rpm"] - op.speed_rpm) / span("speed_rpm")) ** 2
-                         + ((r["udc_v"] - op.udc_v) / span("udc_v")) ** 2)
+        return math.sqrt(
+            ((r["torque_nm"] - op.torque_nm) / span("torque_nm")) ** 2
+            + ((r["speed_rpm"] - op.speed_rpm) / span("speed_rpm")) ** 2
+            + ((r["udc_v"] - op.udc_v) / span("udc_v")) ** 2
+        )
 
     nearest = min(ok, key=distance)
     theta = (float(nearest["theta_cos"]), float(nearest["theta_sin"]))
     source = f"neighbour {nearest['torque_nm']:g} Nm / {nearest['speed_rpm']:g} rpm / {nearest['udc_v']:g} V"
     # where ok cells lie on both sides along an axis (a second pass, a refinement), interpolate between them
-    between = interpolate_between((op.torque_nm, op.speed_rpm, op.udc_v),
-                                  {(r["torque_nm"], r["speed_rpm"], r["udc_v"]): (float(r["theta_cos"]),
-                                                                                 float(r["theta_sin"])) for r in ok},
-                                  _axes_with(axes, op), DEFAULT_INTERPOLATION)
+    between = interpolate_between(
+        (op.torque_nm, op.speed_rpm, op.udc_v),
+        {(r["torque_nm"], r["speed_rpm"], r["udc_v"]): (float(r["theta_cos"]), float(r["theta_sin"])) for r in ok},
+        _axes_with(axes, op),
+        DEFAULT_INTERPOLATION,
+    )
     if between is not None:
         theta, source = (between.theta_cos, between.theta_sin), between.source
     same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
     s_matrix = None
     if same_line:
         s_row = min(same_line, key=distance)
-        details = json.loads(s_row.get("detail_json") or "{}").get("details") or {}
+        details = (s_row.get("detail") or {}).get("details") or {}
         matrix = details.get("s_matrix_refined") or details.get("s_matrix")
         if matrix is not None:
             s_matrix = tuple(tuple(float(v) for v in row) for row in matrix)
@@ -60,5 +64,7 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
 
 def _axes_with(axes: dict[str, list[float]], op: OperatingPoint) -> dict[str, list[float]]:
     """The axes with op's own values in them (a refinement's new cell lies between the old values)."""
-    return {name: sorted(set(map(float, axes.get(name) or [])) | {float(getattr(op, name))})
-            for name in ("torque_nm", "speed_rpm", "udc_v")}
+    return {
+        name: sorted(set(map(float, axes.get(name) or [])) | {float(getattr(op, name))})
+        for name in ("torque_nm", "speed_rpm", "udc_v")
+    }

@@ -1,6 +1,7 @@
 """Map quality: each cell's theta against its grid neighbours', outliers flagged with a reason.
 
-Arithmetic in theta = (theta_cos, theta_sin), rad (DESIGN 3: never gamma/delta, which wrap at 0/360 deg).
+Arithmetic in theta = (theta_cos, theta_sin), rad (docs/conventions.md, Injection and theta: never gamma/delta,
+which wrap at 0/360 deg).
 Only `ok` cells take part (a filled cell, service/maps/fill.py, carries a fill, not a measurement: it is
 neither judged nor a reference); a cell's neighbours are the cells one grid index away along each
 axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
@@ -27,6 +28,7 @@ look wrong); after a quarter of the ok cells, the rest over the factor are flagg
 that noisy has no few bad points to single out, and a read stays fast). A cell with fewer than MIN_NEIGHBOURS reference neighbours is `unchecked`: with one
 neighbour there is no telling which of the two is off.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,8 +41,8 @@ AXES = ("torque_nm", "speed_rpm", "udc_v")
 AXIS_UNITS = {"torque_nm": "Nm", "speed_rpm": "rpm", "udc_v": "V"}
 OUTLIER_FACTOR = 3.0
 MIN_NEIGHBOURS = 2
-ONE_BY_ONE_SHARE = 0.25     # of the ok cells flagged one by one; the rest over the factor at once
-MIN_STEP_DEG = 0.05          # ~1.7 % of a 3 deg gamma: below that a deviation costs < 1 dB at 40 dB
+ONE_BY_ONE_SHARE = 0.25  # of the ok cells flagged one by one; the rest over the factor at once
+MIN_STEP_DEG = 0.05  # ~1.7 % of a 3 deg gamma: below that a deviation costs < 1 dB at 40 dB
 QUALITIES = ("consistent", "outlier", "unchecked", "smoothed")
 # the map cell's quality fields (MapCellPublic): the JSON export's `cells` leave them out, so its
 # format_version 1 stays as it was; the export carries them in its top-level `quality` instead
@@ -51,8 +53,8 @@ Key = tuple[float, float, float]
 
 @dataclass
 class CellQuality:
-    quality: str                              # consistent | outlier | unchecked
-    fit: tuple[float, float] | None = None    # neighbours' median theta (cos, sin), rad
+    quality: str  # consistent | outlier | unchecked
+    fit: tuple[float, float] | None = None  # neighbours' median theta (cos, sin), rad
     neighbours: list[Key] = field(default_factory=list)
     deviation_rad: float | None = None
     expected_step_rad: float | None = None
@@ -67,8 +69,8 @@ class CellQuality:
 
 @dataclass
 class MapQuality:
-    cells: dict[Key, CellQuality]                      # ok cells only
-    gradient_rad_per_unit: dict[str, float | None]      # g_k per axis (of the final references)
+    cells: dict[Key, CellQuality]  # ok cells only
+    gradient_rad_per_unit: dict[str, float | None]  # g_k per axis (of the final references)
 
     def count(self, quality: str) -> int:
         return sum(1 for c in self.cells.values() if c.quality == quality)
@@ -81,9 +83,14 @@ def cell_key(cell: dict) -> Key:
 def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
     """Quality of every ok cell of a map (cells as MapCellPublic dicts, axes as the map's)."""
     # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok
-    theta = {cell_key(c): (float(c["theta_cos"]), float(c["theta_sin"])) for c in cells
-             if c["status"] == "ok" and not c.get("filled")
-             and c.get("theta_cos") is not None and c.get("theta_sin") is not None}
+    theta = {
+        cell_key(c): (float(c["theta_cos"]), float(c["theta_sin"]))
+        for c in cells
+        if c["status"] == "ok"
+        and not c.get("filled")
+        and c.get("theta_cos") is not None
+        and c.get("theta_sin") is not None
+    }
     values = {a: sorted({float(x) for x in axes.get(a) or []}) for a in AXES}
     index = {a: {v: i for i, v in enumerate(values[a])} for a in AXES}
     # each ok cell's ok neighbours: (neighbour, axis, spacing), found once
@@ -92,16 +99,20 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
         near[key] = []
         for pos, a in enumerate(AXES):
             i = index[a].get(key[pos])
-            for j in (() if i is None else (i - 1, i + 1)):
+            for j in () if i is None else (i - 1, i + 1):
                 if 0 <= j < len(values[a]):
-                    other = key[:pos] + (values[a][j],) + key[pos + 1:]
+                    other = key[:pos] + (values[a][j],) + key[pos + 1 :]
                     if other in theta:
                         near[key].append((other, a, abs(values[a][j] - key[pos])))
     # |delta theta| / spacing of every adjacent pair, per axis, computed once
-    pairs = [(k, other, a, math.hypot(theta[other][0] - theta[k][0], theta[other][1] - theta[k][1]) / dx)
-             for k, around in near.items() for other, a, dx in around if other > k]
+    pairs = [
+        (k, other, a, math.hypot(theta[other][0] - theta[k][0], theta[other][1] - theta[k][1]) / dx)
+        for k, around in near.items()
+        for other, a, dx in around
+        if other > k
+    ]
     flagged: set[Key] = set()
-    why: dict[Key, CellQuality] = {}           # each outlier as it was when flagged (its fit may lose references later)
+    why: dict[Key, CellQuality] = {}  # each outlier as it was when flagged (its fit may lose references later)
     fits = {k: _fit(k, near[k], theta) for k in theta}
     # more outliers than a quarter of the cells: a noisy map, not a few bad points; the cells then
     # over the factor are all flagged at once instead of one by one
@@ -109,8 +120,14 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
     while True:
         gradients = _gradients(pairs, flagged)
         evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
-        over = sorted(((c.score, k) for k, c in evaluated.items()
-                       if k not in flagged and c.score is not None and c.score > OUTLIER_FACTOR), reverse=True)
+        over = sorted(
+            (
+                (c.score, k)
+                for k, c in evaluated.items()
+                if k not in flagged and c.score is not None and c.score > OUTLIER_FACTOR
+            ),
+            reverse=True,
+        )
         if not over:
             break
         if len(flagged) >= one_by_one:
@@ -120,9 +137,9 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
         worst = over[0][1]
         flagged.add(worst)
         why[worst] = evaluated[worst]
-        for other, _, _ in near[worst]:        # only the worst's neighbours lose a reference
+        for other, _, _ in near[worst]:  # only the worst's neighbours lose a reference
             fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta)
-    if len(flagged) > one_by_one:              # flagged at once: the fits without all of them
+    if len(flagged) > one_by_one:  # flagged at once: the fits without all of them
         fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta) for k in theta}
         evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
     for k in flagged:
@@ -140,8 +157,9 @@ def _gradients(pairs, flagged: set[Key]) -> dict[str, float | None]:
     return {a: (statistics.median(g) if g else None) for a, g in per_axis.items()}
 
 
-def _fit(key: Key, around: list[tuple[Key, str, float]],
-         theta: dict[Key, tuple[float, float]]) -> tuple[list, tuple[float, float] | None, float | None]:
+def _fit(
+    key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[float, float]]
+) -> tuple[list, tuple[float, float] | None, float | None]:
     """(the reference neighbours, the component-wise median of their theta with each pair across the
     cell centred on its interpolation at the cell's position, this cell's distance to it)."""
     if len(around) < MIN_NEIGHBOURS:
@@ -171,20 +189,26 @@ def _evaluate(fitted, gradients: dict[str, float | None]) -> CellQuality:
     if fit is None or not steps:
         return CellQuality("unchecked", neighbours=neighbours)
     expected = max(statistics.median(steps), math.radians(MIN_STEP_DEG))
-    return CellQuality("consistent", fit=fit, neighbours=neighbours, deviation_rad=deviation, expected_step_rad=expected)
+    return CellQuality(
+        "consistent", fit=fit, neighbours=neighbours, deviation_rad=deviation, expected_step_rad=expected
+    )
 
 
 def _reason(value: tuple[float, float], c: CellQuality, gradients: dict[str, float | None]) -> str:
     g_here, d_here = (math.degrees(x) for x in gamma_delta(*value))
     g_fit, d_fit = (math.degrees(x) for x in gamma_delta(*c.fit))
     per_axis = ", ".join(f"{math.degrees(g):.3g} deg per {AXIS_UNITS[a]}" for a, g in gradients.items() if g)
-    return (f"theta {math.degrees(c.deviation_rad):.2f} deg from the median of its {len(c.neighbours)} ok neighbours, "
-            f"{c.score:.1f}x the step expected to them ({math.degrees(c.expected_step_rad):.2f} deg from the map's "
-            f"median theta change: {per_axis or 'none'}); here gamma {g_here:.2f} deg / delta {d_here:.1f} deg, "
-            f"neighbours' median {g_fit:.2f} deg / {d_fit:.1f} deg: measure this point again or smooth the map")
+    return (
+        f"theta {math.degrees(c.deviation_rad):.2f} deg from the median of its {len(c.neighbours)} ok neighbours, "
+        f"{c.score:.1f}x the step expected to them ({math.degrees(c.expected_step_rad):.2f} deg from the map's "
+        f"median theta change: {per_axis or 'none'}); here gamma {g_here:.2f} deg / delta {d_here:.1f} deg, "
+        f"neighbours' median {g_fit:.2f} deg / {d_fit:.1f} deg: measure this point again or smooth the map"
+    )
 
 
-def smoothing(quality: MapQuality, map_id: int, result_ids: dict[Key, int | None]) -> dict[Key, tuple[tuple[float, float], str]]:
+def smoothing(
+    quality: MapQuality, map_id: int, result_ids: dict[Key, int | None]
+) -> dict[Key, tuple[tuple[float, float], str]]:
     """The remedy for the outliers: each one's theta replaced by its neighbours' fit (the median of
     their estimates above, by position on the axes), with where the value comes from. Outliers without a fit (their neighbours were flagged
     too) keep their measured theta."""
@@ -194,6 +218,8 @@ def smoothing(quality: MapQuality, map_id: int, result_ids: dict[Key, int | None
             continue
         around = "; ".join(f"{o[0]:g} Nm / {o[1]:g} rpm / {o[2]:g} V" for o in c.neighbours)
         measured = f"result {result_ids.get(key)}" if result_ids.get(key) is not None else "the measured cell"
-        out[key] = (c.fit, f"median theta of the ok neighbours of map {map_id} at {around}; "
-                           f"the theta of {measured} is not used")
+        out[key] = (
+            c.fit,
+            f"median theta of the ok neighbours of map {map_id} at {around}; the theta of {measured} is not used",
+        )
     return out

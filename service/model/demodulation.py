@@ -1,6 +1,6 @@
 """Harmonic demodulation that knows the shaft: least squares with the resonance mode as a nuisance.
 
-The phasor of DESIGN 3, a_c = (2/N) sum(alpha cos(h phi)), a_s = (2/N) sum(alpha sin(h phi)) over
+The phasor of docs/conventions.md (Phasors), a_c = (2/N) sum(alpha cos(h phi)), a_s = (2/N) sum(alpha sin(h phi)) over
 whole periods, is the least-squares fit of alpha = a_c cos(h phi) + a_s sin(h phi) + e when e holds
 only other integer orders. After a setpoint step it does not: the step rings the shaft's lightly
 damped mode of G_Salpha (paper sec. 2.3, poles p = sigma +- j omega_r, tau = -1/sigma = 51 ms on
@@ -23,6 +23,7 @@ estimate for the bench: the shaft does not change between operating points.
 
 Units: alpha in sensor full scale (fs), angles in rad, time in s, frequencies in rad/s unless `_hz`.
 """
+
 from __future__ import annotations
 
 import math
@@ -33,15 +34,16 @@ import numpy as np
 
 from service.model.harmonic import Phasor
 
-RING_SNR_TO_LEARN = 30.0      # learn the mode only from windows whose ring stands this far above its noise
-SEARCH_SCALE = 0.15           # every search: +-15 % around the estimate so far (covers a +-10 % bench spread)
-LEARNED_STD_HZ = 0.3          # the mode is known once its frequency's standard deviation is below this
-LEARN_SAMPLES_MAX = 2400      # samples of a window the search uses: 150 ms at 16 kHz, three tau of the paper's mode
+RING_SNR_TO_LEARN = 30.0  # learn the mode only from windows whose ring stands this far above its noise
+SEARCH_SCALE = 0.15  # every search: +-15 % around the estimate so far (covers a +-10 % bench spread)
+LEARNED_STD_HZ = 0.3  # the mode is known once its frequency's standard deviation is below this
+LEARN_SAMPLES_MAX = 2400  # samples of a window the search uses: 150 ms at 16 kHz, three tau of the paper's mode
 
 
 @dataclass(frozen=True)
 class ResonanceMode:
     """The shaft mode of G_Salpha: pole sigma + j omega_r (rad/s), sigma < 0 < omega_r."""
+
     sigma_rad_s: float
     omega_rad_s: float
 
@@ -56,10 +58,10 @@ class ResonanceMode:
 @dataclass(frozen=True)
 class HarmonicFit:
     phasor: Phasor
-    noise_std_fs: float          # standard deviation of each phasor component from the LS residual, fs
-    residual_rms_fs: float       # rms of alpha minus the whole fitted model, fs
-    ring_fs: float               # amplitude of the fitted mode at the window start, fs (0 without a mode)
-    ring_std_fs: float           # its standard deviation, fs
+    noise_std_fs: float  # standard deviation of each phasor component from the LS residual, fs
+    residual_rms_fs: float  # rms of alpha minus the whole fitted model, fs
+    ring_fs: float  # amplitude of the fitted mode at the window start, fs (0 without a mode)
+    ring_std_fs: float  # its standard deviation, fs
 
 
 MAX_ORDERS_NEAR_RESONANCE = 16
@@ -77,8 +79,9 @@ def nuisance_orders(harmonic_order: int, electrical_hz: float, mode: ResonanceMo
     return sorted(orders - {0, h})
 
 
-def _design(angle_rad: np.ndarray, t_s: np.ndarray, harmonic_order: int, mode: ResonanceMode | None,
-            orders: list[int]) -> np.ndarray:
+def _design(
+    angle_rad: np.ndarray, t_s: np.ndarray, harmonic_order: int, mode: ResonanceMode | None, orders: list[int]
+) -> np.ndarray:
     hphi = harmonic_order * angle_rad
     cols = [np.cos(hphi), np.sin(hphi), np.ones_like(angle_rad)]
     for order in orders:
@@ -98,8 +101,15 @@ def _solve(x: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, float, np.ndar
     return coef, float(resid @ resid), r_inv @ r_inv.T
 
 
-def fit_harmonic(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
-                 periods: int, mode: ResonanceMode | None = None, usable: np.ndarray | None = None) -> HarmonicFit:
+def fit_harmonic(
+    alpha_fs: np.ndarray,
+    angle_rad: np.ndarray,
+    sample_rate_hz: float,
+    harmonic_order: int,
+    periods: int,
+    mode: ResonanceMode | None = None,
+    usable: np.ndarray | None = None,
+) -> HarmonicFit:
     """Phasor of order h over a window of whole periods, with `mode` (if given) as a nuisance.
 
     The window must span whole periods (callers cut it with harmonic.whole_period_samples); the
@@ -124,8 +134,9 @@ def fit_harmonic(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: fl
     if mode is not None:
         ring = math.hypot(coef[-2], coef[-1])
         ring_std = math.sqrt(sigma2 * 0.5 * (cov[-2, -2] + cov[-1, -1]))
-    return HarmonicFit(Phasor(float(coef[0]), float(coef[1]), n, periods), noise_std, math.sqrt(rss / n),
-                       ring, ring_std)
+    return HarmonicFit(
+        Phasor(float(coef[0]), float(coef[1]), n, periods), noise_std, math.sqrt(rss / n), ring, ring_std
+    )
 
 
 def _noise_density(residual: np.ndarray, turns: float, harmonic_order: int) -> float | None:
@@ -143,7 +154,7 @@ def _noise_density(residual: np.ndarray, turns: float, harmonic_order: int) -> f
     m = int(round(turns))
     spectrum = np.abs(np.fft.rfft(residual)) ** 2 / n
     bins = np.arange(len(spectrum))
-    f_bin = harmonic_order * m                        # bin of order h
+    f_bin = harmonic_order * m  # bin of order h
     band = (bins >= 0.5 * f_bin) & (bins <= 1.5 * f_bin)
     distance_to_order = np.abs(bins - m * np.round(bins / m))
     usable = band & (distance_to_order > 1)
@@ -158,13 +169,20 @@ def _electrical_hz(angle_rad: np.ndarray, sample_rate_hz: float) -> float:
     return abs(float(turns_rad[-1] - turns_rad[0])) / (2 * math.pi) * sample_rate_hz / max(len(angle_rad) - 1, 1)
 
 
-def best_mode_scale(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
-                    nominal: ResonanceMode, center: float, half_width: float) -> tuple[float, float]:
+def best_mode_scale(
+    alpha_fs: np.ndarray,
+    angle_rad: np.ndarray,
+    sample_rate_hz: float,
+    harmonic_order: int,
+    nominal: ResonanceMode,
+    center: float,
+    half_width: float,
+) -> tuple[float, float]:
     """Variable projection: the scale k of the nominal pole that minimises the LS residual, searched on
     [center - half_width, center + half_width] (coarse grid, then a parabola through the best three).
     Returns (k, precision of k = 1/var(k)): near its minimum rss(k) ~ rss_min + rss'' (k - k_min)^2 / 2,
     and a least-squares parameter then has var(k) = 2 sigma^2 / rss'' with sigma^2 = rss_min / (n - p)."""
-    n = min(len(alpha_fs), LEARN_SAMPLES_MAX)          # the ring lives in the first few tau
+    n = min(len(alpha_fs), LEARN_SAMPLES_MAX)  # the ring lives in the first few tau
     t_s = np.arange(n) / sample_rate_hz
     alpha = np.asarray(alpha_fs[:n], dtype=float)
     angle = angle_rad[:n]
@@ -188,13 +206,13 @@ def best_mode_scale(alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz:
     fine = np.linspace(grid[i - 1], grid[i + 1], 21)
     fine_values = np.array([rss(k) for k in fine])
     j = int(np.clip(np.argmin(fine_values), 1, len(fine) - 2))
-    y0, y1, y2 = fine_values[j - 1:j + 2]
+    y0, y1, y2 = fine_values[j - 1 : j + 2]
     denom = y0 - 2 * y1 + y2
     offset = 0.5 * (y0 - y2) / denom if denom > 0 else 0.0
     step = fine[1] - fine[0]
     k = float(fine[j] + np.clip(offset, -1, 1) * step)
     sigma2 = rss(k) / max(n - q_fixed.shape[1] - 2, 1)
-    curvature = denom / step ** 2
+    curvature = denom / step**2
     return k, (curvature / (2.0 * sigma2) if curvature > 0 and sigma2 > 0 else 0.0)
 
 
@@ -206,8 +224,8 @@ class ResonanceTracker:
         self.nominal = nominal
         self._lock = threading.Lock()
         self._scale = 1.0
-        self._precision = 0.0           # sum of the windows' 1/var(k)
-        self._learned_from = 0          # windows that contributed
+        self._precision = 0.0  # sum of the windows' 1/var(k)
+        self._learned_from = 0  # windows that contributed
 
     @property
     def mode(self) -> ResonanceMode:
@@ -223,17 +241,28 @@ class ResonanceTracker:
         with self._lock:
             mode = self.nominal.scaled(self._scale)
             std_hz = self._std_hz()
-            return {"frequency_hz": round(mode.frequency_hz, 2), "sigma_rad_s": round(mode.sigma_rad_s, 3),
-                    "scale_to_settings": round(self._scale, 5), "learned_from_windows": self._learned_from,
-                    "frequency_std_hz": None if std_hz is None else round(std_hz, 3)}
+            return {
+                "frequency_hz": round(mode.frequency_hz, 2),
+                "sigma_rad_s": round(mode.sigma_rad_s, 3),
+                "scale_to_settings": round(self._scale, 5),
+                "learned_from_windows": self._learned_from,
+                "frequency_std_hz": None if std_hz is None else round(std_hz, 3),
+            }
 
     def _std_hz(self) -> float | None:
         if self._precision <= 0:
             return None
         return self.nominal.frequency_hz / math.sqrt(self._precision)
 
-    def fit(self, alpha_fs: np.ndarray, angle_rad: np.ndarray, sample_rate_hz: float, harmonic_order: int,
-            periods: int, usable: np.ndarray | None = None) -> HarmonicFit:
+    def fit(
+        self,
+        alpha_fs: np.ndarray,
+        angle_rad: np.ndarray,
+        sample_rate_hz: float,
+        harmonic_order: int,
+        periods: int,
+        usable: np.ndarray | None = None,
+    ) -> HarmonicFit:
         """The window's harmonic fit with the current mode; a strong ring first refines the mode
         (never from a window with samples left out: the search needs the whole record)."""
         result = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.mode, usable)
@@ -248,8 +277,9 @@ class ResonanceTracker:
         if known or (learned and result.ring_fs <= RING_SNR_TO_LEARN * max(result.ring_std_fs, 1e-12)):
             return result
         # always the wide search: a first estimate off by more than a narrow search would lock in
-        k, precision = best_mode_scale(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, self.nominal, center,
-                                       SEARCH_SCALE)
+        k, precision = best_mode_scale(
+            alpha_fs, angle_rad, sample_rate_hz, harmonic_order, self.nominal, center, SEARCH_SCALE
+        )
         if precision <= 0:
             return result
         refit = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.nominal.scaled(k))

@@ -1,4 +1,4 @@
-"""Harmonic phasor of the measured acceleration over whole harmonic periods (DESIGN section 3).
+"""Harmonic phasor of the measured acceleration over whole harmonic periods (docs/conventions.md, Phasors).
 
     a_c = (2/N) sum(alpha * cos(h phi_e)),  a_s = (2/N) sum(alpha * sin(h phi_e))
 
@@ -8,6 +8,7 @@ encoder angle itself, not from the nominal speed). Windows of a multiple of h pe
 electrical turns, so every other integer order (1st, 2h, ...) averages out too: the defaults of the
 methods use such windows. Units: alpha in sensor full scale, phi_e in rad.
 """
+
 from __future__ import annotations
 
 import math
@@ -27,9 +28,13 @@ class Phasor:
     def amplitude(self) -> float:
         return math.hypot(self.a_c, self.a_s)
 
+    def as_dict(self) -> dict[str, float]:
+        """The phasor as results and validations keep it (fs)."""
+        return {"a_c": self.a_c, "a_s": self.a_s, "amplitude": self.amplitude}
+
     @property
     def vector(self) -> np.ndarray:
-        """[a_c, a_s], the real form that S_ss acts on (DESIGN 3)."""
+        """[a_c, a_s], the real form that S_ss acts on (docs/conventions.md, Secondary path)."""
         return np.array([self.a_c, self.a_s])
 
     @property
@@ -53,7 +58,9 @@ def whole_period_samples(angle_rad: np.ndarray, harmonic_order: int, periods: in
     target = 2.0 * math.pi * periods
     end = int(np.searchsorted(advance, target))
     if end >= len(advance):
-        raise ValueError(f"record of {len(angle_rad)} samples spans fewer than {periods} periods of order {harmonic_order}")
+        raise ValueError(
+            f"record of {len(angle_rad)} samples spans fewer than {periods} periods of order {harmonic_order}"
+        )
     # sample `end` has advanced >= target: the window [0, end) ends one step short of the period boundary
     if end > 0 and abs(advance[end - 1] - target) < abs(advance[end] - target):
         end -= 1
@@ -86,14 +93,17 @@ def amplitude_spectrum(alpha_fs: np.ndarray, angle_rad: np.ndarray, max_order: i
     return out
 
 
-def mechanical_speed_rpm(angle_rad: np.ndarray, sample_rate_hz: float, pole_pairs: int,
-                         gap_before: np.ndarray | None = None) -> float:
+def mechanical_speed_rpm(
+    angle_rad: np.ndarray, sample_rate_hz: float, pole_pairs: int, gap_before: np.ndarray | None = None
+) -> float:
     """Mechanical speed (rpm) seen by the encoder over a record of electrical angles (see
     electrical_frequency_hz for `gap_before`)."""
     return electrical_frequency_hz(angle_rad, sample_rate_hz, gap_before) * 60.0 / pole_pairs
 
 
-def electrical_frequency_hz(angle_rad: np.ndarray, sample_rate_hz: float, gap_before: np.ndarray | None = None) -> float:
+def electrical_frequency_hz(
+    angle_rad: np.ndarray, sample_rate_hz: float, gap_before: np.ndarray | None = None
+) -> float:
     """Mean electrical frequency (Hz) over a record of the encoder angle (rad) sampled at sample_rate_hz.
 
     gap_before[i] (the DAQ decoder's flag) marks samples lost or a bad frame skipped just before

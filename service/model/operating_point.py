@@ -10,6 +10,7 @@ Above the voltage limit U_dc/sqrt(3), i_d < 0 is chosen so that |u_dq| sits on t
 weakening), as the firmware does. `field_weakening_onset` gives the speed at which that sets in for a
 torque (closed form, with the firmware's voltage margin: settings control.voltage_margin).
 """
+
 from __future__ import annotations
 
 import math
@@ -22,6 +23,7 @@ from service.settings import MotorSettings
 
 class OperatingPoint(BaseModel):
     """{T*, n, U_dc}: torque command in Nm, mechanical speed in rpm, DC-link voltage in V."""
+
     # NaN / inf never reach a limit check or the drive: NaN compares False with every limit
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     torque_nm: float = Field(..., ge=-50, le=50, description="torque command T* in Nm")
@@ -84,15 +86,17 @@ def nominal_steady_state(op: OperatingPoint, motor: MotorSettings) -> SteadyStat
 @dataclass(frozen=True)
 class FieldWeakeningOnset:
     """Where field weakening sets in for one torque at one U_dc (see field_weakening_onset)."""
-    speed_rpm: float | None         # mechanical rpm; None: no onset (`reason` says why)
-    omega_e_rad_s: float | None     # the same as electrical angular speed, rad/s
-    i_q_a: float                    # the q current the torque needs below the onset, A (|T*| / k_T)
-    u_limit_v: float                # voltage_margin * U_dc / sqrt(3), V
+
+    speed_rpm: float | None  # mechanical rpm; None: no onset (`reason` says why)
+    omega_e_rad_s: float | None  # the same as electrical angular speed, rad/s
+    i_q_a: float  # the q current the torque needs below the onset, A (|T*| / k_T)
+    u_limit_v: float  # voltage_margin * U_dc / sqrt(3), V
     reason: str | None = None
 
 
-def field_weakening_onset(torque_nm: float, udc_v: float, motor: MotorSettings,
-                          voltage_margin: float) -> FieldWeakeningOnset:
+def field_weakening_onset(
+    torque_nm: float, udc_v: float, motor: MotorSettings, voltage_margin: float
+) -> FieldWeakeningOnset:
     """The speed at which the drive's firmware leaves MTPA for field weakening at torque T* and U_dc,
     from the NOMINAL motor parameters (settings, never the emulator's truth).
 
@@ -111,25 +115,35 @@ def field_weakening_onset(torque_nm: float, udc_v: float, motor: MotorSettings,
     No onset (speed None, `reason` says why): i_q above motor.i_max_a (the firmware limits the
     current: the torque is not reached at any speed), R_s i_q >= U (the limit is reached at
     standstill), U_dc <= 0."""
-    k_t = 1.5 * motor.pole_pairs * motor.psi_p_vs              # Nm/A
+    k_t = 1.5 * motor.pole_pairs * motor.psi_p_vs  # Nm/A
     i_q = abs(torque_nm) / k_t
     u_lim = voltage_margin * udc_v / math.sqrt(3.0)
     if not (math.isfinite(i_q) and math.isfinite(u_lim)) or udc_v <= 0:
         return FieldWeakeningOnset(None, None, i_q, u_lim, f"no DC link to weaken the field against ({udc_v:g} V)")
     if i_q > motor.i_max_a:
-        return FieldWeakeningOnset(None, None, i_q, u_lim,
-                                   f"{abs(torque_nm):g} Nm needs i_q = {i_q:.1f} A, above motor.i_max_a = "
-                                   f"{motor.i_max_a:g} A: the torque is not reached at any speed")
+        return FieldWeakeningOnset(
+            None,
+            None,
+            i_q,
+            u_lim,
+            f"{abs(torque_nm):g} Nm needs i_q = {i_q:.1f} A, above motor.i_max_a = "
+            f"{motor.i_max_a:g} A: the torque is not reached at any speed",
+        )
     if motor.r_s_ohm * i_q >= u_lim:
-        return FieldWeakeningOnset(None, None, i_q, u_lim,
-                                   f"R_s i_q = {motor.r_s_ohm * i_q:.2f} V reaches the voltage limit {u_lim:.2f} V "
-                                   "at standstill: the torque is not reached at any speed")
+        return FieldWeakeningOnset(
+            None,
+            None,
+            i_q,
+            u_lim,
+            f"R_s i_q = {motor.r_s_ohm * i_q:.2f} V reaches the voltage limit {u_lim:.2f} V "
+            "at standstill: the torque is not reached at any speed",
+        )
     l_iq, r_iq = motor.l_q_h * i_q, motor.r_s_ohm * i_q
     a = l_iq * l_iq + motor.psi_p_vs * motor.psi_p_vs
     b = 2.0 * r_iq * motor.psi_p_vs
-    c = r_iq * r_iq - u_lim * u_lim          # products, not **: an absurd U_dc gives inf here, not OverflowError
+    c = r_iq * r_iq - u_lim * u_lim  # products, not **: an absurd U_dc gives inf here, not OverflowError
     denominator = b + math.sqrt(b * b - 4.0 * a * c)
-    if denominator <= 0.0:      # U underflows to 0 (a DC link of 1e-300 V): the limit is there at standstill
+    if denominator <= 0.0:  # U underflows to 0 (a DC link of 1e-300 V): the limit is there at standstill
         return FieldWeakeningOnset(None, None, i_q, u_lim, f"the voltage limit {u_lim:g} V is reached at standstill")
     omega_e = -2.0 * c / denominator
     speed_rpm = omega_e / motor.pole_pairs * 60.0 / (2.0 * math.pi)
@@ -138,8 +152,9 @@ def field_weakening_onset(torque_nm: float, udc_v: float, motor: MotorSettings,
     return FieldWeakeningOnset(speed_rpm, omega_e, i_q, u_lim)
 
 
-def field_weakening_onset_rpm(torque_nm: float, udc_v: float, motor: MotorSettings, voltage_margin: float,
-                              max_speed_rpm: float | None = None) -> float | None:
+def field_weakening_onset_rpm(
+    torque_nm: float, udc_v: float, motor: MotorSettings, voltage_margin: float, max_speed_rpm: float | None = None
+) -> float | None:
     """Mechanical speed (rpm) at which field weakening sets in (field_weakening_onset), or None when
     there is none, or it lies above `max_speed_rpm` (beyond any speed of interest, e.g. safety.max_speed_rpm)."""
     onset = field_weakening_onset(torque_nm, udc_v, motor, voltage_margin).speed_rpm

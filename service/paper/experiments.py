@@ -10,6 +10,7 @@ i_dq) is recorded by the emulator's oscilloscope (service/paper/scope.py) at the
 Numbers from the service's DAQ measurements: gamma, delta, grid maps, suppression, times to 40 dB,
 alpha spectra. Numbers from the scope: |u_dq*| peaks, i_dq trajectories, the i_d harmonic.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,30 +20,36 @@ from typing import Any
 
 import numpy as np
 
-from service.calibration_service import CalibrationService
-from service.model.harmonic import amplitude_spectrum
-from service.identification.common import periods_for
-from service.runs.identify import parse_options
+from service.api.public import ResultPublic, result_public
 from service.bench.interlocks import InterlockTripped
+from service.calibration_service import CalibrationService
+from service.identification.common import periods_for
+from service.model.harmonic import amplitude_spectrum
 from service.model.limits import gamma_max_rad
 from service.model.operating_point import OperatingPoint
 from service.paper.scope import Scope, Trace
-from service.api.public import ResultPublic, result_public
+from service.runs.identify import parse_options
 from service.settings import Settings, load_settings
 
-OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)      # paper Fig. 7-9
-OP2 = OperatingPoint(torque_nm=1.3, speed_rpm=3000, udc_v=12)      # paper Fig. 10
-SIM_SPEEDS_RPM = {"fig11": 1000.0, "fig12": 200.0}                 # paper sec. 3.1
-SIM_BANDWIDTH_HZ = 1200.0                                          # sec. 3.1: f_3dB = 1.2 kHz
+OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)  # paper Fig. 7-9
+OP2 = OperatingPoint(torque_nm=1.3, speed_rpm=3000, udc_v=12)  # paper Fig. 10
+SIM_SPEEDS_RPM = {"fig11": 1000.0, "fig12": 200.0}  # paper sec. 3.1
+SIM_BANDWIDTH_HZ = 1200.0  # sec. 3.1: f_3dB = 1.2 kHz
 JOB_TIMEOUT_S = 300.0
-EMULATOR_SPEEDUP = 0.0    # as fast as the DAQ is read (every figure is timed on the DAQ sample counter)
-MAX_TRIPS = 6       # interlock trips acknowledged and measured again per step (each listed in the report)
+EMULATOR_SPEEDUP = 0.0  # as fast as the DAQ is read (every figure is timed on the DAQ sample counter)
+MAX_TRIPS = 6  # interlock trips acknowledged and measured again per step (each listed in the report)
 SPECTRUM_ORDERS = 24
 
 # the paper's adaptive filter (eq. 16) as written: the model S_hat throughout, a fixed gain, no
 # fallback; enough blocks for a slow transient to reach its steady state
-PAPER_FILTER = {"s_refine": False, "use_prior": False, "fallback": False, "max_blocks": 200, "stall_blocks": 25,
-                "max_plant_s": 8.0}
+PAPER_FILTER = {
+    "s_refine": False,
+    "use_prior": False,
+    "fallback": False,
+    "max_blocks": 200,
+    "stall_blocks": 25,
+    "max_plant_s": 8.0,
+}
 # at OP1 a lower gain than the default, so that Fig. 9 shows the transient over some 20 blocks
 PAPER_FILTER_OP1 = {**PAPER_FILTER, "mu_per_s": 8.0}
 
@@ -54,14 +61,22 @@ class TrippedJob(RuntimeError):
 @dataclass(frozen=True)
 class PaperPlan:
     """What the report measures; `quick` shrinks the grid of Fig. 8 and the scope records (the test)."""
+
     quick: bool = False
 
     @property
     def grid_options(self) -> dict:
-        if self.quick:      # 7 x 9 = 63 points, still the paper's ranges
-            return {"gamma_start_deg": 1.0, "gamma_stop_deg": 10.0, "gamma_step_deg": 1.5,
-                    "delta_start_deg": 0.0, "delta_stop_deg": 320.0, "delta_step_deg": 40.0, "window_periods": 12}
-        return {}           # GridOptions' defaults are the paper's 360-point grid
+        if self.quick:  # 7 x 9 = 63 points, still the paper's ranges
+            return {
+                "gamma_start_deg": 1.0,
+                "gamma_stop_deg": 10.0,
+                "gamma_step_deg": 1.5,
+                "delta_start_deg": 0.0,
+                "delta_stop_deg": 320.0,
+                "delta_step_deg": 40.0,
+                "window_periods": 12,
+            }
+        return {}  # GridOptions' defaults are the paper's 360-point grid
 
     @property
     def scope_turns(self) -> int:
@@ -77,6 +92,7 @@ class PaperPlan:
 @dataclass
 class Held:
     """One theta held at an operating point: the service's DAQ window and the scope's record."""
+
     theta_cos: float
     theta_sin: float
     amplitude_fs: float
@@ -87,6 +103,7 @@ class Held:
 @dataclass
 class EmulatedBench:
     """One emulated bench (a CalibrationService with its emulator) for a group of figures."""
+
     scenario: str
     settings: Settings
     service: CalibrationService | None = None
@@ -160,17 +177,32 @@ class EmulatedBench:
                 self.scope.arm(record)
                 window = session.measure(window_periods)
                 trace = self.scope.read(lambda: session.measure(h))
-                out.append(Held(tc, ts, window.phasor.amplitude,
-                                amplitude_spectrum(window.alpha_fs, window.angle_rad, SPECTRUM_ORDERS), trace))
+                out.append(
+                    Held(
+                        tc,
+                        ts,
+                        window.phasor.amplitude,
+                        amplitude_spectrum(window.alpha_fs, window.angle_rad, SPECTRUM_ORDERS),
+                        trace,
+                    )
+                )
         return out
 
 
 def bench_settings(db_path: str, scenario: str, **overrides: Any) -> Settings:
     # the report runs unattended on an emulated bench: a drive fault may be reset without a person,
     # through the setting that allows it (rate-limited; every trip is listed in the report)
-    return load_settings(overrides={"bench_mode": "emulate", "server.db_path": db_path, "emulator.scenario": scenario,
-                                    "emulator.speedup": EMULATOR_SPEEDUP, "interlocks.auto_fault_reset": True,
-                                    "interlocks.auto_fault_reset_per_hour": MAX_TRIPS, **overrides})
+    return load_settings(
+        overrides={
+            "bench_mode": "emulate",
+            "server.db_path": db_path,
+            "emulator.scenario": scenario,
+            "emulator.speedup": EMULATOR_SPEEDUP,
+            "interlocks.auto_fault_reset": True,
+            "interlocks.auto_fault_reset_per_hour": MAX_TRIPS,
+            **overrides,
+        }
+    )
 
 
 def theta_of(result: ResultPublic) -> tuple[float, float]:
@@ -190,20 +222,32 @@ def run_paper_bench(db_path: str, plan: PaperPlan) -> dict:
         t1 = time.monotonic()
         adaptive = bench.identify(OP1, "adaptive", PAPER_FILTER_OP1)
         t2 = time.monotonic()
-        op2 = bench.identify(OP2, "adaptive", {})           # the service's adaptive, as a user runs it
+        op2 = bench.identify(OP2, "adaptive", {})  # the service's adaptive, as a user runs it
         held = bench.hold(OP2, [(0.0, 0.0), theta_of(op2)], plan)
         t3 = time.monotonic()
-        return {"grid": grid, "adaptive": adaptive, "op2": op2, "op2_held": held,
-                "wall_s": {"start": bench.timings["start_s"], "fig8": t1 - t0, "fig9": t2 - t1, "fig10": t3 - t2},
-                "identity": bench.service.bench.identity, "trips": bench.trips}
+        return {
+            "grid": grid,
+            "adaptive": adaptive,
+            "op2": op2,
+            "op2_held": held,
+            "wall_s": {"start": bench.timings["start_s"], "fig8": t1 - t0, "fig9": t2 - t1, "fig10": t3 - t2},
+            "identity": bench.service.bench.identity,
+            "trips": bench.trips,
+        }
 
 
 def run_paper_sim(db_path: str, plan: PaperPlan, decoupling: bool) -> dict:
     """Fig. 11 (1000 rpm) and Fig. 12 (200 rpm) on paper-sim, with or without decoupling (0x2000:6).
     T* = T_max = 1.5 N_p psi_p I_max from the nominal motor data; the paper's filter on eq. 14-20."""
-    settings = bench_settings(db_path, "paper-sim", **{"control.bandwidth_hz": SIM_BANDWIDTH_HZ,
-                                                       "identification.decoupling": decoupling,
-                                                       "identification.s_model": "paper"})
+    settings = bench_settings(
+        db_path,
+        "paper-sim",
+        **{
+            "control.bandwidth_hz": SIM_BANDWIDTH_HZ,
+            "identification.decoupling": decoupling,
+            "identification.s_model": "paper",
+        },
+    )
     motor = settings.motor
     t_max_nm = round(1.5 * motor.pole_pairs * motor.psi_p_vs * motor.i_max_a, 3)
     out: dict[str, Any] = {"torque_nm": t_max_nm}
@@ -213,8 +257,12 @@ def run_paper_sim(db_path: str, plan: PaperPlan, decoupling: bool) -> dict:
             op = OperatingPoint(torque_nm=t_max_nm, speed_rpm=speed, udc_v=12)
             result = bench.identify(op, "adaptive", PAPER_FILTER)
             held = bench.hold(op, [theta_of(result)], plan)[0]
-            out[fig] = {"result": result, "held": held, "operating_point": op,
-                        "gamma_max_deg": settings.identification.gamma_max_deg}
+            out[fig] = {
+                "result": result,
+                "held": held,
+                "operating_point": op,
+                "gamma_max_deg": settings.identification.gamma_max_deg,
+            }
         out["wall_s"] = {"start": bench.timings["start_s"], "runs": time.monotonic() - started}
         out["identity"] = bench.service.bench.identity
         out["trips"] = bench.trips

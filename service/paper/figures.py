@@ -3,6 +3,7 @@
 Each function redraws one of the paper's figures from what service/paper/experiments.py measured;
 amplitudes of alpha are in sensor full scale (FS), as the paper normalises them (Fig. 8-10).
 """
+
 from __future__ import annotations
 
 import io
@@ -30,17 +31,19 @@ def _png(fig) -> bytes:
 
 def grid_maps(grid_rows: list, minimum: dict, fit: dict, paper: dict) -> bytes:
     """Fig. 8: amplitude and phase of the 6th harmonic of alpha over (gamma, delta)."""
-    g = np.asarray(grid_rows, dtype=float)          # gamma_deg, delta_deg, a_c, a_s
+    g = np.asarray(grid_rows, dtype=float)  # gamma_deg, delta_deg, a_c, a_s
     gammas, deltas = np.unique(g[:, 0]), np.unique(g[:, 1])
     amp = np.full((len(gammas), len(deltas)), np.nan)
     phase = np.full_like(amp, np.nan)
     for gd, dd, a_c, a_s in g:
         i, j = np.searchsorted(gammas, gd), np.searchsorted(deltas, dd)
         amp[i, j] = math.hypot(a_c, a_s)
-        phase[i, j] = math.degrees(math.atan2(-a_s, a_c))    # angle of A = a_c - j a_s (DESIGN 3)
+        phase[i, j] = math.degrees(math.atan2(-a_s, a_c))  # angle of A = a_c - j a_s (docs/conventions.md, Phasors)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for ax, data, title, cmap in ((axes[0], amp, "amplitude of the 6th harmonic of alpha (FS)", "viridis"),
-                                  (axes[1], phase, "phase of the 6th harmonic of alpha (deg)", "twilight")):
+    for ax, data, title, cmap in (
+        (axes[0], amp, "amplitude of the 6th harmonic of alpha (FS)", "viridis"),
+        (axes[1], phase, "phase of the 6th harmonic of alpha (deg)", "twilight"),
+    ):
         mesh = ax.pcolormesh(deltas, gammas, data, shading="nearest", cmap=cmap)
         fig.colorbar(mesh, ax=ax)
         ax.scatter(g[:, 1], g[:, 0], s=2, c="k", alpha=0.3)
@@ -99,7 +102,9 @@ def op2_comparison(traces: dict[str, Trace], spectra: dict[str, list], u_limit_v
     axes[0].set_title("u_dq* (scope)", fontsize=10)
     for label, tr in traces.items():
         n = min(len(tr.time_s), 400)
-        axes[1].plot(tr.time_s[:n] * 1e3, tr["i_d_a"][:n], color=COLORS.get(label), ls="--", lw=0.8, label=f"i_d {label}")
+        axes[1].plot(
+            tr.time_s[:n] * 1e3, tr["i_d_a"][:n], color=COLORS.get(label), ls="--", lw=0.8, label=f"i_d {label}"
+        )
         axes[1].plot(tr.time_s[:n] * 1e3, tr["i_q_a"][:n], color=COLORS.get(label), lw=0.8, label=f"i_q {label}")
     axes[1].set_xlabel("time (ms)")
     axes[1].set_ylabel("current (A)")
@@ -117,14 +122,16 @@ def op2_comparison(traces: dict[str, Trace], spectra: dict[str, list], u_limit_v
     return _png(fig)
 
 
-def sim_comparison(histories: dict[str, np.ndarray], traces: dict[str, Trace], gamma_max_deg: float | None,
-                   title: str) -> bytes:
+def sim_comparison(
+    histories: dict[str, np.ndarray], traces: dict[str, Trace], gamma_max_deg: float | None, title: str
+) -> bytes:
     """Fig. 11 / 12: the adaptive transient with and without decoupling, |u_dq*| and i_dq in steady state."""
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
     for label, rows in histories.items():
         axes[0].semilogy(rows[:, 0], rows[:, 3], "o-", ms=2, color=COLORS.get(label), label=label)
-        axes[1].plot(rows[:, 0], np.degrees(np.hypot(rows[:, 1], rows[:, 2])), "o-", ms=2, color=COLORS.get(label),
-                     label=label)
+        axes[1].plot(
+            rows[:, 0], np.degrees(np.hypot(rows[:, 1], rows[:, 2])), "o-", ms=2, color=COLORS.get(label), label=label
+        )
     axes[0].set_xlabel("plant time (s)")
     axes[0].set_ylabel("|6th harmonic of alpha| (FS)")
     axes[0].legend(fontsize=8)

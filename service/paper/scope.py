@@ -4,6 +4,7 @@ Only the paper report uses it, for the signals a test bench shows on a scope and
 see through its wires (u_dq*, i_dq). The identification never reads it: every gamma, delta and
 suppression figure of the report is the service's own measurement on the DAQ.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,6 +25,7 @@ class ScopeError(RuntimeError):
 @dataclass
 class Trace:
     """One scope record: channels in SI units (names as plant_emulator.scope.CHANNELS), one sample per control period."""
+
     sample_rate_hz: float
     channels: dict[str, np.ndarray]
 
@@ -79,10 +81,14 @@ class Scope:
         while True:
             reply = self._command({"scope": "read"})
             if reply["ready"]:
-                return Trace(float(reply["sample_rate_hz"]),
-                             {k: np.asarray(v, dtype=float) for k, v in reply["channels"].items()})
+                return Trace(
+                    float(reply["sample_rate_hz"]),
+                    {k: np.asarray(v, dtype=float) for k, v in reply["channels"].items()},
+                )
             if time.monotonic() > deadline:
-                raise ScopeError(f"scope record not complete within {timeout_s:g} s "
-                                 f"({reply['recorded']} of {reply['samples']} samples)")
+                raise ScopeError(
+                    f"scope record not complete within {timeout_s:g} s "
+                    f"({reply['recorded']} of {reply['samples']} samples)"
+                )
             advance()
             time.sleep(READ_POLL_S)

@@ -1,4 +1,5 @@
 """Progress events: published from worker threads, streamed to browsers as Server-Sent Events."""
+
 from __future__ import annotations
 
 import asyncio
@@ -6,8 +7,7 @@ import json
 import threading
 from typing import Any
 
-
-END = ("", "")       # the message that ends a stream
+END = ("", "")  # the message that ends a stream
 
 
 class EventBroker:
@@ -51,7 +51,7 @@ class EventBroker:
 
 
 def _offer(queue: asyncio.Queue, message) -> None:
-    if queue.full():   # a slow browser loses old progress, never blocks the bench
+    if queue.full():  # a slow browser loses old progress, never blocks the bench
         queue.get_nowait()
     queue.put_nowait(message)
 

@@ -1,4 +1,5 @@
 """One identification at one operating point: go there, run the method, leave the bench safe."""
+
 from __future__ import annotations
 
 import threading
@@ -11,6 +12,7 @@ from service.model.limits import gamma_max_rad
 from service.model.operating_point import OperatingPoint
 from service.model.secondary_path import model_secondary_path
 from service.settings import Settings
+
 
 def parse_options(method: str, options: dict[str, Any] | None):
     """Validated options model for `method` (raises ValueError / pydantic ValidationError)."""
@@ -31,36 +33,55 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
     bound_s = options.plant_time_bound_s(slowest_hz)
     limit_s = settings.safety.max_plant_s_per_point
     if bound_s > limit_s:
-        raise PlantTimeError(f"{method} options may take up to {bound_s:.0f} s of plant time per operating point "
-                             f"(at {min(speeds_rpm):g} rpm), more than safety.max_plant_s_per_point = {limit_s:g} s: "
-                             "choose fewer grid points, shorter windows or fewer steps")
+        raise PlantTimeError(
+            f"{method} options may take up to {bound_s:.0f} s of plant time per operating point "
+            f"(at {min(speeds_rpm):g} rpm), more than safety.max_plant_s_per_point = {limit_s:g} s: "
+            "choose fewer grid points, shorter windows or fewer steps"
+        )
 
 
 def run_settings(settings: Settings, options) -> dict[str, Any]:
     """What a bench run needs from a method's options: harmonic order, gamma_max, drive decoupling."""
     ident = settings.identification
-    return {"harmonic_order": ident.harmonic_order, "gamma_max_rad": gamma_max_rad(options.gamma_max_deg, settings),
-            "decoupling": ident.decoupling if options.decoupling is None else options.decoupling}
+    return {
+        "harmonic_order": ident.harmonic_order,
+        "gamma_max_rad": gamma_max_rad(options.gamma_max_deg, settings),
+        "decoupling": ident.decoupling if options.decoupling is None else options.decoupling,
+    }
 
 
-def identify_at(bench, settings: Settings, op: OperatingPoint, method: str, options,
-                prior: Prior | None = None, cancel: threading.Event | None = None,
-                progress: Callable[[Window], None] | None = None, recorder=None) -> IdentificationResult:
+def identify_at(
+    bench,
+    settings: Settings,
+    op: OperatingPoint,
+    method: str,
+    options,
+    prior: Prior | None = None,
+    cancel: threading.Event | None = None,
+    progress: Callable[[Window], None] | None = None,
+    recorder=None,
+) -> IdentificationResult:
     """One identification as a run of its own: go to `op`, run `method`, leave the bench safe (see
     identify_in_run). `cancel` is the run's cancel token: set, the run stops at its next DAQ read."""
     with bench.run(cancel=cancel, **run_settings(settings, options)) as run:
-        result = identify_in_run(run, settings, op, method, options, prior=prior, progress=progress,
-                                 recorder=recorder)
+        result = identify_in_run(run, settings, op, method, options, prior=prior, progress=progress, recorder=recorder)
     return result
 
 
-def identify_in_run(run, settings: Settings, op: OperatingPoint, method: str, options,
-                    prior: Prior | None = None, progress: Callable[[Window], None] | None = None,
-                    recorder=None) -> IdentificationResult:
-    """Move the run (service.bench_run.BenchRun) to `op`, settle to the precision the method's target
+def identify_in_run(
+    run,
+    settings: Settings,
+    op: OperatingPoint,
+    method: str,
+    options,
+    prior: Prior | None = None,
+    progress: Callable[[Window], None] | None = None,
+    recorder=None,
+) -> IdentificationResult:
+    """Move the run (service.bench.run.BenchRun) to `op`, settle to the precision the method's target
     needs, run `method` (starting from `prior` where the method uses one). `progress` is called with
     every accepted window (plant time, residual) while the method runs. `recorder`
-    (service.recordings.RunRecorder) receives the DAQ samples and setpoints from the method's first
+    (service.store.recordings.RunRecorder) receives the DAQ samples and setpoints from the method's first
     read to its last (the move to the operating point is not part of the identification)."""
     h = run.harmonic_order
     gamma_max = run.gamma_max_rad
@@ -70,10 +91,15 @@ def identify_in_run(run, settings: Settings, op: OperatingPoint, method: str, op
     with run.operating_point(op, target_db=options.target_db, on_window=progress) as session:
         # the model with the shaft mode as learned on this bench so far (sec. 2.3)
         mode = run.bench.resonance.mode
-        s_hat = model_secondary_path(settings, op, h, current_loop=closed_loop,
-                                     resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s))
-        conditions = Conditions(harmonic_frequency_hz=session.harmonic_frequency_hz, resonance_hz=mode.frequency_hz,
-                                current_bandwidth_hz=settings.control.bandwidth_hz, decoupling=decoupling)
+        s_hat = model_secondary_path(
+            settings, op, h, current_loop=closed_loop, resonance_pole=complex(mode.sigma_rad_s, mode.omega_rad_s)
+        )
+        conditions = Conditions(
+            harmonic_frequency_hz=session.harmonic_frequency_hz,
+            resonance_hz=mode.frequency_hz,
+            current_bandwidth_hz=settings.control.bandwidth_hz,
+            decoupling=decoupling,
+        )
         session.recorder = recorder
         try:
             result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
@@ -82,8 +108,11 @@ def identify_in_run(run, settings: Settings, op: OperatingPoint, method: str, op
                 raise
             # say why the sensor saturates: a harmonic next to the shaft resonance is amplified by its Q
             distance_hz = abs(conditions.harmonic_frequency_hz - mode.frequency_hz)
-            raise MeasurementError(f"{exc} (harmonic at {conditions.harmonic_frequency_hz:.0f} Hz, {distance_hz:.0f} Hz "
-                                   f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)", over_range=True) from exc
+            raise MeasurementError(
+                f"{exc} (harmonic at {conditions.harmonic_frequency_hz:.0f} Hz, {distance_hz:.0f} Hz "
+                f"from the shaft resonance at {mode.frequency_hz:.0f} Hz)",
+                over_range=True,
+            ) from exc
         finally:
             session.recorder = None
         result.details["op_settle_plant_s"] = session.op_settle_plant_s
@@ -92,7 +121,7 @@ def identify_in_run(run, settings: Settings, op: OperatingPoint, method: str, op
         result.details["sync_toggles_hidden"] = session.stream.toggles_hidden
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
-        result.details["decoupling"] = decoupling      # the drive must run the LUT with the same setting
+        result.details["decoupling"] = decoupling  # the drive must run the LUT with the same setting
         result.details["resonance"] = run.bench.resonance.snapshot()
     # wall seconds of the point by what they were spent on (the run's end, make_safe, comes after)
     result.details["bench_time_s"] = run.timing.public()

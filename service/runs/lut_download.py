@@ -9,16 +9,46 @@ the image's header (None: drivers.lut_image.DEFAULT_INTERPOLATION). The image (d
 carries the map id; the drive reports map id and CRC back, and /bench/status shows them. Used by
 POST /maps/{id}/download, the CLI's `maps download` and the validation job (which calls `download_map`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from pydantic import BaseModel, Field
 
 from drivers import lut_image as lut_codec
 from drivers.lut_image import crc_hex
 from service.bench.bench import Bench, BenchError
 from service.maps.lut_export import cell_flag, lut_image
-from service.api.public import LutDownloadPublic, map_public
+from service.maps.view import map_view
 from service.store.storage import Storage
+
+
+class LutDownload(BaseModel):
+    """What went into the drive (POST /maps/{id}/download, `ripplecal maps download`, a validation job)."""
+
+    map_id: int = Field(description="the map the drive now holds (it reports it on 0x2001:4)")
+    crc32: str = Field(
+        description="CRC-32 (zlib) of the LUT image without its CRC field, as the drive read it "
+        "back (0x2001:2): 0x and 8 hex digits"
+    )
+    bytes: int = Field(description="size of the LUT image")
+    cells: int = Field(description="cells of the map")
+    valid_cells: int = Field(description="cells with status ok (VALID)")
+    filled_cells: int = Field(
+        0,
+        description="cells not ok that went in with their fill (service/maps/fill.py); "
+        "the drive injects at ok and filled cells",
+    )
+    fill: bool = Field(True, description="whether the fills were chosen for this download")
+    interpolation: str = Field(
+        "cartesian",
+        description="what the drive interpolates between cells: cartesian "
+        "(theta_cos, theta_sin) or polar (gamma, delta along the shortest arc)",
+    )
+    format_version: int = Field(3, description="LUT image format version (drivers/lut_image.py)")
+    harmonic_order: int
+    forced: bool = Field(description="true when a map with holes (cells that inject nothing) went in on force=true")
 
 
 class MapNotFound(LookupError):
@@ -32,28 +62,32 @@ class LutRefused(ValueError):
 class PartialMap(ValueError):
     """Some cells would inject nothing under the chosen fill: the map goes only with force."""
 
-    def __init__(self, map_id: int, holes: int, cells: int, how_to_force: str, fill: bool = True,
-                 filled_left_out: int = 0):
+    def __init__(
+        self, map_id: int, holes: int, cells: int, how_to_force: str, fill: bool = True, filled_left_out: int = 0
+    ):
         if fill:
             which = " and carry no fill"
         elif filled_left_out:
             which = f" ({filled_left_out} of them filled, left out without fill)"
         else:
             which = ""
-        self.what = f"map {map_id} is partial: {holes} of {cells} cells are not ok{which}: the drive would inject nothing there"
+        self.what = (
+            f"map {map_id} is partial: {holes} of {cells} cells are not ok{which}: the drive would inject nothing there"
+        )
         super().__init__(f"{self.what}; {how_to_force}")
 
 
 @dataclass(frozen=True)
 class PreparedLut:
     """A map checked and encoded, before anything goes to the bench."""
+
     map_id: int
     image: bytes
     cells: int
-    valid_cells: int           # ok cells (flag 1)
+    valid_cells: int  # ok cells (flag 1)
     harmonic_order: int
-    forced: bool               # holes under the chosen fill, loaded on force
-    filled_cells: int = 0      # filled cells in the image (flag 2); 0 without fill
+    forced: bool  # holes under the chosen fill, loaded on force
+    filled_cells: int = 0  # filled cells in the image (flag 2); 0 without fill
     fill: bool = True
     interpolation: str = lut_codec.DEFAULT_INTERPOLATION
     format_version: int = lut_codec.FORMAT_VERSION
@@ -64,15 +98,20 @@ class PreparedLut:
         return self.cells - self.valid_cells - self.filled_cells
 
     def receipt_fields(self) -> dict:
-        """What the receipt says went in beyond LutDownloadPublic's first fields."""
-        return {"filled_cells": self.filled_cells, "fill": self.fill, "interpolation": self.interpolation,
-                "format_version": self.format_version}
+        """What the receipt says went in beyond LutDownload's first fields."""
+        return {
+            "filled_cells": self.filled_cells,
+            "fill": self.fill,
+            "interpolation": self.interpolation,
+            "format_version": self.format_version,
+        }
 
 
-def prepare(storage: Storage, map_id: int, force: bool = False, fill: bool = True,
-            interpolation: str | None = None) -> PreparedLut:
+def prepare(
+    storage: Storage, map_id: int, force: bool = False, fill: bool = True, interpolation: str | None = None
+) -> PreparedLut:
     """Check the download rules and build the image. Raises MapNotFound, LutRefused, PartialMap."""
-    m = map_public(storage, map_id)
+    m = map_view(storage, map_id)
     if m is None:
         raise MapNotFound(f"map {map_id} does not exist")
     try:
@@ -85,35 +124,67 @@ def prepare(storage: Storage, map_id: int, force: bool = False, fill: bool = Tru
     filled = flags.count(lut_codec.FLAG_FILLED)
     holes = len(cells) - valid - filled
     if valid == 0:
-        raise LutRefused(f"map {map_id} has no valid cell (0 of {len(cells)} ok): a LUT without one would inject "
-                         f"nothing at a measured target; measure the sweep again")
+        raise LutRefused(
+            f"map {map_id} has no valid cell (0 of {len(cells)} ok): a LUT without one would inject "
+            f"nothing at a measured target; measure the sweep again"
+        )
     if holes and not force:
         filled_left_out = 0 if fill else sum(1 for c in cells if cell_flag(c, True) == lut_codec.FLAG_FILLED)
-        raise PartialMap(map_id, holes, len(cells), "load it anyway with force (API: ?force=true, CLI: --force)",
-                         fill, filled_left_out)
+        raise PartialMap(
+            map_id,
+            holes,
+            len(cells),
+            "load it anyway with force (API: ?force=true, CLI: --force)",
+            fill,
+            filled_left_out,
+        )
     try:
         image = lut_image(m.model_dump(), fill=fill, interpolation=mode)
     except ValueError as exc:
         raise LutRefused(f"map {map_id} cannot become a LUT: {exc}") from None
-    return PreparedLut(map_id, image, len(cells), valid, m.harmonic_order, forced=holes > 0, filled_cells=filled,
-                       fill=fill, interpolation=mode)
+    return PreparedLut(
+        map_id,
+        image,
+        len(cells),
+        valid,
+        m.harmonic_order,
+        forced=holes > 0,
+        filled_cells=filled,
+        fill=fill,
+        interpolation=mode,
+    )
 
 
-def send(bench: Bench, lut: PreparedLut) -> LutDownloadPublic:
+def send(bench: Bench, lut: PreparedLut) -> LutDownload:
     """The image into the drive, CRC and map id read back. Raises BenchError (busy, not reached, the
     drive reports another map) or the driver's SDO errors (the drive refused or did not answer)."""
     held = bench.download_lut(lut.image)
     if held.map_id != lut.map_id:
-        raise BenchError(f"the drive reports map {held.map_id} in force after map {lut.map_id} was downloaded "
-                         f"(CRC {crc_hex(held.crc32)}, status {held.status})")
+        raise BenchError(
+            f"the drive reports map {held.map_id} in force after map {lut.map_id} was downloaded "
+            f"(CRC {crc_hex(held.crc32)}, status {held.status})"
+        )
     # the receipt's newer fields (filled_cells, fill, interpolation, format_version) where the model has them
-    extra = {k: v for k, v in lut.receipt_fields().items() if k in LutDownloadPublic.model_fields}
-    return LutDownloadPublic(map_id=lut.map_id, crc32=crc_hex(held.crc32), bytes=len(lut.image), cells=lut.cells,
-                             valid_cells=lut.valid_cells, harmonic_order=lut.harmonic_order, forced=lut.forced,
-                             **extra)
+    extra = {k: v for k, v in lut.receipt_fields().items() if k in LutDownload.model_fields}
+    return LutDownload(
+        map_id=lut.map_id,
+        crc32=crc_hex(held.crc32),
+        bytes=len(lut.image),
+        cells=lut.cells,
+        valid_cells=lut.valid_cells,
+        harmonic_order=lut.harmonic_order,
+        forced=lut.forced,
+        **extra,
+    )
 
 
-def download_map(storage: Storage, bench: Bench, map_id: int, force: bool = False, fill: bool = True,
-                 interpolation: str | None = None) -> LutDownloadPublic:
+def download_map(
+    storage: Storage,
+    bench: Bench,
+    map_id: int,
+    force: bool = False,
+    fill: bool = True,
+    interpolation: str | None = None,
+) -> LutDownload:
     """Map `map_id` into the drive under the rules above; the receipt says what went in."""
     return send(bench, prepare(storage, map_id, force, fill, interpolation))

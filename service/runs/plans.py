@@ -6,12 +6,13 @@ against the bench limits before the first frame goes out.
 Plans that know the regime: above the field-weakening (FW) onset, which depends on torque and U_dc,
 theta* turns by tens of degrees within a few hundred rpm, so a LUT whose speed axis straddles the
 onset interpolates badly there. `plan_grid` predicts the onset of every (torque, U_dc) of a grid from
-the NOMINAL settings (service.operating_point.field_weakening_onset) and, on request
+the NOMINAL settings (service.model.operating_point.field_weakening_onset) and, on request
 (`RegimePlacement`), adds speed values at the onset and at onset +- spacing to the grid's speed axis,
 so the map has cells on both sides of the turn. The planned grid is what a sweep stores and measures
 (`Engine.submit_sweep`) and what `preview_sweep` (POST /sweeps/preview) shows; `SweepPlan.from_grid`
 stays the one way its points are ordered.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,23 +21,26 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
-from service.runs.identify import PlantTimeError, check_plant_time
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint, field_weakening_onset
+from service.runs.identify import PlantTimeError, check_plant_time
 from service.settings import SafetySettings, Settings
 
 MAX_GRID_POINTS = 10_000
-MAX_SPEED_VALUES = 200          # the longest speed axis a grid may have (speeds placed by a plan included)
+MAX_SPEED_VALUES = 200  # the longest speed axis a grid may have (speeds placed by a plan included)
 
 
 class Grid(BaseModel):
     """Operating-point grid: torque x speed x DC-link voltage."""
+
     model_config = ConfigDict(extra="forbid")
     torque_nm: list[FiniteFloat] = Field(..., min_length=1, max_length=200, description="torque commands T* in Nm")
-    speed_rpm: list[FiniteFloat] = Field(..., min_length=1, max_length=MAX_SPEED_VALUES,
-                                         description="mechanical speeds in rpm")
-    udc_v: list[FiniteFloat] = Field(default_factory=lambda: [12.0], min_length=1, max_length=50,
-                                     description="DC-link voltages in V")
+    speed_rpm: list[FiniteFloat] = Field(
+        ..., min_length=1, max_length=MAX_SPEED_VALUES, description="mechanical speeds in rpm"
+    )
+    udc_v: list[FiniteFloat] = Field(
+        default_factory=lambda: [12.0], min_length=1, max_length=50, description="DC-link voltages in V"
+    )
 
     @field_validator("torque_nm", "speed_rpm", "udc_v")
     @classmethod
@@ -60,7 +64,8 @@ def check_sweep_size(grid: Grid, confirm_large: bool, safety: SafetySettings) ->
     if grid.size() > safety.max_sweep_points_unconfirmed and not confirm_large:
         raise SweepTooLarge(
             f"grid has {grid.size()} points, more than {safety.max_sweep_points_unconfirmed} "
-            f"(safety.max_sweep_points_unconfirmed): send \"confirm_large\": true to run it")
+            f"(safety.max_sweep_points_unconfirmed): send \"confirm_large\": true to run it"
+        )
 
 
 @dataclass(frozen=True)
@@ -93,42 +98,60 @@ class SweepPlan:
         if problems:
             # one entry per grid field, the first few points named (a 400-point grid would flood the answer)
             per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5])) for f, m in fields.items())
-            raise LimitError(f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]),
-                             per_field)
+            raise LimitError(
+                f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]), per_field
+            )
 
 
 # --- plans that know the regime ---------------------------------------------------------------------
 class RegimePlacement(BaseModel):
     """Speed values placed around the predicted field-weakening onset of each torque (see plan_grid)."""
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False,
-                              json_schema_extra={"examples": [{"speeds_around_onset": True, "spacing_rpm": 100}]})
-    speeds_around_onset: bool = Field(False, description="add to the speed axis, within the grid's speed range, the "
-                                      "predicted field-weakening onset of every torque and U_dc (rounded to round_rpm) "
-                                      "and onset +- spacing_rpm, so the map has cells on both sides of the turn of theta*")
-    spacing_rpm: float = Field(100.0, ge=10.0, le=2000.0, description="distance of the speed values placed below and "
-                               "above each onset, rpm")
+
+    model_config = ConfigDict(
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={"examples": [{"speeds_around_onset": True, "spacing_rpm": 100}]},
+    )
+    speeds_around_onset: bool = Field(
+        False,
+        description="add to the speed axis, within the grid's speed range, the "
+        "predicted field-weakening onset of every torque and U_dc (rounded to round_rpm) "
+        "and onset +- spacing_rpm, so the map has cells on both sides of the turn of theta*",
+    )
+    spacing_rpm: float = Field(
+        100.0, ge=10.0, le=2000.0, description="distance of the speed values placed below and above each onset, rpm"
+    )
     round_rpm: float = Field(10.0, ge=1.0, le=500.0, description="the onset is rounded to a multiple of this, rpm")
 
 
 class OnsetPrediction(BaseModel):
     """The predicted field-weakening onset of one torque at one U_dc (nominal settings)."""
+
     torque_nm: float = Field(..., description="torque command T* of the grid, Nm")
     udc_v: float = Field(..., description="DC-link voltage of the grid, V")
-    onset_rpm: float | None = Field(..., description="mechanical speed at which |u_dq| with i_d = 0 reaches "
-                                    "control.voltage_margin * U_dc / sqrt(3), rpm (rounded to 0.1); null: no onset up "
-                                    "to safety.max_speed_rpm (see note)")
-    placed_rpm: float | None = Field(None, description="the onset rounded to regime.round_rpm, where speeds were "
-                                     "placed around it (null: none placed for this torque)")
+    onset_rpm: float | None = Field(
+        ...,
+        description="mechanical speed at which |u_dq| with i_d = 0 reaches "
+        "control.voltage_margin * U_dc / sqrt(3), rpm (rounded to 0.1); null: no onset up "
+        "to safety.max_speed_rpm (see note)",
+    )
+    placed_rpm: float | None = Field(
+        None,
+        description="the onset rounded to regime.round_rpm, where speeds were "
+        "placed around it (null: none placed for this torque)",
+    )
     in_speed_range: bool = Field(..., description="the onset lies within the grid's speed range (min..max)")
     note: str | None = Field(None, description="why there is no onset, or why nothing was placed around it")
 
 
 class SpeedValue(BaseModel):
     """One value of the planned speed axis."""
+
     speed_rpm: float = Field(..., description="mechanical speed, rpm")
     added: bool = Field(..., description="placed by the plan (not in the requested grid)")
-    reasons: list[str] = Field(default_factory=list, description="why the plan placed it (also for a value the "
-                               "requested grid already had)")
+    reasons: list[str] = Field(
+        default_factory=list, description="why the plan placed it (also for a value the requested grid already had)"
+    )
 
 
 class RegimeError(ValueError):
@@ -137,10 +160,10 @@ class RegimeError(ValueError):
 
 @dataclass(frozen=True)
 class PlannedGrid:
-    requested: Grid                         # the grid as asked for
-    grid: Grid                              # the grid the sweep stores and measures
-    onsets: tuple[OnsetPrediction, ...]     # per U_dc, then torque (the grid's order)
-    speed_axis: tuple[SpeedValue, ...]      # the planned speed axis, sorted
+    requested: Grid  # the grid as asked for
+    grid: Grid  # the grid the sweep stores and measures
+    onsets: tuple[OnsetPrediction, ...]  # per U_dc, then torque (the grid's order)
+    speed_axis: tuple[SpeedValue, ...]  # the planned speed axis, sorted
 
     @property
     def added_speeds_rpm(self) -> list[float]:
@@ -169,8 +192,13 @@ def plan_grid(grid: Grid, regime: RegimePlacement | None, settings: Settings) ->
             onset = field_weakening_onset(torque, udc, motor, margin)
             speed, note = onset.speed_rpm, onset.reason
             if speed is not None and speed > settings.safety.max_speed_rpm:
-                speed, note = None, (f"onset at {onset.speed_rpm:.0f} rpm, above safety.max_speed_rpm "
-                                     f"({settings.safety.max_speed_rpm:g} rpm): no field weakening within the bench's speeds")
+                speed, note = (
+                    None,
+                    (
+                        f"onset at {onset.speed_rpm:.0f} rpm, above safety.max_speed_rpm "
+                        f"({settings.safety.max_speed_rpm:g} rpm): no field weakening within the bench's speeds"
+                    ),
+                )
             in_range = speed is not None and lo <= speed <= hi
             placed = None
             if speed is not None and not in_range:
@@ -178,23 +206,35 @@ def plan_grid(grid: Grid, regime: RegimePlacement | None, settings: Settings) ->
             elif in_range and place:
                 placed = _multiple(speed, regime.round_rpm)
                 where = f"the field-weakening onset of {torque:g} Nm at {udc:g} V (predicted {speed:.0f} rpm)"
-                for value, why in ((placed - regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm below {where}"),
-                                   (placed, where),
-                                   (placed + regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm above {where}")):
+                for value, why in (
+                    (placed - regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm below {where}"),
+                    (placed, where),
+                    (placed + regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm above {where}"),
+                ):
                     value = round(value, 6)
                     if lo <= value <= hi:
                         reasons.setdefault(value, []).append(why)
-            onsets.append(OnsetPrediction(torque_nm=torque, udc_v=udc,
-                                          onset_rpm=None if speed is None else round(speed, 1),
-                                          placed_rpm=placed, in_speed_range=in_range, note=note))
+            onsets.append(
+                OnsetPrediction(
+                    torque_nm=torque,
+                    udc_v=udc,
+                    onset_rpm=None if speed is None else round(speed, 1),
+                    placed_rpm=placed,
+                    in_speed_range=in_range,
+                    note=note,
+                )
+            )
     requested = set(grid.speed_rpm)
     axis = sorted(requested | set(reasons))
     try:
-        planned = grid if len(axis) == len(requested) else Grid(torque_nm=grid.torque_nm, speed_rpm=axis,
-                                                                 udc_v=grid.udc_v)
+        planned = (
+            grid if len(axis) == len(requested) else Grid(torque_nm=grid.torque_nm, speed_rpm=axis, udc_v=grid.udc_v)
+        )
     except ValidationError:
-        raise RegimeError(f"placing speeds around the onset gives {len(axis)} speed values, more than the grid's "
-                          f"{MAX_SPEED_VALUES}: fewer torques or U_dc values, or a narrower speed range") from None
+        raise RegimeError(
+            f"placing speeds around the onset gives {len(axis)} speed values, more than the grid's "
+            f"{MAX_SPEED_VALUES}: fewer torques or U_dc values, or a narrower speed range"
+        ) from None
     speed_axis = tuple(SpeedValue(speed_rpm=v, added=v not in requested, reasons=reasons.get(v, [])) for v in axis)
     return PlannedGrid(grid, planned, tuple(onsets), speed_axis)
 
@@ -205,43 +245,61 @@ def plan_grid(grid: Grid, regime: RegimePlacement | None, settings: Settings) ->
 # method's measurement. The typical measurement figures are the mean-ish plant time per point of the
 # 10 x 10 paper-bench sweeps (README, Performance: median 0.15-0.31 s, p95 1.3-1.7 s); a method
 # without a figure (e.g. grid, which always walks its whole grid) counts its options' worst case.
-ESTIMATE_SETTLE_S_PER_POINT = 0.5           # torque step / speed ramp, CAN round trips, settling by measurement
+ESTIMATE_SETTLE_S_PER_POINT = 0.5  # torque step / speed ramp, CAN round trips, settling by measurement
 ESTIMATE_MEASUREMENT_S = {"adaptive": 0.4, "probe": 0.3}
-ESTIMATE_UDC_CHANGE_S = 2.0                 # the supply set over SCPI and confirmed, torque off meanwhile
-ESTIMATE_RUN_START_S = 3.0                  # drive enabled, load spun up, setpoint accounting established
+ESTIMATE_UDC_CHANGE_S = 2.0  # the supply set over SCPI and confirmed, torque off meanwhile
+ESTIMATE_RUN_START_S = 3.0  # drive enabled, load spun up, setpoint accounting established
 
 
 class BenchTimeEstimate(BaseModel):
     """An ESTIMATE of the bench time the sweep takes, wall seconds at speedup 1 (real time)."""
-    estimated_s: float | None = Field(..., description="run start + per U_dc change + per point (settle_s_per_point + "
-                               "measurement_s_per_point)")
-    worst_case_s: float | None = Field(..., description="the same with every point at its method options' worst-case "
-                                       "plant time (the bound refused above safety.max_plant_s_per_point)")
+
+    estimated_s: float | None = Field(
+        ..., description="run start + per U_dc change + per point (settle_s_per_point + measurement_s_per_point)"
+    )
+    worst_case_s: float | None = Field(
+        ...,
+        description="the same with every point at its method options' worst-case "
+        "plant time (the bound refused above safety.max_plant_s_per_point)",
+    )
     settle_s_per_point: float = Field(..., description="assumed move and settling per point, s")
-    measurement_s_per_point: float | None = Field(..., description="assumed typical measurement per point, s (the method's "
-                                           "typical plant time, or its worst case where no typical figure is known)")
+    measurement_s_per_point: float | None = Field(
+        ...,
+        description="assumed typical measurement per point, s (the method's "
+        "typical plant time, or its worst case where no typical figure is known)",
+    )
     udc_changes: int = Field(..., description="changes of the DC-link voltage (the supply is set and confirmed)")
     basis: str = Field(..., description="how the estimate is made")
 
 
 class SweepPreview(BaseModel):
     """The plan of a sweep request as POST /sweeps would queue it, without queueing anything."""
+
     accepted: bool = Field(..., description="POST /sweeps with this body would queue it (a token aside)")
-    problems: list[dict[str, Any]] = Field(..., description="what POST /sweeps would refuse, as the items of its 422 "
-                                           "detail ({loc, msg, type}); unlike POST /sweeps, which stops at the first "
-                                           "kind (size, plant time, bench limits), every kind is listed")
+    problems: list[dict[str, Any]] = Field(
+        ...,
+        description="what POST /sweeps would refuse, as the items of its 422 "
+        "detail ({loc, msg, type}); unlike POST /sweeps, which stops at the first "
+        "kind (size, plant time, bench limits), every kind is listed",
+    )
     total: int = Field(..., description="number of operating points")
     requested_grid: Grid = Field(..., description="the grid as requested")
     grid: Grid = Field(..., description="the planned grid: what the sweep stores and measures (its map's axes)")
-    points: list[OperatingPoint] = Field(..., description="the operating points in the order they will be measured "
-                                         "(U_dc outermost, then speed, torque innermost, alternating direction); empty "
-                                         "when the grid cannot be planned")
-    speed_axis: list[SpeedValue] = Field(..., description="the planned speed axis with the values the plan added and why")
+    points: list[OperatingPoint] = Field(
+        ...,
+        description="the operating points in the order they will be measured "
+        "(U_dc outermost, then speed, torque innermost, alternating direction); empty "
+        "when the grid cannot be planned",
+    )
+    speed_axis: list[SpeedValue] = Field(
+        ..., description="the planned speed axis with the values the plan added and why"
+    )
     added_speeds_rpm: list[float] = Field(..., description="the speed values the plan added, rpm")
     onsets: list[OnsetPrediction] = Field(..., description="the predicted field-weakening onset per (torque, U_dc)")
     voltage_margin: float = Field(..., description="control.voltage_margin the onsets were predicted with")
-    estimate: BenchTimeEstimate | None = Field(..., description="bench time, an estimate (null when the grid cannot "
-                                               "be planned)")
+    estimate: BenchTimeEstimate | None = Field(
+        ..., description="bench time, an estimate (null when the grid cannot be planned)"
+    )
 
 
 def _problem(loc: list[str], msg: str, type_: str = "value_error") -> dict[str, Any]:
@@ -256,6 +314,7 @@ def _estimate(points: tuple[OperatingPoint, ...], method: str, options, settings
             return float(options.plant_time_bound_s(op.speed_rpm / 60.0 * pole_pairs * h))
         except (ArithmeticError, ValueError):
             return math.inf
+
     bounds = [bound_s(op) for op in points]
     udc_changes = sum(1 for a, b in zip(points, points[1:]) if a.udc_v != b.udc_v)
     fixed_s = ESTIMATE_RUN_START_S + udc_changes * ESTIMATE_UDC_CHANGE_S + len(points) * ESTIMATE_SETTLE_S_PER_POINT
@@ -274,13 +333,17 @@ def _estimate(points: tuple[OperatingPoint, ...], method: str, options, settings
         settle_s_per_point=ESTIMATE_SETTLE_S_PER_POINT,
         measurement_s_per_point=round(typical, 3) if math.isfinite(typical) else None,
         udc_changes=udc_changes,
-        basis=(f"estimate at speedup 1 (real time): {ESTIMATE_RUN_START_S:g} s run start, {ESTIMATE_UDC_CHANGE_S:g} s "
-               f"per U_dc change, per point {ESTIMATE_SETTLE_S_PER_POINT:g} s move and settling + {basis}; "
-               "the emulator at speedup 0 is faster"))
+        basis=(
+            f"estimate at speedup 1 (real time): {ESTIMATE_RUN_START_S:g} s run start, {ESTIMATE_UDC_CHANGE_S:g} s "
+            f"per U_dc change, per point {ESTIMATE_SETTLE_S_PER_POINT:g} s move and settling + {basis}; "
+            "the emulator at speedup 0 is faster"
+        ),
+    )
 
 
-def preview_sweep(grid: Grid, regime: RegimePlacement | None, method: str, options, confirm_large: bool,
-                  settings: Settings) -> SweepPreview:
+def preview_sweep(
+    grid: Grid, regime: RegimePlacement | None, method: str, options, confirm_large: bool, settings: Settings
+) -> SweepPreview:
     """The plan POST /sweeps would queue for this request (plan_grid, then SweepPlan.from_grid, the same
     steps Engine.submit_sweep takes) and every check it would make, answered as a list: the grid's size
     (confirm_large), the options' plant time, the dry run against the bench limits. Moves nothing."""
@@ -289,7 +352,7 @@ def preview_sweep(grid: Grid, regime: RegimePlacement | None, method: str, optio
         planned = plan_grid(grid, regime, settings)
     except RegimeError as exc:
         problems.append(_problem(["body", "regime"], str(exc)))
-        planned = plan_grid(grid, None, settings)        # the onsets are still worth showing
+        planned = plan_grid(grid, None, settings)  # the onsets are still worth showing
     try:
         check_sweep_size(planned.grid, confirm_large, settings.safety)
     except SweepTooLarge as exc:
@@ -300,7 +363,7 @@ def preview_sweep(grid: Grid, regime: RegimePlacement | None, method: str, optio
     if planned.grid.size() <= MAX_GRID_POINTS:
         try:
             points = SweepPlan.from_grid(planned.grid).points
-        except ValueError as exc:                       # a value no operating point can take (e.g. speed 0)
+        except ValueError as exc:  # a value no operating point can take (e.g. speed 0)
             problems.append(_problem(["body", "grid"], str(exc)))
     if points:
         try:
@@ -310,10 +373,19 @@ def preview_sweep(grid: Grid, regime: RegimePlacement | None, method: str, optio
         try:
             SweepPlan(points).dry_run(settings)
         except LimitError as exc:
-            problems += ([_problem(["body", "grid", field], msg, "value_error.bench_limits") for field, msg in exc.problems]
-                         or [_problem(["body", "grid"], str(exc), "value_error.bench_limits")])
+            problems += [
+                _problem(["body", "grid", field], msg, "value_error.bench_limits") for field, msg in exc.problems
+            ] or [_problem(["body", "grid"], str(exc), "value_error.bench_limits")]
     return SweepPreview(
-        accepted=not problems, problems=problems, total=planned.grid.size(), requested_grid=grid, grid=planned.grid,
-        points=list(points), speed_axis=list(planned.speed_axis), added_speeds_rpm=planned.added_speeds_rpm,
-        onsets=list(planned.onsets), voltage_margin=settings.control.voltage_margin,
-        estimate=_estimate(points, method, options, settings) if points else None)
+        accepted=not problems,
+        problems=problems,
+        total=planned.grid.size(),
+        requested_grid=grid,
+        grid=planned.grid,
+        points=list(points),
+        speed_axis=list(planned.speed_axis),
+        added_speeds_rpm=planned.added_speeds_rpm,
+        onsets=list(planned.onsets),
+        voltage_margin=settings.control.voltage_margin,
+        estimate=_estimate(points, method, options, settings) if points else None,
+    )

@@ -22,6 +22,7 @@ far off is fixed first, and the budget is kept for what the next validation show
 makes new midpoints, which may need more). The axes stay strictly increasing and may be non-uniform
 (every export and the LUT image carry each axis' own breakpoints).
 """
+
 from __future__ import annotations
 
 import math
@@ -34,27 +35,38 @@ from service.identification.registry import METHODS
 from service.runs.validation import ValidationOptions
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
-MAX_ROUNDS = 8          # a refinement that has not converged in this many rounds stops and says so
-MAX_SHORT_DB = 30.0     # a point's claim on the budget: how far it is below the target, at most this
+MAX_ROUNDS = 8  # a refinement that has not converged in this many rounds stops and says so
+MAX_SHORT_DB = 30.0  # a point's claim on the budget: how far it is below the target, at most this
 ROUND_SCORE_FRACTION = 0.25
 
 
 class RefineRequest(BaseModel):
     """POST /maps/{id}/refine. Every field bounded."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    target_db: float = Field(30.0, ge=0, le=80, description="LUT-mode suppression wanted at every validated point "
-                                                            "(grid points and midpoints), dB")
-    max_cells: int = Field(40, ge=1, le=2000, description="most cells the refinement identifies in all (re-measured "
-                                                         "and new cells): its bench-time budget")
+    target_db: float = Field(
+        30.0,
+        ge=0,
+        le=80,
+        description="LUT-mode suppression wanted at every validated point (grid points and midpoints), dB",
+    )
+    max_cells: int = Field(
+        40,
+        ge=1,
+        le=2000,
+        description="most cells the refinement identifies in all (re-measured and new cells): its bench-time budget",
+    )
     method: str = Field("probe", description="identification method of the new cells (GET /methods)")
     options: dict = Field(default_factory=dict, description="the method's options (as for a sweep)")
-    validation: ValidationOptions = Field(default_factory=ValidationOptions,
-                                          description="how finely each validation point is measured")
+    validation: ValidationOptions = Field(
+        default_factory=ValidationOptions, description="how finely each validation point is measured"
+    )
 
 
 @dataclass
 class RoundPlan:
     """What one round adds: values per axis, and the cells to identify (new ones and re-measured ones)."""
+
     inserted: dict[str, list[float]] = field(default_factory=dict)
     remeasure: list[tuple[float, float, float]] = field(default_factory=list)
     new_cells: list[tuple[float, float, float]] = field(default_factory=list)
@@ -68,8 +80,9 @@ class RoundPlan:
 
 def failing_points(cells: list[dict], target_db: float) -> list[dict]:
     """Validation cells that miss the target: measured below it, or not measured at all (failed)."""
-    return [c for c in cells if c["status"] != "measured" or c["suppression_db"] is None
-            or c["suppression_db"] < target_db]
+    return [
+        c for c in cells if c["status"] != "measured" or c["suppression_db"] is None or c["suppression_db"] < target_db
+    ]
 
 
 def _theta_at(map_cells: dict, key: tuple[float, float, float]) -> tuple[float, float] | None:
@@ -85,8 +98,13 @@ def _neighbours(values: list[float], x: float) -> tuple[float, float] | None:
     return (max(below), min(above)) if below and above else None
 
 
-def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_cells: list[dict], target_db: float,
-               budget_cells: int) -> RoundPlan:
+def plan_round(
+    axes: dict[str, list[float]],
+    map_cells: list[dict],
+    validation_cells: list[dict],
+    target_db: float,
+    budget_cells: int,
+) -> RoundPlan:
     """The next round's cells (module doc). map_cells: the current map's cells (MapCellPublic dumps);
     validation_cells: its validation's cells. Raises nothing: an empty plan means nothing is left to
     do, or nothing fits the budget (`reasons` says which)."""
@@ -98,7 +116,7 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
         return plan
     grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
     remeasure: dict[tuple, list[float]] = {}
-    insertions: dict[tuple[str, float], list[float]] = {}      # (axis, value) -> dB short of each point served
+    insertions: dict[tuple[str, float], list[float]] = {}  # (axis, value) -> dB short of each point served
     for c in failing:
         op = c["operating_point"]
         key = tuple(float(op[a]) for a in AXES)
@@ -135,7 +153,7 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
     best_score = len(candidates[0][0]) / candidates[0][2] if candidates else 0.0
     for shorts, what, cost in candidates:
         if len(shorts) / cost < ROUND_SCORE_FRACTION * best_score:
-            break           # the rest waits for the next validation
+            break  # the rest waits for the next validation
         if what[0] == "remeasure":
             if left >= 1:
                 plan.remeasure.append(what[1])
@@ -152,9 +170,12 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
         left -= cost
     # the new grid's cells that do not exist yet (a value inserted on two axes adds their crossing once)
     existing = set(by_key)
-    plan.new_cells = [(t, n, u) for u, n, t in product(chosen_axes["udc_v"], chosen_axes["speed_rpm"],
-                                                       chosen_axes["torque_nm"]) if (t, n, u) not in existing]
-    if len(plan.new_cells) + len(plan.remeasure) > budget_cells:       # crossings of two insertions
+    plan.new_cells = [
+        (t, n, u)
+        for u, n, t in product(chosen_axes["udc_v"], chosen_axes["speed_rpm"], chosen_axes["torque_nm"])
+        if (t, n, u) not in existing
+    ]
+    if len(plan.new_cells) + len(plan.remeasure) > budget_cells:  # crossings of two insertions
         plan.reasons.append("the crossings of the inserted values exceed the budget")
         plan.inserted, plan.new_cells = {}, []
     for axis in plan.inserted:
@@ -165,6 +186,7 @@ def plan_round(axes: dict[str, list[float]], map_cells: list[dict], validation_c
 def _theta_step(by_key: dict, grid_values: dict, lo: list[float], hi: list[float], axis_index: int) -> float:
     """|delta theta| between the two cells on either side along one axis, their other coordinates taken
     at the nearest grid values (a midpoint's other coordinates may be midpoints too); 0 if unknown."""
+
     def snap(key: list[float]) -> tuple[float, float, float]:
         out = []
         for i, a in enumerate(AXES):
@@ -173,6 +195,7 @@ def _theta_step(by_key: dict, grid_values: dict, lo: list[float], hi: list[float
             else:
                 out.append(min(grid_values[a], key=lambda v: abs(v - key[i])))
         return tuple(out)
+
     a, b = _theta_at(by_key, snap(lo)), _theta_at(by_key, snap(hi))
     if a is None or b is None:
         return 0.0

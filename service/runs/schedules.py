@@ -12,10 +12,10 @@ finds the firings it missed when it starts: the latest runs once if it fell due 
 still waits for the bench gets no second one (that firing is `skipped`): no pile-up overnight.
 Time comes from an injectable clock, so tests step it instead of waiting for real minutes.
 """
+
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import threading
 from datetime import datetime, timedelta, timezone
@@ -93,7 +93,7 @@ def next_runs(cron: str, zone: ZoneInfo, after: datetime, count: int) -> list[da
     try:
         while len(runs) < count:
             runs.append(next(it))
-    except (StopIteration, OverflowError, ValueError):      # no firing left before year 9999
+    except (StopIteration, OverflowError, ValueError):  # no firing left before year 9999
         pass
     return runs
 
@@ -127,15 +127,23 @@ def _walk(cron: str, zone: ZoneInfo, after: datetime, until: datetime, limit: in
 def check_sweep(settings: Settings, sweep) -> None:
     """The checks POST /sweeps makes before queueing (size, bench limits of every setpoint, plant time),
     made when the schedule is created, so a schedule cannot fail at 3 am on a request refused at 5 pm."""
-    grid = plan_grid(sweep.grid, getattr(sweep, "regime", None), settings).grid   # the grid the sweep will measure
+    grid = plan_grid(sweep.grid, getattr(sweep, "regime", None), settings).grid  # the grid the sweep will measure
     check_sweep_size(grid, sweep.confirm_large, settings.safety)
     SweepPlan.from_grid(grid).dry_run(settings)
     check_plant_time(grid.speed_rpm, sweep.method, sweep.options, settings)
 
 
 # --- the service side of the routes and the CLI ----------------------------------------------------
-def create_schedule(storage: Storage, settings: Settings, now: datetime, name: str, cron: str, timezone_name: str,
-                    sweep, enabled: bool = True) -> int:
+def create_schedule(
+    storage: Storage,
+    settings: Settings,
+    now: datetime,
+    name: str,
+    cron: str,
+    timezone_name: str,
+    sweep,
+    enabled: bool = True,
+) -> int:
     cron = check_cron(cron)
     check_timezone(timezone_name)
     check_sweep(settings, sweep)
@@ -164,12 +172,14 @@ def update_schedule(storage: Storage, settings: Settings, now: datetime, schedul
         fields["timezone"] = changes["timezone"]
     if "sweep" in changes:
         check_sweep(settings, changes["sweep"])
-        fields["sweep_json"] = json.dumps(changes["sweep"].model_dump(mode="json"))
+        fields["sweep"] = changes["sweep"].model_dump(mode="json")
     if "enabled" in changes:
         fields["enabled"] = int(bool(changes["enabled"]))
-    restarts = (fields.get("cron", current["cron"]) != current["cron"]
-                or fields.get("timezone", current["timezone"]) != current["timezone"]
-                or (fields.get("enabled") == 1 and not current["enabled"]))
+    restarts = (
+        fields.get("cron", current["cron"]) != current["cron"]
+        or fields.get("timezone", current["timezone"]) != current["timezone"]
+        or (fields.get("enabled") == 1 and not current["enabled"])
+    )
     if restarts:
         fields["last_due_at"] = iso(now)
     fields["updated_at"] = iso(now)
@@ -195,7 +205,7 @@ class Scheduler:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._tick_lock = threading.Lock()
-        self.ticks = 0              # passes completed: tests wait on it instead of on wall time
+        self.ticks = 0  # passes completed: tests wait on it instead of on wall time
 
     def start(self) -> None:
         self.tick()
@@ -211,7 +221,7 @@ class Scheduler:
         while not self._stop.wait(self.settings.schedules.tick_s):
             try:
                 self.tick()
-            except Exception:           # one bad pass (database locked, ...) must not end the scheduler
+            except Exception:  # one bad pass (database locked, ...) must not end the scheduler
                 log.exception("scheduler pass failed")
 
     def tick(self) -> None:
@@ -233,13 +243,23 @@ class Scheduler:
             n = len(skipped_over) + older
             first = iso(skipped_over[0]) if skipped_over else "earlier"
             last = iso(skipped_over[-1]) if skipped_over else "earlier"
-            self._record(sid, skipped_over[-1] if skipped_over else latest, now, "missed",
-                         note=f"{n} firing(s) from {first} to {last} fell due while the service was not running")
+            self._record(
+                sid,
+                skipped_over[-1] if skipped_over else latest,
+                now,
+                "missed",
+                note=f"{n} firing(s) from {first} to {last} fell due while the service was not running",
+            )
         age_s = (now - latest).total_seconds()
         if age_s > self.settings.schedules.missed_grace_s:
-            self._record(sid, latest, now, "missed",
-                         note=f"fell due {age_s:.0f} s ago, more than schedules.missed_grace_s "
-                              f"({self.settings.schedules.missed_grace_s:g} s), while the service was not running")
+            self._record(
+                sid,
+                latest,
+                now,
+                "missed",
+                note=f"fell due {age_s:.0f} s ago, more than schedules.missed_grace_s "
+                f"({self.settings.schedules.missed_grace_s:g} s), while the service was not running",
+            )
         else:
             self._fire(schedule, latest, now)
         self.storage.update_schedule(sid, last_due_at=iso(latest.astimezone(UTC)))
@@ -248,28 +268,66 @@ class Scheduler:
         sid = schedule["id"]
         pending = self.storage.pending_schedule_sweep(sid)
         if pending is not None:
-            self._record(sid, due, now, "skipped", sweep_id=pending,
-                         note=f"sweep {pending} of this schedule is still waiting for the bench")
+            self._record(
+                sid,
+                due,
+                now,
+                "skipped",
+                sweep_id=pending,
+                note=f"sweep {pending} of this schedule is still waiting for the bench",
+            )
             return
         busy = self.storage.bench_has_work()
-        request = json.loads(schedule["sweep_json"])
+        request = schedule["sweep"]
         try:
             regime = RegimePlacement.model_validate(request["regime"]) if request.get("regime") else None
-            sweep_id = self.engine.submit_sweep(Grid.model_validate(request["grid"]), request["method"],
-                                                parse_options(request["method"], request.get("options") or {}),
-                                                schedule_id=sid, regime=regime)
-        except Exception as exc:        # e.g. bench limits tightened since the schedule was made
+            sweep_id = self.engine.submit_sweep(
+                Grid.model_validate(request["grid"]),
+                request["method"],
+                parse_options(request["method"], request.get("options") or {}),
+                schedule_id=sid,
+                regime=regime,
+            )
+        except Exception as exc:  # e.g. bench limits tightened since the schedule was made
             log.warning("schedule %s: sweep refused: %s", sid, exc)
             self._record(sid, due, now, "failed", note=f"sweep refused: {exc}")
             return
-        self._record(sid, due, now, "queued" if busy else "started", sweep_id=sweep_id,
-                     note="the bench was busy: queued behind the run in progress" if busy else None)
+        self._record(
+            sid,
+            due,
+            now,
+            "queued" if busy else "started",
+            sweep_id=sweep_id,
+            note="the bench was busy: queued behind the run in progress" if busy else None,
+        )
 
-    def _record(self, schedule_id: int, due: datetime, now: datetime, outcome: str, sweep_id: int | None = None,
-                note: str | None = None) -> None:
-        run_id = self.storage.insert_schedule_run(schedule_id, iso(due.astimezone(UTC)), iso(now.astimezone(UTC)),
-                                                  outcome, sweep_id, note)
-        log.info("schedule %s: firing due %s %s%s", schedule_id, iso(due), outcome,
-                 f" (sweep {sweep_id})" if sweep_id else "")
-        self.broker.publish("schedule.run", {"schedule_id": schedule_id, "run_id": run_id, "due_at": iso(due),
-                                             "outcome": outcome, "sweep_id": sweep_id, "note": note})
+    def _record(
+        self,
+        schedule_id: int,
+        due: datetime,
+        now: datetime,
+        outcome: str,
+        sweep_id: int | None = None,
+        note: str | None = None,
+    ) -> None:
+        run_id = self.storage.insert_schedule_run(
+            schedule_id, iso(due.astimezone(UTC)), iso(now.astimezone(UTC)), outcome, sweep_id, note
+        )
+        log.info(
+            "schedule %s: firing due %s %s%s",
+            schedule_id,
+            iso(due),
+            outcome,
+            f" (sweep {sweep_id})" if sweep_id else "",
+        )
+        self.broker.publish(
+            "schedule.run",
+            {
+                "schedule_id": schedule_id,
+                "run_id": run_id,
+                "due_at": iso(due),
+                "outcome": outcome,
+                "sweep_id": sweep_id,
+                "note": note,
+            },
+        )

@@ -20,9 +20,9 @@ A point that faulted or could not be measured carries its reason and no number. 
 or a cancel stops the run (the points not reached say so); the bench is made safe after every
 point and after the run (torque 0, injection mode off, drive disabled).
 """
+
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import threading
@@ -33,32 +33,43 @@ from typing import Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from service import __version__
-from service.runs import lut_download
+from service.bench.interlocks import InterlockTripped
+from service.bench.measurement import RunCancelled
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.identification.session import MeasurementError
-from service.bench.interlocks import InterlockTripped
+from service.maps.view import map_view
 from service.model.limits import check_limits
-from service.bench.measurement import RunCancelled
 from service.model.operating_point import OperatingPoint
-from service.api.public import map_public
+from service.runs import lut_download
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
-AT_FLOOR_SIGMAS = 3.0       # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
+AT_FLOOR_SIGMAS = 3.0  # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
 
 
 class ValidationOptions(BaseModel):
     """How finely each point is measured. Every field bounded."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    floor_db: float = Field(55.0, ge=20, le=80, description="the LUT window is extended until its noise floor is this "
-                                                            "far below the uncompensated amplitude, dB")
+    floor_db: float = Field(
+        55.0,
+        ge=20,
+        le=80,
+        description="the LUT window is extended until its noise floor is this "
+        "far below the uncompensated amplitude, dB",
+    )
     max_window_s: float = Field(0.4, gt=0, le=5.0, description="longest window at one point, plant s")
-    settle_s: float = Field(0.02, ge=0, le=2.0, description="plant time after the injection mode switch before "
-                                                           "measuring, s")
-    fill: bool = Field(True, description="the map's fills go into the drive too (the validation measures what the "
-                                         "drive does at filled cells)")
-    interpolation: Literal["cartesian", "polar"] | None = Field(None, description="what the drive interpolates "
-                                                                "between cells (default: the service's)")
+    settle_s: float = Field(
+        0.02, ge=0, le=2.0, description="plant time after the injection mode switch before measuring, s"
+    )
+    fill: bool = Field(
+        True,
+        description="the map's fills go into the drive too (the validation measures what the "
+        "drive does at filled cells)",
+    )
+    interpolation: Literal["cartesian", "polar"] | None = Field(
+        None, description="what the drive interpolates between cells (default: the service's)"
+    )
 
 
 class ValidationRefused(ValueError):
@@ -81,8 +92,9 @@ def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint
     """Every point of the finer grid, in the order measured (U_dc, then speed, then torque, so the
     load machine moves least), with its kind: grid | midpoint."""
     points = []
-    for (u, ug), (n, ng), (t, tg) in product(finer_axis(axes["udc_v"]), finer_axis(axes["speed_rpm"]),
-                                             finer_axis(axes["torque_nm"])):
+    for (u, ug), (n, ng), (t, tg) in product(
+        finer_axis(axes["udc_v"]), finer_axis(axes["speed_rpm"]), finer_axis(axes["torque_nm"])
+    ):
         points.append((OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u), "grid" if ug and ng and tg else "midpoint"))
     return points
 
@@ -98,9 +110,10 @@ def check_validatable(storage: Storage, map_id: int, force: bool, fill: bool = T
         raise ValidationRefused(str(exc)) from None
 
 
-def download_into_drive(storage: Storage, bench, map_id: int, force: bool, fill: bool = True,
-                        interpolation: str | None = None) -> dict:
-    """The map's LUT into the drive, CRC-32 and map id read back (service.lut_download.download_map,
+def download_into_drive(
+    storage: Storage, bench, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None
+) -> dict:
+    """The map's LUT into the drive, CRC-32 and map id read back (service.runs.lut_download.download_map,
     the one way a map goes into the drive): the receipt."""
     return lut_download.download_map(storage, bench, map_id, force, fill=fill, interpolation=interpolation).model_dump()
 
@@ -109,22 +122,19 @@ def download_into_drive(storage: Storage, bench, map_id: int, force: bool, fill:
 class ValidationRun:
     """What a validation job found so far (stored from the download on, after every point, and as it
     ends, whatever ends it: store_validation)."""
+
     map_id: int
     harmonic_order: int
     options: dict
     cells: list[dict] = field(default_factory=list)
     download: dict | None = None
-    state: str = "done"            # done | failed | cancelled (running while stored before its end)
+    state: str = "done"  # done | failed | cancelled (running while stored before its end)
     error: str | None = None
     started_at: str = field(default_factory=now_iso)
-    row_id: int | None = None      # its map_validations row, once stored
+    row_id: int | None = None  # its map_validations row, once stored
 
     def summary(self) -> dict:
         return summarize(self.cells)
-
-
-def _phasor(p) -> dict:
-    return {"a_c": p.a_c, "a_s": p.a_s, "amplitude": p.amplitude}
 
 
 def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
@@ -133,20 +143,21 @@ def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
     cannot be validated as one LUT."""
     used = set()
     for row in storage.results_by_id([c.result_id for c in m.cells if c.status == "ok" and c.result_id]).values():
-        details = json.loads(row.get("detail_json") or "{}").get("details") or {}
+        details = (row.get("detail") or {}).get("details") or {}
         used.add(bool(details.get("decoupling", settings.identification.decoupling)))
     if len(used) > 1:
-        raise ValueError(f"map {m.id} mixes cells measured with and without drive decoupling: "
-                         "validate maps measured one way")
+        raise ValueError(
+            f"map {m.id} mixes cells measured with and without drive decoupling: validate maps measured one way"
+        )
     return used.pop() if used else settings.identification.decoupling
 
 
 def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
-    """One point of a validation run (service.bench_run.BenchRun): uncompensated (injection off),
+    """One point of a validation run (service.bench.run.BenchRun): uncompensated (injection off),
     then the drive's own LUT feedforward (module doc)."""
     with run.operating_point(op) as session:
         session.settle_after_theta_s = options.settle_s
-        max_periods = periods_for(session, options.max_window_s)      # >= MIN_PERIODS
+        max_periods = periods_for(session, options.max_window_s)  # >= MIN_PERIODS
         session.apply_injection_mode("off")
         reference = measure_reference(session, MIN_PERIODS, max_periods)
         a0 = reference.phasor.amplitude
@@ -160,24 +171,38 @@ def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
     a = residual.phasor.amplitude
     if a0 <= 0 or a <= 0:
         raise ValueError(f"a phasor of zero amplitude (uncompensated {a0:g}, LUT {a:g} fs): nothing to compare")
-    return {"suppression_db": 20.0 * math.log10(a0 / a), "uncompensated": _phasor(reference.phasor),
-            "residual": _phasor(residual.phasor), "noise_floor_db": noise_floor_db(residual, a0),
-            "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
-            "plant_time_s": plant_time_s, "speed_rpm_measured": speed_rpm, "harmonic_frequency_hz": f_h,
-            "bench_time_s": run.timing.public()}
+    return {
+        "suppression_db": 20.0 * math.log10(a0 / a),
+        "uncompensated": reference.phasor.as_dict(),
+        "residual": residual.phasor.as_dict(),
+        "noise_floor_db": noise_floor_db(residual, a0),
+        "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
+        "plant_time_s": plant_time_s,
+        "speed_rpm_measured": speed_rpm,
+        "harmonic_frequency_hz": f_h,
+        "bench_time_s": run.timing.public(),
+    }
 
 
-def run_validation(storage: Storage, bench, settings: Settings, map_id: int, force: bool, options: ValidationOptions,
-                   cancel: threading.Event, on_cell: Callable[[dict, int], None] | None = None,
-                   download: Callable[..., dict] = download_into_drive,
-                   on_progress: Callable[[ValidationRun], None] | None = None) -> ValidationRun:
+def run_validation(
+    storage: Storage,
+    bench,
+    settings: Settings,
+    map_id: int,
+    force: bool,
+    options: ValidationOptions,
+    cancel: threading.Event,
+    on_cell: Callable[[dict, int], None] | None = None,
+    download: Callable[..., dict] = download_into_drive,
+    on_progress: Callable[[ValidationRun], None] | None = None,
+) -> ValidationRun:
     """The whole job: download, then every point in one continuous bench run (service/bench/run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
     is made safe and a new one goes on from the next point). Never raises for a point: a failed point
     is a cell with its reason; an interlock trip or a cancel ends the run with state failed /
     cancelled and the remaining cells marked not measured. Errors before the first point (download)
     do raise. `on_progress(run)` is told after the download and after every point (the job stores it)."""
-    m = map_public(storage, map_id)
+    m = map_view(storage, map_id)
     if m is None:
         raise KeyError(f"map {map_id} does not exist")
     h = m.harmonic_order
@@ -186,7 +211,7 @@ def run_validation(storage: Storage, bench, settings: Settings, map_id: int, for
     run.options["decoupling"] = decoupling
     run.download = download(storage, bench, map_id, force, fill=options.fill, interpolation=options.interpolation)
     if on_progress is not None:
-        on_progress(run)        # stored now: the drive holds this LUT from here on
+        on_progress(run)  # stored now: the drive holds this LUT from here on
     points = validation_points(m.axes)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
     map_cells = {(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
@@ -256,32 +281,56 @@ def summarize(cells: list[dict]) -> dict:
     for kind in ("grid", "midpoint"):
         mine = [c for c in cells if c["kind"] == kind]
         values = [c["suppression_db"] for c in mine if c["status"] == "measured"]
-        out[kind] = {"cells": len(mine), "measured": len(values),
-                     "failed": sum(1 for c in mine if c["status"] == "failed"),
-                     "not_measured": sum(1 for c in mine if c["status"] == "not_measured"),
-                     "at_noise_floor": sum(1 for c in mine if c.get("at_noise_floor")),
-                     "median_db": statistics.median(values) if values else None,
-                     "min_db": min(values) if values else None}
+        out[kind] = {
+            "cells": len(mine),
+            "measured": len(values),
+            "failed": sum(1 for c in mine if c["status"] == "failed"),
+            "not_measured": sum(1 for c in mine if c["status"] == "not_measured"),
+            "at_noise_floor": sum(1 for c in mine if c.get("at_noise_floor")),
+            "median_db": statistics.median(values) if values else None,
+            "min_db": min(values) if values else None,
+        }
     measured = [c for c in cells if c["status"] == "measured"]
     worst = min(measured, key=lambda c: c["suppression_db"]) if measured else None
-    out["worst"] = None if worst is None else {"operating_point": worst["operating_point"], "kind": worst["kind"],
-                                               "suppression_db": worst["suppression_db"]}
+    out["worst"] = (
+        None
+        if worst is None
+        else {
+            "operating_point": worst["operating_point"],
+            "kind": worst["kind"],
+            "suppression_db": worst["suppression_db"],
+        }
+    )
     out["plant_time_s"] = sum(c.get("plant_time_s") or 0.0 for c in measured)
     return out
 
 
-def store_validation(storage: Storage, job_id: int, run: ValidationRun, bench_identity: str,
-                     finished: bool = True) -> int:
+def store_validation(
+    storage: Storage, job_id: int, run: ValidationRun, bench_identity: str, finished: bool = True
+) -> int:
     """The run into its map_validations row (inserted the first time, updated after): `finished` False
     while it runs (state running), so a crash keeps every point measured so far. Returns the row id."""
-    fields = {"state": run.state if finished else "running", "error": run.error,
-              "summary_json": json.dumps(run.summary()), "cells_json": json.dumps(run.cells),
-              "download_json": json.dumps(run.download), "finished_at": now_iso() if finished else None}
+    fields = {
+        "state": run.state if finished else "running",
+        "error": run.error,
+        "summary": run.summary(),
+        "cells": run.cells,
+        "download": run.download,
+        "finished_at": now_iso() if finished else None,
+    }
     if run.row_id is None:
-        run.row_id = storage.insert_validation({
-            "map_id": run.map_id, "job_id": job_id, "harmonic_order": run.harmonic_order,
-            "options_json": json.dumps(run.options), "bench_identity": bench_identity,
-            "software_version": __version__, "started_at": run.started_at, **fields})
+        run.row_id = storage.insert_validation(
+            {
+                "map_id": run.map_id,
+                "job_id": job_id,
+                "harmonic_order": run.harmonic_order,
+                "options": run.options,
+                "bench_identity": bench_identity,
+                "software_version": __version__,
+                "started_at": run.started_at,
+                **fields,
+            }
+        )
     else:
         storage.update_validation(run.row_id, **fields)
     return run.row_id

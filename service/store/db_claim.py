@@ -6,6 +6,7 @@ start (recovery), and both would run the same sweeps' jobs. The claim is an excl
 ends however it ends (kill -9 included), so a stale claim never blocks a restart. The file says who
 holds it (pid, port, start time), so the refusal names the holder.
 """
+
 from __future__ import annotations
 
 import fcntl
@@ -39,17 +40,25 @@ class DatabaseClaim:
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            raise DatabaseInUse(f"database {self.db_path} is in use by another ripplecal serve ({holder}): stop it "
-                                "first, or give this one another --db") from None
+            raise DatabaseInUse(
+                f"database {self.db_path} is in use by another ripplecal serve ({holder}): stop it "
+                "first, or give this one another --db"
+            ) from None
         self._fd = fd
-        with open(self.path, "w") as f:          # who holds it, written while holding it
-            json.dump({"pid": os.getpid(), "port": self.port,
-                       "since": datetime.now(timezone.utc).isoformat(timespec="seconds")}, f)
+        with open(self.path, "w") as f:  # who holds it, written while holding it
+            json.dump(
+                {
+                    "pid": os.getpid(),
+                    "port": self.port,
+                    "since": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                },
+                f,
+            )
 
     def release(self) -> None:
         if self._fd is not None:
             fd, self._fd = self._fd, None
-            os.close(fd)         # the lock goes with the descriptor
+            os.close(fd)  # the lock goes with the descriptor
 
     def __enter__(self) -> "DatabaseClaim":
         self.acquire()

@@ -25,13 +25,14 @@ read (one window) is held. asammdf (and its own temporary file) is used only whi
 a chunk at a time, and closed however the write ends.
 
 `RecordingStore` writes the file once the result row exists (its id names the file and goes into the
-header), records in the row whether the recording exists (`results.recording_json`), and applies the
+header), records in the row whether the recording exists (`results.recording_json`, a result record's `recording`), and applies the
 retention (`[recordings] keep_gb`: the newest recordings up to that many GB are kept, older ones are
 deleted after each write; the one just written is always kept). No storage error (directory not
 writable, disk full, asammdf failing) ever reaches the measurement or loses the result: the row is
 stored and says why its recording failed, in words that name no server path (the API shows them; the
 service's log has the paths).
 """
+
 from __future__ import annotations
 
 import json
@@ -49,8 +50,14 @@ from typing import Any, BinaryIO
 import numpy as np
 from asammdf import MDF, Signal
 
-from drivers.daq_protocol import (ACCEL_FULL_SCALE_COUNTS, ANGLE_COUNTS_PER_TURN, FLAG_OVER_RANGE, FLAG_SENSOR_FAULT,
-                                  FLAG_SYNC_INPUT, DecodedSamples)
+from drivers.daq_protocol import (
+    ACCEL_FULL_SCALE_COUNTS,
+    ANGLE_COUNTS_PER_TURN,
+    FLAG_OVER_RANGE,
+    FLAG_SENSOR_FAULT,
+    FLAG_SYNC_INPUT,
+    DecodedSamples,
+)
 from service import __version__
 from service.model.secondary_path import gamma_delta
 from service.store.storage import Storage, now_iso
@@ -58,7 +65,7 @@ from service.store.storage import Storage, now_iso
 log = logging.getLogger(__name__)
 
 RECORDING_FORMATS = {"mf4": "ASAM MDF 4.10 (asammdf, CANape, the asammdf GUI)"}
-CHUNK_SAMPLES = 65536          # samples handed to asammdf at once (4 s at 16 kHz, about 1 MB)
+CHUNK_SAMPLES = 65536  # samples handed to asammdf at once (4 s at 16 kHz, about 1 MB)
 BYTES_PER_GB = 1e9
 _FILE_NAME = re.compile(r"^result-(\d+)\.mf4$")
 
@@ -103,15 +110,16 @@ class RunRecorder:
     """What one identification read from the DAQ, and its theta setpoints. Never raises into the
     measurement: a failure is kept in `error` and recording stops there."""
 
-    def __init__(self, directory: Path, sample_rate_hz: float, accel_full_scale_rad_s2: float,
-                 chunk_samples: int = CHUNK_SAMPLES):
+    def __init__(
+        self, directory: Path, sample_rate_hz: float, accel_full_scale_rad_s2: float, chunk_samples: int = CHUNK_SAMPLES
+    ):
         self.directory = directory
         self.sample_rate_hz = sample_rate_hz
         self.accel_full_scale_rad_s2 = accel_full_scale_rad_s2
         self.chunk_samples = chunk_samples
         self.error: str | None = None
         self.samples_recorded = 0
-        self.stale_samples = 0          # read before a setpoint took effect: counted, not kept
+        self.stale_samples = 0  # read before a setpoint took effect: counted, not kept
         self.started_at: datetime | None = None
         self.setpoints: list[_Setpoint] = []
         self._parts: list[np.ndarray] = []
@@ -124,8 +132,11 @@ class RunRecorder:
             # no name in the directory (O_TMPFILE, or unlinked at once): gone with the recorder, whatever happens
             self._spool = tempfile.TemporaryFile(dir=directory)
         except Exception as exc:  # noqa: BLE001 - any storage problem is the recording's, not the run's
-            self._fail("the recordings directory is unusable (check recordings.directory)", exc,
-                       f"recordings directory {directory} unusable")
+            self._fail(
+                "the recordings directory is unusable (check recordings.directory)",
+                exc,
+                f"recordings directory {directory} unusable",
+            )
 
     # --- fed by the measurement session -----------------------------------------------------------
     def samples(self, s: DecodedSamples, counted: bool) -> None:
@@ -142,7 +153,9 @@ class RunRecorder:
         # back to the wire integers (exact: the decoder scaled them by these constants)
         part = np.empty(n, _WIRE)
         part["index"] = s.index
-        part["angle"] = np.rint(s.angle_rad * (ANGLE_COUNTS_PER_TURN / (2.0 * math.pi))).astype(np.int64).astype(np.uint16)
+        part["angle"] = (
+            np.rint(s.angle_rad * (ANGLE_COUNTS_PER_TURN / (2.0 * math.pi))).astype(np.int64).astype(np.uint16)
+        )
         part["alpha"] = np.rint(s.accel_fs * ACCEL_FULL_SCALE_COUNTS).astype(np.int16)
         part["flags"] = s.flags
         part["gap"] = s.gap_before
@@ -179,19 +192,45 @@ class RunRecorder:
 
     def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
         return [
-            Signal(index, t, name="sample_index", unit="sample",
-                   comment="DAQ sample counter (unwrapped); the measurement clock"),
-            Signal(angle, t, name="angle", unit="rad", conversion={"a": 2.0 * math.pi / ANGLE_COUNTS_PER_TURN, "b": 0.0},
-                   comment="electrical rotor angle phi_e (encoder), 65536 counts per turn"),
-            Signal(alpha, t, name="alpha", unit="rad/s^2",
-                   conversion={"a": self.accel_full_scale_rad_s2 / ACCEL_FULL_SCALE_COUNTS, "b": 0.0},
-                   comment=f"angular acceleration, +-{ACCEL_FULL_SCALE_COUNTS} counts = +-sensor full scale "
-                           f"({self.accel_full_scale_rad_s2:g} rad/s^2, daq.accel_full_scale_rad_s2)"),
-            Signal(flags, t, name="flags", unit="",
-                   comment=f"DAQ status bits (values): {FLAG_OVER_RANGE} over range, {FLAG_SENSOR_FAULT} sensor fault, "
-                           f"{FLAG_SYNC_INPUT} drive sync line (toggles once per applied setpoint)"),
-            Signal(gap, t, name="gap_before", unit="",
-                   comment="1: samples were lost or a bad frame skipped just before this sample"),
+            Signal(
+                index,
+                t,
+                name="sample_index",
+                unit="sample",
+                comment="DAQ sample counter (unwrapped); the measurement clock",
+            ),
+            Signal(
+                angle,
+                t,
+                name="angle",
+                unit="rad",
+                conversion={"a": 2.0 * math.pi / ANGLE_COUNTS_PER_TURN, "b": 0.0},
+                comment="electrical rotor angle phi_e (encoder), 65536 counts per turn",
+            ),
+            Signal(
+                alpha,
+                t,
+                name="alpha",
+                unit="rad/s^2",
+                conversion={"a": self.accel_full_scale_rad_s2 / ACCEL_FULL_SCALE_COUNTS, "b": 0.0},
+                comment=f"angular acceleration, +-{ACCEL_FULL_SCALE_COUNTS} counts = +-sensor full scale "
+                f"({self.accel_full_scale_rad_s2:g} rad/s^2, daq.accel_full_scale_rad_s2)",
+            ),
+            Signal(
+                flags,
+                t,
+                name="flags",
+                unit="",
+                comment=f"DAQ status bits (values): {FLAG_OVER_RANGE} over range, {FLAG_SENSOR_FAULT} sensor fault, "
+                f"{FLAG_SYNC_INPUT} drive sync line (toggles once per applied setpoint)",
+            ),
+            Signal(
+                gap,
+                t,
+                name="gap_before",
+                unit="",
+                comment="1: samples were lost or a bad frame skipped just before this sample",
+            ),
         ]
 
     def _setpoint_signals(self) -> list:
@@ -201,8 +240,13 @@ class RunRecorder:
         ts = np.array([p.theta_sin_rad for p in self.setpoints])
         gd = np.array([gamma_delta(c, s) for c, s in zip(tc, ts)]).reshape(-1, 2)
         return [
-            Signal(effect, t, name="effect_sample_index", unit="sample",
-                   comment="DAQ sample at which the setpoint took effect (its sync-line toggle)"),
+            Signal(
+                effect,
+                t,
+                name="effect_sample_index",
+                unit="sample",
+                comment="DAQ sample at which the setpoint took effect (its sync-line toggle)",
+            ),
             Signal(tc, t, name="theta_cos", unit="rad", comment="theta_cos = gamma cos(delta) (eq. 21-22)"),
             Signal(ts, t, name="theta_sin", unit="rad", comment="theta_sin = -gamma sin(delta) (eq. 21-22)"),
             Signal(np.degrees(gd[:, 0]), t, name="gamma", unit="deg", comment="|theta| (eq. 21)"),
@@ -214,7 +258,7 @@ class RunRecorder:
         returns its size in bytes. Raises on a storage error (its message names no path). However it
         ends, nothing is left in the directory but the file, and the recorder is closed."""
         mdf = None
-        partial = path.with_name(path.stem + ".partial.mf4")       # asammdf insists on the .mf4 suffix
+        partial = path.with_name(path.stem + ".partial.mf4")  # asammdf insists on the .mf4 suffix
         try:
             self._spill()
             if self.error is not None:
@@ -223,17 +267,23 @@ class RunRecorder:
             mdf = MDF(version="4.10", temporary_folder=str(self.directory))
             for i, (t, index, angle, alpha, flags, gap) in enumerate(self._spooled_chunks()):
                 if i == 0:
-                    mdf.append(self._daq_signals(t, index, angle, alpha, flags, gap), acq_name=DAQ_GROUP,
-                               comment="DAQ samples the identification counted as plant time, in stream order; "
-                                       "time = sample_index / sample rate")
+                    mdf.append(
+                        self._daq_signals(t, index, angle, alpha, flags, gap),
+                        acq_name=DAQ_GROUP,
+                        comment="DAQ samples the identification counted as plant time, in stream order; "
+                        "time = sample_index / sample rate",
+                    )
                 else:
                     mdf.extend(0, [(t, None), *((x, None) for x in (index, angle, alpha, flags, gap))])
             if self.setpoints:
-                mdf.append(self._setpoint_signals(), acq_name=SETPOINT_GROUP,
-                           comment="theta setpoints; time = effect_sample_index / sample rate")
+                mdf.append(
+                    self._setpoint_signals(),
+                    acq_name=SETPOINT_GROUP,
+                    comment="theta setpoints; time = effect_sample_index / sample rate",
+                )
             mdf.header.start_time = self.started_at or datetime.now(timezone.utc)
             mdf.header.comment = _header_xml(description, header)
-            mdf.save(partial, overwrite=True, compression=2)     # 2: transposed deflate (MDF 4.10 DZ blocks)
+            mdf.save(partial, overwrite=True, compression=2)  # 2: transposed deflate (MDF 4.10 DZ blocks)
             os.replace(partial, path)
         except RecordingWriteError:
             raise
@@ -301,8 +351,15 @@ def header_properties(comment: str) -> dict[str, str]:
 class RecordingStore:
     """The recordings directory, its retention, and each result's record of its recording."""
 
-    def __init__(self, storage: Storage, directory: Path, keep_gb: float, sample_rate_hz: float,
-                 accel_full_scale_rad_s2: float, enabled: bool = True):
+    def __init__(
+        self,
+        storage: Storage,
+        directory: Path,
+        keep_gb: float,
+        sample_rate_hz: float,
+        accel_full_scale_rad_s2: float,
+        enabled: bool = True,
+    ):
         self.storage = storage
         self.directory = directory
         self.keep_gb = keep_gb
@@ -331,15 +388,19 @@ class RecordingStore:
                 record["error"] = "no DAQ samples: the run ended before the identification read any"
             else:
                 path = self.path(result_id)
-                record["bytes"] = recorder.write(path, self._header(recorder, result_id, row),
-                                                 f"ripplecal raw recording of result {result_id}: {row['method']} at "
-                                                 f"{row['torque_nm']:g} Nm, {row['speed_rpm']:g} rpm, {row['udc_v']:g} V")
+                record["bytes"] = recorder.write(
+                    path,
+                    self._header(recorder, result_id, row),
+                    f"ripplecal raw recording of result {result_id}: {row['method']} at "
+                    f"{row['torque_nm']:g} Nm, {row['speed_rpm']:g} rpm, {row['udc_v']:g} V",
+                )
                 record["path"] = str(path)
                 record["written_at"] = now_iso()
         except Exception as exc:  # noqa: BLE001 - the recording failed, the result stands
             recorder.close()
-            record["error"] = recorder.error or (str(exc) if isinstance(exc, RecordingWriteError)
-                                                 else f"writing its file failed: {_reason(exc)}")
+            record["error"] = recorder.error or (
+                str(exc) if isinstance(exc, RecordingWriteError) else f"writing its file failed: {_reason(exc)}"
+            )
             log.warning("result %s: raw recording %s failed: %s", result_id, self.path(result_id), record["error"])
         try:
             self.storage.set_result_recording(result_id, record)
@@ -350,18 +411,33 @@ class RecordingStore:
 
     def _counts(self, recorder: RunRecorder) -> dict[str, Any]:
         """What the recording holds, in the result's record and in the file's header alike."""
-        return {"samples": recorder.samples_recorded, "stale_samples": recorder.stale_samples,
-                "setpoints": len(recorder.setpoints), "sample_rate_hz": self.sample_rate_hz}
+        return {
+            "samples": recorder.samples_recorded,
+            "stale_samples": recorder.stale_samples,
+            "setpoints": len(recorder.setpoints),
+            "sample_rate_hz": self.sample_rate_hz,
+        }
 
     def _header(self, recorder: RunRecorder, result_id: int, row: dict) -> dict[str, Any]:
-        return {"result_id": result_id, "status": row.get("status"), "method": row["method"],
-                "options": row.get("options_json"), "torque_nm": row["torque_nm"], "speed_rpm": row["speed_rpm"],
-                "udc_v": row["udc_v"], "harmonic_order": row.get("harmonic_order"),
-                "plant_time_s": row.get("plant_time_s"), **self._counts(recorder),
-                "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
-                "bench_identity": row.get("bench_identity"), "software_version": row.get("software_version", __version__),
-                "started_at": row.get("started_at"), "finished_at": row.get("finished_at"), "sweep_id": row.get("sweep_id"),
-                "job_id": row.get("job_id")}
+        return {
+            "result_id": result_id,
+            "status": row.get("status"),
+            "method": row["method"],
+            "options": json.dumps(row["options"]) if row.get("options") is not None else None,
+            "torque_nm": row["torque_nm"],
+            "speed_rpm": row["speed_rpm"],
+            "udc_v": row["udc_v"],
+            "harmonic_order": row.get("harmonic_order"),
+            "plant_time_s": row.get("plant_time_s"),
+            **self._counts(recorder),
+            "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
+            "bench_identity": row.get("bench_identity"),
+            "software_version": row.get("software_version", __version__),
+            "started_at": row.get("started_at"),
+            "finished_at": row.get("finished_at"),
+            "sweep_id": row.get("sweep_id"),
+            "job_id": row.get("job_id"),
+        }
 
     def apply_retention(self, keep: Path | None = None) -> list[int]:
         """Delete the oldest recordings until the rest fit in keep_gb (`keep` is never deleted); the
@@ -372,7 +448,7 @@ class RecordingStore:
             if m and entry.is_file():
                 st = entry.stat()
                 files.append((st.st_mtime_ns, int(m.group(1)), Path(entry.path), st.st_size))
-        files.sort()                                           # oldest first (ties: lower result id first)
+        files.sort()  # oldest first (ties: lower result id first)
         total = sum(f[3] for f in files)
         limit = self.keep_gb * BYTES_PER_GB
         deleted: list[int] = []
@@ -391,8 +467,10 @@ class RecordingStore:
             total -= size
             deleted.append(result_id)
         if deleted:
-            reason = (f"deleted by retention at {now_iso()}: the newest recordings are kept up to "
-                      f"recordings.keep_gb = {self.keep_gb:g} GB")
+            reason = (
+                f"deleted by retention at {now_iso()}: the newest recordings are kept up to "
+                f"recordings.keep_gb = {self.keep_gb:g} GB"
+            )
             try:
                 self.storage.mark_recordings_deleted(deleted, reason)
             except Exception:  # noqa: BLE001
@@ -407,8 +485,10 @@ class RecordingStore:
             raise RecordingUnavailable(f"result {result_id} does not exist")
         record = recording_record(row)
         if record is None:
-            raise RecordingUnavailable(f"result {result_id} has no raw recording (it was measured while recordings "
-                                       "were switched off, or before they were kept)")
+            raise RecordingUnavailable(
+                f"result {result_id} has no raw recording (it was measured while recordings "
+                "were switched off, or before they were kept)"
+            )
         why = unavailable_reason(record)
         if why is not None:
             raise RecordingUnavailable(f"result {result_id} has no raw recording: {why}")
@@ -417,18 +497,21 @@ class RecordingStore:
             return path.open("rb")
         except FileNotFoundError:
             log.warning("result %s: its raw recording %s is missing", result_id, path)
-            raise RecordingUnavailable(f"the raw recording of result {result_id} is missing: its file was deleted "
-                                       "or moved outside ripplecal (the service's log names it)") from None
+            raise RecordingUnavailable(
+                f"the raw recording of result {result_id} is missing: its file was deleted "
+                "or moved outside ripplecal (the service's log names it)"
+            ) from None
         except OSError as exc:
             log.warning("result %s: its raw recording %s cannot be read: %s", result_id, path, exc)
-            raise RecordingUnavailable(f"the raw recording of result {result_id} cannot be read "
-                                       f"({_reason(exc)}; the service's log names the file)") from None
+            raise RecordingUnavailable(
+                f"the raw recording of result {result_id} cannot be read "
+                f"({_reason(exc)}; the service's log names the file)"
+            ) from None
 
 
 def recording_record(row: dict) -> dict | None:
     """What a result row says about its recording (None: none was attempted)."""
-    text = row.get("recording_json")
-    return json.loads(text) if text else None
+    return row.get("recording") or None
 
 
 def unavailable_reason(record: dict) -> str | None:

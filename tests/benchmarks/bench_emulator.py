@@ -16,6 +16,7 @@ Paced mode (--speedup X > 0, a real DAQ's discipline):
   a DaqReader consumes: wall time from the write to the consumer holding the sample whose sync
   toggle shows the setpoint took effect.
 """
+
 from __future__ import annotations
 
 import math
@@ -63,6 +64,7 @@ def emulator_factor(seconds: float = 3.0, one_core: bool = False) -> float:
     """one_core: the emulator process is pinned to CPU 0 and the reader (`cat`, standing in for the
     service's DAQ reader, a separate process on a bench PC) to CPU 1."""
     import os
+
     previous = os.sched_getaffinity(0)
     if one_core:
         os.sched_setaffinity(0, {0})
@@ -71,6 +73,7 @@ def emulator_factor(seconds: float = 3.0, one_core: bool = False) -> float:
     ph.steady_state_init(emu.plant.x, emu.params, 2.5, 2000.0, 12.0)
     emu.supply.set_output(True)
     from drivers.cia402 import State402
+
     emu.drive.state = State402.OPERATION_ENABLED
     emu.load.state = State402.OPERATION_ENABLED
     emu.load.store(0x60FF, 0, 2000)
@@ -106,7 +109,7 @@ def paced_loss(speedup: float, seconds: float = 3.0) -> dict:
     try:
         with DaqReader(rig.endpoints["daq"]) as reader:
             warm_until = time.monotonic() + 0.5
-            while time.monotonic() < warm_until:          # past the start (pyserial's open flushes)
+            while time.monotonic() < warm_until:  # past the start (pyserial's open flushes)
                 reader.read_available(1 << 16, timeout_s=5.0)
             c0, cpu0, t0 = reader.counters, process_cpu_s(rig.proc.pid), time.monotonic()
             first = last = None
@@ -120,9 +123,16 @@ def paced_loss(speedup: float, seconds: float = 3.0) -> dict:
     finally:
         rig.stop()
     expected = last - first + 1
-    return {"speedup": speedup, "expected": expected, "received": got, "lost": expected - got,
-            "rate_x": got / (t1 - t0) / 16000.0, "cpu": (cpu1 - cpu0) / (t1 - t0),
-            "sequence_gaps": c1.sequence_gaps - c0.sequence_gaps, "overruns": c1.overruns - c0.overruns}
+    return {
+        "speedup": speedup,
+        "expected": expected,
+        "received": got,
+        "lost": expected - got,
+        "rate_x": got / (t1 - t0) / 16000.0,
+        "cpu": (cpu1 - cpu0) / (t1 - t0),
+        "sequence_gaps": c1.sequence_gaps - c0.sequence_gaps,
+        "overruns": c1.overruns - c0.overruns,
+    }
 
 
 def setpoint_latency_ms(writes: int = 20) -> list[float]:
@@ -152,7 +162,7 @@ def setpoint_latency_ms(writes: int = 20) -> list[float]:
             written_at = []
             for k in range(writes):
                 written_at.append(time.monotonic())
-                emu.drive.write_object(0x2000, 6, (k + 1) % 2)      # decoupling on/off: one event each
+                emu.drive.write_object(0x2000, 6, (k + 1) % 2)  # decoupling on/off: one event each
                 time.sleep(0.05)
             time.sleep(0.2)
             stop.set()
@@ -166,20 +176,26 @@ def main() -> None:
     warm_up()
     print(f"physics + frame encoding real-time factor (no pty): {physics_factor():.0f}")
     print(f"emulator real-time factor (physics + DAQ encode + pty): {emulator_factor():.0f}")
-    print(f"emulator real-time factor, emulator pinned to one core (reader on the other): "
-          f"{emulator_factor(one_core=True):.0f}")
+    print(
+        f"emulator real-time factor, emulator pinned to one core (reader on the other): "
+        f"{emulator_factor(one_core=True):.0f}"
+    )
     print("paced (--speedup X, python -m plant_emulator), a DaqReader consuming as fast as it can for 3 s:")
     for speedup in PACED_SPEEDUPS:
         r = paced_loss(speedup)
-        print(f"  {speedup:4g}x: frames received {r['received']} of {r['expected']} expected, dropped {r['lost']} "
-              f"({r['lost'] / r['expected']:.2%}; reader: {r['sequence_gaps']} sequence gaps, {r['overruns']} "
-              f"overruns), {r['rate_x']:.2f}x real time, emulator CPU {r['cpu']:.0%} of a core")
+        print(
+            f"  {speedup:4g}x: frames received {r['received']} of {r['expected']} expected, dropped {r['lost']} "
+            f"({r['lost'] / r['expected']:.2%}; reader: {r['sequence_gaps']} sequence gaps, {r['overruns']} "
+            f"overruns), {r['rate_x']:.2f}x real time, emulator CPU {r['cpu']:.0%} of a core"
+        )
         if speedup == 1.0:
             idle_cpu = r["cpu"]
     print(f"emulator CPU at 1x idle (nobody changing setpoints, the DAQ read): {idle_cpu:.1%} of a core")
     lat = setpoint_latency_ms()
-    print(f"setpoint write -> its sync toggle in the consumer's hands at 1x (in-process, {len(lat)} writes): "
-          f"p50 {np.percentile(lat, 50):.1f} ms, max {max(lat):.1f} ms")
+    print(
+        f"setpoint write -> its sync toggle in the consumer's hands at 1x (in-process, {len(lat)} writes): "
+        f"p50 {np.percentile(lat, 50):.1f} ms, max {max(lat):.1f} ms"
+    )
 
 
 if __name__ == "__main__":

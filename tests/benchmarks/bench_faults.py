@@ -10,6 +10,7 @@ it; faults go through the emulator's control socket. Prints:
 - crash cycles: kill -9 of the service three times during one 16-point sweep, restart, fault reset,
   resume: points lost and points measured twice.
 """
+
 from __future__ import annotations
 
 import os
@@ -19,7 +20,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
 
 from tests.support.bench_rig import Api, EmulatorRig
 from tests.support.service_process import ServiceProcess
@@ -58,15 +58,21 @@ def fault_kinds(emu: EmulatorRig, svc: ServiceProcess, api: Api) -> tuple[dict, 
         os.kill(svc.proc.pid, signal.SIGCONT)
         return t0
 
-    kinds = [("emcy 0x3210 (drive faults itself)", inject({"fault": "emcy", "code": 0x3210}), None),
-             ("emcy 0x4310 only (drive stays enabled)", inject({"fault": "emcy", "code": 0x4310, "fault_state": False}), None),
-             ("drive heartbeat missing", inject({"fault": "heartbeat_stop"}), {"fault": "clear"}),
-             ("DAQ disconnect", inject({"fault": "daq_disconnect"}), {"fault": "daq_reconnect"}),
-             ("service stalled (SIGSTOP 1.5 s)", stall, None),
-             ("SDO delay burst 0.8 s", None, None)]
+    kinds = [
+        ("emcy 0x3210 (drive faults itself)", inject({"fault": "emcy", "code": 0x3210}), None),
+        (
+            "emcy 0x4310 only (drive stays enabled)",
+            inject({"fault": "emcy", "code": 0x4310, "fault_state": False}),
+            None,
+        ),
+        ("drive heartbeat missing", inject({"fault": "heartbeat_stop"}), {"fault": "clear"}),
+        ("DAQ disconnect", inject({"fault": "daq_disconnect"}), {"fault": "daq_reconnect"}),
+        ("service stalled (SIGSTOP 1.5 s)", stall, None),
+        ("SDO delay burst 0.8 s", None, None),
+    ]
     for name, fault, recover in kinds:
         job_id = start_run(api)
-        if fault is None:         # not a safety trip: survive it, no fault-to-safe time
+        if fault is None:  # not a safety trip: survive it, no fault-to-safe time
             emu.control({"fault": "sdo_delay", "seconds": 0.8})
             time.sleep(2.0)
             emu.control({"fault": "clear"})
@@ -79,12 +85,19 @@ def fault_kinds(emu: EmulatorRig, svc: ServiceProcess, api: Api) -> tuple[dict, 
             emu.control(recover)
             api.wait(lambda: api.get("/bench/status")["daq"]["connected"], 20, "DAQ back")
         time.sleep(0.5)
-        api.post("/bench/fault-reset")               # the person's acknowledgement
+        api.post("/bench/fault-reset")  # the person's acknowledgement
         ok = all(api.identify(OP1)["state"] == "done" for _ in range(3))
         (survived if ok else failed).append(name)
-        print(f"  {name:<42} fault-to-safe "
-              + ("   n/a  " if fault is None else (f"{times[name] * 1000:6.0f} ms" if times[name] is not None else "  none  "))
-              + f"  job {job['state']:<6} ({(job['error'] or '')[:70]}) next 3 jobs {'ok' if ok else 'FAILED'}", flush=True)
+        print(
+            f"  {name:<42} fault-to-safe "
+            + (
+                "   n/a  "
+                if fault is None
+                else (f"{times[name] * 1000:6.0f} ms" if times[name] is not None else "  none  ")
+            )
+            + f"  job {job['state']:<6} ({(job['error'] or '')[:70]}) next 3 jobs {'ok' if ok else 'FAILED'}",
+            flush=True,
+        )
     return times, survived, failed
 
 
@@ -107,16 +120,22 @@ def crash_cycles(emu: EmulatorRig, workdir: Path, kills_after=(3, 7, 11)) -> tup
             svc.proc.wait(20)
             svc.log.close()
         else:
-            sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed") and s, 900, "done")
+            sweep = api.wait(
+                lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed") and s, 900, "done"
+            )
             assert sweep["map_id"] is not None, sweep
             svc.stop()
         api.close()
     with sqlite3.connect(db) as conn:
-        current = conn.execute("SELECT COUNT(*) FROM results WHERE sweep_id = ? AND superseded_by IS NULL",
-                               (sweep_id,)).fetchone()[0]
-        twice = conn.execute("SELECT COUNT(*) FROM (SELECT 1 FROM results WHERE sweep_id = ? AND "
-                             "json_extract(detail_json, '$.discarded') IS NULL GROUP BY torque_nm, speed_rpm, udc_v "
-                             "HAVING COUNT(*) > 1)", (sweep_id,)).fetchone()[0]
+        current = conn.execute(
+            "SELECT COUNT(*) FROM results WHERE sweep_id = ? AND superseded_by IS NULL", (sweep_id,)
+        ).fetchone()[0]
+        twice = conn.execute(
+            "SELECT COUNT(*) FROM (SELECT 1 FROM results WHERE sweep_id = ? AND "
+            "json_extract(detail_json, '$.discarded') IS NULL GROUP BY torque_nm, speed_rpm, udc_v "
+            "HAVING COUNT(*) > 1)",
+            (sweep_id,),
+        ).fetchone()[0]
     return len(kills_after), 16 - current, twice
 
 
@@ -137,10 +156,14 @@ def main() -> int:
         finally:
             emu.stop()
     measured = [t for t in times.values() if t is not None]
-    print(f"fault-to-safe time: worst {max(measured) * 1000:.0f} ms over {len(measured)} fault kinds "
-          "(fault -> drive power stage off, emulator's clock)")
-    print(f"fault kinds survived: {len(survived)} of {len(survived) + len(failed)}"
-          + (f" (failed: {', '.join(failed)})" if failed else ""))
+    print(
+        f"fault-to-safe time: worst {max(measured) * 1000:.0f} ms over {len(measured)} fault kinds "
+        "(fault -> drive power stage off, emulator's clock)"
+    )
+    print(
+        f"fault kinds survived: {len(survived)} of {len(survived) + len(failed)}"
+        + (f" (failed: {', '.join(failed)})" if failed else "")
+    )
     print(f"crash cycles: {cycles} x kill -9 during one 16-point sweep: {lost} point(s) lost, {twice} measured twice")
     return 0 if not failed and lost == 0 and twice == 0 else 1
 

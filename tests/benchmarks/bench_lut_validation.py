@@ -24,6 +24,7 @@ moves by ~3 % between sessions at the same point (5 fresh probe identifications 
 1 Nm / 1600 rpm: gamma 2.54..2.62 deg, delta 260.6..262.2 deg, each >= 45.8 dB in its own session),
 so a trained point can show ~30 dB when measured again; the medians are what the LUT delivers.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,12 +32,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from service.api.public import validation_public
 from service.calibration_service import CalibrationService
 from service.runs.engine import TransitionError
 from service.runs.identify import parse_options
-from service.runs.validation import ValidationOptions
 from service.runs.plans import Grid
-from service.api.public import validation_public
+from service.runs.validation import ValidationOptions
 from service.settings import load_settings
 
 TORQUES = [1.0, 2.5, 4.0]
@@ -55,7 +56,7 @@ def wait(svc, get, what: str, resume=None, timeout_s: float = 3600.0) -> dict:
             try:
                 svc.fault_reset()
                 resume()
-            except (TransitionError, RuntimeError) as exc:     # tripped again meanwhile: next round
+            except (TransitionError, RuntimeError) as exc:  # tripped again meanwhile: next round
                 print(f"   not resumed yet: {exc}", flush=True)
         if time.monotonic() > deadline:
             raise TimeoutError(f"{what} did not finish in {timeout_s} s")
@@ -76,18 +77,27 @@ def main() -> None:
     speeds = [float(n) for n in args.speeds.split(",")]
     seeds = [None if s == "None" else int(s) for s in args.seeds.split(",")]
     print(f"grid: torque {TORQUES} Nm x speed {speeds} rpm at 12 V; sweep method {args.method}")
-    print(f"{'scenario':20s} {'map ok':>6s} {'grid med':>8s} {'grid min':>8s} {'mid med':>8s} {'mid min':>8s} "
-          f"{'failed':>6s} {'plant s':>8s} {'sweep wall s':>12s} {'valid. wall s':>13s}  worst cell")
+    print(
+        f"{'scenario':20s} {'map ok':>6s} {'grid med':>8s} {'grid min':>8s} {'mid med':>8s} {'mid min':>8s} "
+        f"{'failed':>6s} {'plant s':>8s} {'sweep wall s':>12s} {'valid. wall s':>13s}  worst cell"
+    )
     for seed in seeds:
         db = Path(tempfile.mkdtemp()) / "validation.db"
-        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(
+            environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed}
+        )
         name = "paper-bench" if seed is None else f"paper-bench seed {seed}"
         with CalibrationService(settings) as svc:
             t0 = time.perf_counter()
-            sweep_id = svc.engine.submit_sweep(Grid(torque_nm=TORQUES, speed_rpm=speeds, udc_v=[12.0]), args.method,
-                                               parse_options(args.method, {}))
-            sweep = wait(svc, lambda: svc.storage.get_sweep(sweep_id), f"sweep {sweep_id}",
-                         resume=lambda: svc.engine.resume_sweep(sweep_id))
+            sweep_id = svc.engine.submit_sweep(
+                Grid(torque_nm=TORQUES, speed_rpm=speeds, udc_v=[12.0]), args.method, parse_options(args.method, {})
+            )
+            sweep = wait(
+                svc,
+                lambda: svc.storage.get_sweep(sweep_id),
+                f"sweep {sweep_id}",
+                resume=lambda: svc.engine.resume_sweep(sweep_id),
+            )
             t1 = time.perf_counter()
             ok = svc.storage.sweep_outcome(sweep_id)["counts"]["ok"]
             for attempt in range(3):
@@ -107,23 +117,47 @@ def main() -> None:
             g, m = vp.grid, vp.midpoint
             failed = g["failed"] + g["not_measured"] + m["failed"] + m["not_measured"]
             w = vp.worst
-            worst = "-" if w is None else (f"{w['suppression_db']:.1f} dB at {w['operating_point']['torque_nm']:g} Nm, "
-                                           f"{w['operating_point']['speed_rpm']:g} rpm ({w['kind']})")
-            print(f"{name:20s} {ok:>4d}/{len(TORQUES) * len(speeds)} {fmt(g['median_db']):>8s} {fmt(g['min_db']):>8s} {fmt(m['median_db']):>8s} "
-                  f"{fmt(m['min_db']):>8s} {failed:>6d} {vp.plant_time_s:>8.1f} {t1 - t0:>12.1f} {t2 - t1:>13.1f}  {worst}",
-                  flush=True)
+            worst = (
+                "-"
+                if w is None
+                else (
+                    f"{w['suppression_db']:.1f} dB at {w['operating_point']['torque_nm']:g} Nm, "
+                    f"{w['operating_point']['speed_rpm']:g} rpm ({w['kind']})"
+                )
+            )
+            print(
+                f"{name:20s} {ok:>4d}/{len(TORQUES) * len(speeds)} {fmt(g['median_db']):>8s} {fmt(g['min_db']):>8s} {fmt(m['median_db']):>8s} "
+                f"{fmt(m['min_db']):>8s} {failed:>6d} {vp.plant_time_s:>8.1f} {t1 - t0:>12.1f} {t2 - t1:>13.1f}  {worst}",
+                flush=True,
+            )
             identified = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]): r for r in svc.storage.sweep_results(sweep_id)}
             for c in vp.cells:
                 op = c.operating_point
                 r = identified.get((op.torque_nm, op.speed_rpm, op.udc_v))
-                ident = "" if r is None else (f"  [identified: {r['suppression_db']:.1f} dB, gamma {r['gamma_deg']:.2f} deg, "
-                                              f"delta {r['delta_deg']:.1f} deg]")
+                ident = (
+                    ""
+                    if r is None
+                    else (
+                        f"  [identified: {r['suppression_db']:.1f} dB, gamma {r['gamma_deg']:.2f} deg, "
+                        f"delta {r['delta_deg']:.1f} deg]"
+                    )
+                )
                 value = "-" if c.suppression_db is None else f"{c.suppression_db:5.1f} dB"
-                floor = "" if c.noise_floor_db is None else f" (floor {c.noise_floor_db:.0f} dB{', at floor' if c.at_noise_floor else ''})"
-                print(f"{'':22s}{c.kind:8s} {op.torque_nm:5.2f} Nm {op.speed_rpm:6.0f} rpm  {value}{floor}"
-                      + (f"  {c.error}" if c.error else "") + ident
-                      + (f"  (map cell {c.map_cell_status}: no injection in the LUT)"
-                         if c.map_cell_status not in (None, "ok") else ""))
+                floor = (
+                    ""
+                    if c.noise_floor_db is None
+                    else f" (floor {c.noise_floor_db:.0f} dB{', at floor' if c.at_noise_floor else ''})"
+                )
+                print(
+                    f"{'':22s}{c.kind:8s} {op.torque_nm:5.2f} Nm {op.speed_rpm:6.0f} rpm  {value}{floor}"
+                    + (f"  {c.error}" if c.error else "")
+                    + ident
+                    + (
+                        f"  (map cell {c.map_cell_status}: no injection in the LUT)"
+                        if c.map_cell_status not in (None, "ok")
+                        else ""
+                    )
+                )
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """Map quality read time (run: python -m tests.benchmarks.bench_map_quality).
 
-service.map_quality.assess runs on every GET /maps/{id} and export: wall time per call on one core
+service.maps.quality.assess runs on every GET /maps/{id} and export: wall time per call on one core
 for square maps linear in the operating point with a little noise and k planted outliers (each
 flagged one by one, every statistic computed again after each), best of 5.
 """
+
 from __future__ import annotations
 
 import time
@@ -14,11 +15,23 @@ from service.maps import quality as map_quality
 
 
 def _map(n: int, outliers: int, rng: np.random.Generator) -> tuple[list[dict], dict]:
-    axes = {"torque_nm": [float(i) for i in range(n)], "speed_rpm": [1000.0 + 100.0 * i for i in range(n)],
-            "udc_v": [12.0]}
-    cells = [{"torque_nm": t, "speed_rpm": s, "udc_v": 12.0, "status": "ok",
-              "theta_cos": 0.05 + 1e-3 * t + 1e-5 * s + float(rng.normal(0, 2e-5)), "theta_sin": -0.02 + 5e-4 * t}
-             for t in axes["torque_nm"] for s in axes["speed_rpm"]]
+    axes = {
+        "torque_nm": [float(i) for i in range(n)],
+        "speed_rpm": [1000.0 + 100.0 * i for i in range(n)],
+        "udc_v": [12.0],
+    }
+    cells = [
+        {
+            "torque_nm": t,
+            "speed_rpm": s,
+            "udc_v": 12.0,
+            "status": "ok",
+            "theta_cos": 0.05 + 1e-3 * t + 1e-5 * s + float(rng.normal(0, 2e-5)),
+            "theta_sin": -0.02 + 5e-4 * t,
+        }
+        for t in axes["torque_nm"]
+        for s in axes["speed_rpm"]
+    ]
     for i in rng.choice(len(cells), outliers, replace=False):
         cells[i]["theta_cos"] += 0.05
     return cells, axes

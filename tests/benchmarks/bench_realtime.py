@@ -16,6 +16,7 @@ when in doubt), settle (to speed and a steady harmonic), measurement (the method
 setpoints), other (the rest of the point: storage, recording, priors; and the run's end).
 With --speedup 10: every identification at OP1 and OP2 must be ok.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,8 +34,11 @@ from tests.support.service_process import ServiceProcess
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 OP2 = {"torque_nm": 1.3, "speed_rpm": 3000, "udc_v": 12}
-MAP10 = {"torque_nm": [round(0.5 * k, 2) for k in range(1, 11)],
-         "speed_rpm": [500 + 300 * k for k in range(10)], "udc_v": [12]}
+MAP10 = {
+    "torque_nm": [round(0.5 * k, 2) for k in range(1, 11)],
+    "speed_rpm": [500 + 300 * k for k in range(10)],
+    "udc_v": [12],
+}
 MAP3 = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000, 1400, 1800], "udc_v": [12]}
 PARTS = ("move_s", "accounting_s", "settle_s", "measurement_s")
 
@@ -52,7 +56,7 @@ class JobEnds:
         self._subscribed = threading.Event()
         self._thread = threading.Thread(target=self._listen, args=(base_url,), daemon=True)
         self._thread.start()
-        if not self._subscribed.wait(30):          # the stream opens with bench.status
+        if not self._subscribed.wait(30):  # the stream opens with bench.status
             raise TimeoutError("no SSE stream from the service")
 
     def _listen(self, base_url: str) -> None:
@@ -117,9 +121,12 @@ def identifications(api: Api, ends: JobEnds, n: int, speedup: float) -> None:
                 plants.append(r.get("plant_time_s") or 0.0)
                 splits.append((r.get("details") or {}).get("bench_time_s") or {})
             ok = sum(s == "ok" for s in statuses)
-            print(f"identification {method:8s} at {name}: wall median {statistics.median(walls):.2f} s "
-                  f"(min {min(walls):.2f}, max {max(walls):.2f}; n={n}), plant {statistics.median(plants):.3f} s, "
-                  f"{ok}/{n} ok; per run: {split_line(splits, walls)}", flush=True)
+            print(
+                f"identification {method:8s} at {name}: wall median {statistics.median(walls):.2f} s "
+                f"(min {min(walls):.2f}, max {max(walls):.2f}; n={n}), plant {statistics.median(plants):.3f} s, "
+                f"{ok}/{n} ok; per run: {split_line(splits, walls)}",
+                flush=True,
+            )
             bad = [s for s in statuses if s != "ok"]
             if bad:
                 print(f"   not ok at {speedup:g}x: {bad}", flush=True)
@@ -128,9 +135,12 @@ def identifications(api: Api, ends: JobEnds, n: int, speedup: float) -> None:
 def grid(api: Api, ends: JobEnds) -> None:
     job, wall = timed_job(api, ends, "/identifications", {"operating_point": OP1, "method": "grid"})
     r = job["result"]
-    print(f"grid (360 points) at OP1: wall {wall:.1f} s for {r['plant_time_s']:.1f} s of plant time "
-          f"({wall / r['plant_time_s']:.2f} x), {r['status']} {r['suppression_db']:.1f} dB; "
-          f"{split_line([r['details'].get('bench_time_s') or {}], [wall])}", flush=True)
+    print(
+        f"grid (360 points) at OP1: wall {wall:.1f} s for {r['plant_time_s']:.1f} s of plant time "
+        f"({wall / r['plant_time_s']:.2f} x), {r['status']} {r['suppression_db']:.1f} dB; "
+        f"{split_line([r['details'].get('bench_time_s') or {}], [wall])}",
+        flush=True,
+    )
 
 
 def sweep_points(sweep: dict) -> list[dict]:
@@ -149,11 +159,14 @@ def map10(api: Api, ends: JobEnds) -> None:
     settle_plant = sum((p.get("details") or {}).get("op_settle_plant_s") or 0 for p in points)
     means = {k: statistics.fmean(s.get(k, 0.0) for s in splits) for k in PARTS}
     other = per_point - sum(means.values())
-    print(f"10 x 10 probe map (0.5..5 Nm x 500..3200 rpm, 12 V): wall {wall:.1f} s ({per_point:.2f} s a point), "
-          f"{at40}/{len(points)} cells >= 40 dB, {ok_below} ok below target, {counts}; plant time: method "
-          f"{plant:.1f} s + settling {settle_plant:.1f} s; per point, mean: "
-          + ", ".join(f"{k[:-2]} {1000 * v:.0f} ms" for k, v in means.items())
-          + f", other {1000 * other:.0f} ms (median: {split_line(splits)})", flush=True)
+    print(
+        f"10 x 10 probe map (0.5..5 Nm x 500..3200 rpm, 12 V): wall {wall:.1f} s ({per_point:.2f} s a point), "
+        f"{at40}/{len(points)} cells >= 40 dB, {ok_below} ok below target, {counts}; plant time: method "
+        f"{plant:.1f} s + settling {settle_plant:.1f} s; per point, mean: "
+        + ", ".join(f"{k[:-2]} {1000 * v:.0f} ms" for k, v in means.items())
+        + f", other {1000 * other:.0f} ms (median: {split_line(splits)})",
+        flush=True,
+    )
 
 
 def validation3(api: Api, ends: JobEnds) -> None:
@@ -164,10 +177,13 @@ def validation3(api: Api, ends: JobEnds) -> None:
     v = job["validation"]
     cells = v["cells"]
     splits = [c.get("bench_time_s") or {} for c in cells if c["status"] == "measured"]
-    print(f"3 x 3 map (sweep {sweep_wall:.1f} s) validated in LUT mode: {len(cells)} points in {wall:.1f} s wall "
-          f"({wall / len(cells):.2f} s a point) for {v['plant_time_s']:.1f} s of plant time; grid median "
-          f"{v['grid']['median_db']:.1f} dB, midpoints median {v['midpoint']['median_db']:.1f} dB; "
-          f"per point: {split_line(splits)}", flush=True)
+    print(
+        f"3 x 3 map (sweep {sweep_wall:.1f} s) validated in LUT mode: {len(cells)} points in {wall:.1f} s wall "
+        f"({wall / len(cells):.2f} s a point) for {v['plant_time_s']:.1f} s of plant time; grid median "
+        f"{v['grid']['median_db']:.1f} dB, midpoints median {v['midpoint']['median_db']:.1f} dB; "
+        f"per point: {split_line(splits)}",
+        flush=True,
+    )
 
 
 def main() -> None:
@@ -188,7 +204,9 @@ def main() -> None:
     t0 = time.perf_counter()
     try:
         svc.wait_ready()
-        print(f"== speedup {args.speedup:g} (paper-bench): service ready in {time.perf_counter() - t0:.1f} s", flush=True)
+        print(
+            f"== speedup {args.speedup:g} (paper-bench): service ready in {time.perf_counter() - t0:.1f} s", flush=True
+        )
         api = Api(svc, db)
         ends = JobEnds(svc.base)
         if "ident" not in skip:

@@ -11,6 +11,7 @@ and off, alternating, and prints:
   run to run, and much more on a loaded machine: the timed figures above are the direct measure,
   this is only a cross-check).
 """
+
 from __future__ import annotations
 
 import statistics
@@ -18,12 +19,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from service.calibration_service import CalibrationService
-from service.runs.identify import parse_options
-from service.model.operating_point import OperatingPoint
 from service.api.public import result_public
-from service.store.recordings import RecordingStore, RunRecorder
+from service.calibration_service import CalibrationService
+from service.model.operating_point import OperatingPoint
+from service.runs.identify import parse_options
 from service.settings import load_settings
+from service.store.recordings import RecordingStore, RunRecorder
 
 OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
 RUNS = {"probe": 5, "adaptive": 5, "grid": 1}
@@ -44,6 +45,7 @@ class Timed:
                 return original(*args, **kwargs)
             finally:
                 self.seconds += time.perf_counter() - t0
+
         setattr(cls, name, timed)
 
 
@@ -63,7 +65,7 @@ def main() -> None:
     db = Path(tempfile.mkdtemp()) / "bench.db"
     settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db)})
     in_run, writing = Timed(), Timed()
-    in_run.wrap(RecordingStore, "recorder")         # the recorder made before the run (its MDF, temporary file)
+    in_run.wrap(RecordingStore, "recorder")  # the recorder made before the run (its MDF, temporary file)
     in_run.wrap(RunRecorder, "samples")
     in_run.wrap(RunRecorder, "setpoint")
     writing.wrap(RecordingStore, "keep")
@@ -89,13 +91,15 @@ def main() -> None:
                     write_s.append(writing.seconds)
                     plant = result["plant_time_s"]
             on_s, off_s = statistics.median(walls[True]), statistics.median(walls[False])
-            print(f"{method} ({runs} runs each, last plant time {plant:.3f} s): "
-                  f"{statistics.median(per_plant_s) / 1e3:.1f} kB per plant second "
-                  f"({statistics.median(per_sample):.2f} B per sample, 23 B before compression); "
-                  f"recorder during the run {100 * statistics.median(in_run_share):.2f} % of wall time, "
-                  f"write after it {statistics.median(write_s) * 1e3:.0f} ms = "
-                  f"{100 * statistics.median(write_share):.1f} % of wall time; "
-                  f"median wall {on_s:.2f} s with, {off_s:.2f} s without ({100 * (on_s / off_s - 1):+.1f} %)")
+            print(
+                f"{method} ({runs} runs each, last plant time {plant:.3f} s): "
+                f"{statistics.median(per_plant_s) / 1e3:.1f} kB per plant second "
+                f"({statistics.median(per_sample):.2f} B per sample, 23 B before compression); "
+                f"recorder during the run {100 * statistics.median(in_run_share):.2f} % of wall time, "
+                f"write after it {statistics.median(write_s) * 1e3:.0f} ms = "
+                f"{100 * statistics.median(write_share):.1f} % of wall time; "
+                f"median wall {on_s:.2f} s with, {off_s:.2f} s without ({100 * (on_s / off_s - 1):+.1f} %)"
+            )
         svc.recordings.enabled = True
 
 

@@ -9,21 +9,21 @@ cells, the rounds, and the wall seconds of each step. With --map10: the grid poi
 (0.5..5 Nm x 500..3200 rpm) in LUT mode (median, share >= 40 dB; issue 17's figure for cells identified to
 their margin). Speedup 1 (default) is what a bench pays; 0 runs as fast as the DAQ is read (same figures).
 """
+
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
+from service.api.public import job_public, map_public
 from service.calibration_service import CalibrationService
 from service.runs.identify import parse_options
-from service.runs.validation import ValidationOptions
 from service.runs.plans import Grid
-from service.api.public import job_public, map_public
 from service.runs.refinement import RefineRequest
+from service.runs.validation import ValidationOptions
 from service.settings import load_settings
 
 GRID5 = Grid(torque_nm=[1.0, 1.75, 2.5, 3.25, 4.0], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
@@ -47,7 +47,7 @@ def sweep(svc, grid: Grid) -> tuple[int, float]:
 def validate(svc, map_id: int) -> tuple[list[dict], float]:
     t0 = time.perf_counter()
     job = wait_job(svc, svc.engine.submit_validation(map_id, True, ValidationOptions()))
-    return json.loads(svc.storage.validation_of_job(job["id"])["cells_json"]), time.perf_counter() - t0
+    return svc.storage.validation_of_job(job["id"])["cells"], time.perf_counter() - t0
 
 
 def figures(cells: list[dict], target_db: float = 30.0) -> str:
@@ -58,11 +58,13 @@ def figures(cells: list[dict], target_db: float = 30.0) -> str:
     at_filled = [c["suppression_db"] for c in cells if c.get("map_cell_filled") and c["status"] == "measured"]
     worst = min(cells, key=lambda c: c["suppression_db"] if c["status"] == "measured" else 1e9)
     op = worst["operating_point"]
-    return (f"{held}/{len(cells)} points >= {target_db:g} dB ({100 * held / max(len(cells), 1):.0f} %), median "
-            f"{statistics.median(values):.1f} dB (grid {statistics.median(grid):.1f}, midpoints "
-            f"{statistics.median(mid):.1f}), worst {worst['suppression_db']:.1f} dB at {op['torque_nm']:g} Nm / "
-            f"{op['speed_rpm']:g} rpm ({worst['kind']}); filled cells: "
-            + (", ".join(f"{v:.1f}" for v in at_filled) + " dB" if at_filled else "none"))
+    return (
+        f"{held}/{len(cells)} points >= {target_db:g} dB ({100 * held / max(len(cells), 1):.0f} %), median "
+        f"{statistics.median(values):.1f} dB (grid {statistics.median(grid):.1f}, midpoints "
+        f"{statistics.median(mid):.1f}), worst {worst['suppression_db']:.1f} dB at {op['torque_nm']:g} Nm / "
+        f"{op['speed_rpm']:g} rpm ({worst['kind']}); filled cells: "
+        + (", ".join(f"{v:.1f}" for v in at_filled) + " dB" if at_filled else "none")
+    )
 
 
 def one_truth(seed: int | None, speedup: float, map10: bool) -> None:
@@ -82,23 +84,32 @@ def one_truth(seed: int | None, speedup: float, map10: bool) -> None:
         wall = time.perf_counter() - t0
         r = job_public(svc.storage, job).result
         final = map_public(svc.storage, r.map_id)
-        print(f"[{name}] refinement: {wall:.1f} s, {len(r.rounds)} round(s), {r.cells_added} cells added, refined map "
-              f"{r.map_id}: {len(final.cells)} cells ({len(final.cells) / len(m.cells):.2f} x), axes speed "
-              f"{final.axes['speed_rpm']}, torque {final.axes['torque_nm']}; "
-              + ("every point holds" if r.holds else f"stopped: {(r.stopped or '')[:160]}"), flush=True)
+        print(
+            f"[{name}] refinement: {wall:.1f} s, {len(r.rounds)} round(s), {r.cells_added} cells added, refined map "
+            f"{r.map_id}: {len(final.cells)} cells ({len(final.cells) / len(m.cells):.2f} x), axes speed "
+            f"{final.axes['speed_rpm']}, torque {final.axes['torque_nm']}; "
+            + ("every point holds" if r.holds else f"stopped: {(r.stopped or '')[:160]}"),
+            flush=True,
+        )
         for rnd in r.rounds:
-            print(f"   round {rnd.round}: map {rnd.map_id}, {rnd.points - rnd.below_target}/{rnd.points} >= 30 dB, "
-                  f"medians grid {rnd.grid_median_db:.1f} / midpoints {rnd.midpoint_median_db:.1f} dB, then inserted "
-                  f"{rnd.inserted or '-'}, re-measured {rnd.remeasured}", flush=True)
-        cells = json.loads(svc.storage.latest_validation(r.map_id)["cells_json"])
+            print(
+                f"   round {rnd.round}: map {rnd.map_id}, {rnd.points - rnd.below_target}/{rnd.points} >= 30 dB, "
+                f"medians grid {rnd.grid_median_db:.1f} / midpoints {rnd.midpoint_median_db:.1f} dB, then inserted "
+                f"{rnd.inserted or '-'}, re-measured {rnd.remeasured}",
+                flush=True,
+            )
+        cells = svc.storage.latest_validation(r.map_id)["cells"]
         print(f"[{name}] final validation of map {r.map_id}: {figures(cells)}", flush=True)
         if map10:
             map_id, wall = sweep(svc, GRID10)
             cells, vwall = validate(svc, map_id)
             grid = [c["suppression_db"] for c in cells if c["kind"] == "grid" and c["status"] == "measured"]
-            print(f"[{name}] 10 x 10 map {map_id} ({wall:.1f} s), its grid points in LUT mode ({vwall:.1f} s): median "
-                  f"{statistics.median(grid):.1f} dB, {sum(v >= 40 for v in grid)}/{len(grid)} >= 40 dB, min "
-                  f"{min(grid):.1f} dB", flush=True)
+            print(
+                f"[{name}] 10 x 10 map {map_id} ({wall:.1f} s), its grid points in LUT mode ({vwall:.1f} s): median "
+                f"{statistics.median(grid):.1f} dB, {sum(v >= 40 for v in grid)}/{len(grid)} >= 40 dB, min "
+                f"{min(grid):.1f} dB",
+                flush=True,
+            )
 
 
 def main() -> None:

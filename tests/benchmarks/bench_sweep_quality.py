@@ -9,6 +9,7 @@ cells >= 40 dB, ok, below target, no authority, failed; median and p95 plant tim
 method, without the move to the point); the sweep's total plant and wall time; and the stored
 statuses that claim ok below their target (must be 0).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,7 +19,6 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-
 
 from service.calibration_service import CalibrationService
 from service.runs.engine import TransitionError
@@ -41,8 +41,9 @@ def _reason_class(status: str, reason: str) -> str:
 
 def run_sweep(svc, method: str, decoupling: bool) -> dict:
     t0 = time.perf_counter()
-    sweep_id = svc.engine.submit_sweep(Grid(torque_nm=TORQUES, speed_rpm=SPEEDS, udc_v=[12]), method,
-                                       parse_options(method, {"decoupling": decoupling}))
+    sweep_id = svc.engine.submit_sweep(
+        Grid(torque_nm=TORQUES, speed_rpm=SPEEDS, udc_v=[12]), method, parse_options(method, {"decoupling": decoupling})
+    )
     deadline = time.monotonic() + 3600
     interlock_trips = 0
     while (sweep := svc.storage.get_sweep(sweep_id))["state"] not in ("done", "failed", "cancelled"):
@@ -56,7 +57,7 @@ def run_sweep(svc, method: str, decoupling: bool) -> dict:
             try:
                 svc.fault_reset()
                 svc.engine.resume_sweep(sweep_id)
-            except (TransitionError, RuntimeError) as exc:     # tripped again meanwhile: next round
+            except (TransitionError, RuntimeError) as exc:  # tripped again meanwhile: next round
                 print(f"   not resumed yet: {exc}", flush=True)
         time.sleep(0.2)
     wall = time.perf_counter() - t0
@@ -66,32 +67,51 @@ def run_sweep(svc, method: str, decoupling: bool) -> dict:
     reached = sum(1 for r in rows if (r["suppression_db"] or -1e9) >= 40.0)
     dishonest = sum(1 for r in rows if r["status"] == "ok" and (r["suppression_db"] or -1e9) < (r["target_db"] or 40.0))
     reasons = Counter(_reason_class(r["status"], r["error"] or "") for r in rows if r["status"] != "ok")
-    return {"n": len(rows), "reached": reached, "statuses": statuses, "median": float(np.median(plant)),
-            "p95": float(np.percentile(plant, 95)), "plant_total": float(plant.sum()), "wall": wall,
-            "dishonest": dishonest, "reasons": reasons, "interlock_trips": interlock_trips}
+    return {
+        "n": len(rows),
+        "reached": reached,
+        "statuses": statuses,
+        "median": float(np.median(plant)),
+        "p95": float(np.percentile(plant, 95)),
+        "plant_total": float(plant.sum()),
+        "wall": wall,
+        "dishonest": dishonest,
+        "reasons": reasons,
+        "interlock_trips": interlock_trips,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", default="None,1,2,3,4,5")
     parser.add_argument("--methods", default="probe,adaptive")
-    parser.add_argument("--decoupling", default="off,on",
-                        help="drive decoupling (0x2000:6) for the sweep: off, on or both (sec. 2.4 / 3.1)")
+    parser.add_argument(
+        "--decoupling",
+        default="off,on",
+        help="drive decoupling (0x2000:6) for the sweep: off, on or both (sec. 2.4 / 3.1)",
+    )
     args = parser.parse_args()
     seeds = [None if s == "None" else int(s) for s in args.seeds.split(",")]
-    print(f"{'scenario':18s} {'method':9s} {'decoupl':7s} {'>=40dB':>7s} {'ok':>4s} {'below':>6s} {'no_auth':>8s} {'failed':>7s} "
-          f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}")
+    print(
+        f"{'scenario':18s} {'method':9s} {'decoupl':7s} {'>=40dB':>7s} {'ok':>4s} {'below':>6s} {'no_auth':>8s} {'failed':>7s} "
+        f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}"
+    )
     for seed in seeds:
         db = Path(tempfile.mkdtemp()) / "sweeps.db"
-        settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed})
+        settings = load_settings(
+            environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed}
+        )
         with CalibrationService(settings) as svc:
             for method, decoupling in ((m, d) for d in args.decoupling.split(",") for m in args.methods.split(",")):
                 r = run_sweep(svc, method, decoupling == "on")
                 st = r["statuses"]
                 name = "paper-bench" if seed is None else f"paper-bench seed {seed}"
-                print(f"{name:18s} {method:9s} {decoupling:7s} {r['reached']:>4d}/{r['n']:<3d} {st['ok']:>3d} {st['below_target']:>6d} "
-                      f"{st['no_authority']:>8d} {st['failed']:>7d} {r['median']:>9.3f} {r['p95']:>7.3f} "
-                      f"{r['plant_total']:>8.1f} {r['wall']:>7.1f} {r['dishonest']:>9d}", flush=True)
+                print(
+                    f"{name:18s} {method:9s} {decoupling:7s} {r['reached']:>4d}/{r['n']:<3d} {st['ok']:>3d} {st['below_target']:>6d} "
+                    f"{st['no_authority']:>8d} {st['failed']:>7d} {r['median']:>9.3f} {r['p95']:>7.3f} "
+                    f"{r['plant_total']:>8.1f} {r['wall']:>7.1f} {r['dishonest']:>9d}",
+                    flush=True,
+                )
                 if r["interlock_trips"]:
                     print(f"{'':28s}{r['interlock_trips']} interlock trip(s) acknowledged and resumed")
                 for reason, count in r["reasons"].most_common(4):

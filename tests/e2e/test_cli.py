@@ -4,6 +4,7 @@ one database path whatever the working directory, `make run PORT= HOST=`; clear 
 Each command runs as the installed `ripplecal` script in its own process, with its own emulator, on a
 real SQLite file; the database default is steered through XDG_DATA_HOME so no test touches ~/.local.
 """
+
 import json
 import os
 import re
@@ -16,8 +17,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.maps.lut_export import lut_image
 from service.api.public import map_public
+from service.maps.lut_export import lut_image
 from service.store.storage import Storage
 from tests.support.service_process import REPO, free_port
 from tests.support.sweep_checks import holes
@@ -51,9 +52,9 @@ def test_default_database_is_one_absolute_path_whatever_the_working_directory(ho
     second = run("token", "list", env=_env(root / "xdg"), cwd=root / "b")
     assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
     for proc in (first, second):
-        assert f"ripplecal: database {db}" in proc.stderr      # printed at start, absolute
+        assert f"ripplecal: database {db}" in proc.stderr  # printed at start, absolute
     assert "from-a" in second.stdout
-    assert len(first.stdout.strip().splitlines()[-1]) >= 20      # the token still alone on the last line
+    assert len(first.stdout.strip().splitlines()[-1]) >= 20  # the token still alone on the last line
     # an explicit relative path is made absolute against the working directory, once
     rel = run("token", "list", env=_env(root / "xdg", RIPPLECAL_SERVER__DB_PATH="rel.db"), cwd=root / "b")
     assert f"ripplecal: database {root / 'b' / 'rel.db'}" in rel.stderr and (root / "b" / "rel.db").exists()
@@ -68,9 +69,22 @@ def test_make_run_takes_port_and_host_and_serve_knows_a_token_made_elsewhere(hom
     stamp.touch()
     port = free_port()
     log = open(tmp_path / "make.log", "w")
-    proc = subprocess.Popen(["make", "--no-print-directory", "run", f"PORT={port}", "HOST=127.0.0.1",
-                             f"VENV={Path(sys.executable).parent.parent}", f"STAMP={stamp}"],
-                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            "make",
+            "--no-print-directory",
+            "run",
+            f"PORT={port}",
+            "HOST=127.0.0.1",
+            f"VENV={Path(sys.executable).parent.parent}",
+            f"STAMP={stamp}",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     try:
         base = f"http://127.0.0.1:{port}/api/v1"
         deadline = time.monotonic() + 120
@@ -97,8 +111,14 @@ def test_make_run_takes_port_and_host_and_serve_knows_a_token_made_elsewhere(hom
 def test_make_run_defaults_to_loopback_8000(tmp_path):
     stamp = tmp_path / "installed"
     stamp.touch()
-    out = subprocess.run(["make", "-n", "--no-print-directory", "run", f"STAMP={stamp}"], cwd=REPO, capture_output=True,
-                         text=True, timeout=30, env={**os.environ, "HOST": "somehost"})
+    out = subprocess.run(
+        ["make", "-n", "--no-print-directory", "run", f"STAMP={stamp}"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        env={**os.environ, "HOST": "somehost"},
+    )
     assert out.stdout.strip().splitlines()[-1].endswith("ripplecal serve --emulate --host 127.0.0.1 --port 8000"), out
 
 
@@ -113,7 +133,7 @@ def test_identify_prints_its_states_and_progress_as_they_come(home):
     states = re.findall(rf"^job {n}: (\w+)", err, re.M)
     assert states == ["queued", "running", "done"], err
     progress = re.findall(r"^  plant time +([\d.]+) s +residual ([\d.e+-]+) FS", err, re.M)
-    assert progress, err                              # at least the first window, shown while running
+    assert progress, err  # at least the first window, shown while running
     running_at, done_at = err.index(f"job {n}: running"), err.index(f"job {n}: done")
     assert all(running_at < m.start() < done_at for m in re.finditer(r"^  plant time", err, re.M))
     assert '"state": "done"' in proc.stdout and "Traceback" not in err
@@ -156,13 +176,16 @@ def test_sweep_then_list_show_and_download_its_map(home):
     assert int(answer["crc32"], 16) == zlib.crc32(image[:-4])
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["maps", "download", "987654"], "map 987654 does not exist in "),
-    (["sweeps", "show", "987654"], "sweep 987654 does not exist in "),
-    (["identify", "--torque", "2.5", "--speed", "2000", "--options", "{mu"], "--options is not valid JSON"),
-    (["identify", "--torque", "2.5", "--speed", "2000", "--options", "[1]"], "--options must be a JSON object"),
-    (["export", "987654"], "map 987654 does not exist in "),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["maps", "download", "987654"], "map 987654 does not exist in "),
+        (["sweeps", "show", "987654"], "sweep 987654 does not exist in "),
+        (["identify", "--torque", "2.5", "--speed", "2000", "--options", "{mu"], "--options is not valid JSON"),
+        (["identify", "--torque", "2.5", "--speed", "2000", "--options", "[1]"], "--options must be a JSON object"),
+        (["export", "987654"], "map 987654 does not exist in "),
+    ],
+)
 def test_bad_input_gives_one_clear_line(home, args, needle):
     root, _ = home
     proc = run(*args, env=_env(root / "xdg"), cwd=root / "a", timeout=120)
@@ -173,35 +196,68 @@ def test_bad_input_gives_one_clear_line(home, args, needle):
 def test_maps_download_refuses_an_empty_or_partial_map_before_starting_the_bench(tmp_path):
     """The API's download rules (service/runs/lut_download.py), before any bench is opened."""
     from tests.support.stored_maps import CELLS, stored_map
+
     db = tmp_path / "r.db"
     storage = Storage(db)
     empty, partial = stored_map(storage, failing=set(CELLS)), stored_map(storage, failing={CELLS[0]})
     # the partial map's failed cell carries a fill: a hole only when the download leaves the fill out
-    for map_id, needle, extra in ((empty, f"map {empty} has no valid cell (0 of 4 ok)", ()),
-                                  (partial, f"map {partial} is partial: 1 of 4 cells are not ok", ("--no-fill",))):
-        proc = run("maps", "download", str(map_id), *extra, "--db", str(db), env=_env(tmp_path / "xdg"), cwd=tmp_path,
-                   timeout=120)
+    for map_id, needle, extra in (
+        (empty, f"map {empty} has no valid cell (0 of 4 ok)", ()),
+        (partial, f"map {partial} is partial: 1 of 4 cells are not ok", ("--no-fill",)),
+    ):
+        proc = run(
+            "maps",
+            "download",
+            str(map_id),
+            *extra,
+            "--db",
+            str(db),
+            env=_env(tmp_path / "xdg"),
+            cwd=tmp_path,
+            timeout=120,
+        )
         assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
         assert "starting the" not in proc.stderr and "Traceback" not in proc.stderr
     assert "--force" in proc.stderr
 
 
 def test_a_bad_environment_variable_is_one_line_naming_it(tmp_path):
-    proc = run("token", "list", "--db", str(tmp_path / "r.db"),
-               env=_env(tmp_path / "xdg", RIPPLECAL_SERVER__PORT="eighty"), cwd=tmp_path, timeout=120)
+    proc = run(
+        "token",
+        "list",
+        "--db",
+        str(tmp_path / "r.db"),
+        env=_env(tmp_path / "xdg", RIPPLECAL_SERVER__PORT="eighty"),
+        cwd=tmp_path,
+        timeout=120,
+    )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     [line] = proc.stderr.strip().splitlines()
     assert "server.port" in line and "(set by environment RIPPLECAL_SERVER__PORT)" in line, line
 
 
 def test_identify_on_a_bench_that_cannot_be_reached_is_refused_without_a_traceback(tmp_path):
-    port = free_port()          # bound and released: nothing listens there
+    port = free_port()  # bound and released: nothing listens there
     bench = tmp_path / "offline.toml"
-    bench.write_text(f'[can]\ninterface = "socketcand"\nchannel = "can0"\nhost = "127.0.0.1"\nport = {port}\n'
-                     f'[daq]\nurl = "socket://127.0.0.1:{port}"\n[supply]\nurl = "socket://127.0.0.1:{port}"\n')
-    proc = run("identify", "--torque", "2.5", "--speed", "2000", "--bench", str(bench), "--db", str(tmp_path / "r.db"),
-               env=_env(tmp_path / "xdg"), cwd=tmp_path, timeout=120)
+    bench.write_text(
+        f'[can]\ninterface = "socketcand"\nchannel = "can0"\nhost = "127.0.0.1"\nport = {port}\n'
+        f'[daq]\nurl = "socket://127.0.0.1:{port}"\n[supply]\nurl = "socket://127.0.0.1:{port}"\n'
+    )
+    proc = run(
+        "identify",
+        "--torque",
+        "2.5",
+        "--speed",
+        "2000",
+        "--bench",
+        str(bench),
+        "--db",
+        str(tmp_path / "r.db"),
+        env=_env(tmp_path / "xdg"),
+        cwd=tmp_path,
+        timeout=120,
+    )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("ripplecal: CAN bus") and f"127.0.0.1:{port}" in last and "check that" in last, proc.stderr
-    assert "job " not in proc.stderr                 # refused: nothing was queued
+    assert "job " not in proc.stderr  # refused: nothing was queued

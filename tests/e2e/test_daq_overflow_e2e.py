@@ -4,14 +4,15 @@ point then takes seconds without the service reading the DAQ, more than the read
 DAQ buffer hold: frames are dropped, and the sync toggles of the move's setpoints with them. The
 service counts them once the line is quiet (service/bench/measurement.py) instead of failing every run with
 "setpoint not confirmed" (it did: 4 toggles missing, on every identification)."""
+
 from __future__ import annotations
 
 import pytest
 
 from tests.support.bench_rig import served_bench
+from tests.support.operating_points import OP1
 
 pytestmark = pytest.mark.e2e
-OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 
 
 def test_setpoint_toggles_lost_in_a_daq_overflow_are_counted_and_the_run_is_ok(tmp_path):

@@ -1,6 +1,7 @@
 """`python -m plant_emulator` as a process, through its real wires: socketcand + canopen, DAQ pty,
 SCPI over TCP. Tests run in file order on one emulator; the last one stops it with SIGTERM (the two
 that need a DAQ nobody reads have an emulator of their own)."""
+
 from __future__ import annotations
 
 import json
@@ -23,7 +24,7 @@ from drivers.cia402 import CONTROLWORD, PATH_TO_OPERATION_ENABLED, State402, dec
 from drivers.daq_protocol import FLAG_SYNC_INPUT, FrameDecoder
 from drivers.daq_reader import DaqReader
 from drivers.load_machine import LoadClient
-from tests.support.bench_rig import EmulatorRig
+from tests.support.bench_rig import EmulatorRig, emulator_control
 from tests.support.waiting import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,8 +33,12 @@ pytestmark = pytest.mark.e2e
 
 @pytest.fixture(scope="module")
 def emulator():
-    proc = subprocess.Popen([sys.executable, "-m", "plant_emulator", "--speedup", "0"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "plant_emulator", "--speedup", "0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 60.0)
         assert ready, "emulator printed no endpoints within 60 s"
@@ -81,8 +86,12 @@ def read_samples(bench, n: int):
             got += len(s)
     assert got >= n, f"only {got} of {n} samples within 20 s"
     bench["sync_level"] = int(parts[-1].flags[-1] & FLAG_SYNC_INPUT)
-    return (np.concatenate([p.index for p in parts]), np.concatenate([p.angle_rad for p in parts]),
-            np.concatenate([p.accel_fs for p in parts]), np.concatenate([p.flags for p in parts]))
+    return (
+        np.concatenate([p.index for p in parts]),
+        np.concatenate([p.angle_rad for p in parts]),
+        np.concatenate([p.accel_fs for p in parts]),
+        np.concatenate([p.flags for p in parts]),
+    )
 
 
 def toggles_after(bench, n: int) -> int:
@@ -132,12 +141,12 @@ def test_supply_over_scpi(emulator):
         port.write(b"*IDN?\n")
         assert port.readline().decode().strip() == "ripplecal,emulated-supply,0,0.1"
         port.write(b"OUTP?\n")
-        assert port.readline().strip() == b"0"                        # starts OFF
+        assert port.readline().strip() == b"0"  # starts OFF
         port.write(b"VOLT 12\nOUTP ON\nVOLT?\n")
         assert float(port.readline()) == pytest.approx(12.0)
         port.write(b"MEAS:VOLT?\n")
         assert float(port.readline()) == pytest.approx(12.0, abs=0.01)
-        port.write(b"VOLT 99\nSYST:ERR?\n")                             # out of range: queued error
+        port.write(b"VOLT 99\nSYST:ERR?\n")  # out of range: queued error
         assert port.readline().startswith(b"-222")
     finally:
         port.close()
@@ -159,7 +168,7 @@ def test_enable_torque_and_sync_toggle(bench):
     enable(drive)
     assert drive.sdo[0x6061].raw == 4
     read_samples(bench, 4096)
-    drive.sdo[0x6071].raw = 500                                         # 2.5 Nm
+    drive.sdo[0x6071].raw = 500  # 2.5 Nm
     assert toggles_after(bench, 16000 * 3) == 1, "one setpoint, one toggle"
     with pytest.raises(canopen.SdoAbortedError) as exc:
         drive.sdo[0x6071].raw = 1500
@@ -180,7 +189,7 @@ def test_injection_commit_is_one_toggle(bench):
     drive.sdo[0x2000][7].raw = 1
     assert drive.sdo[0x2000][7].raw == (count + 1) % 256
     assert toggles_after(bench, 16000 * 3) == 1
-    drive.sdo[0x2000][2].raw = 1                                        # mode manual: one more
+    drive.sdo[0x2000][2].raw = 1  # mode manual: one more
     assert toggles_after(bench, 16000 * 3) == 1
 
 
@@ -189,7 +198,7 @@ def test_heartbeat_loss_faults_the_drive(bench):
     emcy = []
     drive.emcy.add_callback(emcy.append)
     bench["heartbeat"].stop()
-    assert wait_until(lambda: state_of(drive) == State402.FAULT, 10.0)   # consumer time 500 ms
+    assert wait_until(lambda: state_of(drive) == State402.FAULT, 10.0)  # consumer time 500 ms
     assert drive.sdo[0x6071].raw == 0 and drive.sdo[0x2000][2].raw == 0
     assert any(e.code == 0x8130 for e in emcy)
     bench["heartbeat"] = bench["net"].send_periodic(0x701, [0x05], 0.1)
@@ -198,24 +207,11 @@ def test_heartbeat_loss_faults_the_drive(bench):
     assert state_of(drive) == State402.SWITCH_ON_DISABLED
 
 
-def control(emulator, cmd: dict) -> dict:
-    import socket
-    _, ep = emulator
-    assert ep["control"].startswith("tcp://127.0.0.1:")
-    with socket.create_connection(("127.0.0.1", int(ep["control"].rsplit(":", 1)[1])), timeout=5) as sock:
-        sock.sendall((json.dumps(cmd) + "\n").encode())
-        reply = b""
-        while not reply.endswith(b"\n"):
-            chunk = sock.recv(4096)
-            assert chunk, "control socket closed"
-            reply += chunk
-    return json.loads(reply)
-
-
 def test_lut_download_over_sdo_segmented(bench):
     import zlib
 
     from drivers import lut_image
+
     drive = bench["drive"]
     good = lut_image.encode(6, [1.0, 2.5, 4.0], [1000.0, 2000.0], [12.0], np.full(6, 0.01), np.full(6, -0.02), map_id=5)
     drive.sdo.download(0x2001, 1, good, force_segment=True)
@@ -229,52 +225,54 @@ def test_lut_download_over_sdo_segmented(bench):
 
 
 def test_control_socket_faults(emulator, bench):
+    _, ep = emulator
+    assert ep["control"].startswith("tcp://127.0.0.1:")  # test-only: on loopback
     drive = bench["drive"]
-    assert control(emulator, {"fault": "nonsense"})["ok"] is False
+    assert emulator_control(ep, {"fault": "nonsense"})["ok"] is False
     # frames already produced (queue + pty buffer, < 32k samples) pass unharmed
     before = bench["decoder"].counters.crc_failures
-    assert control(emulator, {"fault": "daq_corrupt", "rate": 0.01})["ok"] is True
+    assert emulator_control(ep, {"fault": "daq_corrupt", "rate": 0.01})["ok"] is True
     read_samples(bench, 48000)
     assert bench["decoder"].counters.crc_failures > before
-    assert control(emulator, {"fault": "clear"})["ok"] is True
-    read_samples(bench, 40000)                                          # flush what was corrupted
+    assert emulator_control(ep, {"fault": "clear"})["ok"] is True
+    read_samples(bench, 40000)  # flush what was corrupted
     before = bench["decoder"].counters.crc_failures
     read_samples(bench, 8000)
     assert bench["decoder"].counters.crc_failures == before
     # delayed SDO responses: past the client's timeout
-    assert control(emulator, {"fault": "sdo_delay", "seconds": 0.6})["ok"]
+    assert emulator_control(ep, {"fault": "sdo_delay", "seconds": 0.6})["ok"]
     drive.sdo.RESPONSE_TIMEOUT = 0.3
     with pytest.raises(canopen.SdoCommunicationError):
         drive.sdo[0x6041].raw
-    control(emulator, {"fault": "clear"})
-    time.sleep(0.8)                                                     # the held response passes by
+    emulator_control(ep, {"fault": "clear"})
+    time.sleep(0.8)  # the held response passes by
     drive.sdo.RESPONSE_TIMEOUT = 1.0
     assert drive.sdo[0x1018][1].raw == 0x0EAC
     # EMCY with FAULT
     emcy = []
     drive.emcy.add_callback(emcy.append)
-    assert control(emulator, {"fault": "emcy", "code": 12816})["ok"]
+    assert emulator_control(ep, {"fault": "emcy", "code": 12816})["ok"]
     assert wait_until(lambda: any(e.code == 12816 for e in emcy), 10.0)
     assert state_of(drive) == State402.FAULT
     drive.sdo[0x6040].raw = CONTROLWORD[PATH_TO_OPERATION_ENABLED[State402.FAULT]]
     # drive heartbeat stopped, then produced again
     seen = []
     bench["net"].subscribe(0x705, lambda can_id, data, ts: seen.append(time.monotonic()))
-    assert control(emulator, {"fault": "heartbeat_stop"})["ok"]
+    assert emulator_control(ep, {"fault": "heartbeat_stop"})["ok"]
     stopped_at = time.monotonic()
     # a frame sent just before the stop may still be queued (late under load): quiet for 4 periods
     assert wait_until(lambda: time.monotonic() - max([stopped_at, *seen]) > 0.4, 10.0)
     heard_before = len(seen)
-    control(emulator, {"fault": "clear"})
+    emulator_control(ep, {"fault": "clear"})
     assert wait_until(lambda: len(seen) > heard_before, 10.0)
     # DAQ unplugged (its stable path disappears) and plugged in again as a new pty behind the same path
-    link = emulator[1]["daq"]
-    assert control(emulator, {"fault": "daq_disconnect"})["ok"]
+    link = ep["daq"]
+    assert emulator_control(ep, {"fault": "daq_disconnect"})["ok"]
     assert not os.path.exists(link)
     with pytest.raises(serial.SerialException):
         for _ in range(100):
             bench["daq"].read(4096)
-    reply = control(emulator, {"fault": "daq_reconnect"})
+    reply = emulator_control(ep, {"fault": "daq_reconnect"})
     assert reply["ok"] and reply["daq"] == link and os.path.realpath(link) == reply["device"]
     bench["daq"].close()
     bench["daq"] = serial.Serial(reply["daq"], timeout=0.5)
@@ -284,7 +282,7 @@ def test_control_socket_faults(emulator, bench):
     read_samples(bench, 20000)
     index = read_samples(bench, 4000)[0]
     assert np.all(np.diff(index) == 1)
-    assert control(emulator, {"status": True})["faults"]["daq_disconnected"] is False
+    assert emulator_control(ep, {"status": True})["faults"]["daq_disconnected"] is False
 
 
 def test_control_socket_supply_faults(emulator, bench):
@@ -299,25 +297,25 @@ def test_control_socket_supply_faults(emulator, bench):
         return port.readline().decode().strip()
 
     def dc_link_v() -> float:
-        read_samples(bench, 4096)            # a piece of plant: the firmware publishes what it measured
+        read_samples(bench, 4096)  # a piece of plant: the firmware publishes what it measured
         return drive.sdo[0x6079].raw / 1000.0
 
     try:
         port.write(b"VOLT 12\nOUTP ON\n")
         assert float(ask("MEAS:VOLT?")) == pytest.approx(12.0, abs=0.01)
-        assert control(emulator, {"fault": "supply_voltage", "volts": 9.0})["ok"]
+        assert emulator_control(ep, {"fault": "supply_voltage", "volts": 9.0})["ok"]
         assert float(ask("MEAS:VOLT?")) == pytest.approx(9.0, abs=0.01)
         assert float(ask("VOLT?")) == pytest.approx(12.0)
         assert wait_until(lambda: dc_link_v() == pytest.approx(9.0, abs=0.01), 20.0)
-        supply = control(emulator, {"status": True})["faults"]["supply"]
+        supply = emulator_control(ep, {"status": True})["faults"]["supply"]
         assert supply == {"setpoint_v": 12.0, "output_on": True, "actual_v": 9.0, "drift_v": 9.0, "tripped": False}
-        assert control(emulator, {"fault": "supply_voltage", "volts": 99})["ok"] is False
-        assert control(emulator, {"fault": "supply_output_off"})["ok"]
+        assert emulator_control(ep, {"fault": "supply_voltage", "volts": 99})["ok"] is False
+        assert emulator_control(ep, {"fault": "supply_output_off"})["ok"]
         assert ask("OUTP?") == "0" and float(ask("MEAS:VOLT?")) == 0.0
         assert wait_until(lambda: dc_link_v() == 0.0, 20.0)
-        assert control(emulator, {"fault": "clear"})["ok"]
-        assert control(emulator, {"status": True})["faults"]["supply"]["tripped"] is False
-        assert ask("OUTP?") == "0"                  # a tripped supply does not switch itself back on
+        assert emulator_control(ep, {"fault": "clear"})["ok"]
+        assert emulator_control(ep, {"status": True})["faults"]["supply"]["tripped"] is False
+        assert ask("OUTP?") == "0"  # a tripped supply does not switch itself back on
         port.write(b"OUTP ON\n")
         assert float(ask("MEAS:VOLT?")) == pytest.approx(12.0, abs=0.01)
         assert wait_until(lambda: dc_link_v() == pytest.approx(12.0, abs=0.01), 20.0)
@@ -346,12 +344,15 @@ def test_the_plant_keeps_real_time_while_nobody_reads_the_daq(lone_emulator):
         return {**reply["faults"], "at": reply["at"]}
 
     with DaqReader(rig.endpoints["daq"]) as reader:
-        last = int(reader.read(4 * rate_hz, timeout_s=30.0).index[-1])      # a reader reads ...
-        stopped_at = time.monotonic()                                        # ... then stops reading
+        last = int(reader.read(4 * rate_hz, timeout_s=30.0).index[-1])  # a reader reads ...
+        stopped_at = time.monotonic()  # ... then stops reading
         # the plant goes on alone: the DAQ's frames are dropped, at 1x real time (not as fast as it can)
         first = wait_until(lambda: (s := status())["daq_frames_dropped"] > 0 and s, 20.0, "frames dropped")
-        later = wait_until(lambda: (s := status())["plant_samples"] - first["plant_samples"] >= rate_hz and s,
-                           20.0, "a second of plant time without a reader")
+        later = wait_until(
+            lambda: (s := status())["plant_samples"] - first["plant_samples"] >= rate_hz and s,
+            20.0,
+            "a second of plant time without a reader",
+        )
         real_time_factor = (later["plant_samples"] - first["plant_samples"]) / rate_hz / (later["at"] - first["at"])
         assert 0.3 < real_time_factor < 2.0, real_time_factor
         assert later["daq_frames_dropped"] > first["daq_frames_dropped"]
@@ -362,13 +363,13 @@ def test_the_plant_keeps_real_time_while_nobody_reads_the_daq(lone_emulator):
             block = reader.read_available(1 << 16, timeout_s=10.0)
             holes = np.flatnonzero(block.gap_before)
             if len(holes):
-                before.append(block.index[:holes[0]])
+                before.append(block.index[: holes[0]])
                 after = block.slice(int(holes[0]))
             else:
                 before.append(block.index)
             assert sum(map(len, before)) < 30 * rate_hz, "no gap in 30 s of stream"
         stale = np.concatenate(before)
-        np.testing.assert_array_equal(stale, np.arange(last + 1, last + 1 + len(stale)))   # in order, nothing lost
+        np.testing.assert_array_equal(stale, np.arange(last + 1, last + 1 + len(stale)))  # in order, nothing lost
         wall_s = resumed_at - stopped_at
         advanced_s = (int(after.index[0]) - last) / rate_hz
         # about the wall time (and the buffers' couple of seconds, filled fast before the stall)
@@ -400,9 +401,12 @@ def test_the_load_machines_fault_reaction_ends_without_a_reader(lone_emulator):
     load.enable()
     load.set_speed_rpm(2000)
     wait_until(lambda: load.read_status().speed_rpm > 1900, 30.0, "the load at speed (nobody reads the DAQ)")
-    master.disconnect()                         # as kill -9: the heartbeat stops, nothing else is said
-    wait_until(lambda: rig.control({"status": True})["faults"]["load_state"] == "fault", 10.0,
-               "the load's fault reaction ended by itself")
+    master.disconnect()  # as kill -9: the heartbeat stops, nothing else is said
+    wait_until(
+        lambda: rig.control({"status": True})["faults"]["load_state"] == "fault",
+        10.0,
+        "the load's fault reaction ended by itself",
+    )
     again = bus()
     try:
         load = LoadClient(again, rig.endpoints["load_node"], sdo_timeout_s=2.0)

@@ -4,18 +4,19 @@ Issue 2's acceptance: adaptive identification at OP1 {2.5 Nm, 2000 rpm} suppress
 harmonic by >= 30 dB; a grid search agrees within half a grid step; a 3 x 3 sweep completes and its
 map exports as CSV and as a C header that gcc compiles; tokens and validation on the API.
 """
+
 import shutil
 import subprocess
-import time
 
 import httpx
 import pytest
 
+from tests.support.operating_points import OP1
 from tests.support.service_process import ServiceProcess, cli, create_token
 from tests.support.sweep_checks import holes
+from tests.support.waiting import wait_run_finished, wait_until
 
 pytestmark = pytest.mark.e2e
-OP1 = {"torque_nm": 2.5, "speed_rpm": 2000.0, "udc_v": 12.0}
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +36,7 @@ def service(tmp_path_factory):
 
 
 def _wait_job(client, job_id, timeout_s=300):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = client.get(f"/api/v1/jobs/{job_id}").json()
-        if job["state"] in ("done", "failed", "cancelled"):
-            return job
-        time.sleep(0.2)
-    raise TimeoutError(f"job {job_id} still {job['state']}")
+    return wait_run_finished(lambda: client.get(f"/api/v1/jobs/{job_id}").json(), timeout_s, f"job {job_id}", 0.2)
 
 
 def _angle_diff_deg(a, b):
@@ -61,7 +56,11 @@ def adaptive(service):
 def test_bench_status_is_live(service):
     svc, client, _ = service
     status = client.get("/api/v1/bench/status").json()
-    assert status["connected"] and status["drive"]["state"] in ("switch_on_disabled", "ready_to_switch_on", "switched_on")
+    assert status["connected"] and status["drive"]["state"] in (
+        "switch_on_disabled",
+        "ready_to_switch_on",
+        "switched_on",
+    )
     assert status["drive"]["heartbeat_ok"]
 
 
@@ -78,18 +77,22 @@ def test_adaptive_suppresses_op1_by_30_db(adaptive):
 
 def test_bench_left_safe_after_identification(service, adaptive):
     _, client, _ = service
-    status = client.get("/api/v1/bench/status").json()
-    deadline = time.monotonic() + 5
-    while status["busy"] and time.monotonic() < deadline:
-        time.sleep(0.2)
-        status = client.get("/api/v1/bench/status").json()
+    status = wait_until(
+        lambda: not (s := client.get("/api/v1/bench/status").json())["busy"] and s, 15, "the bench idle", poll_s=0.2
+    )
     assert status["drive"]["state"] != "operation_enabled"
-    # make_safe brakes the load to standstill before disabling it (judged on the DAQ encoder)
-    status = client.get("/api/v1/bench/status").json()
-    deadline = time.monotonic() + 5
-    while (status["load"]["state"] == "operation_enabled" or abs(status["load"]["speed_rpm"]) > 50) and time.monotonic() < deadline:
-        time.sleep(0.3)
-        status = client.get("/api/v1/bench/status").json()
+    # make_safe brakes the load to standstill before disabling it (judged on the DAQ encoder); the status
+    # shows it by the next poll
+    status = wait_until(
+        lambda: (
+            (s := client.get("/api/v1/bench/status").json())["load"]["state"] != "operation_enabled"
+            and abs(s["load"]["speed_rpm"]) <= 50
+            and s
+        ),
+        15,
+        "the load shown at standstill",
+        poll_s=0.3,
+    )
     assert status["load"]["state"] != "operation_enabled" and abs(status["load"]["speed_rpm"]) <= 50
 
 
@@ -113,12 +116,7 @@ def test_sweep_map_and_exports(service, tmp_path):
     r = client.post("/api/v1/sweeps", json={"grid": grid, "method": "adaptive"})
     assert r.status_code == 202, r.text
     sweep_id = r.json()["id"]
-    deadline = time.monotonic() + 600
-    while time.monotonic() < deadline:
-        sweep = client.get(f"/api/v1/sweeps/{sweep_id}").json()
-        if sweep["state"] in ("done", "failed", "cancelled"):
-            break
-        time.sleep(0.5)
+    sweep = wait_run_finished(lambda: client.get(f"/api/v1/sweeps/{sweep_id}").json(), 600, f"sweep {sweep_id}", 0.5)
     assert sweep["state"] == "done", sweep
     assert sweep["progress"]["done"] == 9 and len(sweep["points"]) == 9
     m = client.get(f"/api/v1/maps/{sweep['map_id']}").json()
@@ -130,9 +128,14 @@ def test_sweep_map_and_exports(service, tmp_path):
     assert f"RIPPLECAL_LUT_MAP{n}_HARMONIC_ORDER 6u" in header and f"ripplecal_lut_map{n}_speed_rpm" in header
     if shutil.which("gcc"):
         (tmp_path / "lut.h").write_text(header)
-        (tmp_path / "t.c").write_text(f'#include "lut.h"\nint main(void){{return (int)RIPPLECAL_LUT_MAP{n}_N_TORQUE - 3;}}\n')
-        subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "t"), str(tmp_path / "t.c")],
-                       check=True, cwd=tmp_path)
+        (tmp_path / "t.c").write_text(
+            f'#include "lut.h"\nint main(void){{return (int)RIPPLECAL_LUT_MAP{n}_N_TORQUE - 3;}}\n'
+        )
+        subprocess.run(
+            ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "t"), str(tmp_path / "t.c")],
+            check=True,
+            cwd=tmp_path,
+        )
         assert subprocess.run([str(tmp_path / "t")]).returncode == 0
     # the LUT goes into the drive (segmented SDO); the drive's CRC read-back matches the image, and the
     # drive reports the map it holds

@@ -4,17 +4,18 @@ The service layer runs in this process; plant_emulator runs as its own process (
 Plant time is DAQ samples / rate. Scenarios: paper-bench and seeded variants of it (the truth drawn
 within the scenario's ranges; the service only knows the nominal parameters).
 """
+
 import math
 
 import pytest
 
 from service.calibration_service import CalibrationService
-from service.runs.identify import identify_at, parse_options
 from service.model.operating_point import OperatingPoint
+from service.runs.identify import identify_at, parse_options
 from service.settings import load_settings
+from tests.support.operating_points import OP1_POINT as OP1
 
 pytestmark = pytest.mark.e2e
-OP1 = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
 SEEDS = [1, 2, 3, 4, 5]
 
 
@@ -32,11 +33,14 @@ class GammaRecorder:
         def recording(theta_cos_rad, theta_sin_rad):
             self.sent_gamma_rad.append(math.hypot(theta_cos_rad, theta_sin_rad))
             return original(theta_cos_rad, theta_sin_rad)
+
         bench.drive.set_injection = recording
 
 
 def _service(tmp_path, **overrides):
-    settings = load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "id.db"), **overrides})
+    settings = load_settings(
+        environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "id.db"), **overrides}
+    )
     return CalibrationService(settings)
 
 
@@ -107,7 +111,7 @@ def test_probe_reports_measured_s_against_the_model(paper_results):
     assert abs(d["model_phase_error_deg"]) < 60 and abs(d["model_gain_error_db"]) < 6
     s = paper_results["probe"].s_measured
     g = paper_results["grid"].s_measured
-    assert abs(s - g) / abs(g) < 0.15       # two independent measurements of S agree
+    assert abs(s - g) / abs(g) < 0.15  # two independent measurements of S agree
 
 
 @pytest.mark.parametrize("offset_deg", [60.0, -60.0])
@@ -131,7 +135,7 @@ def test_120_deg_phase_error_diverges_safely_and_probe_rescues(paper):
 
 
 def test_no_authority_is_reported_with_the_reason(paper):
-    r = _run(paper, "adaptive", gamma_max_deg=1.0)     # OP1 needs about 3 deg
+    r = _run(paper, "adaptive", gamma_max_deg=1.0)  # OP1 needs about 3 deg
     assert r.status == "no_authority"
     assert "gamma_max" in r.message
     r = _run(paper, "probe", gamma_max_deg=1.0)
@@ -152,8 +156,9 @@ def test_low_speed_reaches_target_with_the_drive_decoupling(paper):
         assert decoupled.status == "ok" and decoupled.suppression_db >= 40.0, (method, decoupled.message)
         assert decoupled.details["decoupling"] is True
         # seen: 4.7 deg decoupled against 10-15 deg (gamma_max) without
-        assert math.hypot(decoupled.theta_cos, decoupled.theta_sin) < 0.7 * math.hypot(coupled.theta_cos,
-                                                                                        coupled.theta_sin)
+        assert math.hypot(decoupled.theta_cos, decoupled.theta_sin) < 0.7 * math.hypot(
+            coupled.theta_cos, coupled.theta_sin
+        )
 
 
 def test_settling_on_the_data_without_sync_line(tmp_path, paper_results):
@@ -167,7 +172,11 @@ def test_settling_on_the_data_without_sync_line(tmp_path, paper_results):
 
 # operating points whose 6th harmonic (800, 600, 400 Hz) stays clear of the shaft resonance
 # (1074 Hz nominal, drawn within +-10 % by the seed): closer, the sensor goes over range
-SEEDED_OPS = [OP1, OperatingPoint(torque_nm=4.0, speed_rpm=1500, udc_v=12), OperatingPoint(torque_nm=1.5, speed_rpm=1000, udc_v=12)]
+SEEDED_OPS = [
+    OP1,
+    OperatingPoint(torque_nm=4.0, speed_rpm=1500, udc_v=12),
+    OperatingPoint(torque_nm=1.5, speed_rpm=1000, udc_v=12),
+]
 
 
 @pytest.mark.parametrize("seed", SEEDS)

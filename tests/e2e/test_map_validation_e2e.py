@@ -4,6 +4,7 @@ The emulator runs in its own process, the service as `ripplecal serve --bench FI
 faults go through the emulator's control socket, which also tells what the drive holds in force
 (injection mode, torque setpoint). A 2 x 2 sweep keeps the plant time small; assertions are on
 states, reasons, counts and thresholds far from what the code reaches (grid points reach ~40-55 dB)."""
+
 from __future__ import annotations
 
 import math
@@ -29,8 +30,9 @@ def map_id(rig):
     r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
     assert r.status_code == 202, r.text
     sweep_id = r.json()["id"]
-    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] not in ("queued", "running") and s,
-                     240, "sweep finished")
+    sweep = api.wait(
+        lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] not in ("queued", "running") and s, 240, "sweep finished"
+    )
     assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
     return sweep["map_id"]
 
@@ -56,19 +58,24 @@ def test_validation_measures_grid_points_and_midpoints_in_lut_mode(rig, map_id):
     # 2 x 2 grid: the finer grid is 3 x 3, of which 4 grid points and 5 midpoints
     assert [c["kind"] for c in cells].count("grid") == 4 and [c["kind"] for c in cells].count("midpoint") == 5
     assert {(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"]) for c in cells} == {
-        (t, n) for t in (2.0, 2.5, 3.0) for n in (1200.0, 1400.0, 1600.0)}
+        (t, n) for t in (2.0, 2.5, 3.0) for n in (1200.0, 1400.0, 1600.0)
+    }
     assert all(c["status"] == "measured" and c["suppression_db"] is not None for c in cells), cells
     # the drive's own feedforward cancels at the points it was trained on (identification reaches >= 40 dB)
     status = {(x["torque_nm"], x["speed_rpm"]): x["status"] for x in m["cells"]}
-    assert all(c["map_cell_status"] == status[(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"])]
-               for c in cells if c["kind"] == "grid")
+    assert all(
+        c["map_cell_status"] == status[(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"])]
+        for c in cells
+        if c["kind"] == "grid"
+    )
     ok_grid = [c for c in cells if c["kind"] == "grid" and c["map_cell_status"] == "ok"]
     assert ok_grid and all(c["suppression_db"] >= 20.0 for c in ok_grid), ok_grid
     assert v["grid"]["median_db"] is not None and v["midpoint"]["measured"] == 5
     assert v["worst"]["suppression_db"] == min(c["suppression_db"] for c in cells)
-    for c in cells:     # the figure is the ratio of the two phasors it reports
+    for c in cells:  # the figure is the ratio of the two phasors it reports
         assert c["suppression_db"] == pytest.approx(
-            20 * math.log10(c["uncompensated"]["amplitude"] / c["residual"]["amplitude"]), abs=1e-9)
+            20 * math.log10(c["uncompensated"]["amplitude"] / c["residual"]["amplitude"]), abs=1e-9
+        )
         assert c["noise_floor_db"] < 0
     drive_is_safe(emu)
 
@@ -77,9 +84,12 @@ def test_validation_measures_grid_points_and_midpoints_in_lut_mode(rig, map_id):
     assert m["validation"]["job_id"] == job["id"] and m["validation"]["grid"]["cells"] == 4
     full = api.get(f"/maps/{map_id}/validation")
     assert full["cells"] == cells
-    assert full["options"]["decoupling"] is False       # as the sweep measured the map (the settings' default)
-    for fmt, marker in (("csv", "# validated in the drive's LUT mode"), ("c", " * validated in the drive's LUT mode"),
-                        ("dcm", "* validated in the drive's LUT mode")):
+    assert full["options"]["decoupling"] is False  # as the sweep measured the map (the settings' default)
+    for fmt, marker in (
+        ("csv", "# validated in the drive's LUT mode"),
+        ("c", " * validated in the drive's LUT mode"),
+        ("dcm", "* validated in the drive's LUT mode"),
+    ):
         text = api.http.get(f"/maps/{map_id}/export", params={"format": fmt}).text
         assert marker in text and f"job {job['id']}" in text, (fmt, text[:600])
     exported = api.http.get(f"/maps/{map_id}/export", params={"format": "json"}).json()
@@ -111,7 +121,7 @@ def test_a_fault_mid_validation_fails_it_with_the_reason_and_leaves_the_drive_sa
     assert v["state"] == "failed" and "EMCY 0x3210" in v["error"]
     faulted = [c for c in v["cells"] if c["status"] == "failed"]
     assert len(faulted) == 1 and "EMCY 0x3210" in faulted[0]["error"] and faulted[0]["suppression_db"] is None
-    after = v["cells"][v["cells"].index(faulted[0]) + 1:]
+    after = v["cells"][v["cells"].index(faulted[0]) + 1 :]
     assert all(c["status"] == "not_measured" and c["suppression_db"] is None for c in after)
     assert len(v["cells"]) == 9
     faults = drive_is_safe(emu)

@@ -2,6 +2,7 @@
 shorter scope records). Runs the installed script in its own process, which starts its own emulators;
 checks results.json's keys and the relations the physics guarantees (with margins), and that the
 report embeds every figure beside the paper's numbers."""
+
 import json
 import math
 import os
@@ -26,8 +27,14 @@ QUICK_DELTAS = (0.0, 320.0, 40.0)
 def report(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
     env = {k: v for k, v in os.environ.items() if not k.startswith("RIPPLECAL_")}
-    proc = subprocess.run([RIPPLECAL, "paper", "--out", str(out), "--quick"], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [RIPPLECAL, "paper", "--out", str(out), "--quick"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, json.loads((out / "results.json").read_text()), proc.stdout
 
@@ -38,9 +45,13 @@ def _angle_diff_deg(a: float, b: float) -> float:
 
 def test_results_have_the_fixed_keys(report):
     _, r, _ = report
-    for fig, keys in (("fig8", ("grid_min", "fit")), ("fig9", ("gamma_deg", "delta_deg", "time_to_40db_s")),
-                      ("fig10", ("suppression_db", "u_max_increase_pct")), ("fig11", ("coupled", "decoupled")),
-                      ("fig12", ("coupled", "decoupled"))):
+    for fig, keys in (
+        ("fig8", ("grid_min", "fit")),
+        ("fig9", ("gamma_deg", "delta_deg", "time_to_40db_s")),
+        ("fig10", ("suppression_db", "u_max_increase_pct")),
+        ("fig11", ("coupled", "decoupled")),
+        ("fig12", ("coupled", "decoupled")),
+    ):
         assert set(keys) <= set(r[fig]), (fig, r[fig].keys())
     for part in ("grid_min", "fit"):
         assert {"gamma_deg", "delta_deg"} <= set(r["fig8"][part])
@@ -59,7 +70,10 @@ def test_fig8_grid_minimum_and_fit(report):
     assert np.min(np.abs(gammas - g_min["gamma_deg"])) < 1e-9 and np.min(np.abs(deltas - g_min["delta_deg"])) < 1e-9
     assert f8["points"] == len(gammas) * len(deltas)
     # the fit lies in the grid cell around the minimum; paper-bench is calibrated to the paper's optimum
-    assert abs(fit["gamma_deg"] - g_min["gamma_deg"]) <= 1.0 and _angle_diff_deg(fit["delta_deg"], g_min["delta_deg"]) <= 10
+    assert (
+        abs(fit["gamma_deg"] - g_min["gamma_deg"]) <= 1.0
+        and _angle_diff_deg(fit["delta_deg"], g_min["delta_deg"]) <= 10
+    )
     assert abs(fit["gamma_deg"] - 3.0) < 0.5 and _angle_diff_deg(fit["delta_deg"], 280.0) < 5
 
 

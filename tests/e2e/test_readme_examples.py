@@ -6,6 +6,7 @@ never the new one). Only the address and the path of `.venv/bin/ripplecal` are r
 database rule (RIPPLECAL_SERVER__DB_PATH) makes `token create` land in the served database. Each
 answer is then checked against the API.
 """
+
 import os
 import re
 import subprocess
@@ -26,8 +27,8 @@ MARK = "@@vars"
 
 def readme_blocks() -> list[str]:
     text = README.read_text()
-    section = text[text.index("## Using it"):]
-    section = section[:section.index("\n## ", 1)]
+    section = text[text.index("## Using it") :]
+    section = section[: section.index("\n## ", 1)]
     return re.findall(r"```sh\n(.*?)```", section, re.S)
 
 
@@ -36,8 +37,14 @@ def earlier_rows(db: Path) -> None:
     marks the unfinished ones failed / interrupted)."""
     s = Storage(db)
     for _ in range(3):
-        s.create_job("identification", {"operating_point": {"torque_nm": 1.0, "speed_rpm": 1000.0, "udc_v": 12.0},
-                                        "method": "adaptive", "options": {}})
+        s.create_job(
+            "identification",
+            {
+                "operating_point": {"torque_nm": 1.0, "speed_rpm": 1000.0, "udc_v": 12.0},
+                "method": "adaptive",
+                "options": {},
+            },
+        )
     grid = {"torque_nm": [1.0], "speed_rpm": [1000.0], "udc_v": [12.0]}
     for _ in range(2):
         s.create_sweep("adaptive", 6, grid, {}, 1, "earlier", "0")
@@ -71,8 +78,11 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         script += block + f'\necho; echo "{MARK} JOB=$JOB SWEEP=$SWEEP MAP=$MAP"; cp ripplecal_lut.h lut{i}.h\n'
     # the examples' own settings only (the emulator's speed is the test session's: tests/conftest.py)
     env = {k: v for k, v in os.environ.items() if not k.startswith("RIPPLECAL_") or k == "RIPPLECAL_EMULATOR__SPEEDUP"}
-    env.update(RIPPLECAL_SERVER__DB_PATH=str(db), XDG_DATA_HOME=str(tmp_path / "xdg"),
-               PATH=f"{Path(sys.executable).parent}:{env.get('PATH', '')}")
+    env.update(
+        RIPPLECAL_SERVER__DB_PATH=str(db),
+        XDG_DATA_HOME=str(tmp_path / "xdg"),
+        PATH=f"{Path(sys.executable).parent}:{env.get('PATH', '')}",
+    )
     proc = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1500)
     assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     out = proc.stdout
@@ -93,7 +103,9 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert int(api["SWEEP"]) > 2 and sweep["state"] == "done" and api_lines[4] == "done"
         assert sweep["progress"]["done"] == sweep["progress"]["total"] == 9 and "'total': 9" in api_lines[3]
         assert int(api["MAP"]) == sweep["map_id"] > 1
-        assert (tmp_path / "lut0.h").read_text() == client.get(f"/maps/{api['MAP']}/export", params={"format": "c"}).text
+        assert (tmp_path / "lut0.h").read_text() == client.get(
+            f"/maps/{api['MAP']}/export", params={"format": "c"}
+        ).text
         assert_downloaded_or_refused_as_partial(client, int(api["MAP"]), api_lines[5])
 
         # the CLI block, into the same database: its own sweep and map, listed, shown, exported, downloaded
@@ -101,17 +113,25 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert int(cli["SWEEP"]) == int(api["SWEEP"]) + 1 and int(cli["MAP"]) == int(api["MAP"]) + 1
         cli_sweep = client.get(f"/sweeps/{cli['SWEEP']}").json()
         assert cli_sweep["state"] == "done" and cli_sweep["map_id"] == int(cli["MAP"])
-        assert re.search(rf"^ +{cli['SWEEP']} +done +adaptive +9/9 ", cli_out, re.M)           # sweeps list
-        assert f"sweep {cli['SWEEP']}: done" in cli_out                                     # sweeps show
-        assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)        # maps list
+        assert re.search(rf"^ +{cli['SWEEP']} +done +adaptive +9/9 ", cli_out, re.M)  # sweeps list
+        assert f"sweep {cli['SWEEP']}: done" in cli_out  # sweeps show
+        assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)  # maps list
         assert "wrote ripplecal_lut.h" in cli_out
         m = client.get(f"/maps/{cli['MAP']}").json()
         if holes(m) == 0:
-            assert re.search(rf"^map {cli['MAP']}: \d+ bytes \({9 - cells_not_ok(m)} of 9 cells ok, "
-                             rf"{m['filled_cells']} filled, \w+ interpolation, h = 6\).*CRC-32 read back 0x", cli_out, re.M)
+            assert re.search(
+                rf"^map {cli['MAP']}: \d+ bytes \({9 - cells_not_ok(m)} of 9 cells ok, "
+                rf"{m['filled_cells']} filled, \w+ interpolation, h = 6\).*CRC-32 read back 0x",
+                cli_out,
+                re.M,
+            )
         else:
-            assert re.search(rf"map {cli['MAP']} is partial: \d of 9 cells are not ok", proc.stderr), proc.stderr[-2000:]
-        assert (tmp_path / "lut1.h").read_text() == client.get(f"/maps/{cli['MAP']}/export", params={"format": "c"}).text
+            assert re.search(rf"map {cli['MAP']} is partial: \d of 9 cells are not ok", proc.stderr), proc.stderr[
+                -2000:
+            ]
+        assert (tmp_path / "lut1.h").read_text() == client.get(
+            f"/maps/{cli['MAP']}/export", params={"format": "c"}
+        ).text
         # the API download of the CLI's map (the README's LUT paragraph)
         assert_downloaded_or_refused_as_partial(client, int(cli["MAP"]), download_out)
 

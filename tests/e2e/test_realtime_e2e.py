@@ -3,6 +3,7 @@
 A small sweep and its validation run as continuous bench runs in real time. Assertions are on states
 and on what real time means (a run cannot take less wall time than the plant time it measured), never
 on how fast it went: the figures are `make bench`'s (tests/benchmarks/bench_realtime.py)."""
+
 from __future__ import annotations
 
 import time
@@ -27,8 +28,11 @@ def test_a_sweep_and_its_validation_in_real_time(tmp_path):
         started = time.monotonic()
         r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
         assert r.status_code == 202, r.text
-        sweep = api.wait(lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running")
-                         and s, 300, "sweep finished")
+        sweep = api.wait(
+            lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
+            300,
+            "sweep finished",
+        )
         sweep_wall_s = time.monotonic() - started
         assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
         points = [p["result"] for p in sweep["points"]]
@@ -38,7 +42,7 @@ def test_a_sweep_and_its_validation_in_real_time(tmp_path):
             assert SPLIT <= set(p["details"]["bench_time_s"]), p["details"]
             assert p["plant_time_s"] > 0 and p["details"]["op_settle_plant_s"] > 0
         plant_s = sum(p["plant_time_s"] + p["details"]["op_settle_plant_s"] for p in points)
-        assert sweep_wall_s >= plant_s, (sweep_wall_s, plant_s)      # real time: no faster than the plant
+        assert sweep_wall_s >= plant_s, (sweep_wall_s, plant_s)  # real time: no faster than the plant
 
         m = api.get(f"/maps/{sweep['map_id']}")
         started = time.monotonic()

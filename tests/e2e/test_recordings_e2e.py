@@ -7,6 +7,7 @@ sample where the drive's sync line toggled. Retention (a tiny keep_gb: only the 
 deletes the oldest, and a recordings directory that cannot be used loses the recording, never the
 result.
 """
+
 import io
 import xml.etree.ElementTree as ET
 
@@ -16,23 +17,21 @@ from asammdf import MDF
 
 from drivers.daq_protocol import FLAG_SYNC_INPUT
 from service.store.recordings import DAQ_CHANNELS, SETPOINT_CHANNELS, header_properties
-from tests.support.live_app import bearer, client_for, started_service, wait_finished
+from tests.support.live_app import wait_finished
+from tests.support.operating_points import OP1
 
 pytestmark = pytest.mark.e2e
-OP1 = {"torque_nm": 2.5, "speed_rpm": 2000.0, "udc_v": 12.0}
-TINY_GB = 1e-9          # 1 byte: after each write every older recording goes (the newest is always kept)
-
-
-@pytest.fixture(scope="module")
-def live(tmp_path_factory):
-    with started_service(tmp_path_factory.mktemp("recordings"), **{"recordings.keep_gb": TINY_GB}) as service:
-        yield service, client_for(service), bearer(service, "operator")
+TINY_GB = 1e-9  # 1 byte: after each write every older recording goes (the newest is always kept)
+LIVE_SETTINGS = {"recordings.keep_gb": TINY_GB}  # the module's `live` (tests/conftest.py)
 
 
 def _identify(live, method: str, options: dict | None = None) -> dict:
     service, client, operator = live
-    r = client.post("/api/v1/identifications", json={"operating_point": OP1, "method": method,
-                                                     "options": options or {}}, headers=operator)
+    r = client.post(
+        "/api/v1/identifications",
+        json={"operating_point": OP1, "method": method, "options": options or {}},
+        headers=operator,
+    )
     assert r.status_code == 202, r.text
     job = wait_finished(client, f"/api/v1/jobs/{r.json()['id']}", timeout_s=300)
     assert job["state"] == "done", job
@@ -58,7 +57,10 @@ def test_probe_recording_opens_in_asammdf_and_holds_the_plant_time(live, probe):
     assert rec["available"] and rec["error"] is None, rec
     rate = service.settings.daq.sample_rate_hz
     with _download(client, probe["id"]) as mdf:
-        assert {ch for group in mdf.groups for ch in (c.name for c in group.channels)} >= {*DAQ_CHANNELS, *SETPOINT_CHANNELS}
+        assert {ch for group in mdf.groups for ch in (c.name for c in group.channels)} >= {
+            *DAQ_CHANNELS,
+            *SETPOINT_CHANNELS,
+        }
         alpha, angle = mdf.get("alpha"), mdf.get("angle")
         index = mdf.get("sample_index").samples
         flags = mdf.get("flags").samples
@@ -92,7 +94,11 @@ def test_probe_recording_opens_in_asammdf_and_holds_the_plant_time(live, probe):
 
         # the header says what was measured where, by what
         props = header_properties(mdf.header.comment)
-        assert ET.fromstring(mdf.header.comment).find("TX").text.startswith(f"ripplecal raw recording of result {probe['id']}")
+        assert (
+            ET.fromstring(mdf.header.comment)
+            .find("TX")
+            .text.startswith(f"ripplecal raw recording of result {probe['id']}")
+        )
         assert props["result_id"] == str(probe["id"]) and props["method"] == "probe"
         assert (float(props["torque_nm"]), float(props["speed_rpm"]), float(props["udc_v"])) == tuple(OP1.values())
         assert props["bench_identity"] == probe["bench_identity"]
@@ -110,8 +116,14 @@ def test_recording_route_refuses_what_it_cannot_give(live, probe):
 
 def test_every_sweep_point_is_recorded_and_retention_deletes_the_oldest(live, probe):
     service, client, operator = live
-    r = client.post("/api/v1/sweeps", headers=operator, json={
-        "grid": {"torque_nm": [2.0, 2.5], "speed_rpm": [OP1["speed_rpm"]], "udc_v": [OP1["udc_v"]]}, "method": "adaptive"})
+    r = client.post(
+        "/api/v1/sweeps",
+        headers=operator,
+        json={
+            "grid": {"torque_nm": [2.0, 2.5], "speed_rpm": [OP1["speed_rpm"]], "udc_v": [OP1["udc_v"]]},
+            "method": "adaptive",
+        },
+    )
     assert r.status_code == 202, r.text
     sweep = wait_finished(client, f"/api/v1/sweeps/{r.json()['id']}", timeout_s=300)
     assert sweep["state"] == "done", sweep
@@ -138,8 +150,18 @@ def test_unusable_recordings_directory_loses_the_recording_not_the_result(live):
     directory.rename(aside)
     directory.write_text("a file where the recordings directory should be")
     try:
-        result = _identify(live, "grid", {"gamma_start_deg": 2.0, "gamma_stop_deg": 4.0, "gamma_step_deg": 2.0,
-                                          "delta_start_deg": 0.0, "delta_stop_deg": 180.0, "delta_step_deg": 180.0})
+        result = _identify(
+            live,
+            "grid",
+            {
+                "gamma_start_deg": 2.0,
+                "gamma_stop_deg": 4.0,
+                "gamma_step_deg": 2.0,
+                "delta_start_deg": 0.0,
+                "delta_stop_deg": 180.0,
+                "delta_step_deg": 180.0,
+            },
+        )
     finally:
         directory.unlink()
         aside.rename(directory)
@@ -147,6 +169,6 @@ def test_unusable_recordings_directory_loses_the_recording_not_the_result(live):
     assert client.get(f"/api/v1/results/{result['id']}").json()["status"] == result["status"]
     rec = result["recording"]
     assert not rec["available"] and "recordings directory is unusable" in rec["error"], rec
-    assert str(directory) not in rec["error"], rec          # no server path in an answer
+    assert str(directory) not in rec["error"], rec  # no server path in an answer
     r = client.get(f"/api/v1/results/{result['id']}/recording")
     assert r.status_code == 404 and "unusable" in r.json()["detail"], r.text

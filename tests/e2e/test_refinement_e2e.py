@@ -3,6 +3,7 @@
 sweep of kind `refinement`: it is cancelled and resumed after a crash as any sweep is, and measures each
 of its cells once. Assertions are on states, counts and provenance, never on how well a round did (the
 figures are `make bench`'s)."""
+
 from __future__ import annotations
 
 import os
@@ -30,23 +31,29 @@ def start(emu: EmulatorRig, db) -> tuple[ServiceProcess, Api]:
     svc = ServiceProcess(db, "--bench", str(emu.bench_file(db.parent)))
     svc.wait_ready()
     api = Api(svc, db)
-    assert api.post("/bench/fault-reset").status_code == 200        # whatever an earlier test left
+    assert api.post("/bench/fault-reset").status_code == 200  # whatever an earlier test left
     return svc, api
 
 
 def swept_map(api: Api) -> int:
     r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
     assert r.status_code == 202, r.text
-    sweep = api.wait(lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
-                     300, "sweep finished")
+    sweep = api.wait(
+        lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
+        300,
+        "sweep finished",
+    )
     assert sweep["state"] == "done", sweep
     return sweep["map_id"]
 
 
 def refinement_cells(db, sweep_id: int) -> dict:
     with sqlite3.connect(db) as conn:
-        rows = conn.execute("SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
-                            "GROUP BY torque_nm, speed_rpm, udc_v", (sweep_id,)).fetchall()
+        rows = conn.execute(
+            "SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
+            "GROUP BY torque_nm, speed_rpm, udc_v",
+            (sweep_id,),
+        ).fetchall()
     return {r[:3]: r[3] for r in rows}
 
 
@@ -61,16 +68,20 @@ def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu
         assert job["state"] == "done", job
         result = job["result"]
         assert result["source_map_id"] == source and result["rounds"] and result["cells_added"] <= 4
-        assert result["holds"] or result["stopped"]                 # every point held, or it says why not
+        assert result["holds"] or result["stopped"]  # every point held, or it says why not
         assert result["rounds"][0]["map_id"] == source and result["rounds"][0]["points"] == 9
         refined = api.get(f"/maps/{result['map_id']}")
         if result["cells_added"]:
             # the refined map keeps its provenance; its axes hold what the rounds inserted
-            assert refined["refined_from"] == source and refined["provenance"]["refinement_id"] == result["refinement_id"]
+            assert (
+                refined["refined_from"] == source and refined["provenance"]["refinement_id"] == result["refinement_id"]
+            )
             for rnd in result["rounds"][:-1]:
                 for axis, values in rnd["inserted"].items():
                     assert set(values) <= set(refined["axes"][axis])
-            assert refined["axes"]["speed_rpm"] != GRID["speed_rpm"] or refined["axes"]["torque_nm"] != GRID["torque_nm"]
+            assert (
+                refined["axes"]["speed_rpm"] != GRID["speed_rpm"] or refined["axes"]["torque_nm"] != GRID["torque_nm"]
+            )
         # its validation is the refinement's final one, in LUT mode, at every grid point and midpoint
         validation = api.get(f"/maps/{result['map_id']}/validation")
         assert validation["id"] == result["validation"]["id"]
@@ -102,8 +113,14 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         # kill -9 during a round: after the restart the refinement is interrupted, resumes from its step
         job_id = api.post(f"/maps/{source}/refine", {"max_cells": 4}).json()["id"]
         sweep_id = api.get(f"/jobs/{job_id}")["sweep_id"]
-        api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["refinement"]["phase"] == "measure"
-                 or s["state"] not in ("queued", "running"), 300, "a round measuring its cells")
+        api.wait(
+            lambda: (
+                (s := api.get(f"/sweeps/{sweep_id}"))["refinement"]["phase"] == "measure"
+                or s["state"] not in ("queued", "running")
+            ),
+            300,
+            "a round measuring its cells",
+        )
         api.close()
     finally:
         os.killpg(svc.proc.pid, signal.SIGKILL)
@@ -114,8 +131,11 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         sweep = api.get(f"/sweeps/{sweep_id}")
         if sweep["state"] == "interrupted":
             assert api.post(f"/sweeps/{sweep_id}/resume").status_code == 200
-        sweep = api.wait(lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed", "cancelled") and s,
-                         600, "refinement finished after the restart")
+        sweep = api.wait(
+            lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] in ("done", "failed", "cancelled") and s,
+            600,
+            "refinement finished after the restart",
+        )
         assert sweep["state"] == "done", sweep
         refinement = sweep["refinement"]
         assert refinement["phase"] == "done" and (refinement["holds"] or refinement["stopped"])

@@ -2,6 +2,7 @@
 API, with the scheduler on a clock the test steps, so an every-minute schedule is tested without
 waiting for real minutes. What the scheduler has looked at is known from its pass counter
 (`Scheduler.ticks`), never from a sleep."""
+
 from __future__ import annotations
 
 import contextlib
@@ -43,8 +44,15 @@ class SteppedClock:
 
 
 def _settings(db: Path, grace_s: float = 3600):
-    return load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "schedules.tick_s": TICK_S,
-                                                "schedules.missed_grace_s": grace_s})
+    return load_settings(
+        environ={},
+        overrides={
+            "emulator.speedup": 0.0,
+            "server.db_path": str(db),
+            "schedules.tick_s": TICK_S,
+            "schedules.missed_grace_s": grace_s,
+        },
+    )
 
 
 @contextlib.contextmanager
@@ -77,17 +85,20 @@ def live(tmp_path_factory):
 def test_every_minute_schedule_fires_a_sweep_on_time_and_stops_after_delete(live):
     service, client, operator, clock = live
     clock.set(datetime(2027, 6, 1, 12, 0, 30, tzinfo=UTC))
-    r = client.post(f"{API}/schedules", headers=operator, json={
-        "name": "every minute", "cron": "* * * * *", "timezone": "Europe/Berlin", "sweep": SWEEP})
+    r = client.post(
+        f"{API}/schedules",
+        headers=operator,
+        json={"name": "every minute", "cron": "* * * * *", "timezone": "Europe/Berlin", "sweep": SWEEP},
+    )
     assert r.status_code == 201, r.text
     schedule = r.json()
     sid = schedule["id"]
     assert schedule["next_runs"][:2] == ["2027-06-01T14:01:00+02:00", "2027-06-01T14:02:00+02:00"]
     assert schedule["runs"] == [] and schedule["enabled"] is True
     _passes(service)
-    assert _runs(client, sid) == []                 # 12:00:30: nothing due yet
+    assert _runs(client, sid) == []  # 12:00:30: nothing due yet
 
-    clock.set(datetime(2027, 6, 1, 12, 1, 0, 500_000, tzinfo=UTC))    # half a second after it fell due
+    clock.set(datetime(2027, 6, 1, 12, 1, 0, 500_000, tzinfo=UTC))  # half a second after it fell due
     (run,) = wait_until(lambda: _runs(client, sid), timeout_s=30, what="the first firing")
     assert run["due_at"] == "2027-06-01T14:01:00+02:00"
     assert run["fired_at"] == "2027-06-01T14:01:00.500+02:00"
@@ -104,7 +115,7 @@ def test_every_minute_schedule_fires_a_sweep_on_time_and_stops_after_delete(live
     assert client.get(f"{API}/schedules/{sid}").status_code == 404
     assert sid not in [s["id"] for s in client.get(f"{API}/schedules").json()]
     sweeps_before = {s["id"] for s in client.get(f"{API}/sweeps").json()}
-    clock.set(datetime(2027, 6, 1, 12, 3, 0, 500_000, tzinfo=UTC))    # two more minutes have fallen due
+    clock.set(datetime(2027, 6, 1, 12, 3, 0, 500_000, tzinfo=UTC))  # two more minutes have fallen due
     _passes(service)
     assert {s["id"] for s in client.get(f"{API}/sweeps").json()} == sweeps_before
     assert len(service.storage.schedule_runs(sid)) == 1
@@ -116,14 +127,26 @@ def test_a_busy_bench_queues_one_pending_run_per_schedule(live):
     service, client, operator, clock = live
     clock.set(datetime(2027, 6, 2, 12, 0, 30, tzinfo=UTC))
     # 12 points (some 10 s even at speedup 0): the two firings below take a second; it is cancelled after them
-    r = client.post(f"{API}/sweeps", headers=operator, json={
-        "grid": {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 2000, 2500], "udc_v": [12]}, "method": "probe"})
+    r = client.post(
+        f"{API}/sweeps",
+        headers=operator,
+        json={
+            "grid": {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 2000, 2500], "udc_v": [12]},
+            "method": "probe",
+        },
+    )
     assert r.status_code == 202, r.text
     manual = r.json()["id"]
-    wait_until(lambda: client.get(f"{API}/sweeps/{manual}").json()["state"] == "running",
-               timeout_s=60, what="the manual sweep running")
-    r = client.post(f"{API}/schedules", headers=operator, json={
-        "name": "busy", "cron": "* * * * *", "timezone": "UTC", "sweep": SWEEP})
+    wait_until(
+        lambda: client.get(f"{API}/sweeps/{manual}").json()["state"] == "running",
+        timeout_s=60,
+        what="the manual sweep running",
+    )
+    r = client.post(
+        f"{API}/schedules",
+        headers=operator,
+        json={"name": "busy", "cron": "* * * * *", "timezone": "UTC", "sweep": SWEEP},
+    )
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
 
@@ -132,8 +155,9 @@ def test_a_busy_bench_queues_one_pending_run_per_schedule(live):
     assert first["outcome"] == "queued", first
     assert client.get(f"{API}/sweeps/{first['sweep_id']}").json()["state"] == "queued"
     clock.set(datetime(2027, 6, 2, 12, 2, 0, 200_000, tzinfo=UTC))
-    second = wait_until(lambda: (runs := _runs(client, sid)) and len(runs) == 2 and runs[0], timeout_s=30,
-                        what="the second firing")
+    second = wait_until(
+        lambda: (runs := _runs(client, sid)) and len(runs) == 2 and runs[0], timeout_s=30, what="the second firing"
+    )
     assert second["outcome"] == "skipped" and second["sweep_id"] == first["sweep_id"], second
     assert sum(1 for s in client.get(f"{API}/sweeps").json() if s["schedule_id"] == sid) == 1
 
@@ -141,8 +165,9 @@ def test_a_busy_bench_queues_one_pending_run_per_schedule(live):
     assert wait_finished(client, f"{API}/sweeps/{first['sweep_id']}")["state"] == "done"
     wait_until(lambda: not service.storage.bench_has_work(), timeout_s=60, what="the bench free")
     clock.set(datetime(2027, 6, 2, 12, 3, 0, 200_000, tzinfo=UTC))
-    third = wait_until(lambda: (runs := _runs(client, sid)) and len(runs) == 3 and runs[0], timeout_s=30,
-                       what="the third firing")
+    third = wait_until(
+        lambda: (runs := _runs(client, sid)) and len(runs) == 3 and runs[0], timeout_s=30, what="the third firing"
+    )
     assert third["outcome"] == "started", third
     assert client.patch(f"{API}/schedules/{sid}", headers=operator, json={"enabled": False}).json()["next_runs"] == []
     wait_finished(client, f"{API}/sweeps/{third['sweep_id']}")
@@ -185,10 +210,14 @@ def test_schedule_requests_are_checked_like_sweeps(live):
 
 def test_preview_route_across_the_2027_dst_changes(live):
     _, client, _, _ = live
-    for start, expected_change in (("2027-03-26T00:00", "2027-03-28T03:00:00+02:00"),
-                                   ("2027-10-29T00:00", "2027-10-31T02:30:00+02:00")):
-        r = client.get(f"{API}/schedules/preview",
-                       params={"cron": "30 2 * * *", "timezone": "Europe/Berlin", "start": start, "count": 5})
+    for start, expected_change in (
+        ("2027-03-26T00:00", "2027-03-28T03:00:00+02:00"),
+        ("2027-10-29T00:00", "2027-10-31T02:30:00+02:00"),
+    ):
+        r = client.get(
+            f"{API}/schedules/preview",
+            params={"cron": "30 2 * * *", "timezone": "Europe/Berlin", "start": start, "count": 5},
+        )
         assert r.status_code == 200, r.text
         runs = r.json()["runs"]
         days = [t[:10] for t in runs]
@@ -212,7 +241,7 @@ def test_a_firing_missed_within_grace_runs_once_at_start(tmp_path):
     clock.set(datetime(2027, 6, 1, 3, 20, tzinfo=UTC))
     with _service(db, clock) as service:
         client = client_for(service)
-        (run,) = _runs(client, nightly)            # handled by the time start() returns
+        (run,) = _runs(client, nightly)  # handled by the time start() returns
         assert run["outcome"] == "started" and run["due_at"] == "2027-06-01T03:00:00+00:00", run
         (missed,) = _runs(client, early)
         assert missed["outcome"] == "missed" and missed["sweep_id"] is None, missed

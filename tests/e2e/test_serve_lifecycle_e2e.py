@@ -1,5 +1,6 @@
 """`ripplecal serve` as a process: one Ctrl+C stops it with an SSE stream open (no traceback), and a
 bench that cannot be reached at start gives one clear line while the service still comes up."""
+
 from __future__ import annotations
 
 import signal
@@ -10,10 +11,13 @@ import threading
 import time
 
 import httpx
+import pytest
 
+from tests.support.operating_points import OP1
 from tests.support.service_process import REPO, ServiceProcess, create_token, free_port
 
-EXIT_TIMEOUT_S = 60.0       # generous: the emulator child and the bench are shut down in order
+pytestmark = pytest.mark.e2e
+EXIT_TIMEOUT_S = 60.0  # generous: the emulator child and the bench are shut down in order
 
 
 def test_one_sigint_stops_serve_with_an_sse_stream_open(tmp_path):
@@ -32,19 +36,19 @@ def test_one_sigint_stops_serve_with_an_sse_stream_open(tmp_path):
         listener = threading.Thread(target=listen, daemon=True)
         listener.start()
         assert got_first_event.wait(30), "no bench.status on /api/v1/events"
-        svc.proc.send_signal(signal.SIGINT)          # once, to the service alone (as a terminal's Ctrl+C would)
+        svc.proc.send_signal(signal.SIGINT)  # once, to the service alone (as a terminal's Ctrl+C would)
         code = svc.proc.wait(timeout=EXIT_TIMEOUT_S)
         listener.join(timeout=10)
     finally:
         svc.stop()
     log = svc.log_text()
-    assert code in (0, 130), log[-3000:]        # 130: interrupted by Ctrl+C, after an orderly shutdown
+    assert code in (0, 130), log[-3000:]  # 130: interrupted by Ctrl+C, after an orderly shutdown
     assert "Traceback" not in log and "CancelledError" not in log, log[-3000:]
     assert not listener.is_alive(), "the SSE stream did not end with the service"
 
 
 def _closed_port() -> int:
-    port = free_port()          # bound and released: nothing listens there
+    port = free_port()  # bound and released: nothing listens there
     with socket.socket() as s:
         assert s.connect_ex(("127.0.0.1", port)) != 0
     return port
@@ -68,9 +72,24 @@ url = "socket://127.0.0.1:{port}"
     base_port = free_port()
     log_path = tmp_path / "service.log"
     with open(log_path, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--bench", str(bench), "--port",
-                                 str(base_port), "--db", str(tmp_path / "ripplecal.db")], cwd=REPO, stdout=log,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "service.cli",
+                "serve",
+                "--bench",
+                str(bench),
+                "--port",
+                str(base_port),
+                "--db",
+                str(tmp_path / "ripplecal.db"),
+            ],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     base = f"http://127.0.0.1:{base_port}"
     try:
         deadline = time.monotonic() + 60
@@ -91,8 +110,12 @@ url = "socket://127.0.0.1:{port}"
         assert httpx.get(f"{base}/", timeout=5).status_code == 200
         assert httpx.get(f"{base}/api/v1/sweeps", timeout=5).status_code == 200
         token = create_token(tmp_path / "ripplecal.db")
-        r = httpx.post(f"{base}/api/v1/identifications", timeout=10, headers={"Authorization": f"Bearer {token}"},
-                       json={"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "method": "probe"})
+        r = httpx.post(
+            f"{base}/api/v1/identifications",
+            timeout=10,
+            headers={"Authorization": f"Bearer {token}"},
+            json={"operating_point": OP1, "method": "probe"},
+        )
         assert r.status_code == 409 and "CAN bus" in r.json()["detail"] and "check that" in r.json()["detail"], r.text
         assert httpx.get(f"{base}/api/v1/jobs", timeout=5).json() == []
         lines = [l for l in text.splitlines() if "bench unreachable" in l]
@@ -120,7 +143,7 @@ def test_the_access_log_names_method_path_and_status_but_never_the_query(tmp_pat
         missing = httpx.get(f"{svc.base}/api/v1/results/987654?access_token=rc_other-secret", timeout=10)
         assert missing.status_code == 404, missing.text
     finally:
-        svc.stop()                           # the log is complete once the process has ended
+        svc.stop()  # the log is complete once the process has ended
     log = svc.log_text()
     assert '"GET /api/v1/version HTTP/1.1" 200' in log, log[-3000:]
     assert '"GET /api/v1/results/987654 HTTP/1.1" 404' in log, log[-3000:]
@@ -133,13 +156,18 @@ def test_a_second_serve_on_the_same_database_is_refused_naming_the_first(tmp_pat
     first = ServiceProcess(db)
     try:
         first.wait_ready()
-        second = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(free_port()), "--db", str(db)],
-                                cwd=REPO, capture_output=True, text=True, timeout=120)
+        second = subprocess.run(
+            [sys.executable, "-m", "service.cli", "serve", "--port", str(free_port()), "--db", str(db)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert second.returncode == 2, (second.returncode, second.stderr[-3000:])
         lines = second.stderr.strip().splitlines()
         assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
         assert f"in use by another ripplecal serve (pid {first.proc.pid}, port {first.port}" in lines[0], lines[0]
-        assert httpx.get(f"{first.base}/api/v1/bench/status", timeout=5).json()["connected"]    # the first goes on
+        assert httpx.get(f"{first.base}/api/v1/bench/status", timeout=5).json()["connected"]  # the first goes on
     finally:
         first.stop()
     # the claim ends with its process: a restart on the same database comes up

@@ -4,6 +4,7 @@ Each case runs `ripplecal` as a real process (tests/support/service_process.cli)
 database, or a --bench file that cannot name a bench. stderr is one line naming the file and what is wrong,
 no traceback, nothing started (the line comes before any emulator or bench is opened).
 """
+
 from __future__ import annotations
 
 import os
@@ -18,7 +19,7 @@ from tests.support.service_process import cli
 pytestmark = pytest.mark.e2e
 
 COMMANDS = {
-    "serve": ["serve", "--port", "1"],        # never binds: the database is refused first
+    "serve": ["serve", "--port", "1"],  # never binds: the database is refused first
     "identify": ["identify", "--torque", "2.5", "--speed", "2000"],
     "sweep": ["sweep", "--torque", "1,2.5", "--speed", "2000"],
     "token create": ["token", "create", "--role", "viewer"],
@@ -95,8 +96,10 @@ BENCH_FILES = {
     "no DAQ url": ('bench_name = "rig"\n[supply]\nurl = "socket://127.0.0.1:5025"\n', "names no DAQ port ([daq] url)"),
     "no supply url": ('[daq]\nurl = "/dev/ttyUSB0"\n', "names no DC supply port ([supply] url)"),
     "invalid TOML": ('[daq\nurl = "/dev/ttyUSB0"\n', "is not valid TOML: "),
-    "unknown key": ('[daq]\nurl = "/dev/ttyUSB0"\nbaud = 115200\n[supply]\nurl = "socket://127.0.0.1:5025"\n',
-                    "daq.baud: unknown key"),
+    "unknown key": (
+        '[daq]\nurl = "/dev/ttyUSB0"\nbaud = 115200\n[supply]\nurl = "socket://127.0.0.1:5025"\n',
+        "daq.baud: unknown key",
+    ),
 }
 
 
@@ -109,4 +112,4 @@ def test_a_bench_file_that_names_no_bench_is_one_line(tmp_path, command, case):
     db = tmp_path / "ripplecal.db"
     proc = cli(*COMMANDS[command], "--bench", str(bench), "--db", str(db), check=False, timeout=120)
     _one_clear_line(proc, str(bench), reason)
-    assert not db.exists()                   # refused before the database is opened
+    assert not db.exists()  # refused before the database is opened

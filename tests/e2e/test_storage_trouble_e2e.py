@@ -5,6 +5,7 @@ database is away, keeps the point it measured and writes it when the database an
 itself, and answers the API with 503 + Retry-After meanwhile. The database lives on a tmpfs mounted for
 the test (size-limited: "full"; remounted read-only: "read-only"); where this machine does not let the
 test mount one (not root), the filesystem cases are skipped, saying so."""
+
 from __future__ import annotations
 
 import contextlib
@@ -45,7 +46,7 @@ def tmpfs(size: str = "4m"):
 
 
 def start(emu: EmulatorRig, db: Path, monkeypatch) -> tuple[ServiceProcess, Api]:
-    monkeypatch.setenv("RIPPLECAL_SERVER__DB_BUSY_TIMEOUT_S", "1")      # unavailable after 1 s, not 10
+    monkeypatch.setenv("RIPPLECAL_SERVER__DB_BUSY_TIMEOUT_S", "1")  # unavailable after 1 s, not 10
     # the raw recordings on another filesystem: the trouble here is the database's (and a recording being
     # written, open, would keep Linux from remounting the database's filesystem read-only)
     monkeypatch.setenv("RIPPLECAL_RECORDINGS__DIRECTORY", str(Path(tempfile.mkdtemp(prefix="ripplecal-rec-"))))
@@ -54,7 +55,7 @@ def start(emu: EmulatorRig, db: Path, monkeypatch) -> tuple[ServiceProcess, Api]
     svc = ServiceProcess(db, "--bench", str(emu.bench_file(logs)), log_dir=logs)
     svc.wait_ready()
     api = Api(svc, db)
-    assert api.post("/bench/fault-reset").status_code == 200        # whatever an earlier test left
+    assert api.post("/bench/fault-reset").status_code == 200  # whatever an earlier test left
     return svc, api
 
 
@@ -73,12 +74,19 @@ def sweep_through(api: Api, emu: EmulatorRig, trouble_on, trouble_off) -> dict:
     try:
         r = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 503 and r, 60, "a 503")
         assert r.headers.get("Retry-After") and "database" in r.json()["detail"], r.text
-        assert " /" not in r.json()["detail"], r.text           # the file by its name, no absolute path
+        assert " /" not in r.json()["detail"], r.text  # the file by its name, no absolute path
         api.wait(lambda: drive_safe(emu), 60, "the bench made safe while the database is away")
     finally:
         trouble_off()
-    sweep = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
-                     and r.json()["state"] in ("done", "failed", "cancelled") and r.json(), 300, "sweep finished")
+    sweep = api.wait(
+        lambda: (
+            (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
+            and r.json()["state"] in ("done", "failed", "cancelled")
+            and r.json()
+        ),
+        300,
+        "sweep finished",
+    )
     assert sweep["state"] == "done", sweep
     assert sweep["progress"]["done"] == sweep["progress"]["total"] == 6 and len(sweep["points"]) == 6
     history = api.get(f"/sweeps/{sweep_id}")["points"]
@@ -90,10 +98,12 @@ def test_a_lock_held_by_another_process_pauses_the_sweep_and_loses_nothing(emu, 
     db = tmp_path / "locked.db"
     svc, api = start(emu, db, monkeypatch)
     holder: list[subprocess.Popen] = []
-    script = ("import sqlite3, sys\n"
-              f"c = sqlite3.connect({str(db)!r}, isolation_level=None)\n"
-              "c.execute('PRAGMA locking_mode=EXCLUSIVE'); c.execute('BEGIN EXCLUSIVE')\n"
-              "print('locked', flush=True); sys.stdin.readline(); c.execute('ROLLBACK')\n")
+    script = (
+        "import sqlite3, sys\n"
+        f"c = sqlite3.connect({str(db)!r}, isolation_level=None)\n"
+        "c.execute('PRAGMA locking_mode=EXCLUSIVE'); c.execute('BEGIN EXCLUSIVE')\n"
+        "print('locked', flush=True); sys.stdin.readline(); c.execute('ROLLBACK')\n"
+    )
 
     def lock() -> None:
         p = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -105,6 +115,7 @@ def test_a_lock_held_by_another_process_pauses_the_sweep_and_loses_nothing(emu, 
             p.stdin.write("\n")
             p.stdin.flush()
             p.wait(30)
+
     try:
         sweep_through(api, emu, lock, unlock)
         api.close()
@@ -119,8 +130,12 @@ def remount(where: Path, mode: str) -> None:
     """The filesystem read-only or writable again. Linux refuses a read-only remount while a file on it is
     open for writing (EBUSY): the service opens the database per access, so it is tried until it lands
     between two (the wait only guards a hang)."""
-    wait_until(lambda: subprocess.run(["mount", "-o", f"remount,{mode}", str(where)], capture_output=True).returncode
-               == 0, 60, f"the filesystem remounted {mode}", poll_s=0.01)
+    wait_until(
+        lambda: subprocess.run(["mount", "-o", f"remount,{mode}", str(where)], capture_output=True).returncode == 0,
+        60,
+        f"the filesystem remounted {mode}",
+        poll_s=0.01,
+    )
 
 
 def test_a_read_only_filesystem_pauses_the_sweep_and_loses_nothing(emu, tmp_path, monkeypatch):
@@ -139,7 +154,7 @@ def test_a_full_disk_pauses_the_sweep_and_loses_nothing_and_cancel_ends_it(emu, 
         filler = where / "filler"
 
         def fill() -> None:
-            subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=64k"], capture_output=True)   # until ENOSPC
+            subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=64k"], capture_output=True)  # until ENOSPC
 
         try:
             sweep_through(api, emu, fill, lambda: filler.unlink())
@@ -148,13 +163,23 @@ def test_a_full_disk_pauses_the_sweep_and_loses_nothing_and_cancel_ends_it(emu, 
             api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 1, 300, "1 point")
             fill()
             try:
-                api.wait(lambda: drive_safe(emu) and api.http.get(f"/sweeps/{sweep_id}").status_code == 503, 60,
-                         "the sweep waiting for the database")
-                assert api.http.post(f"/sweeps/{sweep_id}/cancel").status_code == 503     # said: the database
+                api.wait(
+                    lambda: drive_safe(emu) and api.http.get(f"/sweeps/{sweep_id}").status_code == 503,
+                    60,
+                    "the sweep waiting for the database",
+                )
+                assert api.http.post(f"/sweeps/{sweep_id}/cancel").status_code == 503  # said: the database
             finally:
                 filler.unlink()
-            sweep = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
-                             and r.json()["state"] in ("done", "cancelled", "failed") and r.json(), 300, "ended")
+            sweep = api.wait(
+                lambda: (
+                    (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
+                    and r.json()["state"] in ("done", "cancelled", "failed")
+                    and r.json()
+                ),
+                300,
+                "ended",
+            )
             assert sweep["state"] == "cancelled", sweep
             assert httpx.get(f"{svc.base}/api/v1/bench/status", timeout=10).json()["busy"] is False
             api.close()

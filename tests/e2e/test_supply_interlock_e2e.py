@@ -10,6 +10,7 @@ itself faulted. Assertions are on states, reasons and counts (never on timings o
 The emulator runs on a real bench's clock (--speedup 1): the supply interlock reads the supply every
 0.5 s of wall time, and at --speedup 0 a whole point takes less than that (a sweep could be measured
 before the interlock read the supply once)."""
+
 from __future__ import annotations
 
 import json
@@ -38,8 +39,10 @@ def sweep_running(api) -> int:
     r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
     assert r.status_code == 202, r.text
     sweep_id = r.json()["id"]
-    api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 1 and api.get("/bench/status")["busy"],
-             what="the second point running")
+    api.wait(
+        lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 1 and api.get("/bench/status")["busy"],
+        what="the second point running",
+    )
     return sweep_id
 
 
@@ -50,8 +53,7 @@ def paused(api, sweep_id: int) -> dict:
 def bench_safe(emu) -> dict | None:
     """The emulator's own view: no power stage, no torque, no injection in force (None: not yet)."""
     s = emu.control({"status": True})["faults"]
-    safe = (s["drive_state"] != "operation_enabled" and s["drive_torque_nm"] == 0.0
-            and s["drive_injection_mode"] == 0)
+    safe = s["drive_state"] != "operation_enabled" and s["drive_torque_nm"] == 0.0 and s["drive_injection_mode"] == 0
     return s if safe else None
 
 
@@ -62,8 +64,12 @@ def results(db, sweep_id: int) -> list[dict]:
 
 
 def discarded_for(rows: list[dict], interlock: str) -> list[dict]:
-    return [r for r in rows if json.loads(r["detail_json"]).get("discarded") == "interlock"
-            and json.loads(r["detail_json"])["interlock"]["interlock"] == interlock]
+    return [
+        r
+        for r in rows
+        if json.loads(r["detail_json"]).get("discarded") == "interlock"
+        and json.loads(r["detail_json"])["interlock"]["interlock"] == interlock
+    ]
 
 
 def resume_and_finish(emu, api, db, sweep_id: int) -> dict:
@@ -71,6 +77,7 @@ def resume_and_finish(emu, api, db, sweep_id: int) -> dict:
     with every point measured once."""
     r = api.post(f"/sweeps/{sweep_id}/resume")
     assert r.status_code == 200, r.text
+
     def ended():
         s = api.get(f"/sweeps/{sweep_id}")
         return (s["state"] in ("done", "failed") or s["state"] == "paused" and s["pause_reason"]) and s
@@ -80,16 +87,21 @@ def resume_and_finish(emu, api, db, sweep_id: int) -> dict:
     assert sweep["state"] == "done", (
         f"{sweep['state']}: {sweep.get('pause_reason')}; the emulated supply now: {supply} (a supply trip named "
         "while the supply is back at its setpoint is the previous run's: service/bench/interlocks.py keeps an "
-        "armed-only interlock's reason across runs)")
+        "armed-only interlock's reason across runs)"
+    )
     assert sweep["progress"]["done"] == POINTS and len(sweep["points"]) == POINTS and sweep["map_id"] is not None
     assert_points_measured_honestly(sweep["points"], min_ok=POINTS - 1)
     # one current result per point; every discarded attempt superseded by the attempt that replaced it
     rows = results(db, sweep_id)
     current = [r for r in rows if r["superseded_by"] is None]
     assert sorted((r["torque_nm"], r["speed_rpm"]) for r in current) == sorted(
-        (t, n) for t in GRID["torque_nm"] for n in GRID["speed_rpm"])
-    assert all(r["superseded_by"] is not None and r["status"] != "ok"
-               for r in rows if json.loads(r["detail_json"]).get("discarded"))
+        (t, n) for t in GRID["torque_nm"] for n in GRID["speed_rpm"]
+    )
+    assert all(
+        r["superseded_by"] is not None and r["status"] != "ok"
+        for r in rows
+        if json.loads(r["detail_json"]).get("discarded")
+    )
     return sweep
 
 
@@ -138,6 +150,6 @@ def test_supply_tripping_mid_sweep_pauses_it_safe_naming_what_happened(rig):
         assert discarded and all(r["status"] != "ok" for r in discarded)
     finally:
         assert emu.control({"fault": "clear"})["ok"]
-    if api.get("/bench/status")["drive"]["state"] == "fault":     # a drive reaction is acknowledged by a person
+    if api.get("/bench/status")["drive"]["state"] == "fault":  # a drive reaction is acknowledged by a person
         assert api.post("/bench/fault-reset").status_code == 200
-    resume_and_finish(emu, api, db, sweep_id)   # the run switches the output on again (set_dc_link)
+    resume_and_finish(emu, api, db, sweep_id)  # the run switches the output on again (set_dc_link)

@@ -1,5 +1,6 @@
 """REST contract that needs no bench: tokens on every state-changing route, 422 naming the field.
 (The routes that move hardware are proven end to end in test_end_to_end.py.)"""
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -19,7 +20,9 @@ STATE_CHANGING = [
 
 @pytest.fixture
 def api(tmp_path):
-    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "api.db")}))
+    service = CalibrationService(
+        load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path / "api.db")})
+    )
     with TestClient(create_app(service, manage_lifecycle=False)) as client:
         yield client, service
 
@@ -41,14 +44,17 @@ def test_viewer_token_is_forbidden_to_move_the_bench(api):
     assert r.status_code == 403 and "operator" in r.json()["detail"]
 
 
-@pytest.mark.parametrize("body,field", [
-    ({"operating_point": {"torque_nm": "lots", "speed_rpm": 2000}}, "torque_nm"),
-    ({"operating_point": {"torque_nm": 2.5}}, "speed_rpm"),
-    ({"operating_point": {"torque_nm": 2.5, "speed_rpm": -5}}, "speed_rpm"),
-    ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "method": "magic"}, "method"),
-    ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "options": {"mu_per_s": -1}}, "mu_per_s"),
-    ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "bogus": 1}, "bogus"),
-])
+@pytest.mark.parametrize(
+    "body,field",
+    [
+        ({"operating_point": {"torque_nm": "lots", "speed_rpm": 2000}}, "torque_nm"),
+        ({"operating_point": {"torque_nm": 2.5}}, "speed_rpm"),
+        ({"operating_point": {"torque_nm": 2.5, "speed_rpm": -5}}, "speed_rpm"),
+        ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "method": "magic"}, "method"),
+        ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "options": {"mu_per_s": -1}}, "mu_per_s"),
+        ({"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "bogus": 1}, "bogus"),
+    ],
+)
 def test_malformed_identification_gets_422_naming_the_field(api, body, field):
     client, service = api
     _, token = service.storage.create_token("operator")
@@ -61,8 +67,11 @@ def test_malformed_identification_gets_422_naming_the_field(api, body, field):
 def test_malformed_sweep_grid_gets_422(api):
     client, service = api
     _, token = service.storage.create_token("operator")
-    r = client.post("/api/v1/sweeps", json={"grid": {"torque_nm": [], "speed_rpm": [1000]}},
-                    headers={"Authorization": f"Bearer {token}"})
+    r = client.post(
+        "/api/v1/sweeps",
+        json={"grid": {"torque_nm": [], "speed_rpm": [1000]}},
+        headers={"Authorization": f"Bearer {token}"},
+    )
     assert r.status_code == 422 and any("torque_nm" in e["loc"] for e in r.json()["detail"])
 
 

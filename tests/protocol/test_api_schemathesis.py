@@ -10,8 +10,9 @@ through the API at once, so the bench is never busy for more than one operating 
 make_safe. The missing / viewer token cases are in test_api_contract and test_api_input.
 `GET /events` is left out: it is an endless Server-Sent Events stream.
 
-Figures: .venv/bin/python -m pytest -q -s tests/test_api_schemathesis.py  (prints requests and 5xx)
+Figures: .venv/bin/python -m pytest -q -s tests/protocol/test_api_schemathesis.py  (prints requests and 5xx)
 """
+
 from collections import Counter
 
 import pytest
@@ -20,31 +21,42 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error
-from schemathesis.specs.openapi.checks import (content_type_conformance, negative_data_rejection,
-                                               response_schema_conformance, status_code_conformance)
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    negative_data_rejection,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
-from tests.support.live_app import bearer, client_for, started_service, wait_finished
+from tests.support.live_app import wait_finished
 
 MAX_EXAMPLES = 40
-CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
-          negative_data_rejection]
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+    negative_data_rejection,
+]
 TALLY: Counter = Counter()
 
 
 @pytest.fixture(scope="module")
-def live(tmp_path_factory):
-    with started_service(tmp_path_factory.mktemp("schemathesis")) as service:
-        client = client_for(service)
-        operator = bearer(service, "operator")
-        # something to find: a finished 1-point sweep gives a job, a result, a sweep and a map with id 1
-        r = client.post("/api/v1/sweeps", headers=operator, json={
-            "grid": {"torque_nm": [2.5], "speed_rpm": [2000], "udc_v": [12]}, "method": "adaptive"})
-        assert r.status_code == 202, r.text
-        wait_finished(client, f"/api/v1/sweeps/{r.json()['id']}")
-        yield service, client, operator
-        summary = "\n  ".join(f"{k}: {v}" for k, v in sorted(TALLY.items()))
-        requests = sum(v for k, v in TALLY.items() if k.startswith("status"))
-        print(f"\nschemathesis: {requests} requests, {TALLY['status 5xx']} with a 5xx\n  {summary}")
+def live(live):
+    """The shared `live` (tests/conftest.py) with something to find: a finished 1-point sweep gives a job,
+    a result, a sweep and a map with id 1; the tally printed at the end."""
+    _, client, operator = live
+    r = client.post(
+        "/api/v1/sweeps",
+        headers=operator,
+        json={"grid": {"torque_nm": [2.5], "speed_rpm": [2000], "udc_v": [12]}, "method": "adaptive"},
+    )
+    assert r.status_code == 202, r.text
+    wait_finished(client, f"/api/v1/sweeps/{r.json()['id']}")
+    yield live
+    summary = "\n  ".join(f"{k}: {v}" for k, v in sorted(TALLY.items()))
+    requests = sum(v for k, v in TALLY.items() if k.startswith("status"))
+    print(f"\nschemathesis: {requests} requests, {TALLY['status 5xx']} with a 5xx\n  {summary}")
 
 
 def operations(client):
@@ -60,16 +72,26 @@ def test_no_server_errors(live, mode):
     failures = []
     schema, ops = operations(client)
     # the documented examples first (they reach the 202 path), then generated cases
-    plan = [(op, strategy, 1) for op in ops for strategy in
-            (schema.get_strategies_from_examples(op) if mode == GenerationMode.POSITIVE else [])]
+    plan = [
+        (op, strategy, 1)
+        for op in ops
+        for strategy in (schema.get_strategies_from_examples(op) if mode == GenerationMode.POSITIVE else [])
+    ]
     plan += [(op, op.as_strategy(generation_mode=mode), MAX_EXAMPLES) for op in ops]
     for operation, strategy, examples in plan:
+
         @given(case=strategy)
-        @settings(max_examples=examples, derandomize=True, database=None, deadline=None,
-                  phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+        @settings(
+            max_examples=examples,
+            derandomize=True,
+            database=None,
+            deadline=None,
+            phases=[Phase.explicit, Phase.generate],
+            suppress_health_check=list(HealthCheck),
+        )
         def run(case):
             response = case.call(headers=operator)
-            TALLY[f"status {response.status_code // 100}xx"] += 1      # counted before the checks can fail
+            TALLY[f"status {response.status_code // 100}xx"] += 1  # counted before the checks can fail
             TALLY[f"{operation.label} {response.status_code}"] += 1
             case.validate_response(response, checks=CHECKS, headers=operator)
             if response.status_code == 201 and case.path == "/api/v1/schedules":
@@ -77,16 +99,16 @@ def test_no_server_errors(live, mode):
                 TALLY["schedules created and deleted"] += 1
                 gone = client.delete(f"/api/v1/schedules/{response.json()['id']}", headers=operator)
                 assert gone.status_code == 204, gone.text
-            if response.status_code == 202:     # a run was accepted: stop it before it occupies the bench
+            if response.status_code == 202:  # a run was accepted: stop it before it occupies the bench
                 TALLY["runs accepted and cancelled"] += 1
-                kind = "sweeps" if case.path.endswith("sweeps") else "jobs"    # identifications, map validations
+                kind = "sweeps" if case.path.endswith("sweeps") else "jobs"  # identifications, map validations
                 cancel = client.post(f"/api/v1/{kind}/{response.json()['id']}/cancel", headers=operator)
                 assert cancel.status_code in (200, 409), cancel.text
 
         try:
             run()
-        except Unsatisfiable:           # negative mode: an operation without parameters has no invalid input
+        except Unsatisfiable:  # negative mode: an operation without parameters has no invalid input
             TALLY["operations without negative cases"] += 1
-        except Exception as exc:        # keep going: one report naming every operation that failed
+        except Exception as exc:  # keep going: one report naming every operation that failed
             failures.append(f"{operation.label}: {exc}")
     assert not failures, "\n\n".join(failures)

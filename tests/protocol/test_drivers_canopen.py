@@ -5,6 +5,7 @@ the same EDS files as the clients and walk the same CiA 402 transition table, th
 emulated bench serves over socketcand. So these tests exercise the real SDO protocol, NMT,
 heartbeat and EMCY paths end to end, against the device the service meets on the emulated bench.
 """
+
 from __future__ import annotations
 
 import math
@@ -22,14 +23,23 @@ from drivers import DRIVE_EDS, LOAD_EDS, cia402_master, lut_image
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import CONTROLWORD, Command402, State402
 from drivers.drive import DriveClient, DriveStatus, LutInForce
-from drivers.errors import (DriveFaultError, FaultReactionActiveError, ForeignMasterError, HeartbeatMissingError,
-                            NotConnectedError, SdoAbortError, SdoError, SdoTimeoutError, StateTransitionError)
+from drivers.errors import (
+    DriveFaultError,
+    FaultReactionActiveError,
+    ForeignMasterError,
+    HeartbeatMissingError,
+    NotConnectedError,
+    SdoAbortError,
+    SdoError,
+    SdoTimeoutError,
+    StateTransitionError,
+)
 from drivers.load_machine import LoadClient, LoadStatus
-from tests.support.drivers_peers import EmulatedDevice, unique_channel
-from tests.support.waiting import wait_until
 from plant_emulator.drive_firmware import DriveFirmware
 from plant_emulator.load_machine import LoadMachineFirmware
 from plant_emulator.socketcand_server import SocketcandServer
+from tests.support.drivers_peers import EmulatedDevice, unique_channel
+from tests.support.waiting import wait_until
 
 DRIVE_NODE = 5
 LOAD_NODE = 6
@@ -73,7 +83,7 @@ def test_connect_configures_heartbeat_consumer_and_reads_rated_torque(drive, dri
     assert drive_peer.node.nmt.state == "OPERATIONAL"
     assert drive_peer.device.stored(0x1016, 1) == (SERVICE_NODE << 16) | 500
     assert drive.rated_torque_nm == pytest.approx(5.0)
-    assert drive.heartbeat_period_ms == int(drive_peer.node.object_dictionary[0x1017].default)   # 100
+    assert drive.heartbeat_period_ms == int(drive_peer.node.object_dictionary[0x1017].default)  # 100
 
 
 def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer):
@@ -81,8 +91,11 @@ def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer
     drive.enable(timeout_s=2.0)
     assert drive.state() is State402.OPERATION_ENABLED
     assert drive_peer.device.stored(0x6060) == 4
-    assert drive_peer.writes_to(0x6040) == [CONTROLWORD[Command402.SHUTDOWN], CONTROLWORD[Command402.SWITCH_ON],
-                                            CONTROLWORD[Command402.ENABLE_OPERATION]]
+    assert drive_peer.writes_to(0x6040) == [
+        CONTROLWORD[Command402.SHUTDOWN],
+        CONTROLWORD[Command402.SWITCH_ON],
+        CONTROLWORD[Command402.ENABLE_OPERATION],
+    ]
     drive.set_torque_nm(1.0)
     drive.set_injection(0.01, 0.02)
     drive.disable(timeout_s=2.0)
@@ -94,7 +107,7 @@ def test_enable_walks_to_operation_enabled_and_disable_returns(drive, drive_peer
 
 def test_enable_refuses_a_fault_and_only_fault_reset_clears_it(drive, drive_peer):
     """Issue 8: a drive fault is acknowledged by a person; enable() never resets it by itself."""
-    drive_peer.device.fault(0x3210)                    # DC link over-voltage
+    drive_peer.device.fault(0x3210)  # DC link over-voltage
     with pytest.raises(DriveFaultError, match=r"drive node 5 in FAULT.*fault reset"):
         drive.enable(timeout_s=2.0)
     assert CONTROLWORD[Command402.FAULT_RESET] not in drive_peer.writes_to(0x6040)
@@ -104,7 +117,7 @@ def test_enable_refuses_a_fault_and_only_fault_reset_clears_it(drive, drive_peer
     assert drive_peer.device.error_code == 0
     drive.enable(timeout_s=2.0)
     assert drive_peer.device.state is State402.OPERATION_ENABLED
-    assert drive.fault_reset() is False          # not in FAULT: nothing sent
+    assert drive.fault_reset() is False  # not in FAULT: nothing sent
 
 
 def test_enable_times_out_with_a_clear_error_when_the_device_does_not_follow(drive, drive_peer):
@@ -122,9 +135,14 @@ def test_torque_is_sent_in_per_mille_of_rated_torque(drive, drive_peer):
     drive_peer.device.publish(speed_rpm=2001.0, torque_nm=2.49, udc_v=12.0, ud_ref_v=-1.5, uq_ref_v=7.25)
     status = drive.read_status()
     assert isinstance(status, DriveStatus)
-    assert status == DriveStatus(state=State402.SWITCH_ON_DISABLED, torque_nm=pytest.approx(2.49),
-                                 speed_rpm=2001.0, udc_v=pytest.approx(12.0), ud_ref_v=pytest.approx(-1.5),
-                                 uq_ref_v=pytest.approx(7.25))
+    assert status == DriveStatus(
+        state=State402.SWITCH_ON_DISABLED,
+        torque_nm=pytest.approx(2.49),
+        speed_rpm=2001.0,
+        udc_v=pytest.approx(12.0),
+        ud_ref_v=pytest.approx(-1.5),
+        uq_ref_v=pytest.approx(7.25),
+    )
 
 
 @pytest.mark.parametrize("torque_nm", [5.01, -6.0, math.nan, math.inf])
@@ -151,7 +169,7 @@ def test_set_injection_writes_real32_pair_and_commits(drive, drive_peer):
     assert drive.setpoints_written == before + 1
     assert drive_peer.writes_to(0x2000, 3) == [pytest.approx(0.0123, rel=1e-6)]
     assert drive_peer.writes_to(0x2000, 4) == [pytest.approx(-0.0456, rel=1e-6)]
-    assert drive_peer.writes_to(0x2000, 2) == []      # the mode is a separate setpoint
+    assert drive_peer.writes_to(0x2000, 2) == []  # the mode is a separate setpoint
     assert drive_peer.writes_to(0x2000, 7) == [1]
     raw = drive_peer.node.data_store[0x2000][3]
     assert len(raw) == 4 and struct.unpack("<f", raw)[0] == pytest.approx(0.0123, rel=1e-6)
@@ -202,6 +220,7 @@ def test_disable_tries_every_step_and_raises_the_first_error(bus, channel):
         client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=0.1)
         client.connect()
         client.enable()
+
         # the injection record is refused from now on; torque 0 and disable voltage must still go out
         def refuse_injection(index, subindex, od, data, **_kwargs):
             if index == 0x2000:
@@ -235,18 +254,18 @@ def test_can_bus_produces_service_heartbeat(channel):
 def test_drive_heartbeat_monitoring_and_emcy(drive, drive_peer):
     assert wait_until(drive.heartbeat_alive, 5.0)
     assert wait_until(lambda: drive.nmt_state == 5, 5.0)  # the NMT start command took effect
-    drive_peer.device.heartbeat_lost()                 # the drive's own reaction: FAULT and EMCY 0x8130
+    drive_peer.device.heartbeat_lost()  # the drive's own reaction: FAULT and EMCY 0x8130
     assert wait_until(lambda: len(drive.emcy_log) == 1, 5.0)
     assert drive.emcy_log[0].code == 0x8130
     assert drive.state() is State402.FAULT
-    drive_peer.device.shutdown()                       # the producer heartbeat stops
-    assert wait_until(lambda: not drive.heartbeat_alive(), 10.0)     # at least HEARTBEAT_ALIVE_MIN_S
+    drive_peer.device.shutdown()  # the producer heartbeat stops
+    assert wait_until(lambda: not drive.heartbeat_alive(), 10.0)  # at least HEARTBEAT_ALIVE_MIN_S
 
 
 def test_connect_waits_for_the_first_heartbeat_and_names_a_silent_device(bus, drive_peer):
     heard: list[float] = []
     bus.network.subscribe(0x700 + DRIVE_NODE, lambda can_id, data, ts: heard.append(time.monotonic()))
-    drive_peer.node.nmt.stop_heartbeat()               # answers SDO, never heard on 0x705
+    drive_peer.node.nmt.stop_heartbeat()  # answers SDO, never heard on 0x705
     stopped_at = time.monotonic()
     # a heartbeat sent just before the stop can still sit in the bus queue (late under load): wait until
     # the line has been quiet for 5 producer periods, so the client's wait can only end by its timeout
@@ -254,10 +273,10 @@ def test_connect_waits_for_the_first_heartbeat_and_names_a_silent_device(bus, dr
     client = DriveClient(bus, DRIVE_NODE, sdo_timeout_s=2.0)
     with pytest.raises(HeartbeatMissingError, match=r"drive node 5: answers SDO but sent no heartbeat within"):
         client.connect()
-    assert not client.connected                         # nothing half-open
+    assert not client.connected  # nothing half-open
     drive_peer.node.nmt.start_heartbeat(100)
     client.connect()
-    assert client.heartbeat_alive()                     # ready means heard: the interlock's first round passes
+    assert client.heartbeat_alive()  # ready means heard: the interlock's first round passes
 
 
 def test_load_client_enables_and_sets_speed(bus, load_peer):
@@ -268,7 +287,7 @@ def test_load_client_enables_and_sets_speed(bus, load_peer):
     assert load_peer.device.stored(0x6060) == 3
     assert load.set_speed_rpm(2000.4) == 2000
     assert load_peer.writes_to(0x60FF) == [2000]
-    load_peer.device.publish(speed_rpm=1998.0, torque_nm=-0.25)     # served as 1998 rpm and -250 mNm
+    load_peer.device.publish(speed_rpm=1998.0, torque_nm=-0.25)  # served as 1998 rpm and -250 mNm
     status = load.read_status()
     assert status == LoadStatus(state=State402.OPERATION_ENABLED, speed_rpm=1998.0, torque_nm=pytest.approx(-0.25))
     load.disable()
@@ -302,7 +321,12 @@ def test_drive_and_load_share_one_bus_concurrently(bus, drive, drive_peer, load_
 def test_bus_passes_only_the_options_that_are_set():
     # socketcand: low-latency TCP by default (drivers.canopen_bus.INTERFACE_DEFAULTS), overridable
     assert CanBus("socketcand", "can0", host="127.0.0.1", port=29536).bus_kwargs() == {
-        "interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 29536, "tcp_tune": True}
+        "interface": "socketcand",
+        "channel": "can0",
+        "host": "127.0.0.1",
+        "port": 29536,
+        "tcp_tune": True,
+    }
     assert CanBus("socketcand", "can0", host="127.0.0.1", port=1, tcp_tune=False).bus_kwargs()["tcp_tune"] is False
     assert CanBus("virtual", "bench").bus_kwargs() == {"interface": "virtual", "channel": "bench"}
     assert CanBus("pcan", "PCAN_USBBUS1", bitrate=500_000).bus_kwargs()["bitrate"] == 500_000
@@ -319,16 +343,23 @@ def test_clients_need_a_connected_bus(channel):
 
 
 def test_lut_download_is_segmented_and_crc_checked(drive, drive_peer):
-    n_t, n_n, n_u = 8, 6, 3     # 144 cells: a 1509-byte image, many segments
+    n_t, n_n, n_u = 8, 6, 3  # 144 cells: a 1509-byte image, many segments
     cells = np.arange(n_t * n_n * n_u, dtype=float)
-    blob = lut_image.encode(6, np.linspace(0.5, 4.0, n_t), np.linspace(500.0, 3000.0, n_n), [10.0, 12.0, 14.0],
-                            1e-4 * cells, -2e-4 * cells, map_id=12)
+    blob = lut_image.encode(
+        6,
+        np.linspace(0.5, 4.0, n_t),
+        np.linspace(500.0, 3000.0, n_n),
+        [10.0, 12.0, 14.0],
+        1e-4 * cells,
+        -2e-4 * cells,
+        map_id=12,
+    )
     assert len(blob) > 1000
     assert drive.lut_in_force() == LutInForce(map_id=0, crc32=0, status="none")
     held = drive.download_lut(blob)
     assert held == LutInForce(map_id=12, crc32=zlib.crc32(blob[:-4]), status="in_force")
     assert drive_peer.writes_to(0x2001, 1) == [blob]
-    assert drive_peer.device.lut.crc == held.crc32     # the drive decoded it and holds it in force
+    assert drive_peer.device.lut.crc == held.crc32  # the drive decoded it and holds it in force
     # a malformed image is refused by the drive itself (SDO abort), and its LUT stays
     with pytest.raises(SdoAbortError, match="0x08000020"):
         drive.download_lut(blob[:-1] + bytes([blob[-1] ^ 1]))
@@ -342,12 +373,13 @@ def test_load_machine_reports_its_speed_ramp(load_peer, bus):
     load = LoadClient(bus, LOAD_NODE, sdo_timeout_s=2.0)
     load.connect()
     try:
-        assert load.read(0x2000) == 20000           # load.eds's manufacturer object, rpm/s
+        assert load.read(0x2000) == 20000  # load.eds's manufacturer object, rpm/s
     finally:
         load.close()
 
 
 # --- fault reaction: a reset that comes while the load machine still brakes ----------------------------
+
 
 def _count_statusword_reads(peer: EmulatedDevice) -> list[int]:
     """Statusword reads the device served (a read callback ahead of the device's own, answering nothing)."""
@@ -368,17 +400,18 @@ def test_fault_reset_waits_for_the_fault_reaction_to_end_then_resets(bus, load_p
     try:
         load.enable()
         load_peer.device.publish(speed_rpm=2000.0, torque_nm=0.0)
-        load_peer.device.heartbeat_lost()                  # enabled at speed: it brakes to standstill first
+        load_peer.device.heartbeat_lost()  # enabled at speed: it brakes to standstill first
         assert load_peer.device.state is State402.FAULT_REACTION_ACTIVE
         reads = _count_statusword_reads(load_peer)
         outcome: dict = {}
         resetting = threading.Thread(
-            target=lambda: outcome.update(reset=load.fault_reset(fault_reaction_timeout_s=60.0)))
+            target=lambda: outcome.update(reset=load.fault_reset(fault_reaction_timeout_s=60.0))
+        )
         resetting.start()
         # the reset waits, reading the statusword, and sends nothing while the machine still brakes
         wait_until(lambda: len(reads) >= 3, 10.0, "the reset polling the statusword")
         assert CONTROLWORD[Command402.FAULT_RESET] not in load_peer.writes_to(0x6040)
-        load_peer.device.publish(speed_rpm=0.0, torque_nm=0.0)       # standstill: the reaction ends in FAULT
+        load_peer.device.publish(speed_rpm=0.0, torque_nm=0.0)  # standstill: the reaction ends in FAULT
         resetting.join(20.0)
         assert outcome == {"reset": True}
         assert load_peer.writes_to(0x6040)[-2:] == [0x0000, CONTROLWORD[Command402.FAULT_RESET]]
@@ -392,24 +425,26 @@ def test_fault_reset_during_a_fault_reaction_that_goes_on_says_what_it_waits_for
     load.connect()
     try:
         load.enable()
-        load_peer.device.heartbeat_lost()                  # no standstill is published: it brakes on
+        load_peer.device.heartbeat_lost()  # no standstill is published: it brakes on
         started = time.monotonic()
         with pytest.raises(FaultReactionActiveError) as info:
             load.fault_reset(fault_reaction_timeout_s=0.3)
-        assert time.monotonic() - started >= 0.3           # it did wait for the reaction first
+        assert time.monotonic() - started >= 0.3  # it did wait for the reaction first
         message = str(info.value)
-        assert message.startswith("load machine node 6 is still braking to standstill after its fault "
-                                  "(FAULT_REACTION_ACTIVE")
+        assert message.startswith(
+            "load machine node 6 is still braking to standstill after its fault (FAULT_REACTION_ACTIVE"
+        )
         assert "EMCY 0x8130" in message and message.endswith("try the reset again when it has stopped")
-        assert isinstance(info.value, StateTransitionError)          # callers that knew the old error still do
+        assert isinstance(info.value, StateTransitionError)  # callers that knew the old error still do
         assert CONTROLWORD[Command402.FAULT_RESET] not in load_peer.writes_to(0x6040)
         assert load_peer.device.state is State402.FAULT_REACTION_ACTIVE
-        assert cia402_master.FAULT_REACTION_WAIT_S >= 10.0           # the default waits for a real braking
+        assert cia402_master.FAULT_REACTION_WAIT_S >= 10.0  # the default waits for a real braking
     finally:
         load.close()
 
 
 # --- one master per node id on the bus ---------------------------------------------------------------------
+
 
 def test_a_second_master_with_our_node_id_is_refused_at_connect(bus, drive_peer):
     heard: list[float] = []
@@ -452,22 +487,30 @@ def test_over_socketcand_a_bus_does_not_hear_itself_but_hears_a_second_master():
     """The emulator's socketcand server sends a client's frames to the other clients only, so our own
     heartbeat never comes back to us; a second client with our node id is heard."""
     server = SocketcandServer(unique_channel()).start()
-    first = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=SERVICE_NODE,
-                   heartbeat_period_ms=50)
+    first = CanBus(
+        "socketcand", "can0", host=server.host, port=server.port, service_node_id=SERVICE_NODE, heartbeat_period_ms=50
+    )
     try:
-        first.connect()                                    # no refusal: it does not hear itself
-        watcher = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=9,
-                         heartbeat_period_ms=50).connect()
+        first.connect()  # no refusal: it does not hear itself
+        watcher = CanBus(
+            "socketcand", "can0", host=server.host, port=server.port, service_node_id=9, heartbeat_period_ms=50
+        ).connect()
         try:
             heard: list[float] = []
             watcher.network.subscribe(0x701, lambda can_id, data, ts: heard.append(time.monotonic()))
             wait_until(lambda: len(heard) >= 10, 10.0, "ten of the first master's heartbeats on the wire")
             assert first.foreign_master() is None
-            second = CanBus("socketcand", "can0", host=server.host, port=server.port, service_node_id=SERVICE_NODE,
-                            heartbeat_period_ms=50)
+            second = CanBus(
+                "socketcand",
+                "can0",
+                host=server.host,
+                port=server.port,
+                service_node_id=SERVICE_NODE,
+                heartbeat_period_ms=50,
+            )
             with pytest.raises(ForeignMasterError, match="another master sends heartbeats as node 1 on can0"):
                 second.connect()
-            assert first.foreign_master() is None          # the refused one sent nothing
+            assert first.foreign_master() is None  # the refused one sent nothing
         finally:
             watcher.disconnect()
     finally:

@@ -3,6 +3,7 @@
 Frames are made with drivers.daq_protocol.encode_frames, the encoder the emulator uses, and written to
 the pty master by a writer thread; the reader opens the slave by its /dev/pts path like any serial port.
 """
+
 from __future__ import annotations
 
 import math
@@ -60,8 +61,8 @@ def test_corrupted_frame_and_dropped_bytes_are_counted_and_marked(pty_writer):
     n = 1000
     stream, _ = make_stream(n)
     data = bytearray(stream)
-    data[100 * FRAME_BYTES + 5] ^= 0xFF                          # frame 100: bad CRC
-    del data[300 * FRAME_BYTES + 3: 300 * FRAME_BYTES + 8]       # frame 300: five bytes lost
+    data[100 * FRAME_BYTES + 5] ^= 0xFF  # frame 100: bad CRC
+    del data[300 * FRAME_BYTES + 3 : 300 * FRAME_BYTES + 8]  # frame 300: five bytes lost
     with DaqReader(pty_writer.path) as reader:
         pty_writer.write_in_thread(bytes(data))
         samples = reader.read(n - 2, timeout_s=5.0)
@@ -113,7 +114,7 @@ def test_timeout_says_how_many_arrived_and_keeps_them(pty_writer):
     stream, _ = make_stream(100)
     with DaqReader(pty_writer.path) as reader:
         pty_writer.write_in_thread(stream).join(2.0)
-        deadline = time.monotonic() + 10.0       # the reader's thread may lag under load: all 100 in first
+        deadline = time.monotonic() + 10.0  # the reader's thread may lag under load: all 100 in first
         while reader.buffered_samples < 100 and time.monotonic() < deadline:
             time.sleep(0.01)
         t0 = time.monotonic()
@@ -161,8 +162,7 @@ def test_a_million_samples_over_tcp_arrive_in_order():
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     try:
-        with DaqReader(f"socket://127.0.0.1:{port}", max_buffered_samples=1 << 18,
-                       read_chunk_bytes=1 << 18) as reader:
+        with DaqReader(f"socket://127.0.0.1:{port}", max_buffered_samples=1 << 18, read_chunk_bytes=1 << 18) as reader:
             first = reader.read(1, timeout_s=5.0)
             got = 1
             last = int(first.index[0])
@@ -197,7 +197,7 @@ def test_small_writes_are_handed_over_without_waiting_for_a_full_chunk(pty_write
     stream, _ = make_stream(50)
     with DaqReader(pty_writer.path) as reader:
         for k in range(5):
-            pty_writer.write(stream[k * 10 * FRAME_BYTES:(k + 1) * 10 * FRAME_BYTES])
+            pty_writer.write(stream[k * 10 * FRAME_BYTES : (k + 1) * 10 * FRAME_BYTES])
             blocks = read_exactly(reader, 10)
             index = np.concatenate([b.index for b in blocks])
             np.testing.assert_array_equal(index, np.arange(k * 10, (k + 1) * 10))
@@ -207,11 +207,11 @@ def test_small_writes_are_handed_over_without_waiting_for_a_full_chunk(pty_write
 def test_read_available_returns_what_is_there_and_at_most_max_n(pty_writer):
     stream, _ = make_stream(100)
     with DaqReader(pty_writer.path) as reader:
-        pty_writer.write(stream[:10 * FRAME_BYTES])
+        pty_writer.write(stream[: 10 * FRAME_BYTES])
         wait_until(lambda: reader.buffered_samples == 10, 10.0, "10 samples queued")
-        ten = reader.read_available(1000, timeout_s=5.0)      # the 10 there, without waiting for 1000
+        ten = reader.read_available(1000, timeout_s=5.0)  # the 10 there, without waiting for 1000
         np.testing.assert_array_equal(ten.index, np.arange(10))
-        pty_writer.write(stream[10 * FRAME_BYTES:])
+        pty_writer.write(stream[10 * FRAME_BYTES :])
         wait_until(lambda: reader.buffered_samples == 90, 10.0, "90 samples queued")
         first = reader.read_available(30, timeout_s=5.0)
         rest = reader.read_available(1000, timeout_s=5.0)
@@ -231,16 +231,16 @@ def test_a_flush_is_counted_as_the_flushs_not_as_line_errors(pty_writer):
     stream, _ = make_stream(1000)
     with DaqReader(pty_writer.path, max_buffered_samples=n) as reader:
         # n frames fill the queue (the thread pauses), the next ones and half a frame wait in the OS
-        pty_writer.write(stream[:(n + 50) * FRAME_BYTES + 5])
+        pty_writer.write(stream[: (n + 50) * FRAME_BYTES + 5])
         wait_until(lambda: reader.buffered_samples == n, 10.0, "the queue full")
         assert reader.discard_buffered(flush_port=True) == n
         # the DAQ goes on mid-frame: the rest of a frame, then whole ones (frames between were flushed)
         resume = n + 50 + skipped
-        pty_writer.write(stream[resume * FRAME_BYTES + 5:(resume + 100) * FRAME_BYTES])
+        pty_writer.write(stream[resume * FRAME_BYTES + 5 : (resume + 100) * FRAME_BYTES])
         after = reader.read(99, timeout_s=5.0)
         counters, health = reader.counters, reader.health()
     np.testing.assert_array_equal(after.index, np.arange(resume + 1, resume + 100))
-    assert after.gap_before[0] and not after.gap_before[1:].any()     # the stream has a hole there
+    assert after.gap_before[0] and not after.gap_before[1:].any()  # the stream has a hole there
     assert (counters.crc_failures, counters.sequence_gaps, counters.samples_lost) == (0, 0, 0)
     assert (counters.bytes_skipped, counters.resyncs) == (0, 0)
     assert counters.flush_resyncs == 1 and counters.flush_bytes_skipped == FRAME_BYTES - 5
@@ -251,12 +251,12 @@ def test_a_flush_is_counted_as_the_flushs_not_as_line_errors(pty_writer):
 def test_whole_frames_missing_after_a_backpressure_pause_are_an_overrun(pty_writer, monkeypatch):
     n = 300
     stream, _ = make_stream(2000)
-    frame = lambda k: stream[k * FRAME_BYTES:(k + 1) * FRAME_BYTES]   # noqa: E731
+    frame = lambda k: stream[k * FRAME_BYTES : (k + 1) * FRAME_BYTES]  # noqa: E731
     # an overrun window of 50 frames (instead of 256 KiB), so that this short stream can leave the one
     # that follows the reader's start (the port's backlog) before its hole
     monkeypatch.setattr(daq_protocol, "OVERRUN_WINDOW_BYTES", 50 * FRAME_BYTES)
     with DaqReader(pty_writer.path, max_buffered_samples=n) as reader:
-        pty_writer.write(stream[:100 * FRAME_BYTES])
+        pty_writer.write(stream[: 100 * FRAME_BYTES])
         wait_until(lambda: reader.buffered_samples == 100, 10.0, "the start's window read")
         # outside every window, whole frames missing (100..102) are a sequence gap: no known cause
         pty_writer.write(b"".join(frame(k) for k in range(103, n + 3)))
@@ -280,7 +280,7 @@ def test_whole_frames_missing_in_the_backlog_a_reader_finds_at_start_are_an_over
     drops frames): the hole in what the reader finds at its start is the DAQ's overflow, not a line error."""
     stream, _ = make_stream(1000)
     with DaqReader(pty_writer.path) as reader:
-        pty_writer.write(stream[:400 * FRAME_BYTES] + stream[700 * FRAME_BYTES:])
+        pty_writer.write(stream[: 400 * FRAME_BYTES] + stream[700 * FRAME_BYTES :])
         samples = reader.read(700, timeout_s=5.0)
         counters = reader.counters
     assert np.flatnonzero(samples.gap_before).tolist() == [400] and samples.index[400] == 700
@@ -290,10 +290,10 @@ def test_whole_frames_missing_in_the_backlog_a_reader_finds_at_start_are_an_over
 
 def test_a_second_reader_of_one_port_is_refused_naming_it(pty_writer, tmp_path):
     stream, _ = make_stream(2000)
-    link = tmp_path / "usb-ripplecal_emulated_DAQ-if00"       # a stable path, as the emulator and udev make
+    link = tmp_path / "usb-ripplecal_emulated_DAQ-if00"  # a stable path, as the emulator and udev make
     link.symlink_to(pty_writer.path)
     with DaqReader(str(link)) as first:
-        for url in (pty_writer.path, str(link)):              # the device, by either of its names
+        for url in (pty_writer.path, str(link)):  # the device, by either of its names
             second = DaqReader(url)
             with pytest.raises(DaqPortBusy, match=rf"DAQ {url}: another process holds this port") as info:
                 second.start()

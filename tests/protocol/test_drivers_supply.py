@@ -1,5 +1,6 @@
 """ScpiSupply against a small SCPI peer on a loopback TCP socket (pyserial URL socket://127.0.0.1:PORT),
 and against the emulator's own supply with its faults."""
+
 from __future__ import annotations
 
 import socket
@@ -32,8 +33,17 @@ def test_identify_set_and_read_voltage_and_output(peer):
         assert supply.measure_voltage() == pytest.approx(12.5)
         supply.output(False)
         assert supply.measure_voltage() == pytest.approx(0.0)
-    assert peer.commands == ["*IDN?", "VOLT 12.5", "VOLT?", "VOLT?", "MEAS:VOLT?", "OUTP ON", "MEAS:VOLT?",
-                             "OUTP OFF", "MEAS:VOLT?"]
+    assert peer.commands == [
+        "*IDN?",
+        "VOLT 12.5",
+        "VOLT?",
+        "VOLT?",
+        "MEAS:VOLT?",
+        "OUTP ON",
+        "MEAS:VOLT?",
+        "OUTP OFF",
+        "MEAS:VOLT?",
+    ]
 
 
 def test_setpoint_the_supply_did_not_take_is_an_error():
@@ -105,12 +115,12 @@ def test_the_emulated_supply_drifting_and_tripping_as_the_driver_sees_it():
             assert supply.voltage_setpoint() == pytest.approx(12.0)
             emulated.trip_output()
             assert supply.measure_voltage() == 0.0 and supply.query("OUTP?") == "0"
-            supply.output(True)                   # refused while tripped: the output stays off
+            supply.output(True)  # refused while tripped: the output stays off
             assert supply.measure_voltage() == 0.0
             assert supply.query("SYST:ERR?").startswith("-221")
             emulated.clear_faults()
-            assert supply.measure_voltage() == 0.0                  # a tripped output stays off ...
-            supply.output(True)                                     # ... until switched on again
+            assert supply.measure_voltage() == 0.0  # a tripped output stays off ...
+            supply.output(True)  # ... until switched on again
             assert supply.measure_voltage() == pytest.approx(12.0, abs=0.01)
     finally:
         server.close()

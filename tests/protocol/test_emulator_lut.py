@@ -1,6 +1,7 @@
 """Drive firmware (in process, no CAN): LUT download, CRC and map id read-back, refusal of bad images,
 LUT-mode injection = interpolated theta (format version 3: polar and cartesian, filled cells, non-uniform
 axes; a version 2 image still taken), the eq. 11 switch 0x2000:8."""
+
 from __future__ import annotations
 
 import math
@@ -11,8 +12,7 @@ import canopen
 import numpy as np
 import pytest
 
-from drivers import DRIVE_EDS
-from drivers import lut_image
+from drivers import DRIVE_EDS, lut_image
 from drivers.cia402 import State402
 from plant_emulator import physics as ph
 from plant_emulator.drive_firmware import DriveFirmware
@@ -57,48 +57,52 @@ def with_repeated_torque_value(blob: bytes) -> bytes:
 
 
 def test_download_crc_read_back_and_refusal_keeps_old_lut(drive):
-    assert [read(drive, 0x2001, sub) for sub in (2, 3, 4)] == [0, 0, 0]      # no LUT yet
+    assert [read(drive, 0x2001, sub) for sub in (2, 3, 4)] == [0, 0, 0]  # no LUT yet
     good, _, _ = image(map_id=41)
     write(drive, 0x2001, 1, good)
     assert read(drive, 0x2001, 2) == zlib.crc32(good[:-4]) == lut_image.image_crc(good)
     assert read(drive, 0x2001, 3) == 1
     assert read(drive, 0x2001, 4) == 41
-    for bad in (good[:-1] + bytes([good[-1] ^ 1]),                     # CRC
-                b"XCL1" + good[4:],                                     # magic
-                good[:40],                                              # length
-                with_repeated_torque_value(good),                       # axis
-                good[:4] + b"\x01\x00" + good[6:],                     # format version 1
-                good[:4] + b"\x04\x00" + good[6:]):                     # format version 4
+    for bad in (
+        good[:-1] + bytes([good[-1] ^ 1]),  # CRC
+        b"XCL1" + good[4:],  # magic
+        good[:40],  # length
+        with_repeated_torque_value(good),  # axis
+        good[:4] + b"\x01\x00" + good[6:],  # format version 1
+        good[:4] + b"\x04\x00" + good[6:],
+    ):  # format version 4
         with pytest.raises(canopen.SdoAbortedError) as exc:
             write(drive, 0x2001, 1, bad)
         assert exc.value.code == 0x08000020
-        assert read(drive, 0x2001, 2) == lut_image.image_crc(good)      # the old LUT stays in force
+        assert read(drive, 0x2001, 2) == lut_image.image_crc(good)  # the old LUT stays in force
         assert read(drive, 0x2001, 4) == 41
         assert read(drive, 0x2001, 3) == 2
     assert drive.lut is not None and drive.lut.crc == lut_image.image_crc(good)
-    other, _, _ = image(scale=2.0, map_id=42)                           # another map: another CRC
+    other, _, _ = image(scale=2.0, map_id=42)  # another map: another CRC
     write(drive, 0x2001, 1, other)
-    assert read(drive, 0x2001, 4) == 42 and read(drive, 0x2001, 2) == lut_image.image_crc(other) != lut_image.image_crc(good)
+    assert read(drive, 0x2001, 4) == 42 and read(drive, 0x2001, 2) == lut_image.image_crc(other) != lut_image.image_crc(
+        good
+    )
 
 
 def test_lut_mode_injects_the_interpolated_theta(drive):
     blob, tc, ts = image()
     write(drive, 0x2001, 1, blob)
-    write(drive, 0x2000, 2, 2)                 # mode LUT
-    write(drive, 0x6071, 0, 500)               # 2.5 Nm
+    write(drive, 0x2000, 2, 2)  # mode LUT
+    write(drive, 0x6071, 0, 500)  # 2.5 Nm
     sp = ph.new_setpoints()
     while drive.chunk_setpoints(sp, 12.0):
         pass
-    drive.speed_rpm = 2000.0                   # a grid point
+    drive.speed_rpm = 2000.0  # a grid point
     drive.chunk_setpoints(sp, 12.0)
     assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx((tc[0, 1, 1], ts[0, 1, 1]), abs=1e-7)
-    drive.speed_rpm = 1500.0                   # between points: bilinear in (torque, speed)
+    drive.speed_rpm = 1500.0  # between points: bilinear in (torque, speed)
     drive.torque_nm = 3.25
     drive.chunk_setpoints(sp, 12.0)
     exp_c = 0.25 * (tc[0, 0, 1] + tc[0, 0, 2] + tc[0, 1, 1] + tc[0, 1, 2])
     exp_s = 0.25 * (ts[0, 0, 1] + ts[0, 0, 2] + ts[0, 1, 1] + ts[0, 1, 2])
     assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx((exp_c, exp_s), abs=1e-7)
-    drive.speed_rpm = 9000.0                   # clamped at the axis end
+    drive.speed_rpm = 9000.0  # clamped at the axis end
     drive.torque_nm = 0.0
     drive.chunk_setpoints(sp, 30.0)
     assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx((tc[0, 1, 0], ts[0, 1, 0]), abs=1e-7)
@@ -117,7 +121,7 @@ def test_lut_invalid_cells_count_as_zero_and_gamma_max_clamps(drive):
     drive.torque_nm, drive.speed_rpm = 2.5, 2000.0
     drive.chunk_setpoints(sp, 12.0)
     assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == (0.0, 0.0)
-    assert sp[ph.S_H] == 12.0                  # the LUT's order
+    assert sp[ph.S_H] == 12.0  # the LUT's order
     drive.torque_nm = 4.0
     drive.chunk_setpoints(sp, 12.0)
     assert math.hypot(sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx(drive.gamma_max_rad, rel=1e-9)
@@ -158,8 +162,17 @@ def test_v3_polar_image_with_a_filled_cell_on_a_non_uniform_axis(drive):
     cells = [(3.0, 350.0), (3.0, 10.0), (3.0, 10.0), (0.0, 0.0), (3.0, 90.0), (3.0, 10.0)]
     thetas = [_theta_deg(*c) for c in cells]
     flags = [1, 2, 1, 0, 1, 1]
-    blob = lut_image.encode(6, [1.0, 2.0, 4.0], [1000.0, 2000.0], [12.0], [t[0] for t in thetas],
-                            [t[1] for t in thetas], flags, map_id=77, interpolation="polar")
+    blob = lut_image.encode(
+        6,
+        [1.0, 2.0, 4.0],
+        [1000.0, 2000.0],
+        [12.0],
+        [t[0] for t in thetas],
+        [t[1] for t in thetas],
+        flags,
+        map_id=77,
+        interpolation="polar",
+    )
     write(drive, 0x2001, 1, blob)
     assert (read(drive, 0x2001, 4), read(drive, 0x2001, 3)) == (77, 1)
     assert (drive.lut.format_version, drive.lut.interpolation) == (3, "polar")

@@ -2,6 +2,7 @@
 nothing while its reader keeps up, and the drive applies setpoints between chunk boundaries, one
 sync toggle each. Functional checks only: rates and latencies are figures of
 tests/benchmarks/bench_emulator.py, never timed assertions here."""
+
 from __future__ import annotations
 
 import math
@@ -61,7 +62,7 @@ def test_a_reader_that_keeps_up_gets_every_frame():
         emu.close()
     index = np.concatenate([b.index for b in blocks])
     gap_before = np.concatenate([b.gap_before for b in blocks])
-    assert len(index) > 4 * 16000 * 0.25           # about 4 s of plant time came; a quarter is plenty
+    assert len(index) > 4 * 16000 * 0.25  # about 4 s of plant time came; a quarter is plenty
     np.testing.assert_array_equal(np.diff(index), 1)
     assert not gap_before.any()
     assert (counters.sequence_gaps, counters.overruns, counters.samples_lost) == (0, 0, 0)
@@ -105,7 +106,7 @@ def test_setpoint_events_toggle_the_sync_flag_once_each():
     index = np.concatenate([b.index for b in blocks])
     np.testing.assert_array_equal(np.diff(index), 1)
     toggles = sync_toggles(np.concatenate([b.flags for b in blocks]), level0)
-    assert len(toggles) == 7 and drive.events_applied == 7, toggles     # one toggle per event
+    assert len(toggles) == 7 and drive.events_applied == 7, toggles  # one toggle per event
     # the burst: one event per piece start, in pieces of EVENT_PIECE_SAMPLES
     np.testing.assert_array_equal(np.diff(toggles[3:6]), EVENT_PIECE_SAMPLES)
 
@@ -126,8 +127,13 @@ def published_at_op1(speedup: float) -> dict[str, float]:
             while got < 32000:
                 got += len(reader.read_available(1 << 16, timeout_s=5.0))
             d = emu.drive
-            return {"speed_rpm": d.speed_rpm, "torque_nm": d.torque_actual_nm, "ud_ref_v": d.ud_ref_v,
-                    "uq_ref_v": d.uq_ref_v, "load_torque_nm": emu.load.torque_nm}
+            return {
+                "speed_rpm": d.speed_rpm,
+                "torque_nm": d.torque_actual_nm,
+                "ud_ref_v": d.ud_ref_v,
+                "uq_ref_v": d.uq_ref_v,
+                "load_torque_nm": emu.load.torque_nm,
+            }
     finally:
         emu.close()
 

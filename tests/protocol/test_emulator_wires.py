@@ -1,4 +1,5 @@
 """plant_emulator's wire servers in-process: socketcand bridge, SCPI supply, DAQ pty."""
+
 from __future__ import annotations
 
 import os
@@ -57,14 +58,15 @@ def test_clients_and_internal_bus_see_each_other(server):
     srv, internal = server
     a, b = client(srv), client(srv)
     try:
-        time.sleep(0.3)   # handshake grace period
+        time.sleep(0.3)  # handshake grace period
         a.send(can.Message(arbitration_id=0x605, data=[0x40, 0x18, 0x10, 1, 0, 0, 0, 0], is_extended_id=False))
         got_internal = recv_until(internal, 0x605)
         got_b = recv_until(b, 0x605)
         assert got_internal is not None and bytes(got_internal.data) == bytes([0x40, 0x18, 0x10, 1, 0, 0, 0, 0])
         assert got_b is not None and bytes(got_b.data) == bytes(got_internal.data)
-        internal.send(can.Message(arbitration_id=0x585, data=[0x43, 0x18, 0x10, 1, 0xAC, 0x0E, 0, 0],
-                                  is_extended_id=False))
+        internal.send(
+            can.Message(arbitration_id=0x585, data=[0x43, 0x18, 0x10, 1, 0xAC, 0x0E, 0, 0], is_extended_id=False)
+        )
         for bus in (a, b):
             got = recv_until(bus, 0x585)
             assert got is not None and got.data[4] == 0xAC
@@ -86,7 +88,7 @@ def test_malformed_input_and_disconnects_do_not_kill_the_server(server):
     assert got is not None and bytes(got.data) == b"\x07"
     raw.close()
     time.sleep(0.2)
-    c = client(srv)   # still serving
+    c = client(srv)  # still serving
     c.shutdown()
 
 
@@ -109,8 +111,8 @@ def test_pty_paced_drops_whole_frames_and_blocking_waits():
     pty = DaqPty(max_pending_bytes=1200)
     try:
         frames = encode_frames(np.arange(4000), np.zeros(4000), np.zeros(4000), np.zeros(4000))
-        for k in range(10):   # nobody reads: the pty fills, then whole frames are dropped
-            pty.write_paced(frames[k * 4800:(k + 1) * 4800])
+        for k in range(10):  # nobody reads: the pty fills, then whole frames are dropped
+            pty.write_paced(frames[k * 4800 : (k + 1) * 4800])
         assert pty.frames_dropped > 0
         fd = os.open(pty.name, os.O_RDONLY | os.O_NONBLOCK)
         try:
@@ -139,18 +141,18 @@ def test_pty_paced_drops_whole_frames_and_blocking_waits():
 def test_scpi_supply_faults_drift_and_trip():
     s = DcSupply(12.0)
     s.handle_line("VOLT 12;OUTP ON")
-    s.drift_to(9.0)                           # the output drifts; the setpoint stays
+    s.drift_to(9.0)  # the output drifts; the setpoint stays
     assert s.handle_line("VOLT?") == ["12.0000"]
     assert float(s.handle_line("MEAS:VOLT?")[0]) == pytest.approx(9.0, abs=0.01) and s.actual_v() == 9.0
-    s.handle_line("VOLT 14")                  # a new setpoint does not repair it either
+    s.handle_line("VOLT 14")  # a new setpoint does not repair it either
     assert s.actual_v() == 9.0 and s.handle_line("VOLT?") == ["14.0000"]
-    s.trip_output()                           # the protection trips: 0 V, OUTP? 0, OUTP ON refused
+    s.trip_output()  # the protection trips: 0 V, OUTP? 0, OUTP ON refused
     assert s.handle_line("OUTP?;MEAS:VOLT?") == ["0", "0.0000"] and s.actual_v() == 0.0
     assert s.handle_line("OUTP ON;OUTP?") == ["0"]
     assert s.handle_line("SYST:ERR?") == ['-221,"Settings conflict; output protection tripped"']
-    s.handle_line("*RST")                     # a reset command does not repair the supply
+    s.handle_line("*RST")  # a reset command does not repair the supply
     assert s.snapshot()["tripped"] and s.snapshot()["drift_v"] == 9.0
-    s.clear_faults()                          # repaired: a tripped output stays off until switched on
+    s.clear_faults()  # repaired: a tripped output stays off until switched on
     assert s.handle_line("OUTP?") == ["0"] and s.actual_v() == 0.0
     s.handle_line("VOLT 12;OUTP ON")
     assert s.actual_v() == 12.0 and float(s.handle_line("MEAS:VOLT?")[0]) == pytest.approx(12.0, abs=0.01)
@@ -169,21 +171,21 @@ def test_pty_offer_waits_while_read_and_gives_up_once_nobody_reads():
         pty.start_writer(stop)
         stall_s = 0.3
         results = []
-        while len(results) < 50 and (not results or results[-1] == QUEUED):   # nobody reads: it fills, then stalls
+        while len(results) < 50 and (not results or results[-1] == QUEUED):  # nobody reads: it fills, then stalls
             results.append(pty.offer(batch, stall_s=stall_s))
         assert results[-1] == STALLED and results.count(STALLED) == 1
-        assert time.monotonic() - pty.write_progress_at > stall_s       # the pty took nothing for that long
+        assert time.monotonic() - pty.write_progress_at > stall_s  # the pty took nothing for that long
         progress_before = pty.write_progress_at
         fd = os.open(pty.name, os.O_RDONLY | os.O_NONBLOCK)
         try:
             got = 0
-            while pty.write_progress_at == progress_before or got < len(batch):   # a reader reads again
+            while pty.write_progress_at == progress_before or got < len(batch):  # a reader reads again
                 try:
                     got += len(os.read(fd, 1 << 16))
                 except BlockingIOError:
                     select.select([fd], [], [], 0.05)
             assert pty.write_progress_at > progress_before
-            assert pty.offer(batch, stall_s=stall_s) == QUEUED            # it takes batches again
+            assert pty.offer(batch, stall_s=stall_s) == QUEUED  # it takes batches again
         finally:
             os.close(fd)
         pty.drop(batch)

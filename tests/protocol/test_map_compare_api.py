@@ -1,5 +1,6 @@
 """REST of map quality and comparison (no bench: maps built in storage from stored results):
 GET /maps/{id} with quality, ?smooth=outliers on the map and its exports, GET /maps/{a}/compare/{b}."""
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -22,12 +23,18 @@ def with_outlier(p):
 
 @pytest.fixture(scope="module")
 def api(tmp_path_factory):
-    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, 
-        "server.db_path": str(tmp_path_factory.mktemp("maps") / "api.db")}))
+    service = CalibrationService(
+        load_settings(
+            environ={},
+            overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path_factory.mktemp("maps") / "api.db")},
+        )
+    )
     with TestClient(create_app(service, manage_lifecycle=False)) as client:
-        maps = {"smooth": make_map(service.storage, GRID, smooth_theta),
-                "outlier": make_map(service.storage, GRID, with_outlier),
-                "h12": make_map(service.storage, GRID, smooth_theta, harmonic_order=12)}
+        maps = {
+            "smooth": make_map(service.storage, GRID, smooth_theta),
+            "outlier": make_map(service.storage, GRID, with_outlier),
+            "h12": make_map(service.storage, GRID, smooth_theta, harmonic_order=12),
+        }
         yield client, maps
 
 

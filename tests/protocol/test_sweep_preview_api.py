@@ -1,6 +1,7 @@
 """REST of POST /sweeps/preview and the sweep request's `regime`: the real app around a service whose
 engine is real but never started (no bench, no emulator: a queued sweep stays queued), so POST /sweeps
 goes through Engine.submit_sweep and what it stores can be held against the preview."""
+
 from __future__ import annotations
 
 import json
@@ -14,22 +15,29 @@ from service.runs.engine import Engine
 from service.runs.plans import Grid, SweepPlan
 from service.settings import load_settings
 
-EXAMPLE = {"grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000, 1400, 1800, 2200, 2600], "udc_v": [12]},
-           "method": "adaptive", "regime": {"speeds_around_onset": True, "spacing_rpm": 100}}
+EXAMPLE = {
+    "grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000, 1400, 1800, 2200, 2600], "udc_v": [12]},
+    "method": "adaptive",
+    "regime": {"speeds_around_onset": True, "spacing_rpm": 100},
+}
 
 
 class _NoBench:
     identity = "protocol:no-bench"
 
-    def check_reachable(self) -> None:      # a bench that was reached at start
+    def check_reachable(self) -> None:  # a bench that was reached at start
         pass
 
 
 @pytest.fixture(scope="module")
 def api(tmp_path_factory):
-    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, 
-        "server.db_path": str(tmp_path_factory.mktemp("preview") / "api.db")}))
-    service.engine = Engine(service.storage, _NoBench(), service.settings, service.broker)    # never started
+    service = CalibrationService(
+        load_settings(
+            environ={},
+            overrides={"emulator.speedup": 0.0, "server.db_path": str(tmp_path_factory.mktemp("preview") / "api.db")},
+        )
+    )
+    service.engine = Engine(service.storage, _NoBench(), service.settings, service.broker)  # never started
     _, token = service.storage.create_token("operator")
     with TestClient(create_app(service, manage_lifecycle=False), raise_server_exceptions=False) as client:
         yield client, {"Authorization": f"Bearer {token}"}, service
@@ -51,7 +59,11 @@ def test_preview_answers_the_plan_without_a_token_and_queues_nothing(api):
     assert p["grid"]["speed_rpm"] == sorted(set(EXAMPLE["grid"]["speed_rpm"]) | set(p["added_speeds_rpm"]))
     assert p["requested_grid"]["speed_rpm"] == [1000.0, 1400.0, 1800.0, 2200.0, 2600.0]
     assert [(o["torque_nm"], o["onset_rpm"], o["placed_rpm"]) for o in p["onsets"]] == [
-        (1.0, 2158.7, 2160.0), (2.0, 2064.6, 2060.0), (3.0, 1965.0, 1960.0), (4.0, 1862.0, 1860.0)]
+        (1.0, 2158.7, 2160.0),
+        (2.0, 2064.6, 2060.0),
+        (3.0, 1965.0, 1960.0),
+        (4.0, 1862.0, 1860.0),
+    ]
     assert p["voltage_margin"] == 0.95
     marked = {v["speed_rpm"]: v for v in p["speed_axis"]}
     assert marked[1860.0]["added"] and any("onset of 4 Nm at 12 V" in r for r in marked[1860.0]["reasons"])
@@ -59,8 +71,10 @@ def test_preview_answers_the_plan_without_a_token_and_queues_nothing(api):
     # the points in measuring order: U_dc, then speed, torque innermost alternating
     plan = SweepPlan.from_grid(Grid.model_validate(p["grid"]))
     assert p["points"] == [op.model_dump() for op in plan.points] and p["total"] == 44
-    assert p["points"][:5] == [{"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}
-                               for t, n in [(1, 1000), (2, 1000), (3, 1000), (4, 1000), (4, 1400)]]
+    assert p["points"][:5] == [
+        {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}
+        for t, n in [(1, 1000), (2, 1000), (3, 1000), (4, 1000), (4, 1400)]
+    ]
     est = p["estimate"]
     assert est["estimated_s"] == pytest.approx(3 + 44 * 0.9, abs=0.05) and est["worst_case_s"] > est["estimated_s"]
     assert est["basis"].startswith("estimate at speedup 1")
@@ -74,7 +88,7 @@ def test_post_sweeps_with_the_regime_stores_the_grid_the_preview_showed(api):
     s = r.json()
     assert s["grid"] == p["grid"] and s["progress"]["total"] == p["total"] and s["state"] == "queued"
     stored = service.storage.get_sweep(s["id"])
-    assert json.loads(stored["grid_json"]) == p["grid"]
+    assert stored["grid"] == p["grid"]
     # without the regime: the grid as requested, the preview shows no added speed but the onsets
     plain = {k: v for k, v in EXAMPLE.items() if k != "regime"}
     p0 = _preview(client, plain)
@@ -83,15 +97,27 @@ def test_post_sweeps_with_the_regime_stores_the_grid_the_preview_showed(api):
     assert s0["grid"] == p0["grid"] and s0["progress"]["total"] == 20
 
 
-@pytest.mark.parametrize("body", [
-    {"grid": {"torque_nm": [1, 9], "speed_rpm": [50, 2000]}},                          # bench limits
-    {"grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
-     "method": "probe", "regime": {"speeds_around_onset": True}},                      # 400 points, more once placed
-    {"grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000 + 7 * k for k in range(199)]}, "confirm_large": True,
-     "regime": {"speeds_around_onset": True}},                                         # > 200 speeds once placed
-    {"grid": {"torque_nm": [2.5], "speed_rpm": [2000]}, "method": "probe",
-     "options": {"max_newton_steps": 50, "max_window_s": 5, "settle_s": 2}},           # plant time
-])
+@pytest.mark.parametrize(
+    "body",
+    [
+        {"grid": {"torque_nm": [1, 9], "speed_rpm": [50, 2000]}},  # bench limits
+        {
+            "grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
+            "method": "probe",
+            "regime": {"speeds_around_onset": True},
+        },  # 400 points, more once placed
+        {
+            "grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000 + 7 * k for k in range(199)]},
+            "confirm_large": True,
+            "regime": {"speeds_around_onset": True},
+        },  # > 200 speeds once placed
+        {
+            "grid": {"torque_nm": [2.5], "speed_rpm": [2000]},
+            "method": "probe",
+            "options": {"max_newton_steps": 50, "max_window_s": 5, "settle_s": 2},
+        },  # plant time
+    ],
+)
 def test_preview_problems_are_the_422_items_post_sweeps_answers(api, body):
     client, operator, _ = api
     p = _preview(client, body)
@@ -102,8 +128,11 @@ def test_preview_problems_are_the_422_items_post_sweeps_answers(api, body):
 
 def test_the_placed_speeds_count_in_the_sweep_size(api):
     client, operator, _ = api
-    body = {"grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
-            "method": "probe", "regime": {"speeds_around_onset": True}}
+    body = {
+        "grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
+        "method": "probe",
+        "regime": {"speeds_around_onset": True},
+    }
     r = client.post("/api/v1/sweeps", json=body, headers=operator)
     [item] = r.json()["detail"]
     assert item["loc"] == ["body", "confirm_large"] and "more than 400" in item["msg"]
@@ -111,35 +140,49 @@ def test_the_placed_speeds_count_in_the_sweep_size(api):
     s = client.post("/api/v1/sweeps", json={**body, "confirm_large": True}, headers=operator).json()
     assert s["progress"]["total"] == _preview(client, body)["total"] > 400
     assert client.post(f"/api/v1/sweeps/{s['id']}/cancel", headers=operator).json()["state"] == "cancelled"
-    r = client.post("/api/v1/sweeps", json={"grid": {"torque_nm": [1, 2, 3, 4],
-                                                     "speed_rpm": [1000 + 7 * k for k in range(199)]},
-                                            "regime": {"speeds_around_onset": True}}, headers=operator)
+    r = client.post(
+        "/api/v1/sweeps",
+        json={
+            "grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000 + 7 * k for k in range(199)]},
+            "regime": {"speeds_around_onset": True},
+        },
+        headers=operator,
+    )
     [item] = r.json()["detail"]
     assert item["loc"] == ["body", "regime"] and "more than the grid's 200" in item["msg"]
 
 
-@pytest.mark.parametrize("regime,loc", [
-    ({"speeds_around_onset": True, "spacing_rpm": 5}, ["body", "regime", "spacing_rpm"]),
-    ({"speeds_around_onset": True, "spacing_rpm": float("inf")}, ["body", "regime", "spacing_rpm"]),
-    ({"round_rpm": 0}, ["body", "regime", "round_rpm"]),
-    ({"speeds_around_onset": True, "spacing": 100}, ["body", "regime", "spacing"]),
-    ({"speeds_around_onset": "maybe"}, ["body", "regime", "speeds_around_onset"]),
-])
+@pytest.mark.parametrize(
+    "regime,loc",
+    [
+        ({"speeds_around_onset": True, "spacing_rpm": 5}, ["body", "regime", "spacing_rpm"]),
+        ({"speeds_around_onset": True, "spacing_rpm": float("inf")}, ["body", "regime", "spacing_rpm"]),
+        ({"round_rpm": 0}, ["body", "regime", "round_rpm"]),
+        ({"speeds_around_onset": True, "spacing": 100}, ["body", "regime", "spacing"]),
+        ({"speeds_around_onset": "maybe"}, ["body", "regime", "speeds_around_onset"]),
+    ],
+)
 @pytest.mark.parametrize("path", ["/api/v1/sweeps/preview", "/api/v1/sweeps"])
 def test_bad_regime_fields_are_422_at_the_field(api, regime, loc, path):
     client, operator, _ = api
-    raw = json.dumps({**EXAMPLE, "regime": regime}).replace("Infinity", "1e999")     # JSON's way to overflow
+    raw = json.dumps({**EXAMPLE, "regime": regime}).replace("Infinity", "1e999")  # JSON's way to overflow
     r = client.post(path, content=raw, headers={**operator, "Content-Type": "application/json"})
     assert r.status_code == 422, r.text
     assert loc in [e["loc"] for e in r.json()["detail"]]
 
 
-@pytest.mark.parametrize("grid", [
-    {"torque_nm": [1], "speed_rpm": [0, -100, 2000]},
-    {"torque_nm": [1e300, -1e300], "speed_rpm": [1e300], "udc_v": [1e300, 1e-300]},
-    {"torque_nm": [float(k) for k in range(200)], "speed_rpm": [float(k) for k in range(1, 201)],
-     "udc_v": [float(k) for k in range(1, 51)]},
-])
+@pytest.mark.parametrize(
+    "grid",
+    [
+        {"torque_nm": [1], "speed_rpm": [0, -100, 2000]},
+        {"torque_nm": [1e300, -1e300], "speed_rpm": [1e300], "udc_v": [1e300, 1e-300]},
+        {
+            "torque_nm": [float(k) for k in range(200)],
+            "speed_rpm": [float(k) for k in range(1, 201)],
+            "udc_v": [float(k) for k in range(1, 51)],
+        },
+    ],
+)
 def test_absurd_grids_are_answered_never_a_server_error(api, grid):
     client, _, _ = api
     p = _preview(client, {"grid": grid, "regime": {"speeds_around_onset": True}})

@@ -1,10 +1,11 @@
-"""The setpoint/sync-toggle accounting (service/bench/setpoint_accounting.py, service/measurement.PointStream)
+"""The setpoint/sync-toggle accounting (service/bench/setpoint_accounting.py, service/bench/point_stream.PointStream)
 on a real pty.
 
 A DAQ that cannot wait (a real one, or the emulator paced) drops what the reader does not take in
 time; a setpoint's sync toggle can fall into the hole. Across a gap only the level is seen, so toggles
 go missing in pairs. Streams here are made with the emulator's frame encoder; the drive's count of
 setpoints is the number the test says it wrote."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,14 +13,18 @@ import pytest
 
 from drivers.daq_protocol import FLAG_SYNC_INPUT, encode_frames
 from drivers.daq_reader import DaqReader
+from service.bench.point_stream import PointStream
+from service.bench.setpoint_accounting import (
+    INITIAL_QUIET_SAMPLES,
+    MIN_QUIET_SAMPLES,
+    AccountingError,
+    SetpointAccounting,
+)
 from service.identification.session import MeasurementError
-from service.bench.measurement import PointStream
-from service.bench.setpoint_accounting import (INITIAL_QUIET_SAMPLES, MIN_QUIET_SAMPLES, AccountingError,
-                                         SetpointAccounting)
 from tests.support.pty_writer import PtyWriter
 
 RATE_HZ = 16000.0
-QUIET = 4096          # samples of a quiet line after a gap that show no setpoint is pending
+QUIET = 4096  # samples of a quiet line after a gap that show no setpoint is pending
 
 
 def stream(pieces: list[tuple[int, int]], seq_jumps: dict[int, int] | None = None) -> bytes:
@@ -29,8 +34,9 @@ def stream(pieces: list[tuple[int, int]], seq_jumps: dict[int, int] | None = Non
     seq = np.arange(len(levels))
     for at, lost in (seq_jumps or {}).items():
         seq[at:] += lost
-    return encode_frames(seq, (seq * 97) % 65536, np.zeros(len(seq), np.int64),
-                         np.where(levels == 1, FLAG_SYNC_INPUT, 0))
+    return encode_frames(
+        seq, (seq * 97) % 65536, np.zeros(len(seq), np.int64), np.where(levels == 1, FLAG_SYNC_INPUT, 0)
+    )
 
 
 class Drive:
@@ -55,9 +61,9 @@ def pty():
 
 def accounting_on(reader, drive: Drive, latency: int | None = QUIET // 2) -> SetpointAccounting:
     acc = SetpointAccounting(reader, 5.0, lambda: drive.written, drive.resync)
-    acc.doubt_reason = None                 # established (the tests below start from a known count)
+    acc.doubt_reason = None  # established (the tests below start from a known count)
     if latency is not None:
-        acc.latencies.append(latency)       # quiet window = twice the largest recent latency
+        acc.latencies.append(latency)  # quiet window = twice the largest recent latency
     return acc
 
 
@@ -96,8 +102,9 @@ def test_a_line_never_quiet_after_gaps_names_them():
     # holes every 1000 samples, the toggle never comes: the budget ends with the reason
     n = 40
     with pytest.raises(MeasurementError, match=r"toggle\(s\) missing; the stream had \d+ DAQ gap"):
-        wait_for_effect(stream([(1000 * n, 0)], {1000 * k: 10 for k in range(1, n)}), setpoints_written=2,
-                        max_plant_s=1.5)
+        wait_for_effect(
+            stream([(1000 * n, 0)], {1000 * k: 10 for k in range(1, n)}), setpoints_written=2, max_plant_s=1.5
+        )
 
 
 def test_the_budget_is_plant_time_on_the_sample_clock_not_samples_received():
@@ -112,7 +119,7 @@ def test_nothing_pending_is_no_wait(pty):
         pty.write_in_thread(stream([(500, 0)]))
         acc = accounting_on(reader, Drive(0))
         points = PointStream(acc, RATE_HZ)
-        assert points.wait_for_effect(1.0) == 0        # the next sample: nothing was written
+        assert points.wait_for_effect(1.0) == 0  # the next sample: nothing was written
         assert acc.cursor.toggles_seen == 0
 
 
@@ -123,8 +130,8 @@ def test_establishing_waits_for_a_quiet_line_sized_by_the_measured_latency(pty):
         pty.write_in_thread(data)
         drive = Drive(written=0)
         acc = SetpointAccounting(reader, 5.0, lambda: drive.written, drive.resync)
-        assert acc.in_doubt                                   # at connect: nothing known
-        acc.latencies.append(1000)                            # a measured path: quiet window 2000 samples
+        assert acc.in_doubt  # at connect: nothing known
+        acc.latencies.append(1000)  # a measured path: quiet window 2000 samples
         assert acc.quiet_samples() == 2000
         report = acc.establish(guard=lambda: None)
     assert not acc.in_doubt and report["quiet_samples"] == 2000
@@ -137,13 +144,13 @@ def test_quiet_window_before_any_latency_is_the_conservative_one_then_follows_th
     acc = SetpointAccounting(None, 1.0, lambda: 0, lambda n: {})
     assert acc.quiet_samples() == INITIAL_QUIET_SAMPLES
     acc.latencies.extend([40, 90, 60])
-    assert acc.quiet_samples() == MIN_QUIET_SAMPLES            # a fast path: never below the floor
+    assert acc.quiet_samples() == MIN_QUIET_SAMPLES  # a fast path: never below the floor
     acc.latencies.append(5000)
     assert acc.quiet_samples() == 10000
 
 
 def test_a_line_that_never_goes_quiet_cannot_be_established(pty):
-    toggling = [(300, k % 2) for k in range(500)]             # a toggle every 300 samples, 150000 samples
+    toggling = [(300, k % 2) for k in range(500)]  # a toggle every 300 samples, 150000 samples
     with DaqReader(pty.path) as reader:
         pty.write_in_thread(stream(toggling))
         acc = SetpointAccounting(reader, 5.0, lambda: 0, lambda n: {})
@@ -159,22 +166,22 @@ def test_latency_of_each_setpoint_is_measured_from_its_write(pty):
         drive = Drive(0)
         acc = accounting_on(reader, drive, latency=None)
         points = PointStream(acc, RATE_HZ)
-        points.next_exact(400)                  # read up to sample 399
+        points.next_exact(400)  # read up to sample 399
         drive.written = 1
-        acc.note_write(1)                       # written when the newest sample read was 399
+        acc.note_write(1)  # written when the newest sample read was 399
         assert points.wait_for_effect(1.0) == 1000
     assert list(acc.latencies) == [1000 - 399]
 
 
 def test_a_run_starts_clean_when_the_line_kept_its_level_and_in_doubt_when_it_did_not(pty):
-    data = stream([(2000, 1), (60000, 1)])    # longer than the reader and the pty hold: data follow each flush
+    data = stream([(2000, 1), (60000, 1)])  # longer than the reader and the pty hold: data follow each flush
     with DaqReader(pty.path, max_buffered_samples=1024) as reader:
         pty.write_in_thread(data)
         acc = accounting_on(reader, Drive(0))
-        acc.cursor.read(100)                    # the line was at level 1 when the last run ended
+        acc.cursor.read(100)  # the line was at level 1 when the last run ended
         acc.start_run(guard=lambda: None)
         assert not acc.in_doubt
-        acc.cursor._level = 0                   # as if it had been 0: something moved it meanwhile
+        acc.cursor._level = 0  # as if it had been 0: something moved it meanwhile
         acc.start_run(guard=lambda: None)
         assert acc.in_doubt and "changed level" in acc.doubt_reason
 

@@ -1,24 +1,36 @@
 """A closed-form plant for unit tests of the identification algorithms (eq. 15):
 alpha(phi) = Re{(S (Theta_d + Theta) + R conj(Theta_d + Theta)) exp(j h phi)} + noise, sampled at
-constant speed. R = 0 is a scalar complex secondary path (DESIGN 3's rotation-form S_ss); R != 0 is
+constant speed. R = 0 is a scalar complex secondary path (the rotation-form S_ss of docs/conventions.md,
+Secondary path); R != 0 is
 the general real 2x2 S_ss a machine with L_d != L_q or dead time shows.
 
 It synthesises real sample records so that the phasor demodulation is exercised too; its truth
 (S, Theta_d) is known to the test, which checks the algorithms against -Theta_d in closed form."""
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from service.model.harmonic import phasor
 from service.identification.session import Window
+from service.model.harmonic import phasor
 
 
 class AffinePlantSession:
-    def __init__(self, s_true: complex, theta_d: complex, harmonic_order: int = 6, speed_rpm: float = 2000.0,
-                 pole_pairs: int = 4, sample_rate_hz: float = 16000.0, noise_fs: float = 0.0, seed: int = 0,
-                 settle_samples: int = 160, r_conj: complex = 0j):
+    def __init__(
+        self,
+        s_true: complex,
+        theta_d: complex,
+        harmonic_order: int = 6,
+        speed_rpm: float = 2000.0,
+        pole_pairs: int = 4,
+        sample_rate_hz: float = 16000.0,
+        noise_fs: float = 0.0,
+        seed: int = 0,
+        settle_samples: int = 160,
+        r_conj: complex = 0j,
+    ):
         self.s_true, self.theta_d, self.r_conj = s_true, theta_d, r_conj
         self.harmonic_order = harmonic_order
         self.sample_rate_hz = sample_rate_hz
@@ -57,8 +69,13 @@ class AffinePlantSession:
         p = phasor(alpha, angle, self.harmonic_order, periods)
         self.sample += p.samples
         self._plant_samples += p.samples
-        return Window(p, alpha[: p.samples], angle[: p.samples], self._plant_samples / self.sample_rate_hz,
-                      self.noise_fs * math.sqrt(2.0 / p.samples))
+        return Window(
+            p,
+            alpha[: p.samples],
+            angle[: p.samples],
+            self._plant_samples / self.sample_rate_hz,
+            self.noise_fs * math.sqrt(2.0 / p.samples),
+        )
 
     @property
     def plant_time_s(self) -> float:

@@ -1,6 +1,7 @@
 """An emulated bench in its own process, and the service pointed at it with `--bench` as at a real
 bench (the interlock and crash end-to-end tests and tests/benchmarks/bench_faults.py). Faults go through the
 emulator's control socket; the service never uses that socket."""
+
 from __future__ import annotations
 
 import contextlib
@@ -15,17 +16,35 @@ from typing import Iterator
 
 import httpx
 
-from tests.support.waiting import wait_until
 from tests.support.service_process import REPO, ServiceProcess, create_token
+from tests.support.waiting import wait_run_finished, wait_until
+
+
+def emulator_control(endpoints: dict, command: dict, timeout_s: float = 10.0) -> dict:
+    """One command to the emulator's fault-injection socket (test-only; the service never uses it), its
+    JSON reply. endpoints: what the emulator printed at start (`EmulatorRig.endpoints`, or the endpoints
+    of the emulator child a CalibrationService started)."""
+    host, port = endpoints["control"].removeprefix("tcp://").rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+        sock.sendall((json.dumps(command) + "\n").encode())
+        with sock.makefile() as lines:
+            reply = lines.readline()
+    if not reply.endswith("\n"):
+        raise ConnectionError(f"the emulator's control socket closed before its reply to {command}: {reply!r}")
+    return json.loads(reply)
 
 
 class EmulatorRig:
     """`python -m plant_emulator` as its own process (stdin pipe held here: it dies with the test)."""
 
     def __init__(self, speedup: float = 0.0, timeout_s: float = 120.0):
-        self.proc = subprocess.Popen([sys.executable, "-m", "plant_emulator", "--speedup", str(speedup),
-                                      "--exit-on-stdin-eof"], cwd=REPO, stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "plant_emulator", "--speedup", str(speedup), "--exit-on-stdin-eof"],
+            cwd=REPO,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         deadline = time.monotonic() + timeout_s
         line = ""
         while time.monotonic() < deadline and not line:
@@ -35,10 +54,7 @@ class EmulatorRig:
         self.endpoints = json.loads(line)
 
     def control(self, command: dict, timeout_s: float = 10.0) -> dict:
-        host, port = self.endpoints["control"].removeprefix("tcp://").split(":")
-        with socket.create_connection((host, int(port)), timeout=timeout_s) as s:
-            s.sendall((json.dumps(command) + "\n").encode())
-            return json.loads(s.makefile().readline())
+        return emulator_control(self.endpoints, command, timeout_s)
 
     def bench_file(self, directory: Path, name: str = "emulated-bench") -> Path:
         ep, can = self.endpoints, self.endpoints["can"]
@@ -48,7 +64,8 @@ class EmulatorRig:
             f'[can]\ninterface = "{can["interface"]}"\nchannel = "{can["channel"]}"\nhost = "{can["host"]}"\n'
             f'port = {can["port"]}\ndrive_node = {ep["drive_node"]}\nload_node = {ep["load_node"]}\n'
             f'[daq]\nurl = "{ep["daq"]}"\nsample_rate_hz = {ep["sample_rate_hz"]}\n'
-            f'[supply]\nurl = "{ep["supply"]}"\n')
+            f'[supply]\nurl = "{ep["supply"]}"\n'
+        )
         return path
 
     def stop(self) -> None:
@@ -68,8 +85,9 @@ class Api:
     def __init__(self, service: ServiceProcess, db: Path):
         self.service = service
         self.token = create_token(db)
-        self.http = httpx.Client(base_url=service.base + "/api/v1", timeout=30,
-                                 headers={"Authorization": f"Bearer {self.token}"})
+        self.http = httpx.Client(
+            base_url=service.base + "/api/v1", timeout=30, headers={"Authorization": f"Bearer {self.token}"}
+        )
 
     def get(self, path: str) -> dict:
         r = self.http.get(path)
@@ -83,8 +101,7 @@ class Api:
         return wait_until(predicate, timeout_s, what, poll_s=0.1)
 
     def job_finished(self, job_id: int, timeout_s: float = 180.0) -> dict:
-        return self.wait(lambda: (j := self.get(f"/jobs/{job_id}"))["state"] in ("done", "failed", "cancelled") and j,
-                         timeout_s, f"job {job_id}")
+        return wait_run_finished(lambda: self.get(f"/jobs/{job_id}"), timeout_s, f"job {job_id}")
 
     def identify(self, op: dict, method: str = "probe", timeout_s: float = 180.0) -> dict:
         r = self.post("/identifications", {"operating_point": op, "method": method})
@@ -96,8 +113,9 @@ class Api:
 
 
 @contextlib.contextmanager
-def served_bench(directory: Path, db_name: str,
-                 speedup: float = 0.0) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
+def served_bench(
+    directory: Path, db_name: str, speedup: float = 0.0
+) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
     """An emulated bench and `ripplecal serve --bench` pointed at it, ready: (emulator, service, api, db);
     both processes stopped on the way out. speedup > 0: the emulator paced (see EmulatorRig)."""
     emu = EmulatorRig(speedup=speedup)

@@ -7,6 +7,7 @@
   device the emulated bench runs.
 - ScpiPeer: a tiny SCPI instrument on a 127.0.0.1 TCP socket (pyserial URL socket://127.0.0.1:PORT).
 """
+
 from __future__ import annotations
 
 import socket

@@ -1,9 +1,9 @@
 """The real application for in-process API tests: CalibrationService on a SQLite file in tmp, its
 emulator child started, the FastAPI app around it (no HTTP server needed: TestClient / ASGI)."""
+
 from __future__ import annotations
 
 import contextlib
-import time
 from pathlib import Path
 from typing import Iterator
 
@@ -12,12 +12,16 @@ from fastapi.testclient import TestClient
 from service.api.app import create_app
 from service.calibration_service import CalibrationService
 from service.settings import load_settings
+from tests.support.waiting import wait_run_finished
 
 
 @contextlib.contextmanager
 def started_service(db_dir: Path, **overrides) -> Iterator[CalibrationService]:
-    service = CalibrationService(load_settings(environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db_dir / "api.db"),
-                                                                      **overrides}))
+    service = CalibrationService(
+        load_settings(
+            environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db_dir / "api.db"), **overrides}
+        )
+    )
     service.start(status_period_s=None)
     try:
         yield service
@@ -37,11 +41,4 @@ def bearer(service: CalibrationService, role: str) -> dict[str, str]:
 
 def wait_finished(client: TestClient, path: str, timeout_s: float = 120.0) -> dict:
     """Poll a job or sweep until it leaves queued/running/paused (the timeout only guards a hang)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        body = client.get(path).json()
-        if body["state"] not in ("queued", "running", "paused"):
-            return body
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"{path} still {body['state']} after {timeout_s} s")
-        time.sleep(0.1)
+    return wait_run_finished(lambda: client.get(path).json(), timeout_s, path)

@@ -1,4 +1,5 @@
 """The master side of a real pty, written from a thread: a DAQ for the reader to open by its /dev/pts path."""
+
 from __future__ import annotations
 
 import os
@@ -17,9 +18,9 @@ class PtyWriter:
         self.path = os.ttyname(self.slave_fd)
         self.bytes_written = 0
         self.error: BaseException | None = None
-        self.piece_times: list[float] = []     # write_at_rate: time.monotonic() after each piece went in
+        self.piece_times: list[float] = []  # write_at_rate: time.monotonic() after each piece went in
         self._thread: threading.Thread | None = None
-        self._stop = threading.Event()         # close(): a writer blocked on a full pty gives up at once
+        self._stop = threading.Event()  # close(): a writer blocked on a full pty gives up at once
 
     def write(self, data: bytes) -> None:
         """All of data, from the calling thread (blocks while the pty is full)."""
@@ -28,7 +29,7 @@ class PtyWriter:
             if self._stop.is_set():
                 raise OSError("pty writer closed")
             if not select.select([], [self.master_fd], [], 0.05)[1]:
-                continue            # full: the reader has not taken it yet
+                continue  # full: the reader has not taken it yet
             written = os.write(self.master_fd, view)
             self.bytes_written += written
             view = view[written:]
@@ -37,7 +38,7 @@ class PtyWriter:
         def run():
             try:
                 for start in range(0, len(data), piece_bytes):
-                    self.write(data[start:start + piece_bytes])
+                    self.write(data[start : start + piece_bytes])
             except OSError as exc:
                 self.error = exc
 
@@ -57,7 +58,7 @@ class PtyWriter:
                     delay = t0 + start / bytes_per_s - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
-                    self.write(data[start:start + piece_bytes])
+                    self.write(data[start : start + piece_bytes])
                     self.piece_times.append(time.monotonic())
             except OSError as exc:
                 self.error = exc

@@ -1,6 +1,7 @@
 """What a finished sweep's points must show, whatever the machine: every point measured (none lost to a
 fault or a restart), each stored honestly (ok only at its target, every other status with its reason).
 How many cells reach 40 dB is the sweep-quality benchmark's figure, not an end-to-end test's."""
+
 from __future__ import annotations
 
 MEASURED = ("ok", "below_target", "no_authority")
@@ -9,18 +10,27 @@ MEASURED = ("ok", "below_target", "no_authority")
 def assert_points_measured_honestly(points: list[dict], min_ok: int) -> None:
     def brief(p: dict) -> str:
         r = p.get("result") or {}
-        return (f"{p['operating_point']}: {p['state']} {r.get('suppression_db')} dB "
-                f"(target {r.get('target_db')}): {p.get('error') or r.get('error')}")
+        return (
+            f"{p['operating_point']}: {p['state']} {r.get('suppression_db')} dB "
+            f"(target {r.get('target_db')}): {p.get('error') or r.get('error')}"
+        )
 
     unmeasured = [brief(p) for p in points if p["state"] not in MEASURED or p.get("result") is None]
     assert not unmeasured, "points not measured: " + "; ".join(unmeasured)
-    dishonest = [brief(p) for p in points if (p["state"] == "ok") != (p["result"]["status"] == "ok")
-                 or p["state"] == "ok" and p["result"]["suppression_db"] < p["result"]["target_db"]
-                 or p["state"] != "ok" and not p["result"]["error"]]
+    dishonest = [
+        brief(p)
+        for p in points
+        if (p["state"] == "ok") != (p["result"]["status"] == "ok")
+        or p["state"] == "ok"
+        and p["result"]["suppression_db"] < p["result"]["target_db"]
+        or p["state"] != "ok"
+        and not p["result"]["error"]
+    ]
     assert not dishonest, "stored ok below target, or not ok without a reason: " + "; ".join(dishonest)
     ok = sum(p["state"] == "ok" for p in points)
     assert ok >= min_ok, f"{ok} of {len(points)} points ok (expected >= {min_ok}): " + "; ".join(
-        brief(p) for p in points if p["state"] != "ok")
+        brief(p) for p in points if p["state"] != "ok"
+    )
 
 
 def cells_not_ok(m: dict) -> int:

@@ -1,5 +1,6 @@
 """The harmonic fit with the shaft mode as a nuisance (service/model/demodulation.py), against records built
 in closed form: a harmonic phasor, a decaying mode rung by a step, a clipped sensor, white noise."""
+
 import math
 
 import numpy as np
@@ -10,13 +11,12 @@ from service.model.harmonic import phasor, whole_period_samples
 
 FS_HZ = 16000.0
 H = 6
-F_E_HZ = 200.0                                  # 3000 rpm at N_p = 4: f_h = 1200 Hz (the paper's OP2)
-PAPER_MODE = ResonanceMode(-19.6, 6746.2)       # paper sec. 2.3: poles -19.6 +- j6746.2 rad/s (1074 Hz)
-A_C, A_S = 0.007, -0.030                         # the harmonic's phasor, full scale
+F_E_HZ = 200.0  # 3000 rpm at N_p = 4: f_h = 1200 Hz (the paper's OP2)
+PAPER_MODE = ResonanceMode(-19.6, 6746.2)  # paper sec. 2.3: poles -19.6 +- j6746.2 rad/s (1074 Hz)
+A_C, A_S = 0.007, -0.030  # the harmonic's phasor, full scale
 
 
-def record(periods: int, mode: ResonanceMode | None = None, ring_fs: float = 0.0, noise_fs: float = 0.0,
-           seed: int = 0):
+def record(periods: int, mode: ResonanceMode | None = None, ring_fs: float = 0.0, noise_fs: float = 0.0, seed: int = 0):
     n_max = int(periods / (H * F_E_HZ) * FS_HZ) + 64
     t = np.arange(n_max) / FS_HZ
     angle = (2 * math.pi * F_E_HZ * t) % (2 * math.pi)
@@ -31,7 +31,7 @@ def record(periods: int, mode: ResonanceMode | None = None, ring_fs: float = 0.0
 def test_without_a_ring_the_fit_is_the_design_phasor():
     alpha, angle = record(24)
     fit = fit_harmonic(alpha, angle, FS_HZ, H, 24, PAPER_MODE)
-    plain = phasor(*record(25), H, 24)       # DESIGN 3: (2/N) sum(alpha cos), (2/N) sum(alpha sin)
+    plain = phasor(*record(25), H, 24)  # docs/conventions.md, Phasors: (2/N) sum(alpha cos), (2/N) sum(alpha sin)
     assert fit.phasor.a_c == pytest.approx(A_C, abs=2e-5) and fit.phasor.a_s == pytest.approx(A_S, abs=2e-5)
     assert fit.phasor.a_c == pytest.approx(plain.a_c, abs=2e-5) and fit.phasor.a_s == pytest.approx(plain.a_s, abs=2e-5)
 
@@ -43,19 +43,21 @@ def test_a_window_right_after_a_step_is_unbiased_with_the_mode_as_nuisance():
     fit = fit_harmonic(alpha, angle, FS_HZ, H, 24, PAPER_MODE)
     bias_plain = math.hypot(plain.a_c - A_C, plain.a_s - A_S)
     bias_fit = math.hypot(fit.phasor.a_c - A_C, fit.phasor.a_s - A_S)
-    assert bias_plain > 0.1 * math.hypot(A_C, A_S)          # the leak the issue measured (> -20 dB)
-    assert bias_fit < 1e-4 * math.hypot(A_C, A_S) * 100     # at float rounding of the model: < -40 dB
+    assert bias_plain > 0.1 * math.hypot(A_C, A_S)  # the leak the issue measured (> -20 dB)
+    assert bias_fit < 1e-4 * math.hypot(A_C, A_S) * 100  # at float rounding of the model: < -40 dB
     assert fit.ring_fs == pytest.approx(0.12, rel=1e-3)
 
 
 def test_clipped_samples_are_left_out_and_the_phasor_stays_right():
     alpha, angle = record(48)
-    scale = 1.0 / (0.8 * np.max(np.abs(alpha)))              # full scale at 80 % of the peak
+    scale = 1.0 / (0.8 * np.max(np.abs(alpha)))  # full scale at 80 % of the peak
     clipped = np.abs(alpha * scale) > 1.0
     assert 0.05 < clipped.mean() < 0.5
     reading = np.clip(alpha * scale, -1.0, 1.0)
     fit = fit_harmonic(reading, angle, FS_HZ, H, 48, None, usable=~clipped)
-    assert fit.phasor.a_c / scale == pytest.approx(A_C, abs=1e-6) and fit.phasor.a_s / scale == pytest.approx(A_S, abs=1e-6)
+    assert fit.phasor.a_c / scale == pytest.approx(A_C, abs=1e-6) and fit.phasor.a_s / scale == pytest.approx(
+        A_S, abs=1e-6
+    )
 
 
 def test_a_harmonic_ringing_far_over_range_is_recovered_from_its_zero_crossings():
@@ -68,12 +70,12 @@ def test_a_harmonic_ringing_far_over_range_is_recovered_from_its_zero_crossings(
     reading = np.clip(alpha * scale, -1.0, 1.0)
     fit = fit_harmonic(reading, angle, FS_HZ, H, 96, PAPER_MODE, usable=~clipped)
     error = math.hypot(fit.phasor.a_c / scale - A_C, fit.phasor.a_s / scale - A_S)
-    assert error < 3e-3 * math.hypot(A_C, A_S)               # -50 dB (seen: < -63 dB over 5 noise draws)
-    assert fit.noise_std_fs / scale < 1e-3 * math.hypot(A_C, A_S)     # its own sigma says so (seen: 2e-4)
+    assert error < 3e-3 * math.hypot(A_C, A_S)  # -50 dB (seen: < -63 dB over 5 noise draws)
+    assert fit.noise_std_fs / scale < 1e-3 * math.hypot(A_C, A_S)  # its own sigma says so (seen: 2e-4)
 
 
 def test_the_tracker_learns_a_bench_whose_mode_is_not_the_settings():
-    bench_mode = PAPER_MODE.scaled(0.95)                    # 5 % below the settings' pole
+    bench_mode = PAPER_MODE.scaled(0.95)  # 5 % below the settings' pole
     tracker = ResonanceTracker(PAPER_MODE)
     for seed in range(3):
         alpha, angle = record(24, bench_mode, ring_fs=0.1, noise_fs=1e-3, seed=seed)
@@ -90,9 +92,13 @@ def _low_speed_record(f_e_hz: float, mode: ResonanceMode, ring_fs: float, tone_o
     n_max = int(periods / (H * f_e_hz) * FS_HZ) + 64
     t = np.arange(n_max) / FS_HZ
     turns = 2 * math.pi * f_e_hz * t
-    alpha = (A_C * np.cos(H * turns) + A_S * np.sin(H * turns) + tone_fs * (np.cos(tone_order * turns + 0.3) + np.cos((tone_order - 1) * turns + 1.1))
-             + ring_fs * np.exp(mode.sigma_rad_s * t) * np.cos(mode.omega_rad_s * t + 0.7)
-             + 1e-3 * np.random.default_rng(seed).standard_normal(n_max))
+    alpha = (
+        A_C * np.cos(H * turns)
+        + A_S * np.sin(H * turns)
+        + tone_fs * (np.cos(tone_order * turns + 0.3) + np.cos((tone_order - 1) * turns + 1.1))
+        + ring_fs * np.exp(mode.sigma_rad_s * t) * np.cos(mode.omega_rad_s * t + 0.7)
+        + 1e-3 * np.random.default_rng(seed).standard_normal(n_max)
+    )
     angle = turns % (2 * math.pi)
     n = whole_period_samples(angle, H, periods)
     return alpha[:n], angle[:n]
@@ -128,7 +134,7 @@ def test_the_electrical_speed_of_a_wrapped_angle_record():
 def test_a_wrong_first_estimate_is_not_kept():
     bench_mode = PAPER_MODE.scaled(0.95)
     tracker = ResonanceTracker(PAPER_MODE)
-    tracker._scale, tracker._learned_from, tracker._precision = 0.92, 1, 1.0    # 3 % off, barely known
+    tracker._scale, tracker._learned_from, tracker._precision = 0.92, 1, 1.0  # 3 % off, barely known
     for seed in range(3):
         alpha, angle = record(24, bench_mode, ring_fs=0.1, noise_fs=1e-3, seed=seed)
         tracker.fit(alpha, angle, FS_HZ, H, 24)

@@ -1,4 +1,5 @@
 """Physics of plant_emulator against closed-form answers (no CAN, no pty)."""
+
 from __future__ import annotations
 
 import math
@@ -70,7 +71,7 @@ def test_steady_state_matches_dq_closed_form(params):
     w_e = p[ph.P_NP] * w_m
     plant = ph.Plant(p)
     plant.x[ph.X_OMEGA_M] = plant.x[ph.X_LOAD_REF] = w_m
-    plant.x[ph.X_LOAD_INT] = -torque_nm          # load machine already holding the torque
+    plant.x[ph.X_LOAD_INT] = -torque_nm  # load machine already holding the torque
     sp = op_setpoints(12.0, torque_nm, speed_rpm)
     plant.run(sp, int(0.3 * FS_HZ))
     tr = plant.run(sp, whole_periods(speed_rpm, p[ph.P_NP], FS_HZ, 20), trace=True)[3]
@@ -96,8 +97,11 @@ def test_injection_rotates_the_voltage_exactly(params):
     u_star = np.hypot(tr[:, ph.TR_UD_STAR], tr[:, ph.TR_UQ_STAR])
     assert np.max(np.abs(u_star / u - 1.0)) < 1e-9
     # and the angle moved by v_inj = theta^T x (eq. 3, 12)
-    dphi = np.angle(np.exp(1j * (np.arctan2(tr[:, ph.TR_UQ_STAR], tr[:, ph.TR_UD_STAR])
-                                 - np.arctan2(tr[:, ph.TR_UQ], tr[:, ph.TR_UD]))))
+    dphi = np.angle(
+        np.exp(
+            1j * (np.arctan2(tr[:, ph.TR_UQ_STAR], tr[:, ph.TR_UD_STAR]) - np.arctan2(tr[:, ph.TR_UQ], tr[:, ph.TR_UD]))
+        )
+    )
     np.testing.assert_allclose(dphi, tr[:, ph.TR_V_INJ], atol=1e-12)
 
 
@@ -136,7 +140,7 @@ def test_firmware_applies_one_setpoint_per_chunk_with_one_toggle(params):
     assert exc.value.code == 0x06090030
     sp = ph.new_setpoints()
     levels = []
-    for _ in range(3):   # torque, injection mode, theta commit
+    for _ in range(3):  # torque, injection mode, theta commit
         assert drive.chunk_setpoints(sp, 12.0)
         levels.append(sp[ph.S_SYNC])
     assert levels == [1.0, 0.0, 1.0]
@@ -144,7 +148,7 @@ def test_firmware_applies_one_setpoint_per_chunk_with_one_toggle(params):
     assert sp[ph.S_TORQUE_NM] == pytest.approx(2.5)
     assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx((0.01, 0.02))
     assert sp[ph.S_POWER] == 1.0
-    assert drive.chunk_setpoints(sp, 3.0) is False and sp[ph.S_POWER] == 0.0   # DC link too low
+    assert drive.chunk_setpoints(sp, 3.0) is False and sp[ph.S_POWER] == 0.0  # DC link too low
 
 
 def test_calibrated_theta_cancels_the_6th_alpha_harmonic(params, tab):
@@ -168,7 +172,7 @@ def test_calibrated_theta_cancels_the_6th_alpha_harmonic(params, tab):
 
     a_off = alpha_harmonic((0.0, 0.0))
     a_on = alpha_harmonic(theta_from_gamma_delta(math.radians(3.0), math.radians(280.0)))
-    assert a_off > 0.02 * fs          # a clearly visible harmonic (a few % of full scale)
+    assert a_off > 0.02 * fs  # a clearly visible harmonic (a few % of full scale)
     assert 20 * math.log10(a_off / a_on) >= 40.0
 
 
@@ -188,7 +192,7 @@ def test_a_disabled_bench_stays_at_standstill(params, tab):
     flux and saturation harmonics times current). The speed-dependent phase of the map applied to a
     coasting shaft once drove it to a steady -6 rpm; now a shaft at rest stays at rest."""
     plant = ph.Plant(params, tab)
-    sp = ph.new_setpoints(12.0)                       # S_POWER = S_LOAD_ON = 0
-    for _ in range(64):                               # 1 s of plant time
+    sp = ph.new_setpoints(12.0)  # S_POWER = S_LOAD_ON = 0
+    for _ in range(64):  # 1 s of plant time
         plant.run(sp, 256)
     assert abs(plant.x[ph.X_OMEGA_M]) < 1e-9

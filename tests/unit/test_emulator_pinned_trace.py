@@ -9,6 +9,7 @@ The recording is tests/data/physics_trace_pinned.json (written by `record()` fro
 commit e535cf8, before the split). One deliberate physics change since: `power_off_load_ramp` was
 recorded again when the disturbance harmonic became the currents' (none with the power stage off).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -24,7 +25,7 @@ from plant_emulator import scenario as scn
 from plant_emulator.calibrate_paper_bench import op_setpoints, theta_from_gamma_delta
 
 PINNED = Path(__file__).resolve().parents[1] / "data" / "physics_trace_pinned.json"
-TRACE_EVERY = 7          # every 7th sample of the per-sample trace is kept in the recording
+TRACE_EVERY = 7  # every 7th sample of the per-sample trace is kept in the recording
 
 
 def _run(x, p, tab, sp, n, chunk, seq0, noise_seed):
@@ -33,8 +34,12 @@ def _run(x, p, tab, sp, n, chunk, seq0, noise_seed):
     summary = np.zeros((-(-n // chunk), ph.N_SUMMARY))
     trace = np.zeros((n, ph.N_TRACE))
     ph.simulate(x, p, tab, np.asarray(sp, dtype=np.float64), noise, chunk, seq0, frames, summary, trace)
-    return {"trace": trace[::TRACE_EVERY].tolist(), "state": x.tolist(), "summary": summary.tolist(),
-            "frames_sha256": hashlib.sha256(frames.tobytes()).hexdigest()}
+    return {
+        "trace": trace[::TRACE_EVERY].tolist(),
+        "state": x.tolist(),
+        "summary": summary.tolist(),
+        "frames_sha256": hashlib.sha256(frames.tobytes()).hexdigest(),
+    }
 
 
 def run_cases() -> dict:
@@ -92,8 +97,9 @@ def runs():
     return run_cases(), json.loads(PINNED.read_text())
 
 
-@pytest.mark.parametrize("case", ["op1_injection", "fw_vest_decoupled_h12", "power_off_load_ramp",
-                                  "no_tables_over_range"])
+@pytest.mark.parametrize(
+    "case", ["op1_injection", "fw_vest_decoupled_h12", "power_off_load_ramp", "no_tables_over_range"]
+)
 def test_simulate_reproduces_the_trace_recorded_before_the_split(runs, case):
     got, pinned = runs
     assert len(got[case]) == len(pinned[case])
@@ -101,6 +107,7 @@ def test_simulate_reproduces_the_trace_recorded_before_the_split(runs, case):
         for key in ("trace", "state", "summary"):
             a, b = np.asarray(now[key]), np.asarray(before[key])
             scale = np.maximum(np.max(np.abs(b), axis=0), 1e-300) if b.ndim > 1 else np.abs(b) + 1e-300
-            assert np.all(np.abs(a - b) <= 1e-12 * scale), f"{case} {key}: max rel. deviation " \
-                f"{np.max(np.abs(a - b) / scale):.3g}"
+            assert np.all(np.abs(a - b) <= 1e-12 * scale), (
+                f"{case} {key}: max rel. deviation {np.max(np.abs(a - b) / scale):.3g}"
+            )
         assert now["frames_sha256"] == before["frames_sha256"], f"{case}: DAQ frame bytes changed"

@@ -4,6 +4,7 @@ The stages are the @njit functions the control-period loop inlines (plant_emulat
 here they are called one at a time from Python with hand-picked inputs. Units as in the stages: V, A,
 Ohm, H, Wb, Nm, rad, rad/s, s.
 """
+
 from __future__ import annotations
 
 import cmath
@@ -38,15 +39,17 @@ def _indices(prefix: str) -> dict[str, int]:
     return found
 
 
-@pytest.mark.parametrize("prefix, size", [("P_", ph.N_PARAMS), ("S_", ph.N_SETPOINTS), ("X_", ph.N_STATE),
-                                          ("Y_", ph.N_SUMMARY), ("TR_", ph.N_TRACE)])
+@pytest.mark.parametrize(
+    "prefix, size",
+    [("P_", ph.N_PARAMS), ("S_", ph.N_SETPOINTS), ("X_", ph.N_STATE), ("Y_", ph.N_SUMMARY), ("TR_", ph.N_TRACE)],
+)
 def test_the_stages_index_constants_are_distinct_and_fit_their_array(prefix, size):
     found = _indices(prefix)
     assert len(set(found.values())) == len(found), "two names share one index"
     assert all(0 <= i < size for i in found.values())
-    if prefix != "P_":   # p leaves 25 and 26 unused
+    if prefix != "P_":  # p leaves 25 and 26 unused
         assert sorted(found.values()) == list(range(size))
-    assert all(getattr(ph, name) == i for name, i in found.items())   # the package exports them all
+    assert all(getattr(ph, name) == i for name, i in found.items())  # the package exports them all
 
 
 # ---------------------------------------------------------------------------------------------
@@ -70,14 +73,16 @@ def test_dq_current_step_equals_the_matrix_exponential_solution(w_e):
 
 def test_torque_is_eq_20_and_the_disturbance_its_two_harmonics():
     i_d, i_q = -12.0, 55.0
-    assert machine.torque(i_d, i_q, PSI, LD, LQ, NP) == pytest.approx(1.5 * NP * (PSI * i_q + (LD - LQ) * i_d * i_q),
-                                                                      rel=1e-15)
+    assert machine.torque(i_d, i_q, PSI, LD, LQ, NP) == pytest.approx(
+        1.5 * NP * (PSI * i_q + (LD - LQ) * i_d * i_q), rel=1e-15
+    )
     big_d, phi_d, ratio, phi_d2, h = 0.05, 1.1, 0.3, -0.4, 6
     for phi in np.linspace(0.0, 2 * math.pi, 13):
         cx, sx = machine.harmonic(math.cos(phi), math.sin(phi), h)
         assert (cx, sx) == pytest.approx((math.cos(h * phi), math.sin(h * phi)), abs=1e-13)
-        got = machine.disturbance(big_d * math.cos(phi_d), big_d * math.sin(phi_d), ratio, cx, sx,
-                                  math.cos(phi_d2), math.sin(phi_d2))
+        got = machine.disturbance(
+            big_d * math.cos(phi_d), big_d * math.sin(phi_d), ratio, cx, sx, math.cos(phi_d2), math.sin(phi_d2)
+        )
         want = big_d * math.cos(h * phi + phi_d) + ratio * big_d * math.cos(2 * h * phi + phi_d2)
         assert got == pytest.approx(want, abs=1e-14)
 
@@ -108,7 +113,7 @@ def _dead_time_by_phases(i_d, i_q, phi_mid, dt_amp, band):
     angles = np.array([0.0, -2 * math.pi / 3, 2 * math.pi / 3])
     i_ph = i_d * np.cos(phi_mid + angles) - i_q * np.sin(phi_mid + angles)
     e_ph = -dt_amp * np.clip(i_ph / band, -1.0, 1.0)
-    e_ab = (2.0 / 3.0) * np.sum(e_ph * np.exp(-1j * angles))     # Clarke: phase b at +120 deg
+    e_ab = (2.0 / 3.0) * np.sum(e_ph * np.exp(-1j * angles))  # Clarke: phase b at +120 deg
     e_dq = e_ab * cmath.exp(-1j * phi_mid)
     return e_dq.real, e_dq.imag
 
@@ -122,8 +127,9 @@ def test_dead_time_voltage_is_the_per_phase_formula(i_d, i_q, w_e):
     band = max(i_zc, 0.5 * math.hypot(i_d, i_q) * abs(w_e) * TS)
     for phi in np.linspace(0.0, 2 * math.pi, 37):
         half = 0.5 * w_e * TS
-        got = inverter.dead_time_voltage(i_d, i_q, math.cos(phi), math.sin(phi), math.cos(half), math.sin(half),
-                                         w_e, TS, dt_amp, 1.0 / i_zc)
+        got = inverter.dead_time_voltage(
+            i_d, i_q, math.cos(phi), math.sin(phi), math.cos(half), math.sin(half), w_e, TS, dt_amp, 1.0 / i_zc
+        )
         want = _dead_time_by_phases(i_d, i_q, phi + half, dt_amp, band)
         np.testing.assert_allclose(got, want, atol=1e-14)
 
@@ -132,7 +138,7 @@ def test_dead_time_voltage_is_the_per_phase_formula(i_d, i_q, w_e):
 # mechanics
 
 
-PAPER_ZERO, PAPER_POLE = -35954.0, complex(-19.6, 6746.2)   # G_Salpha, section 2.3, rad/s
+PAPER_ZERO, PAPER_POLE = -35954.0, complex(-19.6, 6746.2)  # G_Salpha, section 2.3, rad/s
 
 
 def _analog_h(s: complex) -> complex:
@@ -145,7 +151,8 @@ def _sensor_params():
     p = np.zeros(ph.N_PARAMS)
     p[ph.P_TS] = TS
     p[[ph.P_H_B0, ph.P_H_B1, ph.P_H_B2, ph.P_H_A1, ph.P_H_A2]] = mechanics.sensor_biquad(
-        PAPER_ZERO, PAPER_POLE.real, PAPER_POLE.imag, TS)
+        PAPER_ZERO, PAPER_POLE.real, PAPER_POLE.imag, TS
+    )
     return p
 
 
@@ -194,7 +201,7 @@ def test_shaft_acceleration_and_trapezoidal_angle():
     assert mechanics.shaft_acceleration(2.0, -1.5, 1e-4, 200.0, 2e-4) == pytest.approx((0.5 - 0.02) / 2e-4)
     w, phi = mechanics.shaft_advance(200.0, 6.28, 1000.0, NP, TS)
     assert w == pytest.approx(200.0 + TS * 1000.0)
-    assert phi == pytest.approx((6.28 + NP * TS * 0.5 * (200.0 + w)) - 2 * math.pi)   # wrapped
+    assert phi == pytest.approx((6.28 + NP * TS * 0.5 * (200.0 + w)) - 2 * math.pi)  # wrapped
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,14 +211,14 @@ def test_shaft_acceleration_and_trapezoidal_angle():
 def test_pi_current_inside_the_limit_integrates_and_outside_scales_and_holds():
     args = dict(kp_d=0.2, kp_q=0.3, ki_d=0.01, ki_q=0.02, ld_nom=LD, lq_nom=LQ, psi_nom=PSI)
     w_e = 800.0
-    u_d, u_q, mag, int_d, int_q = firmware.pi_current(1.0, 50.0, 0.5, 49.0, 0.1, -0.2, w_e,
-                                                      u_lim=100.0, **args)
+    u_d, u_q, mag, int_d, int_q = firmware.pi_current(1.0, 50.0, 0.5, 49.0, 0.1, -0.2, w_e, u_lim=100.0, **args)
     assert u_d == pytest.approx(0.2 * 0.5 + 0.1 - w_e * LQ * 50.0)
     assert u_q == pytest.approx(0.3 * 1.0 - 0.2 + w_e * (LD * 1.0 + PSI))
     assert mag == pytest.approx(math.hypot(u_d, u_q))
     assert (int_d, int_q) == pytest.approx((0.1 + 0.01 * 0.5, -0.2 + 0.02 * 1.0))
-    u_d2, u_q2, mag2, int_d2, int_q2 = firmware.pi_current(1.0, 50.0, 0.5, 49.0, 0.1, -0.2, w_e,
-                                                           u_lim=0.5 * mag, **args)
+    u_d2, u_q2, mag2, int_d2, int_q2 = firmware.pi_current(
+        1.0, 50.0, 0.5, 49.0, 0.1, -0.2, w_e, u_lim=0.5 * mag, **args
+    )
     assert mag2 == mag and math.hypot(u_d2, u_q2) == pytest.approx(0.5 * mag)
     assert math.atan2(u_q2, u_d2) == pytest.approx(math.atan2(u_q, u_d))
     assert (int_d2, int_q2) == (0.1, -0.2)
@@ -227,38 +234,42 @@ def test_injection_rotates_exactly_and_the_eq_11_variant_rotates_the_estimate():
     u_ds, u_qs = firmware.inject(u_d, u_q, uh_d, uh_q, v, True, 100.0)
     want = complex(u_d, u_q) + (cmath.exp(1j * v) - 1) * complex(uh_d, uh_q)
     assert complex(u_ds, u_qs) == pytest.approx(want, abs=1e-14)
-    u_ds, u_qs = firmware.inject(u_d, u_q, uh_d, uh_q, v, True, 5.0)          # limited to |u*| = 5 V
+    u_ds, u_qs = firmware.inject(u_d, u_q, uh_d, uh_q, v, True, 5.0)  # limited to |u*| = 5 V
     assert abs(complex(u_ds, u_qs)) == pytest.approx(5.0) and cmath.phase(complex(u_ds, u_qs)) == pytest.approx(
-        cmath.phase(want))
+        cmath.phase(want)
+    )
 
 
 def test_voltage_estimate_in_steady_state_is_the_nominal_machine_voltage():
     """Eq. 11 with i* through G_cl settled (if = i*): u_hat0 = [R i_d - w L_q i_q, R i_q + w (L_d i_d + psi)]."""
     w_e, i_d, i_q = 900.0, -3.0, 40.0
     w_bw = 2 * math.pi * 1000
-    uh_d, uh_q, if_d, if_q = firmware.voltage_estimate(i_d, i_q, i_d, i_q, w_e, w_bw, 1 - math.exp(-w_bw * TS),
-                                                       R, LD, LQ, PSI, 100.0)
+    uh_d, uh_q, if_d, if_q = firmware.voltage_estimate(
+        i_d, i_q, i_d, i_q, w_e, w_bw, 1 - math.exp(-w_bw * TS), R, LD, LQ, PSI, 100.0
+    )
     assert (uh_d, uh_q) == pytest.approx((R * i_d - w_e * LQ * i_q, R * i_q + w_e * (LD * i_d + PSI)))
     assert (if_d, if_q) == (i_d, i_q)
     # a step of i*: G_cl moves if by the exact first-order fraction 1 - exp(-w_bw T_s)
-    _, _, if_d, _ = firmware.voltage_estimate(1.0, 0.0, 0.0, 0.0, 0.0, w_bw, 1 - math.exp(-w_bw * TS),
-                                              R, LD, LQ, PSI, 100.0)
+    _, _, if_d, _ = firmware.voltage_estimate(
+        1.0, 0.0, 0.0, 0.0, 0.0, w_bw, 1 - math.exp(-w_bw * TS), R, LD, LQ, PSI, 100.0
+    )
     assert if_d == pytest.approx(1 - math.exp(-w_bw * TS))
 
 
 def test_field_weakening_integrates_clamps_and_respects_the_current_limit():
     # |u| above target: delta i_d goes negative by gain (|u| - target); i_q cut to the current circle
-    did, id_ref, iq_ref = firmware.field_weakening(-10.0, 8.0, 2.0, 7.0, -50.0, -5.0, -113.0, 113.0 ** 2)
-    assert did == -12.0 and id_ref == -17.0 and iq_ref == pytest.approx(-math.sqrt(113.0 ** 2 - 17.0 ** 2))
+    did, id_ref, iq_ref = firmware.field_weakening(-10.0, 8.0, 2.0, 7.0, -50.0, -5.0, -113.0, 113.0**2)
+    assert did == -12.0 and id_ref == -17.0 and iq_ref == pytest.approx(-math.sqrt(113.0**2 - 17.0**2))
     # below target it winds back, but never above 0; at 0 the feed-forward references are used
-    assert firmware.field_weakening(-0.5, 6.0, 2.0, 7.0, -50.0, -5.0, 30.0, 113.0 ** 2) == (0.0, -5.0, 30.0)
-    assert firmware.field_weakening(-49.0, 9.0, 2.0, 7.0, -50.0, -5.0, 30.0, 113.0 ** 2)[0] == -50.0
+    assert firmware.field_weakening(-0.5, 6.0, 2.0, 7.0, -50.0, -5.0, 30.0, 113.0**2) == (0.0, -5.0, 30.0)
+    assert firmware.field_weakening(-49.0, 9.0, 2.0, 7.0, -50.0, -5.0, 30.0, 113.0**2)[0] == -50.0
 
 
 def test_torque_estimate_is_eq_20_with_nominal_parameters():
     i_d, i_q = -4.0, 33.0
     assert firmware.torque_estimate(i_d, i_q, 1.5 * NP * PSI, NP, LD, LQ) == pytest.approx(
-        machine.torque(i_d, i_q, PSI, LD, LQ, NP), rel=1e-14)
+        machine.torque(i_d, i_q, PSI, LD, LQ, NP), rel=1e-14
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,16 +279,26 @@ def test_torque_estimate_is_eq_20_with_nominal_parameters():
 def test_emulator_frames_decode_bit_exactly_with_the_driver_decoder():
     p, tab = scn.build(scn.load("paper-bench"))
     p = p.copy()
-    p[ph.P_ALPHA_FS] = 60.0         # small enough that some samples clip (over-range flag)
+    p[ph.P_ALPHA_FS] = 60.0  # small enough that some samples clip (over-range flag)
     x = ph.new_state()
     ph.steady_state_init(x, p, 2.5, 2000.0, 12.0, tab)
     sp = op_setpoints(12.0, 2.5, 2000.0, theta_from_gamma_delta(math.radians(3), math.radians(280)))
     sp[ph.S_SYNC] = 1.0
-    n, seq0 = 2048, 65536 - 700    # the sequence number wraps inside the block
+    n, seq0 = 2048, 65536 - 700  # the sequence number wraps inside the block
     frames = np.zeros(n * ph.FRAME_BYTES, dtype=np.uint8)
     trace = np.zeros((n, ph.N_TRACE))
-    ph.simulate(x, p, tab, sp, np.random.default_rng(3).standard_normal(n), 256, seq0, frames,
-                np.zeros((n // 256, ph.N_SUMMARY)), trace)
+    ph.simulate(
+        x,
+        p,
+        tab,
+        sp,
+        np.random.default_rng(3).standard_normal(n),
+        256,
+        seq0,
+        frames,
+        np.zeros((n // 256, ph.N_SUMMARY)),
+        trace,
+    )
     samples = FrameDecoder().feed(frames.tobytes())
     assert len(samples) == n and not samples.gap_before[1:].any()
     # what the wire should carry, computed here from the trace

@@ -1,6 +1,7 @@
 """The emulated bench against answers computed HERE from the scenario's truth (no emulator code in the
 expected values): dq steady state (MTPA, field weakening, saturation), the secondary path S of
 eq. 14-20, dead time, the paper-bench optimum, the seeded truth."""
+
 from __future__ import annotations
 
 import cmath
@@ -41,8 +42,9 @@ def firmware_reference(sc: scn.Scenario, torque_nm: float, speed_rpm: float, udc
     if abs(ld - lq) < 1e-15:
         i_d = 0.0
     else:
-        i_d = minimize_scalar(lambda i: i * i + iq_of(i) ** 2, bounds=(-fw["i_max_a"], 0.0), method="bounded",
-                              options={"xatol": 1e-9}).x
+        i_d = minimize_scalar(
+            lambda i: i * i + iq_of(i) ** 2, bounds=(-fw["i_max_a"], 0.0), method="bounded", options={"xatol": 1e-9}
+        ).x
     if u_of(i_d) > u_fw:
         # the voltage limit crosses the constant-torque curve between its least-|u| point and MTPA
         id_min = minimize_scalar(u_of, bounds=(-fw["i_max_a"], i_d), method="bounded", options={"xatol": 1e-9}).x
@@ -65,8 +67,17 @@ def closed_form(sc, torque_nm, speed_rpm, udc_v) -> dict:
     m = sc.section("machine")
     r, n_p = m["r_s_ohm"], m["pole_pairs"]
     w_e = speed_rpm * 2 * math.pi / 60 * n_p
-    return {"i_d": i_d, "i_q": i_q, "u_d": r * i_d - w_e * lq * i_q, "u_q": r * i_q + w_e * (ld * i_d + psi),
-            "torque": 1.5 * n_p * (psi * i_q + (ld - lq) * i_d * i_q), "l_d": ld, "l_q": lq, "psi": psi, "w_e": w_e}
+    return {
+        "i_d": i_d,
+        "i_q": i_q,
+        "u_d": r * i_d - w_e * lq * i_q,
+        "u_q": r * i_q + w_e * (ld * i_d + psi),
+        "torque": 1.5 * n_p * (psi * i_q + (ld - lq) * i_d * i_q),
+        "l_d": ld,
+        "l_q": lq,
+        "psi": psi,
+        "w_e": w_e,
+    }
 
 
 def secondary_path_model(sc, torque_nm, speed_rpm, udc_v, with_current_loop=False) -> complex:
@@ -90,7 +101,12 @@ def secondary_path_model(sc, torque_nm, speed_rpm, udc_v, with_current_loop=Fals
     torque_per_rad = k_t @ g @ np.array([-cf["u_q"], cf["u_d"]]) * delay
     p1 = complex(sen["pole_re_rad_s"], sen["pole_im_rad_s"])
     w0_sq = abs(p1) ** 2
-    g_salpha = (1 / mech["inertia_kgm2"]) * (w0_sq / -sen["zero_rad_s"]) * (s - sen["zero_rad_s"]) / ((s - p1) * (s - p1.conjugate()))
+    g_salpha = (
+        (1 / mech["inertia_kgm2"])
+        * (w0_sq / -sen["zero_rad_s"])
+        * (s - sen["zero_rad_s"])
+        / ((s - p1) * (s - p1.conjugate()))
+    )
     return complex(g_salpha * torque_per_rad) / sen["full_scale_rad_s2"]
 
 
@@ -120,7 +136,7 @@ def steady_trace(p, tab, torque_nm, speed_rpm, udc_v, theta=(0.0, 0.0), periods=
 
 
 def alpha_phasor(tr, p) -> complex:
-    """A = a_c - j a_s of the measured acceleration in full-scale units (DESIGN 3 / secondary_path)."""
+    """A = a_c - j a_s of the measured acceleration in full-scale units (docs/conventions.md, Phasors)."""
     a = tr[:, ph.TR_ALPHA_MEAS] / p[ph.P_ALPHA_FS]
     phi = tr[:, ph.TR_PHI_E]
     n = len(a)
@@ -134,7 +150,7 @@ def measured_s(p, tab, op, probe_rad=math.radians(1.0), **setpoints) -> complex:
     a1 = alpha_phasor(steady_trace(p, tab, *op, (probe_rad, 0.0), settle=0.25, periods=60, **setpoints), p)
     a2 = alpha_phasor(steady_trace(p, tab, *op, (0.0, probe_rad), settle=0.25, periods=60, **setpoints), p)
     s1 = (a1 - a0) / probe_rad
-    s2 = (a2 - a0) / (-1j * probe_rad)      # Theta = theta_cos - j theta_sin
+    s2 = (a2 - a0) / (-1j * probe_rad)  # Theta = theta_cos - j theta_sin
     return 0.5 * (s1 + s2)
 
 
@@ -142,10 +158,10 @@ def measured_s(p, tab, op, probe_rad=math.radians(1.0), **setpoints) -> complex:
 
 
 CLOSED_FORM_OPS = [
-    ("paper-bench", 2.5, 1000.0, 12.0, False),    # base speed, i_d = 0
-    ("paper-bench", 2.5, 2500.0, 12.0, True),     # field weakening (i_d = -80 A)
-    ("paper-bench", 1.0, 3000.0, 12.0, True),     # deep field weakening (i_d = -106 A)
-    ("ipm-bench", 2.5, 1000.0, 12.0, False),      # MTPA with i_d < 0 (reluctance torque)
+    ("paper-bench", 2.5, 1000.0, 12.0, False),  # base speed, i_d = 0
+    ("paper-bench", 2.5, 2500.0, 12.0, True),  # field weakening (i_d = -80 A)
+    ("paper-bench", 1.0, 3000.0, 12.0, True),  # deep field weakening (i_d = -106 A)
+    ("ipm-bench", 2.5, 1000.0, 12.0, False),  # MTPA with i_d < 0 (reluctance torque)
     ("ipm-bench", 2.5, 3000.0, 12.0, True),
 ]
 
@@ -171,14 +187,14 @@ def test_steady_state_matches_closed_form(name, torque_nm, speed_rpm, udc_v, wea
     else:
         assert abs(u_cf) < u_limit
     if name == "ipm-bench":
-        assert cf["i_d"] < -5.0          # reluctance torque used below base speed
+        assert cf["i_d"] < -5.0  # reluctance torque used below base speed
 
 
 S_OPS = [  # harmonic frequency 6 f_e, all >= 200 Hz away from the 1074 Hz resonance
-    (2.5, 2000.0, 12.0),   # OP1, 800 Hz
-    (4.0, 1000.0, 12.0),   # 400 Hz
-    (1.0, 2000.0, 12.0),   # 800 Hz, small load
-    (2.5, 4000.0, 20.0),   # 1600 Hz, field weakening
+    (2.5, 2000.0, 12.0),  # OP1, 800 Hz
+    (4.0, 1000.0, 12.0),  # 400 Hz
+    (1.0, 2000.0, 12.0),  # 800 Hz, small load
+    (2.5, 4000.0, 20.0),  # 1600 Hz, field weakening
 ]
 
 
@@ -224,6 +240,7 @@ def test_dead_time_makes_its_own_6th_harmonic():
     """No disturbance, no injection: the dead-time voltage (6k-th harmonics in dq) alone gives a 6th
     torque harmonic, growing with U_dc T_dead f_pwm; none without dead time. Its fundamental is the
     classic 4/pi U_dc T_dead f_pwm against the current, which the PI integrator absorbs."""
+
     def torque_6th(dead_time_s, udc_v=12.0):
         sc, p, tab = bench("paper-bench", disturbance=False)
         p[ph.P_T_DEAD] = dead_time_s
@@ -236,7 +253,7 @@ def test_dead_time_makes_its_own_6th_harmonic():
     one, tr = torque_6th(1e-6)
     two, _ = torque_6th(2e-6)
     assert one > 1e-3 and off < 0.01 * one
-    assert 1.6 <= two / one <= 2.6                # roughly in proportion (the currents feed back)
+    assert 1.6 <= two / one <= 2.6  # roughly in proportion (the currents feed back)
     # fundamental of the dq error: along -i (i is on q here), magnitude 4/pi U_dc T_d f_pwm
     e = complex(tr[:, ph.TR_UD_DT].mean(), tr[:, ph.TR_UQ_DT].mean())
     assert abs(e) == pytest.approx(4 / math.pi * 12.0 * 1e-6 * 16000, rel=0.05)
@@ -268,7 +285,9 @@ def test_paper_bench_optimum_at_op1():
     centre = np.zeros(2)
     for _ in range(2):
         a0 = a_of(tuple(centre))
-        m = np.column_stack([(a_of(tuple(centre + d)) - a0) / probe for d in (np.array([probe, 0]), np.array([0, probe]))])
+        m = np.column_stack(
+            [(a_of(tuple(centre + d)) - a0) / probe for d in (np.array([probe, 0]), np.array([0, probe]))]
+        )
         centre = centre - np.linalg.solve(m, a0)
     gamma = math.degrees(math.hypot(*centre))
     delta = math.degrees(-math.atan2(centre[1], centre[0])) % 360
@@ -289,7 +308,9 @@ def test_seed_draws_truth_within_documented_ranges():
             assert 0.9 <= a.data["sensor"][key] / base.data["sensor"][key] <= 1.1
         amp = np.asarray(a.data["disturbance"]["amplitude_nm"]) / np.asarray(base.data["disturbance"]["amplitude_nm"])
         assert np.all((amp >= 0.8 * 0.9) & (amp <= 1.2 * 1.1))
-        dphi = np.radians(np.asarray(a.data["disturbance"]["phase_deg"]) - np.asarray(base.data["disturbance"]["phase_deg"]))
+        dphi = np.radians(
+            np.asarray(a.data["disturbance"]["phase_deg"]) - np.asarray(base.data["disturbance"]["phase_deg"])
+        )
         assert np.all(np.abs(dphi) <= 0.35 + 0.1 + 1e-9)
         assert a.data["firmware"] == base.data["firmware"]
         assert a.data["machine"] != base.data["machine"]

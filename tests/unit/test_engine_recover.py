@@ -1,5 +1,6 @@
 """A database with jobs a previous process left queued (killed before they ran) still starts: recover
 marks them failed with the reason (found by the README test's database with earlier rows)."""
+
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
 from service.settings import load_settings

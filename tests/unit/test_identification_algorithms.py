@@ -1,18 +1,24 @@
 """Adaptive and grid algorithms against a closed-form affine plant (eq. 15): theta* = -theta_d."""
+
 import cmath
 import math
 
 import numpy as np
-
 import pytest
 
-from tests.support.affine_plant import AffinePlantSession
-from service.identification import (AdaptiveOptions, GridOptions, ProbeOptions, identify_adaptive, identify_grid,
-                                    identify_probe)
+from service.identification import (
+    AdaptiveOptions,
+    GridOptions,
+    ProbeOptions,
+    identify_adaptive,
+    identify_grid,
+    identify_probe,
+)
 from service.identification.grid import effective_injection, gamma_from_effective
+from tests.support.affine_plant import AffinePlantSession
 
 S_TRUE = 1.35 * cmath.exp(1j * math.radians(126.5))
-THETA_OPT = math.radians(3) * cmath.exp(1j * math.radians(280))     # gamma 3 deg, delta 280 deg
+THETA_OPT = math.radians(3) * cmath.exp(1j * math.radians(280))  # gamma 3 deg, delta 280 deg
 GAMMA_MAX = math.radians(15)
 
 
@@ -41,7 +47,9 @@ def test_grid_minimum_and_fit():
     session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
     r = identify_grid(session, S_TRUE, GridOptions(), GAMMA_MAX)
     assert r.details["points"] == 360
-    assert r.details["minimum"]["gamma_deg"] == pytest.approx(3.0) and r.details["minimum"]["delta_deg"] == pytest.approx(280.0)
+    assert r.details["minimum"]["gamma_deg"] == pytest.approx(3.0) and r.details["minimum"][
+        "delta_deg"
+    ] == pytest.approx(280.0)
     assert r.gamma_deg == pytest.approx(3.0, abs=0.01) and r.delta_deg == pytest.approx(280.0, abs=0.2)
     assert abs(r.s_measured - S_TRUE) / abs(S_TRUE) < 0.01
     assert r.suppression_db > 40
@@ -52,7 +60,7 @@ def test_grid_options_reject_bad_ranges():
         GridOptions(gamma_start_deg=5, gamma_stop_deg=1)
 
 
-R_CONJ = 0.25 * cmath.exp(1j * math.radians(40))     # a conjugate part: S_ss not of rotation form
+R_CONJ = 0.25 * cmath.exp(1j * math.radians(40))  # a conjugate part: S_ss not of rotation form
 
 
 @pytest.mark.parametrize("r_conj", [0j, R_CONJ])
@@ -79,7 +87,7 @@ def test_grid_fit_handles_a_conjugate_part():
 
 @pytest.mark.parametrize("offset_deg", [85.0, 120.0, -150.0])
 def test_divergence_is_detected_and_probe_takes_over(offset_deg):
-    # without the online S (DESIGN 3 (c)) the law itself must notice that it diverges
+    # without the online S (docs/conventions.md, Beyond the paper (c)) the law itself must notice that it diverges
     session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
     options = AdaptiveOptions(s_hat_phase_offset_deg=offset_deg, s_refine=False)
     r = identify_adaptive(session, S_TRUE, options, GAMMA_MAX)
@@ -124,7 +132,7 @@ def test_online_s_rescues_a_wrong_model(offset_deg):
 
 def test_a_result_below_its_target_is_not_ok():
     # a residual that the windows cannot resolve below the target: honest below_target, with the floor
-    session = AffinePlantSession(S_TRUE, -THETA_OPT * 0.01, noise_fs=1e-3)     # harmonic near the noise
+    session = AffinePlantSession(S_TRUE, -THETA_OPT * 0.01, noise_fs=1e-3)  # harmonic near the noise
     r = identify_probe(session, S_TRUE, ProbeOptions(max_window_s=0.02), GAMMA_MAX)
     assert r.status == "below_target"
     assert "noise floor" in r.message and r.noise_floor_db is not None
@@ -133,20 +141,21 @@ def test_a_result_below_its_target_is_not_ok():
 
 def test_probe_starts_from_a_prior_without_probing():
     from service.identification.common import Prior
+
     s_ss = np.array([[S_TRUE.real, S_TRUE.imag], [-S_TRUE.imag, S_TRUE.real]])
-    near = THETA_OPT * 1.1 * cmath.exp(1j * math.radians(5))      # a neighbour's theta, 10 % / 5 deg off
+    near = THETA_OPT * 1.1 * cmath.exp(1j * math.radians(5))  # a neighbour's theta, 10 % / 5 deg off
     prior = Prior(near.real, -near.imag, tuple(map(tuple, s_ss)), source="neighbour")
     session = AffinePlantSession(S_TRUE, -THETA_OPT, noise_fs=1e-3)
     r = identify_probe(session, S_TRUE, ProbeOptions(), GAMMA_MAX, prior=prior)
     assert r.status == "ok" and r.details["probe_deg"] == 0.0
     assert r.gamma_deg == pytest.approx(3.0, abs=0.02) and r.delta_deg == pytest.approx(280.0, abs=0.5)
-    assert len(session.sent) <= 4       # reference, prior theta, one or two Newton steps
+    assert len(session.sent) <= 4  # reference, prior theta, one or two Newton steps
 
 
 def test_verdict_is_ok_only_with_confidence_and_says_what_is_confirmed():
-    from service.model.harmonic import Phasor
     from service.identification.common import verdict
     from service.identification.session import Window
+    from service.model.harmonic import Phasor
 
     def window(amplitude_fs, noise_std_fs):
         return Window(Phasor(amplitude_fs, 0.0, 1000, 12), np.zeros(0), np.zeros(0), 1.0, noise_std_fs)

@@ -5,6 +5,7 @@ CRC-32 of the image without its CRC field, so two maps have two CRCs. Format ver
 read byte by byte, the flags (0 none, 1 ok, 2 filled), the interpolation mode, both modes against
 closed forms (non-uniform axes by position, the 0/360 deg wrap, corners without an entry), and a
 version 2 image still decoded."""
+
 from __future__ import annotations
 
 import hashlib
@@ -22,8 +23,8 @@ AXES = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0], "udc_v": [1
 # sha256 of the 156-byte format_version 1 image of FIXED_MAP, recorded from service/maps/lut_export.py at
 # commit e535cf8 (its own struct-based builder, before the codec moved to drivers/lut_image.py)
 IMAGE_SHA256_BEFORE = "13b598b43bd3a1b202d398b6f899d1a24e33ba6182beebdd231bc7e66ac8929f"
-V1_HEADER = struct.Struct("<4sHBBHHHH")     # version 2 appended u32 map_id to it
-RESIDUE = 0x2144DF1C                        # CRC-32 over any image including its own CRC: the old bug
+V1_HEADER = struct.Struct("<4sHBBHHHH")  # version 2 appended u32 map_id to it
+RESIDUE = 0x2144DF1C  # CRC-32 over any image including its own CRC: the old bug
 MAP_ID = 7
 
 
@@ -35,19 +36,27 @@ def fixed_map() -> dict:
         for n in AXES["speed_rpm"]:
             for t in AXES["torque_nm"]:
                 k += 1
-                cells.append({"torque_nm": t, "speed_rpm": n, "udc_v": u, "theta_cos": 0.01 * k,
-                              "theta_sin": -0.003 * k * k, "status": "ok" if k % 4 else "below_target"})
+                cells.append(
+                    {
+                        "torque_nm": t,
+                        "speed_rpm": n,
+                        "udc_v": u,
+                        "theta_cos": 0.01 * k,
+                        "theta_sin": -0.003 * k * k,
+                        "status": "ok" if k % 4 else "below_target",
+                    }
+                )
     return {"id": MAP_ID, "harmonic_order": 6, "axes": AXES, "cells": cells}
 
 
 def test_the_service_image_of_a_fixed_map_is_the_version_1_image_with_the_map_id_in_its_header():
-    image = service_image(fixed_map(), interpolation="cartesian")       # mode byte 0, as version 1's reserved
+    image = service_image(fixed_map(), interpolation="cartesian")  # mode byte 0, as version 1's reserved
     assert len(image) == 160
     magic, version, h, mode, nt, nn, nu, reserved, map_id = lut_image.HEADER.unpack_from(image)
     assert (magic, version, h, mode, nt, nn, nu, reserved, map_id) == (b"RCL1", 3, 6, 0, 3, 2, 2, 0, MAP_ID)
     # without filled cells the version 3 flags are the version 1 valid bytes (0/1), so the payload stays
     # the same payload under the version 1 header (CRC made again) is byte for byte the image of e535cf8
-    v1 = V1_HEADER.pack(b"RCL1", 1, 6, 0, 3, 2, 2, 0) + image[lut_image.HEADER.size:-4]
+    v1 = V1_HEADER.pack(b"RCL1", 1, 6, 0, 3, 2, 2, 0) + image[lut_image.HEADER.size : -4]
     v1 += struct.pack("<I", zlib.crc32(v1))
     assert hashlib.sha256(v1).hexdigest() == IMAGE_SHA256_BEFORE
 
@@ -55,9 +64,9 @@ def test_the_service_image_of_a_fixed_map_is_the_version_1_image_with_the_map_id
 def test_the_crc_is_crc32_of_the_image_without_its_crc_field():
     image = service_image(fixed_map())
     crc = lut_image.image_crc(image)
-    assert crc == zlib.crc32(image[:-4]) == struct.unpack("<I", image[-4:])[0]   # the trailer holds it
+    assert crc == zlib.crc32(image[:-4]) == struct.unpack("<I", image[-4:])[0]  # the trailer holds it
     assert lut_image.decode(image).crc == crc != RESIDUE
-    assert zlib.crc32(image) == RESIDUE        # what the drive reported for every map before
+    assert zlib.crc32(image) == RESIDUE  # what the drive reported for every map before
     assert lut_image.crc_hex(crc) == f"0x{crc:08X}"
 
 
@@ -65,13 +74,15 @@ def test_two_maps_have_two_crcs():
     other_values = fixed_map()
     other_values["cells"][0]["theta_cos"] += 1e-3
     crcs = {lut_image.image_crc(service_image(m)) for m in (fixed_map(), other_values, {**fixed_map(), "id": 8})}
-    assert len(crcs) == 3      # another theta, or the same values under another map id
+    assert len(crcs) == 3  # another theta, or the same values under another map id
 
 
 def test_decode_refuses_another_format_version_and_map_id_0():
     image = bytearray(service_image(fixed_map()))
     struct.pack_into("<H", image, 4, 1)
-    with pytest.raises(lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2 and 3"):
+    with pytest.raises(
+        lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2 and 3"
+    ):
         lut_image.decode(bytes(image))
     with pytest.raises(lut_image.LutImageError, match="map_id 0 is not in 1"):
         service_image({**fixed_map(), "id": 0})
@@ -100,11 +111,12 @@ def test_encode_refuses_what_the_drive_would_refuse():
         lut_image.encode(6, [1.0], [2000.0, 1000.0], [12.0], [0.0, 0.0], [0.0, 0.0], map_id=1)
     with pytest.raises(lut_image.LutImageError, match="map has 4097 cells; the drive takes at most 4096"):
         lut_image.encode(6, np.arange(4097.0), [1000.0], [12.0], np.zeros(4097), np.zeros(4097), map_id=1)
-    with pytest.raises(ValueError, match="axis torque_nm is not strictly increasing"):   # the API's 422
+    with pytest.raises(ValueError, match="axis torque_nm is not strictly increasing"):  # the API's 422
         service_image({**fixed_map(), "axes": {**AXES, "torque_nm": [1.0, 1.0, 4.0]}})
 
 
 # -- format version 3 ------------------------------------------------------------------------------
+
 
 def _theta(gamma_deg: float, delta_deg: float) -> tuple[float, float]:
     """theta = [gamma cos delta, -gamma sin delta] (rad), delta = -atan2(theta_sin, theta_cos)."""
@@ -119,38 +131,62 @@ def _gamma_delta_deg(tc: float, ts: float) -> tuple[float, float]:
 def _line(cells_deg, interpolation, flags=None, speed_rpm=(1000.0, 2000.0)):
     """A LUT over one speed line (torque and U_dc one value each): cells_deg [(gamma, delta)] per speed."""
     thetas = [_theta(*gd) for gd in cells_deg]
-    return lut_image.decode(lut_image.encode(6, [2.5], list(speed_rpm), [12.0], [t[0] for t in thetas],
-                                             [t[1] for t in thetas], flags, map_id=1, interpolation=interpolation))
+    return lut_image.decode(
+        lut_image.encode(
+            6,
+            [2.5],
+            list(speed_rpm),
+            [12.0],
+            [t[0] for t in thetas],
+            [t[1] for t in thetas],
+            flags,
+            map_id=1,
+            interpolation=interpolation,
+        )
+    )
 
 
 def test_v3_layout_byte_by_byte():
     """Read with struct at the offsets docs/interfaces.md gives, not with the codec."""
     tc, ts = [0.01, -0.02, 0.03, 0.0], [-0.005, 0.004, 0.002, 0.0]
-    image = lut_image.encode(12, [1.0, 4.0], [1000.0, 1800.0], [24.0], tc, [ts[0], ts[1], ts[2], 0.7],
-                             [1, 2, 1, 0], map_id=0x01020304, interpolation="polar")
+    image = lut_image.encode(
+        12,
+        [1.0, 4.0],
+        [1000.0, 1800.0],
+        [24.0],
+        tc,
+        [ts[0], ts[1], ts[2], 0.7],
+        [1, 2, 1, 0],
+        map_id=0x01020304,
+        interpolation="polar",
+    )
     cells = 4
     assert len(image) == 20 + 4 * (2 + 2 + 1) + 4 * cells + 4 * cells + cells + 4 == 80
     assert image[0:4] == b"RCL1"
-    assert struct.unpack_from("<H", image, 4) == (3,)                  # format_version
-    assert (image[6], image[7]) == (12, 1)                             # harmonic order, interpolation polar
-    assert struct.unpack_from("<HHHH", image, 8) == (2, 2, 1, 0)       # n_torque, n_speed, n_udc, reserved
-    assert struct.unpack_from("<I", image, 16) == (0x01020304,)        # map id
+    assert struct.unpack_from("<H", image, 4) == (3,)  # format_version
+    assert (image[6], image[7]) == (12, 1)  # harmonic order, interpolation polar
+    assert struct.unpack_from("<HHHH", image, 8) == (2, 2, 1, 0)  # n_torque, n_speed, n_udc, reserved
+    assert struct.unpack_from("<I", image, 16) == (0x01020304,)  # map id
     assert struct.unpack_from("<5f", image, 20) == (1.0, 4.0, 1000.0, 1800.0, 24.0)
     assert struct.unpack_from("<4f", image, 40) == pytest.approx(tc, abs=1e-8)
     # flag 0: no entry, so theta goes in as 0 whatever was passed (0.7 here)
     assert struct.unpack_from("<4f", image, 56) == pytest.approx([ts[0], ts[1], ts[2], 0.0], abs=1e-8)
-    assert list(image[72:76]) == [1, 2, 1, 0]                          # flags: ok, filled, ok, none
+    assert list(image[72:76]) == [1, 2, 1, 0]  # flags: ok, filled, ok, none
     assert struct.unpack_from("<I", image, 76) == (zlib.crc32(image[:76]),)
     lut = lut_image.decode(image)
     assert (lut.format_version, lut.interpolation, lut.harmonic_order, lut.map_id) == (3, "polar", 12, 0x01020304)
     assert lut.flags.tolist() == [[[1, 2], [1, 0]]]
-    assert lut.valid.tolist() == [[[True, False], [True, False]]] and lut.filled.tolist() == [[[False, True], [False, False]]]
+    assert lut.valid.tolist() == [[[True, False], [True, False]]] and lut.filled.tolist() == [
+        [[False, True], [False, False]]
+    ]
 
 
 def test_cartesian_and_polar_midpoints_of_gamma_3_deg_at_delta_0_and_90():
     cells = [(3.0, 0.0), (3.0, 90.0)]
     gamma, delta = _gamma_delta_deg(*_line(cells, "cartesian").theta(2.5, 1500.0, 12.0))
-    assert gamma == pytest.approx(3.0 * math.cos(math.radians(45.0)), rel=1e-6) and delta == pytest.approx(45.0, abs=1e-5)
+    assert gamma == pytest.approx(3.0 * math.cos(math.radians(45.0)), rel=1e-6) and delta == pytest.approx(
+        45.0, abs=1e-5
+    )
     gamma, delta = _gamma_delta_deg(*_line(cells, "polar").theta(2.5, 1500.0, 12.0))
     assert gamma == pytest.approx(3.0, rel=1e-6) and delta == pytest.approx(45.0, abs=1e-5)
 
@@ -159,7 +195,7 @@ def test_polar_takes_the_shortest_arc_across_the_0_360_wrap():
     cells = [(3.0, 350.0), (3.0, 10.0)]
     gamma, delta = _gamma_delta_deg(*_line(cells, "polar").theta(2.5, 1500.0, 12.0))
     assert gamma == pytest.approx(3.0, rel=1e-6)
-    assert min(delta, 360.0 - delta) == pytest.approx(0.0, abs=1e-5)          # 0 deg, not 180
+    assert min(delta, 360.0 - delta) == pytest.approx(0.0, abs=1e-5)  # 0 deg, not 180
     # a quarter of the way from 350 deg: 355 deg (along the arc through 360)
     _, delta = _gamma_delta_deg(*_line(cells, "polar").theta(2.5, 1250.0, 12.0))
     assert delta == pytest.approx(355.0, abs=1e-5)
@@ -207,11 +243,12 @@ def test_polar_unwraps_against_the_corner_of_largest_weight():
     c00 0, c11 120, c01 no entry. Unwrapped against 240: 0 -> 360, 120 -> 120, so
     delta = (0.5625*240 + 0.1875*360 + 0.1875*120) / 0.9375 = 240 deg; gamma = 3 * 0.9375 deg.
     (Against c00's 0 deg it would be -48 deg.)"""
-    deltas = {(0, 0): 0.0, (0, 1): 240.0, (1, 0): 999.0, (1, 1): 120.0}     # [speed][torque]
+    deltas = {(0, 0): 0.0, (0, 1): 240.0, (1, 0): 999.0, (1, 1): 120.0}  # [speed][torque]
     tc = [[_theta(3.0, deltas[(j, i)])[0] for i in range(2)] for j in range(2)]
     ts = [[_theta(3.0, deltas[(j, i)])[1] for i in range(2)] for j in range(2)]
-    image = lut_image.encode(6, [1.0, 2.0], [1000.0, 2000.0], [12.0], [tc], [ts], [[[1, 1], [0, 2]]],
-                             map_id=1, interpolation="polar")
+    image = lut_image.encode(
+        6, [1.0, 2.0], [1000.0, 2000.0], [12.0], [tc], [ts], [[[1, 1], [0, 2]]], map_id=1, interpolation="polar"
+    )
     gamma, delta = _gamma_delta_deg(*lut_image.decode(image).theta(1.75, 1250.0, 12.0))
     assert gamma == pytest.approx(3.0 * 0.9375, rel=1e-6) and delta == pytest.approx(240.0, abs=1e-5)
 
@@ -242,6 +279,7 @@ def test_decode_refuses_a_bad_flag_interpolation_or_reserved_field():
         body = bytearray(good[:-4])
         body[offset] = value
         return bytes(body) + struct.pack("<I", zlib.crc32(bytes(body)))
+
     with pytest.raises(lut_image.LutImageError, match="flags must be one of"):
         lut_image.decode(patched(len(good) - 5, 3))
     with pytest.raises(lut_image.LutImageError, match="interpolation 2 unknown"):
@@ -256,7 +294,7 @@ def test_decode_refuses_a_bad_flag_interpolation_or_reserved_field():
 
 def test_the_service_image_takes_the_filled_cells_only_with_fill_and_names_the_mode():
     m = fixed_map()
-    filled = m["cells"][3]                       # k = 4: below target; a fill of 0.05 / -0.01 rad
+    filled = m["cells"][3]  # k = 4: below target; a fill of 0.05 / -0.01 rad
     filled.update(filled=True, fill_source="interpolated (cartesian) from ok cells", theta_cos=0.05, theta_sin=-0.01)
     with_fill = lut_image.decode(service_image(m, fill=True, interpolation="cartesian"))
     without = lut_image.decode(service_image(m, fill=False))

@@ -7,6 +7,7 @@ exporters' own output.
 The map: torque 1, 2, 4 Nm; speed 1000, 1500, 1800, 2000, 2600 rpm (a refined speed axis); U_dc 12,
 24 V. theta linear in the operating point (so multilinear interpolation reproduces it exactly); two
 cells below target carry a fill (FILLED, theta = the linear value), one failed cell has no entry."""
+
 from __future__ import annotations
 
 import csv
@@ -22,12 +23,14 @@ import pytest
 from drivers import lut_image
 from service.maps.lut_export import export_map
 from service.maps.lut_export import lut_image as service_image
-from service.api.public import MapCellPublic, MapPublic
+from service.maps.view import MapCell, MapView
 
 AXES = {"torque_nm": [1.0, 2.0, 4.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0], "udc_v": [12.0, 24.0]}
 MAP_ID = 31
-FILLED = {(2.0, 1800.0, 12.0): "interpolated (cartesian) from ok cells: speed_rpm between 1500 and 2000",
-          (1.0, 1000.0, 24.0): "measured: its own theta (no_authority, 12.0 dB against the uncompensated harmonic)"}
+FILLED = {
+    (2.0, 1800.0, 12.0): "interpolated (cartesian) from ok cells: speed_rpm between 1500 and 2000",
+    (1.0, 1000.0, 24.0): "measured: its own theta (no_authority, 12.0 dB against the uncompensated harmonic)",
+}
 HOLE = (4.0, 2600.0, 24.0)
 
 
@@ -42,29 +45,63 @@ def gamma_delta_deg(tc: float, ts: float) -> tuple[float, float]:
 
 
 def refined_map() -> dict:
-    """The map as GET /maps/{id} gives it (MapPublic.model_dump())."""
+    """The map as GET /maps/{id} gives it (MapView.model_dump(): GET /maps/{id} adds its validation)."""
     cells = []
     for u in AXES["udc_v"]:
         for n in AXES["speed_rpm"]:
             for t in AXES["torque_nm"]:
                 p = (t, n, u)
                 if p == HOLE:
-                    cells.append(MapCellPublic(torque_nm=t, speed_rpm=n, udc_v=u, status="failed", error="boom"))
+                    cells.append(MapCell(torque_nm=t, speed_rpm=n, udc_v=u, status="failed", error="boom"))
                     continue
                 tc, ts = theta(*p)
                 g, d = gamma_delta_deg(tc, ts)
                 if p in FILLED:
-                    cells.append(MapCellPublic(torque_nm=t, speed_rpm=n, udc_v=u, status="below_target", result_id=7,
-                                               gamma_deg=g, delta_deg=d, theta_cos=tc, theta_sin=ts, suppression_db=31.0,
-                                               filled=True, fill_source=FILLED[p]))
+                    cells.append(
+                        MapCell(
+                            torque_nm=t,
+                            speed_rpm=n,
+                            udc_v=u,
+                            status="below_target",
+                            result_id=7,
+                            gamma_deg=g,
+                            delta_deg=d,
+                            theta_cos=tc,
+                            theta_sin=ts,
+                            suppression_db=31.0,
+                            filled=True,
+                            fill_source=FILLED[p],
+                        )
+                    )
                 else:
-                    cells.append(MapCellPublic(torque_nm=t, speed_rpm=n, udc_v=u, status="ok", result_id=1, gamma_deg=g,
-                                               delta_deg=d, theta_cos=tc, theta_sin=ts, suppression_db=45.0,
-                                               quality="consistent"))
+                    cells.append(
+                        MapCell(
+                            torque_nm=t,
+                            speed_rpm=n,
+                            udc_v=u,
+                            status="ok",
+                            result_id=1,
+                            gamma_deg=g,
+                            delta_deg=d,
+                            theta_cos=tc,
+                            theta_sin=ts,
+                            suppression_db=45.0,
+                            quality="consistent",
+                        )
+                    )
     counts = {"ok": 27, "below_target": 2, "failed": 1}
-    return MapPublic(id=MAP_ID, sweep_id=3, harmonic_order=6, method="adaptive", bench_identity="test-bench",
-                     software_version="0", created_at="2026-01-01T00:00:00Z", axes=AXES, status_counts=counts,
-                     cells=cells).model_dump()
+    return MapView(
+        id=MAP_ID,
+        sweep_id=3,
+        harmonic_order=6,
+        method="adaptive",
+        bench_identity="test-bench",
+        software_version="0",
+        created_at="2026-01-01T00:00:00Z",
+        axes=AXES,
+        status_counts=counts,
+        cells=cells,
+    ).model_dump()
 
 
 def test_the_map_is_what_the_docstring_says():
@@ -130,16 +167,22 @@ int main(void)
 """
 
 
-@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc is not on PATH: the exported C header cannot be compiled here")
+@pytest.mark.skipif(
+    shutil.which("gcc") is None, reason="gcc is not on PATH: the exported C header cannot be compiled here"
+)
 def test_c_header_compiles_and_a_c_main_interpolates_it_by_position(tmp_path):
     (tmp_path / "lut.h").write_text(export_map(refined_map(), "c", interpolation="cartesian"))
     (tmp_path / "main.c").write_text(C_MAIN)
-    build = subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c")],
-                           cwd=tmp_path, capture_output=True, text=True)
+    build = subprocess.run(
+        ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c")],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     assert build.returncode == 0, build.stderr
     lines = subprocess.run([str(tmp_path / "lut")], capture_output=True, text=True, check=True).stdout.splitlines()
-    assert lines[0].split() == [str(MAP_ID), "3", "5", "2", "2", "1", "0"]     # cartesian, 2 filled cells
-    assert lines[1].split() == ["0", "1", "0", "0"]                            # the filled cell; the hole
+    assert lines[0].split() == [str(MAP_ID), "3", "5", "2", "2", "1", "0"]  # cartesian, 2 filled cells
+    assert lines[1].split() == ["0", "1", "0", "0"]  # the filled cell; the hole
     assert [float(x) for x in lines[2].split()] == [1500.0, 1800.0, 2000.0, 4.0]
     tc, ts, tc0, ts0 = (float(x) for x in lines[3].split())
     # 2.5 Nm is 1/4 of 2 .. 4 Nm, 1575 rpm 1/4 of 1500 .. 1800 rpm: theta is linear, so exact
@@ -154,8 +197,10 @@ def test_c_header_compiles_and_a_c_main_interpolates_it_by_position(tmp_path):
 
 # -- DCM: dcmReader -------------------------------------------------------------------------------
 
+
 def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tmp_path, caplog):
     from dcmReader.dcm_reader import DcmReader
+
     path = tmp_path / "lut.dcm"
     path.write_text(export_map(refined_map(), "dcm"))
     reader = DcmReader()
@@ -163,8 +208,9 @@ def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tm
         reader.read(str(path))
     assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text
     maps = {k.name: k for k in reader.get_characteristic_maps()}
-    assert set(maps) == {f"RIPPLECAL_H6_{kind}_U{u}V" for kind in ("THETA_COS", "THETA_SIN", "VALID", "FILLED")
-                         for u in (12, 24)}
+    assert set(maps) == {
+        f"RIPPLECAL_H6_{kind}_U{u}V" for kind in ("THETA_COS", "THETA_SIN", "VALID", "FILLED") for u in (12, 24)
+    }
     for name, k in maps.items():
         u = 12.0 if name.endswith("_U12V") else 24.0
         # values[speed][torque]: each KENNFELD its own axis points, the refined ones as they are
@@ -180,10 +226,11 @@ def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tm
                     assert value == (1 if p in FILLED else 0), (name, p)
                 else:
                     expected = 0.0 if p == HOLE else theta(*p)[0 if "_COS_" in name else 1]
-                    assert value == pytest.approx(expected, abs=1e-10), (name, p)   # 9 digits
+                    assert value == pytest.approx(expected, abs=1e-10), (name, p)  # 9 digits
 
 
 # -- CSV and JSON ---------------------------------------------------------------------------------
+
 
 def test_csv_has_filled_and_fill_source_columns():
     text = export_map(refined_map(), "csv")
@@ -220,6 +267,7 @@ def test_json_carries_filled_apart_from_valid_and_the_interpolation_mode():
 
 # -- the drive's own decoder ------------------------------------------------------------------------
 
+
 def test_image_round_trip_both_modes_with_and_without_fill():
     m = refined_map()
     for mode in lut_image.INTERPOLATIONS:
@@ -242,7 +290,8 @@ def test_image_round_trip_both_modes_with_and_without_fill():
     cart0 = lut_image.decode(service_image(m, fill=False, interpolation="cartesian"))
     f = theta(2.0, 1800.0, 12.0)
     assert cart0.theta(2.5, 1575.0, 12.0) == pytest.approx(
-        tuple(a - 3 / 16 * b for a, b in zip(theta(2.5, 1575.0, 12.0), f)), abs=1e-8)
+        tuple(a - 3 / 16 * b for a, b in zip(theta(2.5, 1575.0, 12.0), f)), abs=1e-8
+    )
 
     # polar on the 2 Nm line at 1575 rpm: 3/4 of (2 Nm, 1500 rpm) and 1/4 of the filled (2 Nm, 1800 rpm)
     (ga, da), (gb, db) = gamma_delta_deg(*theta(2.0, 1500.0, 12.0)), gamma_delta_deg(*theta(2.0, 1800.0, 12.0))

@@ -1,19 +1,19 @@
 """Map comparison (service/maps/compare.py) against closed forms: two maps whose thetas differ by a
 known vector, on a bench with a known measured S, residual and uncompensated phasor; the predicted
-suppression is computed here independently, in the complex form of DESIGN 3 (A = a_c - j a_s,
+suppression is computed here independently, in the complex form of docs/conventions.md, Secondary path (A = a_c - j a_s,
 Theta = theta_cos - j theta_sin, A = S (Theta_d + Theta))."""
-import cmath
+
 import math
 
 import pytest
 
-from service.maps.compare import compare_maps, wrap_deg
 from service.api.public import map_public
+from service.maps.compare import compare_maps, wrap_deg
 from service.store.storage import Storage
 from tests.support.maps import RESIDUAL, S_MEASURED, UNCOMPENSATED, make_map, theta_of
 
 GRID = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0]}
-DELTA = theta_of(0.8, 150.0)          # theta_b - theta_a, rad
+DELTA = theta_of(0.8, 150.0)  # theta_b - theta_a, rad
 
 
 def base(p):
@@ -66,6 +66,7 @@ def test_worst_cell_is_the_one_that_moved_most(storage):
         tc, ts = base(p)
         k = 3.0 if p == far else 1.0
         return tc + k * DELTA[0], ts + k * DELTA[1]
+
     cmp = compare_maps(storage, make_map(storage, GRID, base), make_map(storage, GRID, moved)).model_dump()
     worst = cmp["summary"]["worst_cell"]
     assert (worst["torque_nm"], worst["speed_rpm"], worst["udc_v"]) == far
@@ -101,7 +102,12 @@ def test_different_axes_compare_on_the_intersection_and_list_the_rest(storage):
     b = make_map(storage, {**GRID, "torque_nm": [2.5, 4.0, 5.5]}, shifted)
     cmp = compare_maps(storage, a, b)
     assert not cmp.same_axes
-    assert {(c.torque_nm, c.speed_rpm) for c in cmp.cells} == {(2.5, 1000.0), (4.0, 1000.0), (2.5, 2000.0), (4.0, 2000.0)}
+    assert {(c.torque_nm, c.speed_rpm) for c in cmp.cells} == {
+        (2.5, 1000.0),
+        (4.0, 1000.0),
+        (2.5, 2000.0),
+        (4.0, 2000.0),
+    }
     assert {(p.torque_nm, p.speed_rpm) for p in cmp.only_in_a} == {(1.0, 1000.0), (1.0, 2000.0)}
     assert {(p.torque_nm, p.speed_rpm) for p in cmp.only_in_b} == {(5.5, 1000.0), (5.5, 2000.0)}
     assert (cmp.summary.only_in_a, cmp.summary.only_in_b, cmp.summary.compared) == (2, 2, 4)
@@ -128,8 +134,12 @@ def test_a_refined_map_against_the_coarse_one_compares_on_the_shared_points(stor
     refined = {**coarse, "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0]}
     cmp = compare_maps(storage, make_map(storage, coarse, base), make_map(storage, refined, shifted))
     assert not cmp.same_axes and cmp.summary.compared == 9 and cmp.summary.not_compared == 0
-    assert {(c.torque_nm, c.speed_rpm) for c in cmp.cells} == {(t, n) for t in coarse["torque_nm"] for n in coarse["speed_rpm"]}
-    assert {(p.torque_nm, p.speed_rpm) for p in cmp.only_in_b} == {(t, n) for t in coarse["torque_nm"] for n in (1500.0, 1800.0)}
+    assert {(c.torque_nm, c.speed_rpm) for c in cmp.cells} == {
+        (t, n) for t in coarse["torque_nm"] for n in coarse["speed_rpm"]
+    }
+    assert {(p.torque_nm, p.speed_rpm) for p in cmp.only_in_b} == {
+        (t, n) for t in coarse["torque_nm"] for n in (1500.0, 1800.0)
+    }
     assert cmp.only_in_a == [] and cmp.summary.only_in_b == 6
     for c in cmp.cells:
         p = (c.torque_nm, c.speed_rpm, c.udc_v)
@@ -143,13 +153,14 @@ def test_a_refined_map_against_the_coarse_one_compares_on_the_shared_points(stor
 def test_a_filled_cell_is_not_compared_and_said_filled(storage):
     """A filled cell carries a fill, not a measurement (service/maps/fill.py): not compared, its note
     names the fill and its source; the other cells compare as before."""
-    from service.maps.compare import compare_public
+    from service.maps.compare import compare_views
+
     a_id, b_id = make_map(storage, GRID, base), make_map(storage, GRID, shifted)
     a, b = map_public(storage, a_id), map_public(storage, b_id)
     source = "interpolated (cartesian) from ok cells: torque_nm between 1 and 4"
     b.cells[1] = b.cells[1].model_copy(update={"status": "below_target", "filled": True, "fill_source": source})
     results = storage.results_by_id([c.result_id for c in a.cells if c.result_id is not None])
-    cmp = compare_public(a, b, results)
+    cmp = compare_views(a, b, results)
     cell = next(c for c in cmp.cells if (c.torque_nm, c.speed_rpm) == (b.cells[1].torque_nm, b.cells[1].speed_rpm))
     assert not cell.compared and cell.delta_theta_deg is None
     assert f"map b has below_target (filled: {source})" in cell.note and "a fill is not compared" in cell.note

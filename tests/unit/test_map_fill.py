@@ -1,17 +1,17 @@
 """The fill rule (service/maps/fill.py) and the priors a sweep's second pass starts from
 (service/maps/neighbours.py), against hand-worked values."""
+
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 
 from drivers.lut_image import DEFAULT_INTERPOLATION
-from service.runs.engine import second_pass_points
 from service.maps.fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
 from service.maps.neighbours import prior_from_neighbours
 from service.model.operating_point import OperatingPoint
+from service.runs.engine import second_pass_points
 from service.runs.plans import Grid, SweepPlan
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 1500.0, 2500.0], "udc_v": [12.0]}
@@ -24,9 +24,15 @@ def theta(gamma_deg: float, delta_deg: float) -> tuple[float, float]:
 
 
 def cell(t, n, status="ok", th=(0.0, 0.0), db=45.0, u=12.0) -> dict:
-    return {"torque_nm": t, "speed_rpm": n, "udc_v": u, "status": status,
-            "theta_cos": th[0] if th is not None else None, "theta_sin": th[1] if th is not None else None,
-            "suppression_db": db}
+    return {
+        "torque_nm": t,
+        "speed_rpm": n,
+        "udc_v": u,
+        "status": status,
+        "theta_cos": th[0] if th is not None else None,
+        "theta_sin": th[1] if th is not None else None,
+        "suppression_db": db,
+    }
 
 
 def grid_of(fn) -> list[dict]:
@@ -44,6 +50,7 @@ def test_a_below_target_cell_that_beat_the_harmonic_clearly_keeps_its_own_theta(
         if (t, n) == (2.0, 1500.0):
             return cell(t, n, "below_target", own, db=MEASURED_MIN_DB + 4)
         return cell(t, n, th=theta(3, 280))
+
     fills = fill_cells(grid_of(make), AXES)
     f = fills[(2.0, 1500.0, 12.0)]
     assert (f.theta_cos, f.theta_sin) == own and f.source.startswith("measured")
@@ -62,8 +69,9 @@ def test_a_failed_cell_between_ok_cells_is_interpolated_by_position_cartesian():
 
     def make(t, n):
         if t != 2.0:
-            return cell(t, n, "failed", None)              # nothing on the torque axis
+            return cell(t, n, "failed", None)  # nothing on the torque axis
         return {1000.0: cell(t, n, th=lo), 1500.0: cell(t, n, "failed", None), 2500.0: cell(t, n, th=hi)}[n]
+
     f = fill_cells(grid_of(make), AXES)[(2.0, 1500.0, 12.0)]
     assert f.theta_cos == pytest.approx(0.03 * 2 / 3) and f.theta_sin == pytest.approx(0.06 / 3)
     assert "speed_rpm between 1000 and 2500" in f.source
@@ -86,10 +94,14 @@ def test_a_cell_with_ok_cells_on_one_side_only_holds_the_nearest():
 
 
 def test_a_cell_with_no_ok_cell_on_its_lines_is_left_a_hole():
-    cells = [cell(1.0, 1000.0, th=(0.01, 0.0)), cell(2.0, 1500.0, "failed", None),
-             cell(1.0, 1500.0, "failed", None), cell(2.0, 1000.0, "failed", None)]
+    cells = [
+        cell(1.0, 1000.0, th=(0.01, 0.0)),
+        cell(2.0, 1500.0, "failed", None),
+        cell(1.0, 1500.0, "failed", None),
+        cell(2.0, 1000.0, "failed", None),
+    ]
     fills = fill_cells(cells, {"torque_nm": [1.0, 2.0], "speed_rpm": [1000.0, 1500.0], "udc_v": [12.0]})
-    assert (2.0, 1500.0, 12.0) not in fills            # its lines: 1 Nm at 1500 and 1000 rpm at 2 Nm, both failed
+    assert (2.0, 1500.0, 12.0) not in fills  # its lines: 1 Nm at 1500 and 1000 rpm at 2 Nm, both failed
     assert (1.0, 1500.0, 12.0) in fills and (2.0, 1000.0, 12.0) in fills
 
 
@@ -97,14 +109,25 @@ def row(t, n, status, th=(0.0, 0.0), sweep_pass=None, s=None) -> dict:
     details = {} if sweep_pass is None else {"sweep_pass": sweep_pass}
     if s is not None:
         details["s_matrix"] = s
-    return {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0, "status": status, "theta_cos": th[0],
-            "theta_sin": th[1], "detail_json": json.dumps({"details": details})}
+    return {
+        "torque_nm": t,
+        "speed_rpm": n,
+        "udc_v": 12.0,
+        "status": status,
+        "theta_cos": th[0],
+        "theta_sin": th[1],
+        "detail": {"details": details},
+    }
 
 
 def test_second_pass_takes_each_non_ok_point_once_in_plan_order():
     plan = SweepPlan.from_grid(Grid(torque_nm=[1, 2], speed_rpm=[1000, 2000], udc_v=[12]))
-    current = [row(1, 1000, "ok"), row(2, 1000, "below_target", sweep_pass=1), row(2, 2000, "failed"),
-               row(1, 2000, "below_target", sweep_pass=2)]
+    current = [
+        row(1, 1000, "ok"),
+        row(2, 1000, "below_target", sweep_pass=1),
+        row(2, 2000, "failed"),
+        row(1, 2000, "below_target", sweep_pass=2),
+    ]
     again = second_pass_points(plan, current)
     # plan order: 1000 rpm (1, 2 Nm), then 2000 rpm reversed (2, 1 Nm); 1 Nm / 2000 rpm already had its second pass
     assert [(op.torque_nm, op.speed_rpm) for op in again] == [(2.0, 1000.0), (2.0, 2000.0)]

@@ -1,6 +1,7 @@
 """Map quality (service/maps/quality.py) on closed-form maps: a map linear in the operating point has
 no outlier, one planted outlier is flagged alone with the numbers its reason gives, non-ok cells are
 never references, and the smoothed view replaces only the outlier (the stored map stays as measured)."""
+
 import csv
 import io
 import json
@@ -9,17 +10,17 @@ import math
 import numpy as np
 import pytest
 
+from service.api.public import map_public
 from service.maps import quality as map_quality
 from service.maps.lut_export import export_map
-from service.api.public import map_public
 from service.store.storage import Storage
 from tests.support.maps import make_map, theta_of
 
 # non-uniform speed axis: the expected step scales with the grid spacing
 GRID = {"torque_nm": [1.0, 2.0, 3.0, 4.0], "speed_rpm": [1000.0, 1500.0, 2500.0, 3000.0], "udc_v": [12.0]}
 THETA0 = np.array(theta_of(3.0, 280.0))
-G_T = np.array([0.004, -0.002])          # rad per Nm
-G_N = np.array([-1.0e-5, 1.5e-5])        # rad per rpm
+G_T = np.array([0.004, -0.002])  # rad per Nm
+G_N = np.array([-1.0e-5, 1.5e-5])  # rad per rpm
 
 
 def linear(p):
@@ -31,10 +32,11 @@ def planted(at, offset):
     def theta(p):
         tc, ts = linear(p)
         return (tc + offset[0], ts + offset[1]) if p == at else (tc, ts)
+
     return theta
 
 
-OFFSET = np.array(theta_of(1.5, 40.0))    # 1.5 deg, in some direction
+OFFSET = np.array(theta_of(1.5, 40.0))  # 1.5 deg, in some direction
 
 
 @pytest.fixture
@@ -53,7 +55,7 @@ def test_linear_map_has_no_outlier_and_its_gradients_are_the_slopes(storage):
     assert (q["outliers"], q["unchecked"], q["consistent"]) == (0, 0, 16)
     assert q["gradient_deg_per_unit"]["torque_nm"] == pytest.approx(math.degrees(np.hypot(*G_T)), rel=1e-9)
     assert q["gradient_deg_per_unit"]["speed_rpm"] == pytest.approx(math.degrees(np.hypot(*G_N)), rel=1e-9)
-    assert q["gradient_deg_per_unit"]["udc_v"] is None        # one voltage: no pair on that axis
+    assert q["gradient_deg_per_unit"]["udc_v"] is None  # one voltage: no pair on that axis
 
 
 def test_planted_interior_outlier_is_flagged_alone_with_closed_form_numbers(storage):
@@ -94,7 +96,9 @@ def test_non_ok_cells_are_never_references():
     for n in axes["speed_rpm"]:
         for t in axes["torque_nm"]:
             tc, ts = linear((t, n, 12.0))
-            cells.append({"torque_nm": t, "speed_rpm": n, "udc_v": 12.0, "status": "ok", "theta_cos": tc, "theta_sin": ts})
+            cells.append(
+                {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0, "status": "ok", "theta_cos": tc, "theta_sin": ts}
+            )
     # a below_target cell with a wild theta next to the centre: not a reference, not judged
     cells[1].update(status="below_target", theta_cos=1.0, theta_sin=-1.0)
     q = map_quality.assess(cells, axes)
@@ -118,12 +122,15 @@ def test_smoothed_view_replaces_only_the_outlier_and_leaves_the_stored_map(stora
     assert cell["quality"] == "smoothed" and cell["status"] == "ok"
     # the neighbours' median is the linear value here (interior cell of a linear map)
     assert (cell["theta_cos"], cell["theta_sin"]) == pytest.approx(linear(at), abs=1e-12)
-    assert cell["suppression_db"] is None                      # nothing was measured at this theta
+    assert cell["suppression_db"] is None  # nothing was measured at this theta
     assert f"result {cell['result_id']}" in cell["smoothed_from"] and "3.0x" not in cell["smoothed_from"]
     assert cell["outlier_reason"] == _cell(measured, 3.0, 2500.0)["outlier_reason"]
     others = [(c["theta_cos"], c["suppression_db"]) for c in smooth["cells"] if c is not cell]
-    assert others == [(c["theta_cos"], c["suppression_db"]) for c in measured["cells"]
-                      if (c["torque_nm"], c["speed_rpm"]) != (3.0, 2500.0)]
+    assert others == [
+        (c["theta_cos"], c["suppression_db"])
+        for c in measured["cells"]
+        if (c["torque_nm"], c["speed_rpm"]) != (3.0, 2500.0)
+    ]
     # the stored map is still the measured one
     again = map_public(storage, map_id).model_dump()
     assert _cell(again, 3.0, 2500.0)["theta_cos"] == pytest.approx(linear(at)[0] + OFFSET[0], abs=1e-12)
@@ -138,12 +145,37 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
     assert any("quality: 1 outlier(s) (2 Nm / 1500 rpm / 12 V)" in line for line in comments)
     rows = list(csv.reader(io.StringIO("\n".join(line for line in text.splitlines() if not line.startswith("#")))))
     # the columns before: as they were; filled and fill_source appended (issue "The LUT holds where the motor runs")
-    assert rows[0] == ["torque_nm", "speed_rpm", "udc_v", "theta_cos_rad", "theta_sin_rad", "gamma_deg", "delta_deg",
-                       "suppression_db", "status", "filled", "fill_source"]
+    assert rows[0] == [
+        "torque_nm",
+        "speed_rpm",
+        "udc_v",
+        "theta_cos_rad",
+        "theta_sin_rad",
+        "gamma_deg",
+        "delta_deg",
+        "suppression_db",
+        "status",
+        "filled",
+        "fill_source",
+    ]
     doc = json.loads(export_map(m, "json"))
-    assert set(doc["cells"][0]) == {"torque_nm", "speed_rpm", "udc_v", "status", "result_id", "gamma_deg", "delta_deg",
-                                    "theta_cos", "theta_sin", "suppression_db", "target_db", "noise_floor_db", "error",
-                                    "filled", "fill_source"}
+    assert set(doc["cells"][0]) == {
+        "torque_nm",
+        "speed_rpm",
+        "udc_v",
+        "status",
+        "result_id",
+        "gamma_deg",
+        "delta_deg",
+        "theta_cos",
+        "theta_sin",
+        "suppression_db",
+        "target_db",
+        "noise_floor_db",
+        "error",
+        "filled",
+        "fill_source",
+    }
     assert doc["format_version"] == 2 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
     assert doc["quality"]["cells"][0]["outlier_reason"].startswith("theta ")
     assert "quality: 1 outlier(s)" in export_map(m, "c") and "quality: 1 outlier(s)" in export_map(m, "dcm")
@@ -160,12 +192,13 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
 def test_past_the_one_by_one_share_every_cell_over_the_factor_is_flagged(storage, monkeypatch):
     """After ONE_BY_ONE_SHARE of the cells the rest over the factor are flagged at once (a read stays
     fast on a noisy map): no cell called consistent is then further than the factor from its fit."""
-    monkeypatch.setattr(map_quality, "ONE_BY_ONE_SHARE", 0.0)      # one by one for the first only
-    planted_at = {(1.0, 1000.0, 12.0), (4.0, 1500.0, 12.0), (2.0, 3000.0, 12.0)}   # no two share a neighbour
+    monkeypatch.setattr(map_quality, "ONE_BY_ONE_SHARE", 0.0)  # one by one for the first only
+    planted_at = {(1.0, 1000.0, 12.0), (4.0, 1500.0, 12.0), (2.0, 3000.0, 12.0)}  # no two share a neighbour
 
     def theta(p):
         tc, ts = linear(p)
         return (tc + 2 * OFFSET[0], ts + 2 * OFFSET[1]) if p in planted_at else (tc, ts)
+
     m = map_public(storage, make_map(storage, GRID, theta)).model_dump()
     assert {(c["torque_nm"], c["speed_rpm"], c["udc_v"]) for c in m["cells"] if c["quality"] == "outlier"} == planted_at
     q = map_quality.assess(m["cells"], m["axes"])
@@ -176,15 +209,22 @@ def test_every_outlier_of_a_noisy_map_keeps_the_reason_it_was_flagged_for():
     """A third of the cells spoiled at random, some cells not ok: an outlier whose neighbours are
     flagged after it has no fit left; it keeps the one that flagged it (such a map once gave a 500)."""
     import random
+
     rnd = random.Random(23)
     cells = []
     for t in GRID["torque_nm"]:
         for n in GRID["speed_rpm"]:
             spoiled = rnd.random() < 0.35
-            cells.append({"torque_nm": t, "speed_rpm": n, "udc_v": 12.0,
-                          "status": "ok" if rnd.random() < 0.9 else "failed",
-                          "theta_cos": 0.05 + 0.001 * t + (rnd.gauss(0, 0.02) if spoiled else 0.0),
-                          "theta_sin": 0.02 - 1e-5 * n + (rnd.gauss(0, 0.02) if spoiled else 0.0)})
+            cells.append(
+                {
+                    "torque_nm": t,
+                    "speed_rpm": n,
+                    "udc_v": 12.0,
+                    "status": "ok" if rnd.random() < 0.9 else "failed",
+                    "theta_cos": 0.05 + 0.001 * t + (rnd.gauss(0, 0.02) if spoiled else 0.0),
+                    "theta_sin": 0.02 - 1e-5 * n + (rnd.gauss(0, 0.02) if spoiled else 0.0),
+                }
+            )
     q = map_quality.assess(cells, GRID)
     outliers = [c for c in q.cells.values() if c.quality == "outlier"]
     assert outliers and all(c.fit is not None and "deg from the median" in c.reason for c in outliers)
@@ -196,9 +236,19 @@ REFINED = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2
 
 def _cells(axes, theta, status=None):
     status = status or {}
-    return [{"torque_nm": t, "speed_rpm": n, "udc_v": u, "status": status.get((t, n, u), "ok"),
-             "theta_cos": theta((t, n, u))[0], "theta_sin": theta((t, n, u))[1]}
-            for u in axes["udc_v"] for n in axes["speed_rpm"] for t in axes["torque_nm"]]
+    return [
+        {
+            "torque_nm": t,
+            "speed_rpm": n,
+            "udc_v": u,
+            "status": status.get((t, n, u), "ok"),
+            "theta_cos": theta((t, n, u))[0],
+            "theta_sin": theta((t, n, u))[1],
+        }
+        for u in axes["udc_v"]
+        for n in axes["speed_rpm"]
+        for t in axes["torque_nm"]
+    ]
 
 
 def test_refined_map_fit_interpolates_by_position():

@@ -1,4 +1,5 @@
 """Numerics against closed-form answers (not against their own output)."""
+
 import cmath
 import math
 
@@ -7,9 +8,16 @@ import pytest
 
 from service.model.harmonic import electrical_frequency_hz, phasor, whole_period_samples
 from service.model.operating_point import OperatingPoint, nominal_steady_state
-from service.model.secondary_path import (g_salpha, gamma_delta, model_secondary_path, s_matrix, theta_complex,
-                                    theta_from_gamma_delta)
+from service.model.secondary_path import (
+    g_salpha,
+    gamma_delta,
+    model_secondary_path,
+    s_matrix,
+    theta_complex,
+    theta_from_gamma_delta,
+)
 from service.settings import load_settings
+from tests.support.operating_points import OP1_POINT
 
 
 @pytest.fixture
@@ -28,7 +36,9 @@ def test_gamma_delta_eq21_22_round_trip():
     # v_inj = x^T theta = gamma cos(h phi + delta) for every phi
     phi = np.linspace(0, 2 * np.pi, 50)
     h = 6
-    assert np.allclose(tc * np.cos(h * phi) + ts * np.sin(h * phi), math.radians(3) * np.cos(h * phi + math.radians(280)))
+    assert np.allclose(
+        tc * np.cos(h * phi) + ts * np.sin(h * phi), math.radians(3) * np.cos(h * phi + math.radians(280))
+    )
 
 
 def test_s_matrix_matches_complex_form():
@@ -41,7 +51,7 @@ def test_s_matrix_matches_complex_form():
 
 def test_steady_state_base_speed_closed_form(settings):
     m = settings.motor
-    op = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+    op = OP1_POINT  # 2.5 Nm, 2000 rpm, 12 V
     ss = nominal_steady_state(op, m)
     w = 2000 / 60 * 2 * math.pi * 4
     iq = 2.5 / (1.5 * 4 * m.psi_p_vs)
@@ -61,13 +71,13 @@ def test_secondary_path_closed_form_surface_magnets(settings):
     """eq. 14-20 for L_d = L_q = L written out by hand:
     i_q/v_inj = (w_e u_q + (s + R/L) u_d) / (L ((s + R/L)^2 + w_e^2)), torque = k_T i_q."""
     m, c, mech = settings.motor, settings.control, settings.mechanics
-    op = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+    op = OP1_POINT  # 2.5 Nm, 2000 rpm, 12 V
     ss = nominal_steady_state(op, m)
     h = 6
     w_e = ss.omega_e_rad_s
     s = 1j * h * w_e
     L, a = m.l_d_h, m.r_s_ohm / m.l_d_h
-    iq_per_rad = (w_e * ss.u_q_v + (s + a) * ss.u_d_v) / (L * ((s + a) ** 2 + w_e ** 2))
+    iq_per_rad = (w_e * ss.u_q_v + (s + a) * ss.u_d_v) / (L * ((s + a) ** 2 + w_e**2))
     torque_per_rad = 1.5 * m.pole_pairs * m.psi_p_vs * iq_per_rad * cmath.exp(-s * c.delay_periods / c.control_rate_hz)
     z, p = mech.zero_rad_s, complex(mech.pole_re_rad_s, mech.pole_im_rad_s)
     gsa = (1 / mech.inertia_kg_m2) * (abs(p) ** 2 / -z) * (s - z) / ((s - p) * (s - p.conjugate()))
@@ -76,9 +86,9 @@ def test_secondary_path_closed_form_surface_magnets(settings):
 
 
 def test_g_salpha_dc_gain_and_resonance():
-    assert g_salpha(0j, 2e-3, -35954, -19.6, 6746.2) == pytest.approx(500.0)   # 1/J
+    assert g_salpha(0j, 2e-3, -35954, -19.6, 6746.2) == pytest.approx(500.0)  # 1/J
     at_resonance = abs(g_salpha(1j * 6746.2, 2e-3, -35954, -19.6, 6746.2))
-    assert at_resonance > 100 * 500.0      # lightly damped pole pair (zeta ~ 0.003)
+    assert at_resonance > 100 * 500.0  # lightly damped pole pair (zeta ~ 0.003)
 
 
 @pytest.mark.parametrize("speed_rpm", [2000.0, 1234.5, 3100.0])
@@ -88,7 +98,7 @@ def test_phasor_whole_periods_exact(speed_rpm):
     k = np.arange(8000)
     phi = (w_e * k / fs + 0.3) % (2 * math.pi)
     alpha = 0.07 * np.cos(h * phi) - 0.02 * np.sin(h * phi) + 0.01 * np.cos(2 * h * phi) + 0.05 * np.cos(phi)
-    p = phasor(alpha, phi, h, 42)   # 7 whole electrical turns: every integer order averages out
+    p = phasor(alpha, phi, h, 42)  # 7 whole electrical turns: every integer order averages out
     # whole-period window: other orders average out to the discretisation error of the window end
     assert p.a_c == pytest.approx(0.07, abs=3e-4) and p.a_s == pytest.approx(-0.02, abs=3e-4)
     n = whole_period_samples(phi, h, 42)
@@ -103,7 +113,7 @@ def test_electrical_frequency_across_daq_gaps_uses_contiguous_runs_only():
     k = np.arange(2000)
     keep = np.ones(len(k), bool)
     for start in (300, 900, 1500):
-        keep[start:start + 25] = False          # frames lost or dropped for a bad CRC
+        keep[start : start + 25] = False  # frames lost or dropped for a bad CRC
     index = k[keep]
     phi = (2 * math.pi * f_e * index / fs + 1.0) % (2 * math.pi)
     gap_before = np.zeros(len(index), bool)
@@ -127,14 +137,14 @@ def test_secondary_path_with_current_loop_closed_form(settings):
     """Closed current loop for L_d = L_q = L, derived by hand: with D = L (s + R/L) + e^{-sT_d} (K_p + K_i/s),
     K_p = w_bw L, K_i = w_bw R, the q current per rad of injection is (L w_e u_q + D u_d) / (D^2 + L^2 w_e^2)."""
     m, c, mech = settings.motor, settings.control, settings.mechanics
-    op = OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12)
+    op = OP1_POINT  # 2.5 Nm, 2000 rpm, 12 V
     ss = nominal_steady_state(op, m)
     h, w_e, L, R = 6, ss.omega_e_rad_s, m.l_d_h, m.r_s_ohm
     s = 1j * h * w_e
     delay = cmath.exp(-s * c.delay_periods / c.control_rate_hz)
     w_bw = 2 * math.pi * c.bandwidth_hz
     d = L * (s + R / L) + delay * (w_bw * L + w_bw * R / s)
-    iq_per_rad = (L * w_e * ss.u_q_v + d * ss.u_d_v) / (d ** 2 + (L * w_e) ** 2)
+    iq_per_rad = (L * w_e * ss.u_q_v + d * ss.u_d_v) / (d**2 + (L * w_e) ** 2)
     z, p = mech.zero_rad_s, complex(mech.pole_re_rad_s, mech.pole_im_rad_s)
     gsa = (1 / mech.inertia_kg_m2) * (abs(p) ** 2 / -z) * (s - z) / ((s - p) * (s - p.conjugate()))
     expected = gsa * 1.5 * m.pole_pairs * m.psi_p_vs * iq_per_rad * delay / settings.daq.accel_full_scale_rad_s2

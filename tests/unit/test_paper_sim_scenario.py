@@ -1,4 +1,5 @@
 """The paper-sim scenario (sec. 3.1, eq. 23) and the emulator's oscilloscope, against closed forms."""
+
 import math
 
 import numpy as np
@@ -37,11 +38,11 @@ def test_scope_records_exactly_the_armed_samples():
     rows = np.arange(3 * ph.N_TRACE, dtype=float).reshape(3, ph.N_TRACE)
     scope.feed(rows)
     assert scope.read() == {"ok": True, "ready": False, "recorded": 3, "samples": 5}
-    scope.feed(rows + 100)           # only two more rows are kept
+    scope.feed(rows + 100)  # only two more rows are kept
     assert not scope.recording
     reply = scope.read()
     assert reply["ready"] and reply["samples"] == 5 and set(reply["channels"]) == set(CHANNELS)
     expected = np.concatenate([rows, rows[:2] + 100])[:, ph.TR_ID]
     np.testing.assert_array_equal(reply["channels"]["i_d_a"], expected)
-    scope.feed(rows)                 # a full record ignores more
+    scope.feed(rows)  # a full record ignores more
     assert scope.read()["samples"] == 5

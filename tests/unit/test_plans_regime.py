@@ -1,25 +1,38 @@
 """Plans that know the regime: the predicted field-weakening onset (closed form, eq. 18-20) against an
 independent computation and a hand-worked number, the speeds a plan places around it, the preview's
 plan and estimate, and that the engine queues the same plan the preview shows."""
+
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 from pydantic import ValidationError
 
+from service.model.operating_point import (
+    OperatingPoint,
+    field_weakening_onset,
+    field_weakening_onset_rpm,
+    nominal_steady_state,
+)
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
 from service.runs.identify import parse_options
-from service.model.operating_point import (OperatingPoint, field_weakening_onset, field_weakening_onset_rpm,
-                                     nominal_steady_state)
-from service.runs.plans import (ESTIMATE_MEASUREMENT_S, ESTIMATE_RUN_START_S, ESTIMATE_SETTLE_S_PER_POINT, Grid,
-                           RegimeError, RegimePlacement, SweepPlan, plan_grid, preview_sweep)
+from service.runs.plans import (
+    ESTIMATE_MEASUREMENT_S,
+    ESTIMATE_RUN_START_S,
+    ESTIMATE_SETTLE_S_PER_POINT,
+    Grid,
+    RegimeError,
+    RegimePlacement,
+    SweepPlan,
+    plan_grid,
+    preview_sweep,
+)
 from service.settings import MotorSettings, SettingsError, load_settings
 from service.store.storage import Storage
 
-PAPER = MotorSettings()          # paper-bench nominal: N_p 4, R_s 10 mOhm, L_d = L_q 20 uH, psi_p 7 mWb, I_max 113 A
+PAPER = MotorSettings()  # paper-bench nominal: N_p 4, R_s 10 mOhm, L_d = L_q 20 uH, psi_p 7 mWb, I_max 113 A
 SETTINGS = load_settings(environ={})
 EXAMPLE = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
 AROUND = RegimePlacement(speeds_around_onset=True, spacing_rpm=100)
@@ -29,9 +42,11 @@ def _bisected_onset_rpm(torque_nm: float, udc_v: float, margin: float) -> float:
     """Independent of the closed form: the speed at which nominal_steady_state (bisection on i_d, its own
     voltage equations) starts field weakening. It weakens above U_dc/sqrt(3), so it is asked at
     margin * U_dc; the onset is found by bisection on speed over its `field_weakening` flag."""
+
     def weakening(speed_rpm: float) -> bool:
         op = OperatingPoint(torque_nm=torque_nm, speed_rpm=speed_rpm, udc_v=margin * udc_v)
         return nominal_steady_state(op, PAPER).field_weakening
+
     lo, hi = 1e-3, 30_000.0
     assert not weakening(lo) and weakening(hi)
     for _ in range(80):
@@ -82,12 +97,12 @@ def test_onset_falls_with_torque_rises_with_udc_and_ignores_the_torque_sign():
 
 
 def test_no_onset_where_the_torque_is_not_reached_or_beyond_the_speeds_of_interest():
-    beyond_current = field_weakening_onset(5.0, 12.0, PAPER, 0.95)       # 119 A > I_max 113 A
+    beyond_current = field_weakening_onset(5.0, 12.0, PAPER, 0.95)  # 119 A > I_max 113 A
     assert beyond_current.speed_rpm is None and "i_max_a" in beyond_current.reason
-    at_standstill = field_weakening_onset(4.0, 1.5, PAPER, 0.95)          # R_s i_q = 0.95 V > U = 0.82 V
+    at_standstill = field_weakening_onset(4.0, 1.5, PAPER, 0.95)  # R_s i_q = 0.95 V > U = 0.82 V
     assert at_standstill.speed_rpm is None and "standstill" in at_standstill.reason
     assert field_weakening_onset(1.0, 0.0, PAPER, 0.95).speed_rpm is None
-    assert field_weakening_onset(1.0, 1e300, PAPER, 0.95).speed_rpm is None    # no finite onset, no exception
+    assert field_weakening_onset(1.0, 1e300, PAPER, 0.95).speed_rpm is None  # no finite onset, no exception
     assert field_weakening_onset_rpm(2.5, 48.0, PAPER, 0.95) == pytest.approx(8654.3, abs=0.1)
     assert field_weakening_onset_rpm(2.5, 48.0, PAPER, 0.95, max_speed_rpm=6000) is None
 
@@ -106,8 +121,19 @@ def test_plan_places_speeds_at_and_around_each_onset_within_the_grid():
     planned = plan_grid(EXAMPLE, AROUND, SETTINGS)
     # onsets 2158.7, 2064.6, 1965.0, 1862.0 rpm -> 2160, 2060, 1960, 1860 and +-100 rpm
     assert planned.added_speeds_rpm == [1760.0, 1860.0, 1960.0, 2060.0, 2160.0, 2260.0]
-    assert planned.grid.speed_rpm == [1000.0, 1400.0, 1760.0, 1800.0, 1860.0, 1960.0, 2060.0, 2160.0, 2200.0,
-                                      2260.0, 2600.0]
+    assert planned.grid.speed_rpm == [
+        1000.0,
+        1400.0,
+        1760.0,
+        1800.0,
+        1860.0,
+        1960.0,
+        2060.0,
+        2160.0,
+        2200.0,
+        2260.0,
+        2600.0,
+    ]
     assert planned.grid.torque_nm == EXAMPLE.torque_nm and planned.grid.udc_v == EXAMPLE.udc_v
     by_torque = {o.torque_nm: o for o in planned.onsets}
     for t, o in by_torque.items():
@@ -143,24 +169,33 @@ def test_placement_stays_inside_the_grids_speed_range():
 
 
 def test_onsets_per_udc_and_the_round_and_spacing_options():
-    planned = plan_grid(Grid(torque_nm=[2.5], speed_rpm=[1000, 5000], udc_v=[12, 24]),
-                        RegimePlacement(speeds_around_onset=True, spacing_rpm=250, round_rpm=50), SETTINGS)
+    planned = plan_grid(
+        Grid(torque_nm=[2.5], speed_rpm=[1000, 5000], udc_v=[12, 24]),
+        RegimePlacement(speeds_around_onset=True, spacing_rpm=250, round_rpm=50),
+        SETTINGS,
+    )
     at_12, at_24 = planned.onsets
     assert (at_12.udc_v, at_24.udc_v) == (12.0, 24.0)
     assert at_12.placed_rpm == 2000.0 and at_24.placed_rpm == 50 * round(at_24.onset_rpm / 50)
-    assert planned.added_speeds_rpm == sorted([1750.0, 2000.0, 2250.0, at_24.placed_rpm - 250, at_24.placed_rpm,
-                                               at_24.placed_rpm + 250])
+    assert planned.added_speeds_rpm == sorted(
+        [1750.0, 2000.0, 2250.0, at_24.placed_rpm - 250, at_24.placed_rpm, at_24.placed_rpm + 250]
+    )
 
 
 def test_regime_fields_are_bounded_and_closed():
-    for bad in ({"spacing_rpm": 5}, {"spacing_rpm": 5000}, {"round_rpm": 0}, {"spacing_rpm": math.nan},
-                {"speeds_around_onset": True, "extra": 1}):
+    for bad in (
+        {"spacing_rpm": 5},
+        {"spacing_rpm": 5000},
+        {"round_rpm": 0},
+        {"spacing_rpm": math.nan},
+        {"speeds_around_onset": True, "extra": 1},
+    ):
         with pytest.raises(ValidationError):
             RegimePlacement.model_validate(bad)
 
 
 def test_too_many_speed_values_after_placement_is_a_regime_error():
-    grid = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000 + 7 * k for k in range(199)])   # 1000..2386 rpm
+    grid = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000 + 7 * k for k in range(199)])  # 1000..2386 rpm
     with pytest.raises(RegimeError, match="more than the grid's 200"):
         plan_grid(grid, AROUND, SETTINGS)
 
@@ -185,8 +220,9 @@ def test_preview_points_are_the_plan_of_the_planned_grid_and_the_estimate_is_its
 
 
 def test_preview_lists_every_problem_post_sweeps_would_refuse():
-    p = preview_sweep(Grid(torque_nm=[1, 9], speed_rpm=[50, 2000]), None, "adaptive", parse_options("adaptive", {}),
-                      False, SETTINGS)
+    p = preview_sweep(
+        Grid(torque_nm=[1, 9], speed_rpm=[50, 2000]), None, "adaptive", parse_options("adaptive", {}), False, SETTINGS
+    )
     assert not p.accepted
     assert {tuple(e["loc"]) for e in p.problems} == {("body", "grid", "torque_nm"), ("body", "grid", "speed_rpm")}
     assert all(e["type"] == "value_error.bench_limits" for e in p.problems)
@@ -203,21 +239,21 @@ def test_preview_lists_every_problem_post_sweeps_would_refuse():
 class _Bench:
     identity = "unit:no-bench"
 
-    def check_reachable(self) -> None:      # a bench that was reached at start
+    def check_reachable(self) -> None:  # a bench that was reached at start
         pass
 
 
 def test_engine_submit_sweep_stores_the_grid_and_plan_the_preview_shows(tmp_path):
     storage = Storage(str(tmp_path / "plans.db"))
-    engine = Engine(storage, _Bench(), SETTINGS, EventBroker())     # never started: the sweep stays queued
+    engine = Engine(storage, _Bench(), SETTINGS, EventBroker())  # never started: the sweep stays queued
     options = parse_options("probe", {})
     sweep_id = engine.submit_sweep(EXAMPLE, "probe", options, regime=AROUND)
     sweep = storage.get_sweep(sweep_id)
     preview = preview_sweep(EXAMPLE, AROUND, "probe", options, False, SETTINGS)
-    assert Grid.model_validate(json.loads(sweep["grid_json"])) == preview.grid
+    assert Grid.model_validate(sweep["grid"]) == preview.grid
     assert sweep["total_points"] == preview.total
     # the run rebuilds its plan from the stored grid: the same points in the same order
-    assert SweepPlan.from_grid(Grid.model_validate(json.loads(sweep["grid_json"]))).points == tuple(preview.points)
+    assert SweepPlan.from_grid(Grid.model_validate(sweep["grid"])).points == tuple(preview.points)
     # without a regime the grid is stored as requested
     plain = storage.get_sweep(engine.submit_sweep(EXAMPLE, "probe", options))
-    assert Grid.model_validate(json.loads(plain["grid_json"])) == EXAMPLE
+    assert Grid.model_validate(plain["grid"]) == EXAMPLE

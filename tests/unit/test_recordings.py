@@ -2,6 +2,7 @@
 given (read back with asammdf), memory stays within a chunk, and retention keeps the newest files
 up to keep_gb and says so in the results whose recordings it deleted. Whatever fails (the result's
 insert, the write), no stray file is left in the recordings directory, and no error names a server path."""
+
 import contextlib
 import os
 import sqlite3
@@ -11,10 +12,11 @@ import pytest
 from asammdf import MDF
 
 from drivers.daq_protocol import ACCEL_FULL_SCALE_COUNTS, FrameDecoder, encode_frames
+from service.api.public import result_public
 from service.model.operating_point import OperatingPoint
-from service.api.public import result_public, result_row
-from service.store.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
 from service.settings import SettingsError, load_settings
+from service.store.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties
+from service.store.result_rows import result_row
 from service.store.storage import Storage, StorageUnavailable, now_iso
 
 RATE_HZ, FULL_SCALE = 16_000.0, 500.0
@@ -33,7 +35,7 @@ def _decoded(n: int, start: int = 0):
 def test_recorder_keeps_the_counted_wire_values_in_chunks(tmp_path):
     recorder = RunRecorder(tmp_path, RATE_HZ, FULL_SCALE, chunk_samples=1000)
     samples, angle, accel, flags = _decoded(3000)
-    recorder.samples(samples.slice(0, 200), counted=False)        # read before the setpoint took effect
+    recorder.samples(samples.slice(0, 200), counted=False)  # read before the setpoint took effect
     recorder.setpoint(200, 0.0, 0.0)
     most_held = 0
     for start in range(200, 3000, 300):
@@ -46,11 +48,12 @@ def test_recorder_keeps_the_counted_wire_values_in_chunks(tmp_path):
     path = tmp_path / "result-1.mf4"
     size = recorder.write(path, {"result_id": 1, "method": "probe"}, "test")
     assert size == path.stat().st_size > 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["result-1.mf4"]      # no temporary file left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result-1.mf4"]  # no temporary file left
     with MDF(path) as mdf:
         np.testing.assert_array_equal(mdf.get("sample_index").samples, np.arange(200, 3000))
-        np.testing.assert_allclose(mdf.get("alpha").samples, accel[200:] / ACCEL_FULL_SCALE_COUNTS * FULL_SCALE,
-                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            mdf.get("alpha").samples, accel[200:] / ACCEL_FULL_SCALE_COUNTS * FULL_SCALE, rtol=0, atol=1e-12
+        )
         np.testing.assert_allclose(mdf.get("angle").samples, angle[200:] * 2 * np.pi / 65536, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(mdf.get("flags").samples, flags[200:])
         np.testing.assert_allclose(mdf.get("alpha").timestamps, np.arange(200, 3000) / RATE_HZ, rtol=0, atol=1e-12)
@@ -67,35 +70,41 @@ def test_a_recorder_that_cannot_write_never_raises_into_the_run(tmp_path):
     blocker.write_text("")
     recorder = RunRecorder(blocker, RATE_HZ, FULL_SCALE)
     samples, *_ = _decoded(100)
-    recorder.samples(samples, counted=True)       # silently ignored
+    recorder.samples(samples, counted=True)  # silently ignored
     recorder.setpoint(0, 0.0, 0.0)
-    assert "unusable" in recorder.error and str(tmp_path) not in recorder.error      # the API shows it
+    assert "unusable" in recorder.error and str(tmp_path) not in recorder.error  # the API shows it
     with pytest.raises(RuntimeError, match="unusable"):
         recorder.write(blocker / "x.mf4", {}, "")
 
 
 def _stored_results(storage: Storage, n: int) -> list[int]:
     op = OperatingPoint(torque_nm=1.0, speed_rpm=1000.0, udc_v=12.0)
-    return [storage.insert_result(result_row(op, "probe", None, "test-bench", now_iso(), error="x"))
-            for _ in range(n)]
+    return [storage.insert_result(result_row(op, "probe", None, "test-bench", now_iso(), error="x")) for _ in range(n)]
 
 
 def test_retention_keeps_the_newest_up_to_keep_gb(tmp_path):
     storage = Storage(tmp_path / "r.db")
     directory = tmp_path / "recordings"
     directory.mkdir()
-    store = RecordingStore(storage, directory, keep_gb=1000e-9, sample_rate_hz=RATE_HZ,   # 1000 bytes
-                           accel_full_scale_rad_s2=FULL_SCALE)
+    store = RecordingStore(
+        storage,
+        directory,
+        keep_gb=1000e-9,
+        sample_rate_hz=RATE_HZ,  # 1000 bytes
+        accel_full_scale_rad_s2=FULL_SCALE,
+    )
     ids = _stored_results(storage, 5)
-    for age, rid in enumerate(reversed(ids)):         # the first result's file is the oldest
+    for age, rid in enumerate(reversed(ids)):  # the first result's file is the oldest
         path = store.path(rid)
         path.write_bytes(b"x" * 400)
         os.utime(path, ns=(1_000_000_000_000 - age * 10**9,) * 2)
         storage.set_result_recording(rid, {"format": "mf4", "path": str(path), "bytes": 400})
-    (directory / "tmpabc123").write_bytes(b"y" * 5000)     # asammdf's temporary file: not a recording
+    (directory / "tmpabc123").write_bytes(b"y" * 5000)  # asammdf's temporary file: not a recording
     deleted = store.apply_retention(keep=store.path(ids[-1]))
     assert deleted == ids[:3]
-    assert sorted(p.name for p in directory.iterdir()) == sorted([f"result-{ids[3]}.mf4", f"result-{ids[4]}.mf4", "tmpabc123"])
+    assert sorted(p.name for p in directory.iterdir()) == sorted(
+        [f"result-{ids[3]}.mf4", f"result-{ids[4]}.mf4", "tmpabc123"]
+    )
     for rid in ids[:3]:
         rec = result_public(storage.get_result(rid)).recording
         assert not rec.available and "recordings.keep_gb = 1e-06 GB" in rec.error
@@ -142,17 +151,18 @@ def test_a_failed_result_insert_leaves_nothing_in_the_recordings_directory(tmp_p
     storage = Storage(tmp_path / "r.db")
     directory = tmp_path / "recordings"
     store = RecordingStore(storage, directory, keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE)
-    recorder = RunRecorder(directory, RATE_HZ, FULL_SCALE, chunk_samples=1000)    # as store.recorder(), small chunks
+    recorder = RunRecorder(directory, RATE_HZ, FULL_SCALE, chunk_samples=1000)  # as store.recorder(), small chunks
     samples, *_ = _decoded(5000)
-    recorder.samples(samples, counted=True)                   # five chunks spooled
+    recorder.samples(samples, counted=True)  # five chunks spooled
     recorder.setpoint(0, 0.01, 0.0)
     assert recorder.error is None and recorder.samples_recorded == 5000
-    assert list(directory.iterdir()) == []                    # while it records, too
-    row = result_row(OperatingPoint(torque_nm=1.0, speed_rpm=1000.0, udc_v=12.0), "probe", None, "test-bench", now_iso(),
-                     error="x")
+    assert list(directory.iterdir()) == []  # while it records, too
+    row = result_row(
+        OperatingPoint(torque_nm=1.0, speed_rpm=1000.0, udc_v=12.0), "probe", None, "test-bench", now_iso(), error="x"
+    )
     with _locked(storage), pytest.raises(StorageUnavailable, match="lock"):
-        store.keep(recorder, storage.insert_result(row), row)   # never reaches keep
-    assert list(directory.iterdir()) == []                    # the recorder still alive, unclosed: nothing stray
+        store.keep(recorder, storage.insert_result(row), row)  # never reaches keep
+    assert list(directory.iterdir()) == []  # the recorder still alive, unclosed: nothing stray
     recorder.close()
     assert list(directory.iterdir()) == []
 
@@ -172,14 +182,15 @@ def test_a_failed_write_leaves_the_error_in_the_result_and_nothing_in_the_direct
     rec = result_public(storage.get_result(rid)).recording
     assert not rec.available and rec.error.startswith("writing its file failed: "), rec
     assert str(tmp_path) not in rec.error
-    assert list(aside.iterdir()) == []                        # no spool, no asammdf temporary file, no .partial.mf4
+    assert list(aside.iterdir()) == []  # no spool, no asammdf temporary file, no .partial.mf4
     assert not list(tmp_path.rglob("*.mf4"))
 
 
 def test_a_recording_deleted_behind_the_service_is_missing_without_its_path(tmp_path):
     storage = Storage(tmp_path / "r.db")
-    store = RecordingStore(storage, tmp_path / "recordings", keep_gb=1.0, sample_rate_hz=RATE_HZ,
-                           accel_full_scale_rad_s2=FULL_SCALE)
+    store = RecordingStore(
+        storage, tmp_path / "recordings", keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE
+    )
     [rid] = _stored_results(storage, 1)
     storage.set_result_recording(rid, {"format": "mf4", "path": str(store.path(rid)), "bytes": 10})
     with pytest.raises(RecordingUnavailable) as exc:

@@ -1,4 +1,5 @@
 """What a refinement round adds (service/runs/refinement.py plan_round), on hand-made maps and validations."""
+
 from __future__ import annotations
 
 import math
@@ -19,8 +20,12 @@ def map_cells(theta=lambda t, n: (0.01 * t, 0.0)) -> list[dict]:
 
 def vcell(t, n, db, kind=None, status="measured") -> dict:
     grid = t in AXES["torque_nm"] and n in AXES["speed_rpm"]
-    return {"operating_point": {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}, "kind": kind or ("grid" if grid else "midpoint"),
-            "status": status, "suppression_db": db if status == "measured" else None}
+    return {
+        "operating_point": {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0},
+        "kind": kind or ("grid" if grid else "midpoint"),
+        "status": status,
+        "suppression_db": db if status == "measured" else None,
+    }
 
 
 def validation(overrides: dict) -> list[dict]:
@@ -40,14 +45,20 @@ def test_nothing_to_do_when_every_point_holds():
 
 def test_failing_points_are_those_below_target_or_not_measured():
     cells = validation({(1.5, 1000.0): 29.9, (2.5, 3000.0): None})
-    assert {(c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"]) for c in failing_points(cells, 30.0)} \
-        == {(1.5, 1000.0), (2.5, 3000.0)}
+    assert {
+        (c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"]) for c in failing_points(cells, 30.0)
+    } == {(1.5, 1000.0), (2.5, 3000.0)}
 
 
 def test_a_failing_speed_midpoint_inserts_its_speed_a_row_of_cells():
     # the whole 2500 rpm row of midpoints fails: theta turns between 2000 and 3000 rpm
-    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 * t, 0.02 if n == 3000.0 else 0.0)),
-                      validation({(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}), 30.0, 100)
+    plan = plan_round(
+        AXES,
+        map_cells(lambda t, n: (0.01 * t, 0.02 if n == 3000.0 else 0.0)),
+        validation({(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}),
+        30.0,
+        100,
+    )
     assert plan.inserted == {"speed_rpm": [2500.0]}
     assert sorted(plan.new_cells) == [(1.0, 2500.0, 12.0), (2.0, 2500.0, 12.0), (3.0, 2500.0, 12.0)]
     assert plan.remeasure == []
@@ -55,8 +66,9 @@ def test_a_failing_speed_midpoint_inserts_its_speed_a_row_of_cells():
 
 def test_a_diagonal_midpoint_inserts_on_the_axis_where_theta_steps_most():
     # theta changes with speed only: a point midway in torque and speed inserts the speed value
-    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 + 0.01 * (n == 3000.0), 0.0)),
-                      validation({(2.5, 2500.0): 15.0}), 30.0, 100)
+    plan = plan_round(
+        AXES, map_cells(lambda t, n: (0.01 + 0.01 * (n == 3000.0), 0.0)), validation({(2.5, 2500.0): 15.0}), 30.0, 100
+    )
     assert plan.inserted == {"speed_rpm": [2500.0]}
 
 
@@ -66,7 +78,7 @@ def test_a_grid_point_that_misses_at_its_own_cell_is_identified_again():
 
 
 def test_the_budget_decides_what_fits_and_says_what_did_not():
-    row = {(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}     # inserting 2500 rpm costs 3 cells
+    row = {(t, 2500.0): 12.0 for t in (1.0, 1.5, 2.0, 2.5, 3.0)}  # inserting 2500 rpm costs 3 cells
     plan = plan_round(AXES, map_cells(lambda t, n: (0.01, 0.02 * (n == 3000.0))), validation(row), 30.0, 2)
     assert plan.inserted == {} and plan.new_cells == []
     assert any("needs 3 cells, 2 left" in r for r in plan.reasons)

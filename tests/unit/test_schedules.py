@@ -2,9 +2,9 @@
 and the scheduler's pass over a real SQLite file, stepped on a clock the test owns. The engine is a
 recorder here (what was submitted, with which schedule_id); tests/e2e/test_schedules_e2e.py runs the
 same scheduler against the real engine and the emulated bench."""
+
 from __future__ import annotations
 
-import json
 from collections import Counter
 from datetime import datetime, timedelta, timezone
 
@@ -45,8 +45,17 @@ def test_preview_names_the_times_debian_cron_runs_on_the_change_days():
     assert [t.isoformat() for t in autumn] == ["2027-10-31T02:30:00+02:00", "2027-11-01T02:30:00+01:00"]
 
 
-@pytest.mark.parametrize("bad, why", [("* * * *", "5 fields"), ("* * * * * *", "5 fields"), ("61 * * * *", "minute"),
-                                      ("0 0 30 2 *", "day-of-month"), ("a b c d e", "minute"), ("", "5 fields")])
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        ("* * * *", "5 fields"),
+        ("* * * * * *", "5 fields"),
+        ("61 * * * *", "minute"),
+        ("0 0 30 2 *", "day-of-month"),
+        ("a b c d e", "minute"),
+        ("", "5 fields"),
+    ],
+)
 def test_cron_refusals_name_the_problem(bad, why):
     with pytest.raises(ValueError, match=why):
         check_cron(bad)
@@ -73,14 +82,20 @@ class RecordingEngine:
         self.submitted: list[dict] = []
 
     def submit_sweep(self, grid, method, options, schedule_id=None, regime=None) -> int:
-        self.submitted.append({"grid": grid.model_dump(), "method": method, "schedule_id": schedule_id,
-                               "regime": regime})
+        self.submitted.append(
+            {"grid": grid.model_dump(), "method": method, "schedule_id": schedule_id, "regime": regime}
+        )
         return None
 
 
 def _scheduler(tmp_path, clock, **schedules_settings):
-    settings = load_settings(environ={}, overrides={"server.db_path": str(tmp_path / "s.db"),
-                                                    **{f"schedules.{k}": v for k, v in schedules_settings.items()}})
+    settings = load_settings(
+        environ={},
+        overrides={
+            "server.db_path": str(tmp_path / "s.db"),
+            **{f"schedules.{k}": v for k, v in schedules_settings.items()},
+        },
+    )
     storage = Storage(settings.server.db_path)
     engine = RecordingEngine()
     return storage, engine, settings, Scheduler(storage, engine, settings, EventBroker(), clock=clock)
@@ -120,7 +135,7 @@ def test_a_firing_missed_within_grace_runs_once_and_older_ones_are_recorded_miss
     assert runs[0]["due_at"] == "2027-06-03T12:00:00+00:00"
     assert "2879 firing(s)" in runs[1]["note"], runs[1]["note"]
     assert len(engine.submitted) == 1
-    scheduler.tick()                            # the same time again: nothing new
+    scheduler.tick()  # the same time again: nothing new
     assert len(storage.schedule_runs(sid)) == 2
 
 
@@ -138,6 +153,7 @@ def test_a_firing_beyond_grace_is_recorded_missed_not_run(tmp_path):
 
 def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(tmp_path):
     from service.runs.schedules import update_schedule
+
     clock = SteppedClock(datetime(2027, 6, 1, 12, 0, 30, tzinfo=UTC))
     storage, engine, settings, scheduler = _scheduler(tmp_path, clock)
     sid = _add(storage, settings, clock, "* * * * *")
@@ -147,28 +163,81 @@ def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(tmp_pat
     assert storage.schedule_runs(sid) == []
     update_schedule(storage, settings, clock(), sid, {"enabled": True})
     scheduler.tick()
-    assert storage.schedule_runs(sid) == []     # the five minutes while disabled are not caught up
+    assert storage.schedule_runs(sid) == []  # the five minutes while disabled are not caught up
     clock.t += timedelta(minutes=1)
     scheduler.tick()
     assert [r["outcome"] for r in storage.schedule_runs(sid)] == ["started"]
-    assert json.loads(storage.get_schedule(sid)["sweep_json"])["method"] == "probe"
+    assert storage.get_schedule(sid)["sweep"]["method"] == "probe"
 
 
 def test_cli_schedule_add_list_preview_rm(tmp_path, capsys):
     """`ripplecal schedule ...` on a database file: add (checked like POST /sweeps), list, preview, rm."""
     from service.cli import main
+
     db = str(tmp_path / "cli.db")
-    assert main(["schedule", "add", "--name", "nightly", "--cron", "30 2 * * *", "--timezone", "Europe/Berlin",
-                 "--torque", "1,2.5", "--speed", "2000", "--method", "probe", "--db", db]) == 0
+    assert (
+        main(
+            [
+                "schedule",
+                "add",
+                "--name",
+                "nightly",
+                "--cron",
+                "30 2 * * *",
+                "--timezone",
+                "Europe/Berlin",
+                "--torque",
+                "1,2.5",
+                "--speed",
+                "2000",
+                "--method",
+                "probe",
+                "--db",
+                db,
+            ]
+        )
+        == 0
+    )
     assert "schedule 1 'nightly': 30 2 * * * (Europe/Berlin)" in capsys.readouterr().out
-    assert main(["schedule", "add", "--name", "too much", "--cron", "0 3 * * *", "--torque", "9", "--speed", "2000",
-                 "--db", db]) == 2
+    assert (
+        main(
+            [
+                "schedule",
+                "add",
+                "--name",
+                "too much",
+                "--cron",
+                "0 3 * * *",
+                "--torque",
+                "9",
+                "--speed",
+                "2000",
+                "--db",
+                db,
+            ]
+        )
+        == 2
+    )
     assert "outside the bench limits" in capsys.readouterr().err
     assert main(["schedule", "list", "--db", db]) == 0
     listed = capsys.readouterr().out
     assert "nightly" in listed and "never fired" in listed and "too much" not in listed
-    assert main(["schedule", "preview", "30 2 * * *", "--timezone", "Europe/Berlin", "--start", "2027-03-27",
-                 "--count", "2"]) == 0
+    assert (
+        main(
+            [
+                "schedule",
+                "preview",
+                "30 2 * * *",
+                "--timezone",
+                "Europe/Berlin",
+                "--start",
+                "2027-03-27",
+                "--count",
+                "2",
+            ]
+        )
+        == 0
+    )
     assert capsys.readouterr().out.split() == ["2027-03-27T02:30:00+01:00", "2027-03-28T03:00:00+02:00"]
     assert main(["schedule", "rm", "1", "--db", db]) == 0
     assert main(["schedule", "rm", "1", "--db", db]) == 1

@@ -1,4 +1,5 @@
 """Settings: TOML + environment overrides; the README's bench example is valid; bad settings say what is wrong."""
+
 import re
 from pathlib import Path
 
@@ -27,11 +28,14 @@ def test_defaults_bind_loopback_and_emulate():
     assert s.server.host == "127.0.0.1" and s.bench_mode == "emulate" and s.can.host == "127.0.0.1"
 
 
-@pytest.mark.parametrize("text,needle", [
-    ("[can]\nchanel = 'can0'\n", "can.chanel"),              # misspelt key
-    ("[motor]\npole_pairs = 0\n", "motor.pole_pairs"),      # out of range
-    ("[motor\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("[can]\nchanel = 'can0'\n", "can.chanel"),  # misspelt key
+        ("[motor]\npole_pairs = 0\n", "motor.pole_pairs"),  # out of range
+        ("[motor\n", "not valid TOML"),
+    ],
+)
 def test_bad_settings_name_the_problem(tmp_path, text, needle):
     (tmp_path / "s.toml").write_text(text)
     with pytest.raises(SettingsError, match=re.escape(needle)):
@@ -44,12 +48,15 @@ def test_missing_file_is_named(tmp_path):
 
 
 # --- every problem in one line naming the file (or the variable) and the key ----------------------------
-@pytest.mark.parametrize("text,needle", [
-    ("[daq]\nurll = '/dev/ttyUSB0'\n", "daq.urll: unknown key"),
-    ("bench_nam = 'x'\n", "bench_nam: unknown key"),
-    ("[safety]\nmin_speed_rpm = 7000\n", "safety: min_speed_rpm 7000 must be below max_speed_rpm 6000"),
-    ("[daq\nurl = 1\n", "is not valid TOML: "),
-])
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("[daq]\nurll = '/dev/ttyUSB0'\n", "daq.urll: unknown key"),
+        ("bench_nam = 'x'\n", "bench_nam: unknown key"),
+        ("[safety]\nmin_speed_rpm = 7000\n", "safety: min_speed_rpm 7000 must be below max_speed_rpm 6000"),
+        ("[daq\nurl = 1\n", "is not valid TOML: "),
+    ],
+)
 def test_a_bad_file_is_one_line_naming_it_and_the_key(tmp_path, text, needle):
     path = tmp_path / "bench.toml"
     path.write_text(text)
@@ -68,10 +75,13 @@ def test_a_bad_environment_variable_is_named(tmp_path):
         load_settings(environ={}, overrides={"server.port": 0})
 
 
-@pytest.mark.parametrize("make,needle", [
-    (lambda p: p.mkdir(), "is a directory"),
-    (lambda p: p.write_bytes(b"\xff\xfe[daq]"), "is not UTF-8 text"),
-])
+@pytest.mark.parametrize(
+    "make,needle",
+    [
+        (lambda p: p.mkdir(), "is a directory"),
+        (lambda p: p.write_bytes(b"\xff\xfe[daq]"), "is not UTF-8 text"),
+    ],
+)
 def test_a_file_that_is_no_toml_text_is_named(tmp_path, make, needle):
     path = tmp_path / "bench.toml"
     make(path)

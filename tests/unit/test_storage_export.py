@@ -1,5 +1,6 @@
 """Storage migrations, per-point transactions, map assembly and LUT export (C headers compiled by gcc,
 DCM read by dcmReader)."""
+
 import csv
 import io
 import json
@@ -12,9 +13,9 @@ import subprocess
 import pytest
 
 from service import __version__
-from service.maps.lut_export import export_map
-from service.maps.build import build_map_from_sweep
 from service.api.public import map_public
+from service.maps.build import build_map_from_sweep
+from service.maps.lut_export import export_map
 from service.store.storage import Storage, StorageError, migrations
 from tests.support.stored_maps import sweep_with_results
 
@@ -87,7 +88,9 @@ NO_GCC = "gcc is not on PATH: the exported C headers cannot be compiled here"
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason=NO_GCC)
 def test_c_header_compiles_and_holds_the_values(storage, tmp_path):
-    m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
+    m = map_public(
+        storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))
+    ).model_dump()
     n = m["id"]
     (tmp_path / "lut.h").write_text(export_map(m, "c"))
     (tmp_path / "main.c").write_text(
@@ -96,41 +99,55 @@ def test_c_header_compiles_and_holds_the_values(storage, tmp_path):
         f' printf("%u %u %u %u %u %s %.4f %d\\n", RIPPLECAL_LUT_MAP{n}_ID, RIPPLECAL_LUT_MAP{n}_HARMONIC_ORDER,\n'
         f"  RIPPLECAL_LUT_MAP{n}_N_TORQUE, RIPPLECAL_LUT_MAP{n}_N_SPEED, RIPPLECAL_LUT_MAP{n}_N_UDC,\n"
         f"  RIPPLECAL_LUT_MAP{n}_SOFTWARE_VERSION, sqrtf(tc*tc+ts*ts)*57.29578f, ripplecal_lut_map{n}_valid[0][1][0]);\n"
-        " return 0; }\n")
-    subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c"), "-lm"],
-                   check=True, cwd=tmp_path)
+        " return 0; }\n"
+    )
+    subprocess.run(
+        ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c"), "-lm"],
+        check=True,
+        cwd=tmp_path,
+    )
     out = subprocess.run([str(tmp_path / "lut")], capture_output=True, text=True, check=True).stdout.split()
     assert out[:5] == [str(n), "6", "2", "2", "1"] and out[5] == __version__
     assert float(out[6]) == pytest.approx(4.0, abs=1e-3)
-    assert out[7] == "0"   # the failed cell is marked invalid
+    assert out[7] == "0"  # the failed cell is marked invalid
 
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason=NO_GCC)
 def test_two_maps_c_headers_go_into_one_translation_unit(storage, tmp_path):
     """Every macro and array name carries the map id: two headers, one .c file, -Wall -Werror."""
     a = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
-    b = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(2.5, 1000.0)}))).model_dump()
+    b = map_public(
+        storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(2.5, 1000.0)}))
+    ).model_dump()
     assert a["id"] != b["id"]
     for m in (a, b):
         (tmp_path / f"map{m['id']}.h").write_text(export_map(m, "c"))
     i, j = a["id"], b["id"]
     (tmp_path / "both.c").write_text(
-        f'#include <stdio.h>\n#include "map{i}.h"\n#include "map{j}.h"\n#include "map{i}.h"\n'   # guards hold too
+        f'#include <stdio.h>\n#include "map{i}.h"\n#include "map{j}.h"\n#include "map{i}.h"\n'  # guards hold too
         f'int main(void){{ printf("%u %u %d %d %.6f %.6f\\n", RIPPLECAL_LUT_MAP{i}_ID, RIPPLECAL_LUT_MAP{j}_ID,\n'
         f"  ripplecal_lut_map{i}_valid[0][0][1], ripplecal_lut_map{j}_valid[0][0][1],\n"
-        f"  ripplecal_lut_map{i}_theta_cos_rad[0][1][1], ripplecal_lut_map{j}_theta_cos_rad[0][1][1]); return 0; }}\n")
-    subprocess.run(["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "both"), str(tmp_path / "both.c")],
-                   check=True, cwd=tmp_path, capture_output=True, text=True)
+        f"  ripplecal_lut_map{i}_theta_cos_rad[0][1][1], ripplecal_lut_map{j}_theta_cos_rad[0][1][1]); return 0; }}\n"
+    )
+    subprocess.run(
+        ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "both"), str(tmp_path / "both.c")],
+        check=True,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     out = subprocess.run([str(tmp_path / "both")], capture_output=True, text=True, check=True).stdout.split()
-    assert out[:4] == [str(i), str(j), "1", "0"]       # (2.5 Nm, 1000 rpm) failed in map b only
-    assert float(out[4]) == pytest.approx(float(out[5]), abs=1e-6) == pytest.approx(a["cells"][3]["theta_cos"], abs=1e-6)
+    assert out[:4] == [str(i), str(j), "1", "0"]  # (2.5 Nm, 1000 rpm) failed in map b only
+    assert (
+        float(out[4]) == pytest.approx(float(out[5]), abs=1e-6) == pytest.approx(a["cells"][3]["theta_cos"], abs=1e-6)
+    )
 
 
 def test_dcm_export_has_one_map_per_component(storage):
     m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
     text = export_map(m, "dcm")
     assert "KONSERVIERUNG_FORMAT 2.0" in text
-    assert text.count("KENNFELD ") == 4 and text.count("END") == 4      # THETA_COS, THETA_SIN, VALID, FILLED
+    assert text.count("KENNFELD ") == 4 and text.count("END") == 4  # THETA_COS, THETA_SIN, VALID, FILLED
     assert "ST/X   1   2.5" in text and __version__ in text
 
 
@@ -139,16 +156,23 @@ def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(stora
     axes; VALID is 0 exactly at the cell that failed; THETA there is its fill if the map carries one
     (FILLED = 1), else 0 (no injection)."""
     from dcmReader.dcm_reader import DcmReader
-    m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
+
+    m = map_public(
+        storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))
+    ).model_dump()
     path = tmp_path / "lut.dcm"
     path.write_text(export_map(m, "dcm"))
     reader = DcmReader()
     with caplog.at_level(logging.WARNING, logger="dcmReader"):
         reader.read(str(path))
-    assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text   # no dimension errors
+    assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text  # no dimension errors
     maps = {k.name: k for k in reader.get_characteristic_maps()}
-    assert set(maps) == {"RIPPLECAL_H6_THETA_COS_U12V", "RIPPLECAL_H6_THETA_SIN_U12V", "RIPPLECAL_H6_VALID_U12V",
-                         "RIPPLECAL_H6_FILLED_U12V"}
+    assert set(maps) == {
+        "RIPPLECAL_H6_THETA_COS_U12V",
+        "RIPPLECAL_H6_THETA_SIN_U12V",
+        "RIPPLECAL_H6_VALID_U12V",
+        "RIPPLECAL_H6_FILLED_U12V",
+    }
     valid = maps["RIPPLECAL_H6_VALID_U12V"]
     assert (valid.x_dimension, valid.y_dimension, valid.unit_x, valid.unit_y) == (2, 2, "Nm", "rpm")
     # values[speed][torque]
@@ -169,12 +193,15 @@ def test_lut_image_is_what_the_drive_parses(storage):
     from drivers.lut_image import LutImageError
     from drivers.lut_image import decode as parse
     from service.maps.lut_export import lut_image
-    m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))).model_dump()
+
+    m = map_public(
+        storage, build_map_from_sweep(storage, sweep_with_results(storage, failing={(1.0, 2000.0)}))
+    ).model_dump()
     image = lut_image(m)
     lut = parse(image)
     assert lut.crc == zlib.crc32(image[:-4]) and lut.harmonic_order == 6 and lut.map_id == m["id"]
     assert list(lut.torque_nm) == [1.0, 2.5] and list(lut.speed_rpm) == [1000.0, 2000.0]
-    tc, ts = lut.theta(2.5, 2000.0, 12.0)             # grid point: the 4th result, gamma 4 deg, delta 280 deg
+    tc, ts = lut.theta(2.5, 2000.0, 12.0)  # grid point: the 4th result, gamma 4 deg, delta 280 deg
     assert math.degrees(math.hypot(tc, ts)) == pytest.approx(4.0, rel=1e-6)
     assert not lut.valid[0, 1, 0]
     bad = bytearray(image)

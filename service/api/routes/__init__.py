@@ -1,4 +1,14 @@
 """One router per resource (thin: validate, call the service layer, return its Public model)."""
+
 from service.api.routes import bench, catalog, events, jobs, maps, results, schedules, sweeps
 
-ROUTERS = [bench.router, jobs.router, results.router, sweeps.router, schedules.router, maps.router, events.router, catalog.router]
+ROUTERS = [
+    bench.router,
+    jobs.router,
+    results.router,
+    sweeps.router,
+    schedules.router,
+    maps.router,
+    events.router,
+    catalog.router,
+]

@@ -1,11 +1,12 @@
 """Bench: its live status, the software version, and the fault reset a person acknowledges."""
+
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, status
 
+from drivers.errors import FaultReactionActiveError
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.errors import error_responses
-from drivers.errors import FaultReactionActiveError
 from service.bench.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
@@ -14,12 +15,12 @@ router = APIRouter(prefix="/api/v1", tags=["bench"])
 @router.get("/bench/status")
 def bench_status(service: ServiceDep) -> dict:
     """Per device: connected, last error, age; the interlocks; whether a run holds the bench."""
-    return service.bench.status()
+    return service.bench_status()
 
 
 @router.get("/version")
 def version(service: ServiceDep) -> dict:
-    return {"software_version": service.version, "bench": service.bench.identity}
+    return {"software_version": service.version, "bench": service.bench_identity()}
 
 
 @router.post("/bench/fault-reset", responses=error_responses(401, 403, 409, 502))
@@ -29,8 +30,8 @@ def fault_reset(service: ServiceDep, _: OperatorDep) -> dict:
     Answers what was reset, what still forbids a run (`still_tripped`), and the bench status."""
     try:
         result = service.fault_reset()
-    except (BenchError, FaultReactionActiveError) as exc:       # busy, or a device still braking: try again
+    except (BenchError, FaultReactionActiveError) as exc:  # busy, or a device still braking: try again
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    except Exception as exc:   # SDO timeout / the drive stayed in FAULT: say which
+    except Exception as exc:  # SDO timeout / the drive stayed in FAULT: say which
         raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"fault reset failed: {type(exc).__name__}: {exc}") from None
-    return {**result, "status": service.bench.status()}
+    return {**result, "status": service.bench_status()}

@@ -1,45 +1,50 @@
 """Identifications (one operating point, one method) and the jobs that run them."""
+
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
+from service.api.public import JobPublic, job_public
 from service.api.refusals import refused_at
 from service.api.schemas import IdentificationCreate
 from service.runs.engine import TransitionError
-from service.api.public import JobPublic, job_public
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
 
 
-@router.post("/identifications", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 409, 413))
+@router.post(
+    "/identifications",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobPublic,
+    responses=error_responses(400, 401, 403, 409, 413),
+)
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
     with refused_at(["body", "operating_point"]):
-        job_id = service.engine.submit_identification(body.operating_point, body.method, body.options)
-    return job_public(service.storage, service.storage.get_job(job_id))
+        job_id = service.submit_identification(body.operating_point, body.method, body.options)
+    return job_public(service, service.get_job(job_id))
 
 
 @router.get("/jobs", response_model=list[JobPublic])
 def list_jobs(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[JobPublic]:
-    return [job_public(service.storage, j) for j in service.storage.list_jobs(limit)]
+    return [job_public(service, j) for j in service.list_jobs(limit)]
 
 
 @router.get("/jobs/{job_id}", response_model=JobPublic, responses=error_responses(404))
 def get_job(job_id: ResourceId, service: ServiceDep) -> JobPublic:
-    job = service.storage.get_job(job_id)
+    job = service.get_job(job_id)
     if job is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist")
-    return job_public(service.storage, job)
+    return job_public(service, job)
 
 
 @router.post("/jobs/{job_id}/cancel", response_model=JobPublic, responses=error_responses(401, 403, 404, 409))
 def cancel_job(job_id: ResourceId, service: ServiceDep, _: OperatorDep) -> JobPublic:
     try:
-        service.engine.cancel_job(job_id)
+        service.cancel_job(job_id)
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist") from None
     except TransitionError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    return job_public(service.storage, service.storage.get_job(job_id))
+    return job_public(service, service.get_job(job_id))

@@ -1,121 +1,165 @@
 """Maps: the compensation over a sweep's grid, its exports and its download into the drive."""
+
 from __future__ import annotations
 
 from typing import Literal
 
 from fastapi import APIRouter, HTTPException, Query, status
-from pydantic import ValidationError
 from fastapi.responses import PlainTextResponse
+from pydantic import ValidationError
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
+from service.api.public import (
+    JobPublic,
+    MapPublic,
+    MapSummaryPublic,
+    ValidationPublic,
+    job_public,
+    map_public,
+    map_summaries,
+    validation_public,
+)
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import ValidationCreate
 from service.bench.bench import BenchError
-from service.runs import lut_download
+from service.maps.compare import MapCompareError, MapComparison
 from service.maps.lut_export import EXPORT_FORMATS, export_map
-from service.maps.compare import MapCompareError, compare_maps
+from service.runs import lut_download
 from service.runs.refinement import RefineRequest
-from service.api.public import (JobPublic, LutDownloadPublic, MapComparisonPublic, MapPublic, MapSummaryPublic,
-                            ValidationPublic, job_public, map_public, map_summaries, validation_public)
 
 router = APIRouter(prefix="/api/v1", tags=["maps"])
 
 # a view, never a change of the stored map: outlier cells carry their neighbours' fit (service/maps/quality.py)
-SmoothQuery = Query("none", description="outliers: outlier cells carry their ok neighbours' median theta, "
-                                        "marked smoothed with their source (the stored map is not changed)")
+SmoothQuery = Query(
+    "none",
+    description="outliers: outlier cells carry their ok neighbours' median theta, "
+    "marked smoothed with their source (the stored map is not changed)",
+)
 Smooth = Literal["none", "outliers"]
 
 
 @router.get("/maps", response_model=list[MapSummaryPublic])
 def list_maps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[MapSummaryPublic]:
-    return map_summaries(service.storage, limit)
+    return map_summaries(service, limit)
 
 
 @router.get("/maps/{map_id}", response_model=MapPublic, responses=error_responses(404))
 def get_map(map_id: ResourceId, service: ServiceDep, smooth: Smooth = SmoothQuery) -> MapPublic:
-    m = map_public(service.storage, map_id, smooth=smooth == "outliers")
+    m = map_public(service, map_id, smooth=smooth == "outliers")
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m
 
 
-_EXPORT_CONTENT = {media: {"schema": {"type": "object" if media == "application/json" else "string"}}
-                   for media in {f.media_type for f in EXPORT_FORMATS.values()}}
+_EXPORT_CONTENT = {
+    media: {"schema": {"type": "object" if media == "application/json" else "string"}}
+    for media in {f.media_type for f in EXPORT_FORMATS.values()}
+}
 ExportFormatName = Literal[tuple(EXPORT_FORMATS)]
 
 
-@router.get("/maps/{map_id}/export",
-            responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)})
-def export(map_id: ResourceId, service: ServiceDep,
-           format: ExportFormatName = Query("csv", description=" | ".join(
-               f"{f.name}: {f.display_name}" for f in EXPORT_FORMATS.values())),
-           smooth: Smooth = SmoothQuery) -> PlainTextResponse:
+@router.get(
+    "/maps/{map_id}/export",
+    responses={200: {"description": "the map as a file", "content": _EXPORT_CONTENT}, **error_responses(404)},
+)
+def export(
+    map_id: ResourceId,
+    service: ServiceDep,
+    format: ExportFormatName = Query(
+        "csv", description=" | ".join(f"{f.name}: {f.display_name}" for f in EXPORT_FORMATS.values())
+    ),
+    smooth: Smooth = SmoothQuery,
+) -> PlainTextResponse:
     m = _map_dict(service, map_id, smooth=smooth == "outliers")
     fmt = EXPORT_FORMATS[format]
     name = f"ripplecal_map{map_id}{'_smoothed' if smooth == 'outliers' else ''}.{fmt.extension}"
-    return PlainTextResponse(export_map(m, format), media_type=fmt.media_type,
-                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
+    return PlainTextResponse(
+        export_map(m, format),
+        media_type=fmt.media_type,
+        headers={"Content-Disposition": f'attachment; filename="{name}"'},
+    )
 
 
-@router.get("/maps/{map_id}/compare/{other_id}", response_model=MapComparisonPublic, responses=error_responses(404))
-def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> MapComparisonPublic:
+@router.get("/maps/{map_id}/compare/{other_id}", response_model=MapComparison, responses=error_responses(404))
+def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> MapComparison:
     """Map `other_id` (b) against map `map_id` (a) at the operating points both hold: delta gamma, delta
     delta, delta theta, and the suppression b's theta would reach on a's bench (a's measured S).
     A map compared with itself is allowed (zero deltas; the prediction is its measured suppression)."""
     try:
-        return compare_maps(service.storage, map_id, other_id)
+        return service.compare_maps(map_id, other_id)
     except KeyError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, exc.args[0]) from None
     except MapCompareError as exc:
         raise unprocessable(validation_error(["path", "other_id"], str(exc))) from None
 
 
-@router.post("/maps/{map_id}/download", response_model=LutDownloadPublic,
-             responses=error_responses(401, 403, 404, 409, 502))
-def download_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
-                 force: bool = Query(False, description="load a map with holes (cells that would inject nothing); "
-                                                        "without it such a map is refused with 409"),
-                 fill: bool = Query(True, description="the fill rule's entries of the cells that are not ok go in "
-                                                      "too (flagged filled in the image); false: only ok cells inject"),
-                 interpolation: Literal["cartesian", "polar"] | None = Query(
-                     None, description="what the drive interpolates between cells (default: the service's, "
-                                       "drivers/lut_image.DEFAULT_INTERPOLATION)")
-                 ) -> LutDownloadPublic:
+@router.post(
+    "/maps/{map_id}/download",
+    response_model=lut_download.LutDownload,
+    responses=error_responses(401, 403, 404, 409, 502),
+)
+def download_map(
+    map_id: ResourceId,
+    service: ServiceDep,
+    _: OperatorDep,
+    force: bool = Query(
+        False,
+        description="load a map with holes (cells that would inject nothing); "
+        "without it such a map is refused with 409",
+    ),
+    fill: bool = Query(
+        True,
+        description="the fill rule's entries of the cells that are not ok go in "
+        "too (flagged filled in the image); false: only ok cells inject",
+    ),
+    interpolation: Literal["cartesian", "polar"] | None = Query(
+        None,
+        description="what the drive interpolates between cells (default: the service's, "
+        "drivers/lut_image.DEFAULT_INTERPOLATION)",
+    ),
+) -> lut_download.LutDownload:
     """The map's LUT image into the drive (0x2001, segmented SDO), its CRC-32 and map id read back.
     422: no ok cell (or not an image); 409: map with holes without force, or the bench is busy / not reached."""
     try:
-        return lut_download.download_map(service.storage, service.bench, map_id, force, fill=fill,
-                                         interpolation=interpolation)
+        return service.download_map(map_id, force, fill=fill, interpolation=interpolation)
     except lut_download.MapNotFound as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     except lut_download.LutRefused as exc:
         raise unprocessable(validation_error(["path", "map_id"], str(exc))) from None
     except (lut_download.PartialMap, BenchError) as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    except Exception as exc:   # SDO abort / timeout: the drive refused or did not answer
+    except Exception as exc:  # SDO abort / timeout: the drive refused or did not answer
         raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"drive refused the LUT: {exc}") from None
 
 
-@router.post("/maps/{map_id}/validate", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 404, 409, 413))
-def validate_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
-                 body: ValidationCreate | None = None) -> JobPublic:
+@router.post(
+    "/maps/{map_id}/validate",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobPublic,
+    responses=error_responses(400, 401, 403, 404, 409, 413),
+)
+def validate_map(
+    map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: ValidationCreate | None = None
+) -> JobPublic:
     """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
     grid point and at the midpoints between them (uncompensated and with the drive's own feedforward)."""
     body = body or ValidationCreate()
     try:
         with refused_at(["path", "map_id"]):
-            job_id = service.engine.submit_validation(map_id, body.force, body.options)
+            job_id = service.submit_validation(map_id, body.force, body.options)
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
-    return job_public(service.storage, service.storage.get_job(job_id))
+    return job_public(service, service.get_job(job_id))
 
 
-@router.post("/maps/{map_id}/refine", status_code=status.HTTP_202_ACCEPTED, response_model=JobPublic,
-             responses=error_responses(400, 401, 403, 404, 409, 413))
-def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
-               body: RefineRequest | None = None) -> JobPublic:
+@router.post(
+    "/maps/{map_id}/refine",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=JobPublic,
+    responses=error_responses(400, 401, 403, 404, 409, 413),
+)
+def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: RefineRequest | None = None) -> JobPublic:
     """A job (kind refinement, run as a sweep of that kind: pause, resume and cancel it there): validate
     the map in the drive's LUT mode, insert axis values where a point misses target_db, identify the new
     cells, validate again; until every validated point holds or max_cells are spent. A partial map is
@@ -124,29 +168,32 @@ def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep,
     try:
         with refused_at(["path", "map_id"]):
             try:
-                job_id = service.engine.submit_refinement(map_id, body)
-            except ValidationError as exc:      # the method's options
-                raise unprocessable(*(validation_error(["body", "options", *map(str, e["loc"])], e["msg"])
-                                      for e in exc.errors())) from None
+                job_id = service.submit_refinement(map_id, body)
+            except ValidationError as exc:  # the method's options
+                raise unprocessable(
+                    *(validation_error(["body", "options", *map(str, e["loc"])], e["msg"]) for e in exc.errors())
+                ) from None
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
-    return job_public(service.storage, service.storage.get_job(job_id))
+    return job_public(service, service.get_job(job_id))
 
 
 @router.get("/maps/{map_id}/validation", response_model=ValidationPublic, responses=error_responses(404))
 def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
     """The map's latest validation with every cell."""
-    if service.storage.get_map(map_id) is None:
+    if service.get_map(map_id) is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
-    row = service.storage.latest_validation(map_id)
+    row = service.latest_validation(map_id)
     if row is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} has not been validated: POST /maps/{map_id}/validate")
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"map {map_id} has not been validated: POST /maps/{map_id}/validate"
+        )
     return validation_public(row)
 
 
 def _map_dict(service, map_id: int, smooth: bool = False) -> dict:
     """The map as the exporters read it (its Public shape, as a dict)."""
-    m = map_public(service.storage, map_id, smooth=smooth)
+    m = map_public(service, map_id, smooth=smooth)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m.model_dump()

@@ -1,4 +1,5 @@
 """Sweeps: an operating-point grid measured point by point, paused, resumed, cancelled."""
+
 from __future__ import annotations
 
 from typing import Literal
@@ -7,31 +8,38 @@ from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses, validation_error
+from service.api.public import SweepPublic, sweep_public
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import SweepCreate
 from service.runs.engine import TransitionError
 from service.runs.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
-from service.api.public import SweepPublic, sweep_public
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 
 
-@router.post("/sweeps", status_code=status.HTTP_202_ACCEPTED, response_model=SweepPublic,
-             responses=error_responses(400, 401, 403, 409, 413))
+@router.post(
+    "/sweeps",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=SweepPublic,
+    responses=error_responses(400, 401, 403, 409, 413),
+)
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
     try:
         # the size that counts is the planned grid's (speeds placed around the onset included)
-        check_sweep_size(plan_grid(body.grid, body.regime, service.settings).grid, body.confirm_large,
-                         service.settings.safety)
+        check_sweep_size(
+            plan_grid(body.grid, body.regime, service.settings).grid, body.confirm_large, service.settings.safety
+        )
     except RegimeError as exc:
         raise unprocessable(validation_error(["body", "regime"], str(exc))) from None
     except SweepTooLarge as exc:
-        raise unprocessable(validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")) from None
+        raise unprocessable(
+            validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")
+        ) from None
     except ValueError as exc:
         raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
     with refused_at(["body", "grid"]):
-        sweep_id = service.engine.submit_sweep(body.grid, body.method, body.options, regime=body.regime)
-    return sweep_public(service.storage, service.storage.get_sweep(sweep_id))
+        sweep_id = service.submit_sweep(body.grid, body.method, body.options, regime=body.regime)
+    return sweep_public(service, service.get_sweep(sweep_id))
 
 
 @router.post("/sweeps/preview", response_model=SweepPreview, responses=error_responses(400, 413))
@@ -45,26 +53,25 @@ def preview_sweep_plan(body: SweepCreate, service: ServiceDep) -> SweepPreview:
 
 @router.get("/sweeps", response_model=list[SweepPublic])
 def list_sweeps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[SweepPublic]:
-    return [sweep_public(service.storage, s) for s in service.storage.list_sweeps(limit)]
+    return [sweep_public(service, s) for s in service.list_sweeps(limit)]
 
 
 @router.get("/sweeps/{sweep_id}", response_model=SweepPublic, responses=error_responses(404))
 def get_sweep(sweep_id: ResourceId, service: ServiceDep) -> SweepPublic:
-    sweep = service.storage.get_sweep(sweep_id)
+    sweep = service.get_sweep(sweep_id)
     if sweep is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist")
-    return sweep_public(service.storage, sweep, with_points=True)
+    return sweep_public(service, sweep, with_points=True)
 
 
 @router.post("/sweeps/{sweep_id}/{action}", response_model=SweepPublic, responses=error_responses(401, 403, 404, 409))
-def control_sweep(sweep_id: ResourceId, action: Literal["pause", "resume", "cancel"], service: ServiceDep,
-                  _: OperatorDep) -> SweepPublic:
-    handler = {"pause": service.engine.pause_sweep, "resume": service.engine.resume_sweep,
-               "cancel": service.engine.cancel_sweep}[action]
+def control_sweep(
+    sweep_id: ResourceId, action: Literal["pause", "resume", "cancel"], service: ServiceDep, _: OperatorDep
+) -> SweepPublic:
     try:
-        handler(sweep_id)
+        service.control_sweep(sweep_id, action)
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist in this service run") from None
     except TransitionError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    return sweep_public(service.storage, service.storage.get_sweep(sweep_id))
+    return sweep_public(service, service.get_sweep(sweep_id))

@@ -1,0 +1,73 @@
+"""The contracts between the bench's parts: what a collaborator that is passed in must provide.
+
+- `DriveCommands`: what a measurement session (service/bench/measurement.py) may send to the drive
+  while it measures; a run (`BenchRun`) provides it, checking every value on the way.
+- `RunBench`: what a run (service/bench/run.py) needs from the bench that opened it; the `Bench`
+  facade (service/bench/bench.py) provides it.
+- `Guard`: called before every DAQ read of a run; raises to stop it (cancel token, interlock trip).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import TYPE_CHECKING, Callable, Protocol
+
+if TYPE_CHECKING:
+    from drivers.drive import DriveClient
+    from drivers.load_machine import LoadClient
+    from service.bench.interlocks import InterlockMonitor, SupplyOutOfRange
+    from service.bench.live_values import LiveValues
+    from service.bench.setpoint_accounting import SetpointAccounting
+    from service.model.demodulation import ResonanceTracker
+    from service.settings import Settings
+
+Guard = Callable[[], None]
+
+
+class DriveCommands(Protocol):
+    """What a session may send to the drive while it measures (the bench checks every value)."""
+
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None: ...
+
+    def send_injection_mode(self, mode: str) -> None: ...
+
+
+class RunBench(Protocol):
+    """What a run needs from the bench that opened it: the settings, the wires it moves (drive, load,
+    DC link), the setpoint accounting and the interlocks it is watched by, the shaft mode its sessions
+    learn, the live view its sessions publish to, and the checked commands."""
+
+    @property
+    def settings(self) -> Settings: ...
+
+    @property
+    def drive(self) -> DriveClient: ...
+
+    @property
+    def load(self) -> LoadClient: ...
+
+    @property
+    def accounting(self) -> SetpointAccounting: ...
+
+    @property
+    def interlocks(self) -> InterlockMonitor: ...
+
+    @property
+    def supply_interlock(self) -> SupplyOutOfRange: ...
+
+    @property
+    def resonance(self) -> ResonanceTracker: ...
+
+    @property
+    def live(self) -> LiveValues: ...
+
+    def guard(self, cancel: threading.Event | None = None) -> None:
+        """Raises to stop the run (interlock trip, the run's cancel token)."""
+
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
+        """Theta to the drive; refuses a gamma above the run's gamma_max."""
+
+    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None: ...
+
+    def set_dc_link(self, udc_v: float) -> None:
+        """The supply to udc_v and confirmed."""

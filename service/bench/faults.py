@@ -1,0 +1,159 @@
+"""The bench's fault handling: the interlocks, what a trip does, refusals and fault resets.
+
+Interlocks (service/bench/interlocks.py) are watched from their own thread during every run and
+between runs: a trip takes the torque off at once (from a thread of its own: the CAN receive thread
+must never wait for an SDO answer), stops the run at its next DAQ read (`guard`), and the run ends
+with InterlockTripped naming the first cause and make_safe's outcome (service/bench/lifecycle.py).
+No run starts and no torque is commanded while one is tripped. A latched trip is cleared by a
+person's `fault_reset`, or, where the settings allow it, automatically before a run (rate-limited).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any, Callable
+
+from drivers.cia402 import Command402
+from service.bench.connections import BenchLinks
+from service.bench.errors import BenchError
+from service.bench.interlocks import (
+    DaqLost,
+    DeviceFault,
+    ForeignMaster,
+    HeartbeatLost,
+    InterlockMonitor,
+    InterlockTripped,
+    ServiceHeartbeatStopped,
+    SupplyOutOfRange,
+    Trip,
+)
+from service.bench.measurement import RunCancelled
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class BenchFaults:
+    """Interlocks over the bench's links (module doc). `busy()` says whether a run holds the bench (a
+    trip then takes the torque off at once); `on_trip(trip)` is the service's reporter, called from
+    the monitor thread; `lock` is the bench's run lock (one user of the wires at a time)."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        links: BenchLinks,
+        lock: threading.RLock,
+        busy: Callable[[], bool],
+        on_trip: Callable[[Trip], None] | None = None,
+    ):
+        self.settings = settings
+        self.links = links
+        self._lock = lock
+        self._busy = busy
+        self.on_trip = on_trip
+        self.interlocks: InterlockMonitor | None = None
+        self.supply_interlock: SupplyOutOfRange | None = None
+        self._auto_resets: list[float] = []  # monotonic times of automatic fault resets (rate limit)
+
+    @property
+    def connected(self) -> bool:
+        """The bench was reached and is watched (interlocks started)."""
+        return self.interlocks is not None and self.links.unreachable is None
+
+    def start(self) -> None:
+        """Build the interlocks over the open links and start watching."""
+        il = self.settings.interlocks
+        drive, load = self.links.drive, self.links.load
+        drive_fault, load_fault = DeviceFault(drive), DeviceFault(load)
+        self.supply_interlock = SupplyOutOfRange(self.links.supply, il.supply_tolerance_fraction, il.supply_tolerance_v)
+        self.interlocks = InterlockMonitor(
+            [
+                drive_fault,
+                load_fault,
+                HeartbeatLost(drive),
+                HeartbeatLost(load),
+                ServiceHeartbeatStopped(self.links.bus),
+                ForeignMaster(self.links.bus),
+                DaqLost(self.links.daq),
+                self.supply_interlock,
+            ],
+            on_trip=self._tripped,
+            period_s=il.monitor_period_s,
+            stall_s=il.stall_s,
+        )
+        drive.add_emcy_callback(lambda e: self.interlocks.emcy(drive_fault, e.code))
+        load.add_emcy_callback(lambda e: self.interlocks.emcy(load_fault, e.code))
+        self.interlocks.start()
+
+    def _tripped(self, trip: Trip) -> None:
+        """Monitor/CAN thread: torque off now if a run holds the bench, then report. The full make_safe
+        (load braked to standstill) follows in the run's own thread when its guard raises."""
+        if self._busy():
+            threading.Thread(target=self._torque_off_now, name="ripplecal-trip-stop", daemon=True).start()
+        if self.on_trip is not None:
+            self.on_trip(trip)
+
+    def _torque_off_now(self) -> None:
+        try:
+            self.links.drive.send_command(Command402.DISABLE_VOLTAGE)  # power stage off: no torque, no injection
+        except Exception as exc:  # noqa: BLE001 - the drive may be the thing that is gone; make_safe retries
+            log.warning("interlock: immediate torque off failed: %s", exc)
+
+    # --- during a run --------------------------------------------------------------------------------
+    def guard(self, cancel: threading.Event | None = None) -> None:
+        """Checked before every DAQ read of a run: raises to stop it (interlock trip, the run's cancel token)."""
+        trip = self.interlocks.run_trip if self.interlocks is not None else None
+        if trip is not None:
+            raise InterlockTripped(trip)
+        if cancel is not None and cancel.is_set():
+            raise RunCancelled("run cancelled")
+
+    # --- refusals and resets -------------------------------------------------------------------------
+    def refusal(self) -> Trip | None:
+        """What forbids a run now (None: clear to go); read fresh. A bench never reached forbids it too."""
+        if self.links.unreachable is not None:
+            return self.links.unreachable_trip()
+        return self.interlocks.refusal() if self.interlocks is not None else None
+
+    def refuse_or_auto_reset(self) -> None:
+        """Before a run: refuse while an interlock is tripped, unless a latched trip may be reset
+        automatically (interlocks.auto_fault_reset, rate-limited)."""
+        trip = self.interlocks.refusal()
+        if trip is not None and trip.latched and self._auto_reset_allowed():
+            log.warning("automatic fault reset (interlocks.auto_fault_reset) of: %s", trip.reason)
+            self._auto_resets.append(time.monotonic())
+            self._reset_devices()
+            trip = self.interlocks.reset_latched()
+        if trip is not None:
+            raise InterlockTripped(trip, refused=True)
+
+    def _auto_reset_allowed(self) -> bool:
+        il = self.settings.interlocks
+        if not il.auto_fault_reset:
+            return False
+        now = time.monotonic()
+        self._auto_resets = [t for t in self._auto_resets if now - t < 3600.0]
+        return len(self._auto_resets) < il.auto_fault_reset_per_hour
+
+    def _reset_devices(self) -> dict[str, bool]:
+        return {"drive": self.links.drive.fault_reset(), "load": self.links.load.fault_reset()}
+
+    def fault_reset(self) -> dict[str, Any]:
+        """A person acknowledges a fault: CiA 402 fault reset of the drive and the load (those in
+        FAULT), then the latched interlocks are cleared if their condition has gone. Returns what was
+        reset and what (if anything) still forbids a run."""
+        if not self.connected:
+            raise BenchError(self.refusal().reason)
+        if not self._lock.acquire(timeout=2.0):
+            raise BenchError("the bench is busy with a run; the run stops by itself on a trip, then reset")
+        try:
+            reset = self._reset_devices()
+            remaining = self.interlocks.reset_latched()
+        finally:
+            self._lock.release()
+        return {"reset": reset, "still_tripped": remaining.public() if remaining else None}
+
+    def stop(self) -> None:
+        self.interlocks.stop()

@@ -1,0 +1,266 @@
+"""The run lifecycle: opening a run, the commands sent during it, and ending it safe.
+
+Safety (pymeasure's startup/execute/shutdown): every run ends in `make_safe` (torque off, injection
+off, drive disabled, load stopped), also after an error or a cancel, and every wait has a timeout.
+A run holds the bench (its lock) and arms the interlocks throughout (service/bench/faults.py); it
+is refused, nothing commanded, while one is tripped. Before each run the setpoint/sync-toggle
+accounting is re-established from the drive itself (commit counter read-back, DAQ quiet), so one
+SDO timeout or a fault that dropped queued setpoints never poisons the runs after it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+import time
+from typing import Callable, Iterator
+
+from drivers.errors import DaqError
+from service.bench.connections import BenchLinks
+from service.bench.contracts import RunBench
+from service.bench.errors import BenchError, RunError
+from service.bench.faults import BenchFaults
+from service.bench.interlocks import InterlockTripped
+from service.bench.measurement import OperatingPointSession, RunCancelled
+from service.bench.run import BenchRun, gamma_max_for_run
+from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
+from service.model import limits
+from service.model.harmonic import mechanical_speed_rpm
+from service.model.limits import LimitError
+from service.model.operating_point import OperatingPoint
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class RunLifecycle:
+    """Runs on the bench (module doc). `after_run()` is called once a run has ended and the bench is
+    released (the status view reads the state the run left)."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        links: BenchLinks,
+        faults: BenchFaults,
+        lock: threading.RLock,
+        after_run: Callable[[], None],
+    ):
+        self.settings = settings
+        self.links = links
+        self.faults = faults
+        self._lock = lock
+        self._after_run = after_run
+        self.accounting: SetpointAccounting | None = None  # the drive's setpoints against the DAQ sync line
+        self.busy = False
+        self._gamma_max_rad: float | None = None  # of the run in progress
+        self._run: BenchRun | None = None
+
+    # --- the setpoint accounting -----------------------------------------------------------------------
+    def attach_accounting(self) -> None:
+        """At connect: count the drive's setpoints against the DAQ's sync toggles from now on."""
+        links = self.links
+        self.accounting = SetpointAccounting(
+            links.daq,
+            self.settings.daq.read_timeout_s,
+            lambda: links.drive.setpoints_written,
+            links.drive.resync_setpoint_count,
+        )
+        links.drive.on_setpoint = self.accounting.note_write
+
+    def establish_accounting(self) -> None:
+        """Learn the DAQ sync line at connect, so the first run does not wait for it; a DAQ that does
+        not stream yet leaves it to the first run."""
+        if not self.settings.daq.sync_input:
+            return
+        with self._lock:
+            try:
+                self.accounting.establish(guard=lambda: None)
+            except (DaqError, AccountingError) as exc:
+                log.warning("setpoint accounting not established at connect (the first run does it): %s", exc)
+
+    # --- commands during a run -------------------------------------------------------------------------
+    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
+        """Theta to the drive; refuses (before anything is sent) a gamma above the run's gamma_max."""
+        gamma_max = self._gamma_max_rad or math.radians(self.settings.identification.gamma_max_deg)
+        if math.hypot(theta_cos_rad, theta_sin_rad) > gamma_max * (1 + 1e-9):
+            raise LimitError(
+                f"gamma {math.degrees(math.hypot(theta_cos_rad, theta_sin_rad)):.3f} deg exceeds gamma_max"
+            )
+        self.faults.guard(cancel)
+        self.links.drive.set_injection(theta_cos_rad, theta_sin_rad)
+
+    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None:
+        """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
+        self.faults.guard(cancel)
+        self.links.drive.set_injection_mode(mode)
+
+    def set_dc_link(self, udc_v: float) -> None:
+        """The supply to udc_v and confirmed; the supply interlock watches the new band from then on."""
+        supply, supply_interlock = self.links.supply, self.faults.supply_interlock
+        supply_interlock.expected_v = None  # not out of range while it changes
+        supply.set_voltage(udc_v)
+        supply.output(True)
+        self._wait_supply(udc_v)
+        supply_interlock.expected_v = udc_v
+
+    def _wait_supply(self, udc_v: float, timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            measured = self.links.supply.measure_voltage()
+            if abs(measured - udc_v) <= max(0.02 * udc_v, 0.05):
+                return
+            if time.monotonic() > deadline:
+                raise BenchError(f"DC supply did not reach {udc_v:g} V within {timeout_s} s (measures {measured:g} V)")
+            time.sleep(0.02)
+
+    # --- a run -----------------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def run(
+        self,
+        bench: RunBench,
+        harmonic_order: int,
+        gamma_max_rad: float | None = None,
+        decoupling: bool | None = None,
+        cancel: threading.Event | None = None,
+    ) -> Iterator[BenchRun]:
+        """One continuous run (service/bench/run.py) on `bench`: the bench held, the interlocks armed
+        throughout, moves from point to point; make_safe when it ends, however it ends. gamma_max_rad
+        (default: settings) is enforced here and also set in the drive, which clamps; decoupling
+        (default: settings) is the drive's 0x2000:6 for the run. Refused (InterlockTripped, nothing
+        commanded) while an interlock is tripped. `cancel` set stops the run at its next DAQ read."""
+        if not self.faults.connected:
+            raise InterlockTripped(self.links.unreachable_trip(), refused=True)
+        with self._lock:
+            self.faults.refuse_or_auto_reset()
+            self.busy = True
+            self._gamma_max_rad = gamma_max_for_run(gamma_max_rad, limits.gamma_max_rad(None, self.settings))
+            run = BenchRun(
+                bench,
+                harmonic_order,
+                self._gamma_max_rad,
+                self.settings.identification.decoupling if decoupling is None else decoupling,
+                cancel,
+            )
+            self._run = run
+            self.faults.interlocks.arm()
+            first: BaseException | None = None
+            try:
+                self.accounting.start_run(run.guard)
+                yield run
+            except BaseException as exc:
+                first = exc
+            self._end_run(first)
+
+    @contextlib.contextmanager
+    def operating_point(
+        self,
+        bench: RunBench,
+        op: OperatingPoint,
+        harmonic_order: int,
+        gamma_max_rad: float | None = None,
+        cancel: threading.Event | None = None,
+        on_window: Callable | None = None,
+        decoupling: bool | None = None,
+        target_db: float = 40.0,
+    ) -> Iterator[OperatingPointSession]:
+        """A run of one point: go to `op`, settle, yield the session; the bench is left safe after it."""
+        with self.run(bench, harmonic_order, gamma_max_rad, decoupling, cancel) as run:
+            with run.operating_point(op, target_db=target_db, on_window=on_window) as session:
+                yield session
+
+    def _end_run(self, first: BaseException | None) -> None:
+        """After a run (clean or not): learn whether an interlock is the first cause, make safe, and
+        raise what happened: the trip (with make_safe's outcome), else the run's own error (with
+        make_safe's error added if it failed too), else make_safe's error."""
+        interlocks = self.faults.interlocks
+        try:
+            if first is not None and not isinstance(first, (RunCancelled, GeneratorExit)):
+                interlocks.check_now(force=True)  # an EMCY/FAULT may be why the run failed
+            trip = interlocks.disarm()
+            if trip is not None:
+                self.accounting.doubt("an interlock tripped during the run")  # a faulted drive drops what it queued
+            if self.faults.supply_interlock is not None:
+                self.faults.supply_interlock.expected_v = None
+            safe_error: Exception | None = None
+            try:
+                self.make_safe()
+            except Exception as exc:
+                safe_error = exc
+            self.accounting.end_run()
+        finally:
+            self.busy = False
+            self._gamma_max_rad = None
+            self._run = None
+            self._after_run()
+        outcome = "bench made safe" if safe_error is None else f"make_safe failed: {safe_error}"
+        if trip is not None and not isinstance(first, GeneratorExit):
+            err = InterlockTripped(trip, outcome=outcome)
+            if first is not None and not isinstance(first, InterlockTripped):
+                err.add_note(f"the run then failed with {type(first).__name__}: {first}")
+            raise err from first
+        if first is not None:
+            if safe_error is None:
+                raise first
+            raise RunError(f"{type(first).__name__}: {first}; then {outcome}") from first
+        if safe_error is not None:
+            raise BenchError(f"bench may not be safe: {safe_error}") from safe_error
+
+    # --- safe --------------------------------------------------------------------------------------------
+    def make_safe(self, standstill_timeout_plant_s: float = 5.0) -> None:
+        """Torque off, injection off, drive disabled, load stopped; then wait (on the DAQ clock, or on
+        the load's own speed reading if the DAQ is gone; bounded) for standstill. Tries every step,
+        raises the first error."""
+        drive, load = self.links.drive, self.links.load
+        errors = []
+        steps = []
+        if drive is not None:
+            steps.append(drive.disable)  # target torque 0, injection off, disable voltage
+        if load is not None:
+            steps.append(lambda: load.set_speed_rpm(0.0))
+            if self.accounting is not None:
+                # brake with the load's speed loop before disabling it (a disabled load coasts)
+                steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))
+            steps.append(load.disable)
+        with self._lock:
+            for step in steps:
+                try:
+                    step()
+                except Exception as exc:
+                    errors.append(exc)
+                    log.error("make_safe step failed: %s", exc)
+        if errors:
+            raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
+
+    def _wait_standstill(self, timeout_plant_s: float, below_rpm: float = 20.0) -> None:
+        """Consume the DAQ until the encoder shows the shaft below `below_rpm` (bounded on the DAQ
+        clock); without a DAQ, poll the load machine's velocity actual instead (wall clock, same bound)."""
+        rate = self.settings.daq.sample_rate_hz
+        block = int(0.02 * rate)
+        cursor = self.accounting.cursor
+        try:
+            start = None
+            while start is None or cursor.last_index - start < timeout_plant_s * rate:
+                chunk = cursor.read(block).samples
+                start = int(chunk.index[0]) if start is None else start
+                try:  # over the block's contiguous runs: the angle's step across a DAQ gap is unknown
+                    speed_rpm = mechanical_speed_rpm(
+                        chunk.angle_rad, rate, self.settings.motor.pole_pairs, chunk.gap_before
+                    )
+                except ValueError:
+                    continue
+                if abs(speed_rpm) < below_rpm:
+                    return
+        except DaqError as exc:
+            log.warning("standstill judged on the load's speed: DAQ unavailable (%s)", exc)
+            self.accounting.doubt("the DAQ was unavailable at the end of a run")
+            deadline = time.monotonic() + timeout_plant_s
+            while time.monotonic() < deadline:
+                speed_rpm = self.links.load.read_status().speed_rpm
+                if abs(speed_rpm) < below_rpm:
+                    return
+                time.sleep(0.02)
+        raise BenchError(
+            f"shaft still turning {timeout_plant_s:g} s (plant time, DAQ sample clock) after the stop command"
+        )

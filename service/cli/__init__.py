@@ -1,0 +1,51 @@
+"""`ripplecal` command line: serve, identify, sweep, export, token, schedule, maps, sweeps, paper.
+
+identify, sweep and `maps download` run in this process against the bench (emulated unless --bench
+names a bench settings file), through the same engine the REST API uses, and store into the database.
+The database is resolved once, made absolute and printed (stderr) at start: --db, else
+RIPPLECAL_SERVER__DB_PATH, else the per-user default ($XDG_DATA_HOME or ~/.local/share)/ripplecal/ripplecal.db,
+the same for every command whatever the working directory.
+
+The package: `parser` (the command table: one small function per command), `handlers` (each command
+calls the service layer), `output` (every line a command prints), `waiting` (the one way a command
+waits for a job or a sweep), `startup` (settings and the database, resolved once at start).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+from service.bench.errors import BenchUnreachable  # light: not the bench's drivers
+from service.cli.parser import build_parser
+from service.cli.startup import StartError, resolve_db_path
+from service.settings import SettingsError
+from service.store.storage import StorageError
+
+__all__ = ["main", "build_parser", "StartError", "resolve_db_path"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return args.func(args)
+    except (
+        SettingsError,
+        StartError,
+        StorageError,
+    ) as exc:  # StorageError: e.g. the database locked by another process
+        print(f"ripplecal: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, TimeoutError) as exc:
+        print(f"ripplecal: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # the service's context has already left the bench safe
+        print("ripplecal: interrupted", file=sys.stderr)
+        return 130
+    except BenchUnreachable as exc:  # a real bench not reached: the run is refused at start
+        print(f"ripplecal: {exc}", file=sys.stderr)
+        return 2

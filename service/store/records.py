@@ -1,0 +1,161 @@
+"""The records the store hands out: one TypedDict per table, the JSON columns decoded (`grid_json`
+is read as `grid`, service/store/storage.py JSON_COLUMNS). The layers above read these and never a
+JSON string; the API's public shapes are built from them at the edge (service/api/public.py)."""
+
+from __future__ import annotations
+
+from typing import Any, TypedDict
+
+
+class JobRecord(TypedDict):
+    id: int
+    kind: str  # identification | sweep | validation | refinement
+    state: str  # queued | running | done | failed | cancelled (service/runs/engine.py JOB_TRANSITIONS)
+    request: dict[str, Any]
+    sweep_id: int | None
+    result_id: int | None
+    error: str | None
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+
+
+class SweepRecord(TypedDict):
+    id: int
+    state: str  # service/runs/engine.py SWEEP_TRANSITIONS
+    method: str
+    harmonic_order: int
+    grid: dict[str, list[float]]
+    options: dict[str, Any]
+    total_points: int
+    done_points: int
+    failed_points: int
+    map_id: int | None
+    error: str | None
+    bench_identity: str
+    software_version: str
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    pause_reason: str | None
+    schedule_id: int | None
+    kind: str  # sweep | refinement
+    source_map_id: int | None
+    refinement: dict[str, Any] | None  # a refinement's state (service/runs/refinement.py)
+
+
+class ResultRecord(TypedDict):
+    id: int
+    job_id: int | None
+    sweep_id: int | None
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    harmonic_order: int
+    method: str
+    options: dict[str, Any]
+    status: str  # ok | below_target | no_authority | failed
+    error: str | None
+    theta_cos: float | None  # rad
+    theta_sin: float | None  # rad
+    gamma_deg: float | None
+    delta_deg: float | None
+    residual_a_c: float | None  # fs
+    residual_a_s: float | None
+    uncompensated_a_c: float | None
+    uncompensated_a_s: float | None
+    suppression_db: float | None
+    plant_time_s: float | None
+    windows_used: int | None
+    detail: dict[str, Any]  # message, phasors, S, details (service/store/result_rows.py)
+    traces: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    finished_at: str
+    target_db: float | None
+    noise_floor_db: float | None
+    superseded_by: int | None
+    recording: dict[str, Any] | None  # service/store/recordings.py
+
+
+class MapCellRecord(TypedDict):
+    torque_nm: float
+    speed_rpm: float
+    udc_v: float
+    result_id: int | None
+    status: str | None  # the result's; None: no result (a missing cell)
+    theta_cos: float | None
+    theta_sin: float | None
+    gamma_deg: float | None
+    delta_deg: float | None
+    suppression_db: float | None
+    target_db: float | None
+    noise_floor_db: float | None
+    error: str | None
+    fill_theta_cos: float | None  # the fill rule's entry (service/maps/fill.py)
+    fill_theta_sin: float | None
+    fill_source: str | None
+
+
+class MapRecord(TypedDict):
+    id: int
+    sweep_id: int | None
+    harmonic_order: int
+    method: str
+    axes: dict[str, list[float]]
+    bench_identity: str
+    software_version: str
+    created_at: str
+    refined_from: int | None
+    provenance: dict[str, Any] | None
+    cells: list[MapCellRecord]
+
+
+class MapSummaryRecord(TypedDict):
+    id: int
+    sweep_id: int | None
+    harmonic_order: int
+    method: str
+    created_at: str
+
+
+class ValidationRecord(TypedDict):
+    id: int
+    map_id: int
+    job_id: int
+    state: str  # running | done | failed | cancelled
+    error: str | None
+    harmonic_order: int
+    options: dict[str, Any]
+    download: dict[str, Any]
+    summary: dict[str, Any]
+    cells: list[dict[str, Any]]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    finished_at: str | None
+
+
+class ScheduleRecord(TypedDict):
+    id: int
+    name: str
+    cron: str
+    timezone: str
+    sweep: dict[str, Any]  # the sweep each firing submits
+    enabled: int
+    created_at: str
+    updated_at: str
+    last_due_at: str
+    deleted_at: str | None
+
+
+class ScheduleRunRecord(TypedDict):
+    id: int
+    schedule_id: int
+    due_at: str
+    fired_at: str
+    outcome: str  # started | queued | skipped | missed | failed
+    sweep_id: int | None
+    note: str | None
+    sweep_state: str | None
