@@ -34,9 +34,9 @@ from pathlib import Path
 
 from service.api.public import validation_public
 from service.calibration_service import CalibrationService
-from service.runs.engine import TransitionError
 from service.runs.identify import parse_options
 from service.runs.plans import Grid
+from service.runs.states import TransitionError
 from service.runs.validation import ValidationOptions
 from service.settings import load_settings
 

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from service.calibration_service import CalibrationService
-from service.runs.engine import TransitionError
 from service.runs.identify import parse_options
 from service.runs.plans import Grid
+from service.runs.states import TransitionError
 from service.settings import load_settings
 
 TORQUES = [round(0.5 + 0.5 * i, 2) for i in range(10)]

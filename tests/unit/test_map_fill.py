@@ -11,8 +11,8 @@ from drivers.lut_image import DEFAULT_INTERPOLATION
 from service.maps.fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
 from service.maps.neighbours import prior_from_neighbours
 from service.model.operating_point import OperatingPoint
-from service.runs.engine import second_pass_points
 from service.runs.plans import Grid, SweepPlan
+from service.runs.sweep_run import second_pass_points
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 1500.0, 2500.0], "udc_v": [12.0]}
 

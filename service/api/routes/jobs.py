@@ -9,7 +9,7 @@ from service.api.errors import error_responses
 from service.api.public import JobPublic, job_public
 from service.api.refusals import refused_at
 from service.api.schemas import IdentificationCreate
-from service.runs.engine import TransitionError
+from service.runs.states import TransitionError
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
 

@@ -11,8 +11,8 @@ from service.api.errors import error_responses, validation_error
 from service.api.public import SweepPublic, sweep_public
 from service.api.refusals import refused_at, unprocessable
 from service.api.schemas import SweepCreate
-from service.runs.engine import TransitionError
 from service.runs.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
+from service.runs.states import TransitionError
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 

@@ -1,0 +1,529 @@
+"""A sweep's run body, and a refinement's: the points measured in continuous bench runs, the second
+pass, the map; the refinement's rounds. The engine (service/runs/engine.py) owns the queue, the
+worker and the state tables; it hands each sweep job to `SweepRunner.run_sweep` (or `run_refinement`)
+with the sweep's controls, and the runner calls back only through `RunHost`.
+
+Each point's result is committed in its own transaction before the next point starts; a failing
+point is stored as failed and the sweep goes on. An interlock trip discards the point in flight
+(stored as a failed, discarded attempt, never ok) and pauses the sweep with the reason; the database
+away keeps the point measured and writes it when it answers again.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Callable, Protocol
+
+from service.bench.bench import Bench
+from service.bench.interlocks import InterlockTripped
+from service.identification.common import LUT_MARGIN_DB
+from service.identification.session import MeasurementError
+from service.maps.build import build_map, build_map_from_sweep
+from service.maps.neighbours import prior_from_neighbours
+from service.maps.view import map_view
+from service.model.limits import LimitError
+from service.model.operating_point import OperatingPoint
+from service.runs.events import EventBroker
+from service.runs.identify import identify_in_run, parse_options, run_settings
+from service.runs.plans import Grid, SweepPlan
+from service.runs.refinement import MAX_ROUNDS, axes_with, plan_round
+from service.runs.states import Cancelled, Paused, SweepControl, SweepState
+from service.runs.validation import ValidationOptions, run_validation, store_validation
+from service.settings import Settings
+from service.store.recordings import RunRecorder
+from service.store.result_rows import result_row
+from service.store.storage import Storage, StorageUnavailable, now_iso
+
+log = logging.getLogger(__name__)
+
+
+class RunHost(Protocol):
+    """What a sweep's run body needs from the engine that runs it."""
+
+    storage: Storage
+    bench: Bench
+    settings: Settings
+    broker: EventBroker
+
+    @property
+    def lock(self) -> threading.RLock: ...
+    @property
+    def shutdown_reason(self) -> str: ...
+    def shutting_down(self) -> bool: ...
+    def set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None: ...
+    def durably(self, write: Callable[[], object], what: str, cancel: threading.Event | None = None) -> bool: ...
+    def publish_sweep(self, sweep_id: int) -> None: ...
+    def insert_result(self, row: dict, recorder: RunRecorder | None) -> int: ...
+    def new_recorder(self) -> RunRecorder | None: ...
+
+
+class SweepRunner:
+    def __init__(self, host: RunHost):
+        self.host = host
+        self.storage, self.bench, self.settings, self.broker = host.storage, host.bench, host.settings, host.broker
+
+    def run_sweep(self, job_id: int, sweep_id: int, ctl: SweepControl) -> None:
+        """The sweep as continuous bench runs (service/bench/run.py): the drive stays enabled and the
+        load turning from point to point; a run ends (bench made safe) on pause, cancel, an interlock
+        trip, a failure of the bench itself, and at the end. A point that cannot be measured is stored
+        failed and the run goes on; an interlock trip discards the point in flight and pauses.
+        Two passes: every point, then once more each point whose result is not ok, with what its
+        neighbours now know on every side (service/maps/neighbours.py); a cell that stays non-ok gets the fill
+        rule's entry in the map (service/maps/fill.py)."""
+        sweep = self.storage.get_sweep(sweep_id)
+        grid = Grid.model_validate(sweep["grid"])
+        options = parse_options(sweep["method"], sweep["options"])
+        plan = SweepPlan.from_grid(grid)
+        done = self.storage.committed_points(sweep_id)  # a resumed sweep measures only the rest
+        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
+            raise Cancelled()  # cancelled as the worker took it: nothing was run
+        if ctl.pause.is_set():
+            raise Paused()  # paused while it waited in the queue
+        self.host.set_sweep(
+            sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
+        )
+        first = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
+        in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
+        if in_flight is None and not ctl.cancel.is_set() and not self.host.shutting_down():
+            again = second_pass_points(plan, self.storage.sweep_results(sweep_id))
+            if again:
+                log.info(
+                    "sweep %s: %d point(s) not ok measured once more with their neighbours' priors",
+                    sweep_id,
+                    len(again),
+                )
+                in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, again, sweep_pass=2)
+        if self.host.shutting_down():
+            s = self.storage.get_sweep(sweep_id)
+            where = f" during point {in_flight.label()} (measured again on resume)" if in_flight is not None else ""
+            self.host.set_sweep(
+                sweep_id,
+                SweepState.INTERRUPTED,
+                pause_reason=f"{self.host.shutdown_reason}{where}; {s['done_points']} of {s['total_points']} "
+                "points are stored",
+            )
+            return
+        map_id = build_map_from_sweep(self.storage, sweep_id)
+        final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
+        self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
+
+    def _measure_points(
+        self,
+        sweep_id: int,
+        sweep: dict,
+        ctl: SweepControl,
+        grid: Grid,
+        options,
+        points: list[OperatingPoint],
+        sweep_pass: int,
+        neighbour_rows: Callable[[], list[dict]] | None = None,
+        tags: dict | None = None,
+    ) -> OperatingPoint | None:
+        """Measure `points` in continuous runs (see _run_sweep), holding while paused. Returns the point
+        in flight when a cancel or a shutdown stopped it (None when every point was measured or the
+        stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
+        results); `tags` go into every result's details."""
+        neighbour_rows = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
+        tags = {"sweep_pass": sweep_pass, **(tags or {})}
+        if options.stop_margin_db is None:  # a cell meant for a LUT: identified to a margin below its target
+            options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
+        point = _PointInFlight()
+        i = 0
+        while i < len(points):
+            if ctl.cancel.is_set():
+                break
+            if ctl.pause.is_set():
+                raise Paused()
+            try:
+                with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
+                    while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
+                        point.start(points[i], self.host.new_recorder())
+                        try:
+                            prior = prior_from_neighbours(point.op, neighbour_rows(), grid.model_dump())
+                            result = identify_in_run(
+                                run,
+                                self.settings,
+                                point.op,
+                                sweep["method"],
+                                options,
+                                prior=prior,
+                                recorder=point.recorder,
+                            )
+                            result.details.update(tags)
+                            row = result_row(
+                                point.op,
+                                sweep["method"],
+                                options,
+                                self.bench.identity,
+                                point.started,
+                                result,
+                                sweep_id=sweep_id,
+                                harmonic_order=result.harmonic_order,
+                            )
+                        except (MeasurementError, LimitError) as exc:
+                            # this point could not be measured; the bench is fine: the run goes on
+                            log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
+                            row = self._failed_row(point, sweep, options, exc, sweep_id, tags)
+                        point.row = row  # measured: kept if the database cannot take it now
+                        self._store_point(sweep_id, point.op, row, point.recorder)
+                        point.clear()
+                        i += 1
+            except StorageUnavailable as exc:
+                # the run has ended (bench made safe); the point measured is kept and written when the
+                # database answers again, or measured again if it was not measured yet
+                self._storage_pause(sweep_id, ctl, exc, point)
+                if point.row is not None:  # stored now
+                    i += 1
+                point.clear()
+                continue
+            except InterlockTripped as exc:
+                # the point is measured again after the operator resumes; its attempt (if any
+                # torque was commanded) is kept as a failed, discarded attempt, never ok
+                if point.op is not None and not exc.refused:
+                    self._store_point(
+                        sweep_id,
+                        point.op,
+                        self._discarded_row(point.op, sweep, options, point.started, exc, sweep_id),
+                        point.recorder,
+                    )
+                else:
+                    discard_recorder(point.recorder)
+                self._pause_for_interlock(sweep_id, ctl, point.op or points[min(i, len(points) - 1)], exc)
+                point.clear()
+                continue
+            except Exception as exc:
+                if ctl.cancel.is_set():
+                    discard_recorder(point.recorder)
+                    return point.op
+                if point.op is None:
+                    raise  # the run itself could not start or end (bench not safe): the sweep fails
+                # the bench failed during this point (the run ended, bench made safe): stored failed, next point
+                log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
+                self._store_point(
+                    sweep_id, point.op, self._failed_row(point, sweep, options, exc, sweep_id, tags), point.recorder
+                )
+                point.clear()
+                i += 1
+        return None
+
+    def _failed_row(
+        self, point: "_PointInFlight", sweep, options, exc: BaseException, sweep_id: int, tags: dict
+    ) -> dict:
+        return result_row(
+            point.op,
+            sweep["method"],
+            options,
+            self.bench.identity,
+            point.started,
+            error=error_text(exc),
+            sweep_id=sweep_id,
+            harmonic_order=self.settings.identification.harmonic_order,
+            detail={"message": error_text(exc), "details": dict(tags)},
+        )
+
+    def run_refinement(self, job_id: int, sweep_id: int, ctl: SweepControl) -> None:
+        """A refinement's rounds (service/runs/refinement.py): measure the pending cells, build the refined map,
+        validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
+        so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
+        sweep = self.storage.get_sweep(sweep_id)
+        state = sweep["refinement"]
+        options = parse_options(sweep["method"], sweep["options"])
+        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
+            raise Cancelled()
+        if ctl.pause.is_set():
+            raise Paused()
+        self.host.set_sweep(
+            sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
+        )
+        source = self.storage.get_map(sweep["source_map_id"])
+        while state["phase"] != "done":
+            if ctl.cancel.is_set():
+                break
+            if ctl.pause.is_set():
+                raise Paused()
+            if state["phase"] == "measure":
+                self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
+            else:
+                self._refinement_validate(job_id, sweep_id, ctl, state)
+            self._save_refinement(sweep_id, state)
+        if self.host.shutting_down():
+            self.host.set_sweep(
+                sweep_id,
+                SweepState.INTERRUPTED,
+                pause_reason=f"{self.host.shutdown_reason} during round {state['round']} ({state['phase']}); "
+                "resume to go on from there",
+            )
+            return
+        final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
+        self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=state["current_map_id"])
+
+    def _refinement_rows(self, sweep_id: int, source: dict) -> list[dict]:
+        """The source map's results, then the refinement's own (a later one for the same cell wins)."""
+        ids = [c["result_id"] for c in source["cells"] if c["result_id"] is not None]
+        return list(self.storage.results_by_id(ids).values()) + self.storage.sweep_results(sweep_id)
+
+    def _refinement_measure(
+        self, sweep_id: int, sweep: dict, ctl: SweepControl, options, state: dict, source: dict
+    ) -> None:
+        """Identify the round's pending cells (those not yet measured in this round), then build the
+        refined map from every result and move on to its validation."""
+        measured = {
+            (r["torque_nm"], r["speed_rpm"], r["udc_v"])
+            for r in self.storage.sweep_results(sweep_id)
+            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
+        }
+        points = [
+            OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
+            for t, n, u in state["pending"]
+            if (t, n, u) not in measured
+        ]
+        grid = Grid(**state["axes"])
+        self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
+        self._measure_points(
+            sweep_id,
+            sweep,
+            ctl,
+            grid,
+            options,
+            points,
+            sweep_pass=1,
+            neighbour_rows=lambda: self._refinement_rows(sweep_id, source),
+            tags={"refinement_round": state["round"]},
+        )
+        if ctl.cancel.is_set():
+            return
+        state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
+        provenance = {
+            "refinement_id": sweep_id,
+            "source_map_id": sweep["source_map_id"],
+            "round": state["round"],
+            "cells_added": state["cells_added"],
+        }
+        state["current_map_id"] = build_map(
+            self.storage,
+            state["axes"],
+            self._refinement_rows(sweep_id, source),
+            sweep_id,
+            sweep["harmonic_order"],
+            sweep["method"],
+            self.bench.identity,
+            refined_from=sweep["source_map_id"],
+            provenance=provenance,
+        )
+        state["phase"] = "validate"
+
+    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: dict) -> None:
+        """Validate the current map in the drive's LUT mode; plan the next round, or end."""
+        map_id = state["current_map_id"]
+        self._publish_refinement(sweep_id, state, f"validating map {map_id}")
+
+        def on_cell(cell: dict, total: int) -> None:
+            self.broker.publish(
+                "job.progress",
+                {"job_id": job_id, "kind": "refinement", "round": state["round"], "total": total, "cell": cell},
+            )
+
+        run = run_validation(
+            self.storage,
+            self.bench,
+            self.settings,
+            map_id,
+            True,
+            ValidationOptions.model_validate(state["validation"]),
+            ctl.cancel,
+            on_cell=on_cell,
+            on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
+        )
+        validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
+        if run.state == "cancelled":
+            return
+        if run.state == "failed":
+            # an interlock stopped it: pause like a sweep; on resume the map is validated again
+            with self.host.lock:
+                ctl.pause.set()
+                self.host.set_sweep(
+                    sweep_id,
+                    SweepState.PAUSED,
+                    pause_reason=f"{run.error} (validating refined map "
+                    f"{map_id}); acknowledge with POST /api/v1/bench/fault-reset, then resume",
+                )
+            return
+        m = map_view(self.storage, map_id)
+        plan = plan_round(
+            m.axes,
+            [c.model_dump() for c in m.cells],
+            run.cells,
+            state["target_db"],
+            state["max_cells"] - state["cells_added"],
+        )
+        summary = run.summary()
+        state["rounds"].append(
+            {
+                "round": state["round"],
+                "map_id": map_id,
+                "validation_id": validation_id,
+                "points": len(run.cells),
+                "below_target": plan.failing,
+                "grid_median_db": summary["grid"]["median_db"],
+                "midpoint_median_db": summary["midpoint"]["median_db"],
+                "min_db": min(
+                    (x for x in (summary["grid"]["min_db"], summary["midpoint"]["min_db"]) if x is not None),
+                    default=None,
+                ),
+                "inserted": plan.inserted,
+                "remeasured": len(plan.remeasure),
+                "new_cells": len(plan.new_cells),
+            }
+        )
+        if plan.failing == 0:
+            state["phase"], state["stopped"] = "done", None
+        elif not plan.cells:
+            state["phase"] = "done"
+            state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + (
+                "; ".join(plan.reasons) or "nothing left to insert"
+            )
+        elif state["round"] + 1 >= MAX_ROUNDS:
+            state["phase"] = "done"
+            state["stopped"] = (
+                f"{plan.failing} point(s) still below {state['target_db']:g} dB after {MAX_ROUNDS} rounds"
+            )
+        else:
+            state["axes"] = axes_with(m.axes, plan.inserted)
+            state["pending"] = [list(k) for k in plan.cells]
+            state["round"] += 1
+            state["phase"] = "measure"
+
+    def _save_refinement(self, sweep_id: int, state: dict) -> None:
+        # total: the cells planned so far (those measured, and the round's pending ones)
+        total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
+        self.storage.update_sweep(
+            sweep_id, refinement=state, grid=state["axes"], map_id=state["current_map_id"], total_points=total
+        )
+        self._publish_refinement(sweep_id, state, state["phase"])
+
+    def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
+        self.broker.publish(
+            "refinement.progress",
+            {
+                "sweep_id": sweep_id,
+                "round": state["round"],
+                "phase": state["phase"],
+                "what": what,
+                "map_id": state["current_map_id"],
+                "cells_added": state["cells_added"],
+            },
+        )
+
+    def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict, recorder: RunRecorder | None) -> None:
+        rid = self.host.insert_result(row, recorder)
+        # the result by its id: the API's event stream shows it as a result (service/api/routes/events.py)
+        self.broker.publish(
+            "sweep.point",
+            {"sweep_id": sweep_id, "operating_point": op.model_dump(), "state": row["status"], "result_id": rid},
+        )
+        self.host.publish_sweep(sweep_id)
+
+    def _discarded_row(self, op, sweep, options, started, exc: InterlockTripped, sweep_id: int) -> dict:
+        return result_row(
+            op,
+            sweep["method"],
+            options,
+            self.bench.identity,
+            started,
+            error=error_text(exc),
+            sweep_id=sweep_id,
+            harmonic_order=self.settings.identification.harmonic_order,
+            detail={"message": str(exc), "discarded": "interlock", "interlock": exc.trip.public()},
+        )
+
+    def _storage_pause(
+        self, sweep_id: int, ctl: SweepControl, exc: StorageUnavailable, point: "_PointInFlight"
+    ) -> None:
+        """The database cannot be used: the bench is already safe (the run ended). Tell the dashboard the
+        sweep waits (in memory: the database cannot take it), keep the point measured and write it when the
+        database answers again, then go on by itself. A cancel or a shutdown ends the wait."""
+        reason = f"{exc.public} at {now_iso()}; " + (
+            f"the point {point.op.label()} is kept and written when it answers again"
+            if point.row is not None
+            else "the sweep goes on when it answers again"
+        )
+        log.warning("sweep %s waits for the database: %s", sweep_id, reason)
+        self.broker.publish(
+            "sweep.progress",
+            {
+                "sweep_id": sweep_id,
+                "state": "paused",
+                "pause_reason": reason,
+                "storage": {"cause": exc.cause, "retry_after_s": exc.retry_after_s},
+            },
+        )
+        if point.row is not None:
+            # kept even through a cancel: a point measured is never thrown away while the service runs
+            stored = self.host.durably(
+                lambda: self._store_point(sweep_id, point.op, point.row, point.recorder),
+                f"sweep {sweep_id}: storing point {point.op.label()}",
+            )
+            if not stored:
+                discard_recorder(point.recorder)
+                point.row = None
+        else:
+            discard_recorder(point.recorder)
+            self.host.durably(lambda: self.storage.get_sweep(sweep_id), f"sweep {sweep_id}: the database", ctl.cancel)
+        self.host.publish_sweep(sweep_id)
+
+    def _pause_for_interlock(self, sweep_id: int, ctl: SweepControl, op: OperatingPoint, exc: InterlockTripped) -> None:
+        reason = (
+            f"{exc.trip.reason} during point {op.label()}"
+            + (" (refused before it started)" if exc.refused else " (discarded; measured again on resume)")
+            + (
+                "; acknowledge with POST /api/v1/bench/fault-reset, then resume"
+                if exc.trip.latched
+                else "; resume when it has cleared"
+            )
+        )
+        with self.host.lock:
+            ctl.pause.set()
+            self.host.set_sweep(sweep_id, SweepState.PAUSED, pause_reason=reason)
+        log.warning("sweep %s paused: %s", sweep_id, reason)
+        self.host.publish_sweep(sweep_id)
+
+
+def second_pass_points(plan: SweepPlan, current: list[dict]) -> list[OperatingPoint]:
+    """The plan's points, in its order, whose current result is not ok and was not itself measured in
+    the second pass (a resumed sweep does not measure a point a third time)."""
+    again = set()
+    for row in current:
+        details = (row.get("detail") or {}).get("details") or {}
+        if row["status"] != "ok" and details.get("sweep_pass") != 2:
+            again.add((row["torque_nm"], row["speed_rpm"], row["udc_v"]))
+    return [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) in again]
+
+
+class _PointInFlight:
+    """The sweep point being measured: its operating point, start time and raw recorder."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def start(self, op: OperatingPoint, recorder: RunRecorder | None) -> None:
+        self.op, self.recorder, self.started, self.row = op, recorder, now_iso(), None
+
+    def clear(self) -> None:
+        self.op: OperatingPoint | None = None
+        self.recorder: RunRecorder | None = None
+        self.started: str | None = None
+        self.row: dict | None = None  # its result, once measured (until stored)
+
+
+def discard_recorder(recorder: RunRecorder | None) -> None:
+    """A run that leaves no result (cancelled, refused) leaves no recording either."""
+    if recorder is not None:
+        recorder.close()
+
+
+def error_text(exc: BaseException) -> str:
+    """'Type: message' plus any notes (e.g. what failed after an interlock trip)."""
+    text = f"{type(exc).__name__}: {exc}"
+    notes = getattr(exc, "__notes__", None)
+    return text + "".join(f"; {n}" for n in notes) if notes else text
