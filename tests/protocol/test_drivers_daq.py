@@ -243,7 +243,9 @@ def test_a_flush_is_counted_as_the_flushs_not_as_line_errors(pty_writer):
     assert after.gap_before[0] and not after.gap_before[1:].any()  # the stream has a hole there
     assert (counters.crc_failures, counters.sequence_gaps, counters.samples_lost) == (0, 0, 0)
     assert (counters.bytes_skipped, counters.resyncs) == (0, 0)
-    assert counters.flush_resyncs == 1 and counters.flush_bytes_skipped == FRAME_BYTES - 5
+    # the rest of the cut frame at least; a read the thread had in hand when it paused may add a partial
+    # frame of its own (it depends on where the OS cut the reads), never a whole frame
+    assert counters.flush_resyncs == 1 and FRAME_BYTES - 5 <= counters.flush_bytes_skipped < 2 * FRAME_BYTES
     assert counters.flush_samples_lost == resume + 1 - n
     assert health["flushes"] == 1 and health["flush_resyncs"] == 1 and health["sequence_gaps"] == 0
 

@@ -124,8 +124,10 @@ def test_nothing_pending_is_no_wait(pty):
 
 
 def test_establishing_waits_for_a_quiet_line_sized_by_the_measured_latency(pty):
-    # a previous master left setpoints applied at 100, 900 and 1700; then the line stays quiet
-    data = stream([(100, 0), (800, 1), (800, 0), (6000, 1)])
+    # a previous master left setpoints applied at 100, 900 and 1700; then the line stays quiet, for as
+    # long as a DAQ streams: establishing flushes what the reader has buffered (possibly all that was
+    # written so far) and counts its quiet window from the gap the flush leaves
+    data = stream([(100, 0), (800, 1), (800, 0), (100_000, 1)])
     with DaqReader(pty.path) as reader:
         pty.write_in_thread(data)
         drive = Drive(written=0)
