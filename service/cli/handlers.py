@@ -91,14 +91,14 @@ def cmd_identify(args) -> int:
         progress = output.JobProgress()
 
         def finished(job_id: int) -> dict | None:
-            job = service.storage.get_job(job_id)
+            job = service.get_job(job_id)
             return job if job["state"] in JOB_FINAL else None
 
         job_id = None
 
         def submit() -> int:
             nonlocal job_id
-            job_id = progress.queued(service.engine.submit_identification(op, args.method, options))
+            job_id = progress.queued(service.submit_identification(op, args.method, options))
             return job_id
 
         job = follow(
@@ -112,7 +112,7 @@ def cmd_identify(args) -> int:
                 f"identification job {j} did not finish within {args.timeout:g} s (--timeout); it was cancelled"
             ),
         )
-        result = result_public(service.storage.get_result(job["result_id"])).model_dump() if job["result_id"] else None
+        result = result_public(service.get_result(job["result_id"])).model_dump() if job["result_id"] else None
     output.identification(op, job_id, job, result, settings.server.db_path, args.json)
     return 0 if job["state"] == "done" else 1
 
@@ -132,7 +132,7 @@ def cmd_sweep(args) -> int:
         progress = output.SweepProgress()
 
         def finished(sweep_id: int) -> dict | None:
-            s = service.storage.get_sweep(sweep_id)
+            s = service.get_sweep(sweep_id)
             progress.show(sweep_id, s)
             return s if s["state"] in JOB_FINAL else None
 
@@ -140,7 +140,7 @@ def cmd_sweep(args) -> int:
 
         def submit() -> int:
             nonlocal sweep_id
-            sweep_id = service.engine.submit_sweep(grid, args.method, options)
+            sweep_id = service.submit_sweep(grid, args.method, options)
             return sweep_id
 
         sweep = follow(
