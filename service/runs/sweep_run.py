@@ -120,7 +120,7 @@ class SweepRunner:
         neighbour_rows: Callable[[], list[dict]] | None = None,
         tags: dict | None = None,
     ) -> OperatingPoint | None:
-        """Measure `points` in continuous runs (see _run_sweep), holding while paused. Returns the point
+        """Measure `points` in continuous runs (see run_sweep), holding while paused. Returns the point
         in flight when a cancel or a shutdown stopped it (None when every point was measured or the
         stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
         results); `tags` go into every result's details."""
