@@ -14,7 +14,7 @@ import pytest
 from tests.support.bench_rig import Api, EmulatorRig, alive, children_of
 from tests.support.operating_points import OP1
 from tests.support.service_process import ServiceProcess
-from tests.support.sweep_checks import assert_points_measured_honestly
+from tests.support.sweep_checks import assert_points_measured_honestly, results_per_point
 
 pytestmark = pytest.mark.e2e
 GRID16 = {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 1750, 2000, 2250], "udc_v": [12]}
@@ -31,18 +31,6 @@ def kill9(svc: ServiceProcess) -> None:
     os.killpg(svc.proc.pid, signal.SIGKILL)
     svc.proc.wait(20)
     svc.log.close()
-
-
-def attempts_per_point(db, sweep_id) -> dict:
-    """Results per point of the sweep's first pass (its second pass measures a non-ok cell once more, by design)."""
-    with sqlite3.connect(db) as conn:
-        rows = conn.execute(
-            "SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
-            "AND COALESCE(json_extract(detail_json, '$.details.sweep_pass'), 1) = 1 "
-            "GROUP BY torque_nm, speed_rpm, udc_v",
-            (sweep_id,),
-        ).fetchall()
-    return {r[:3]: r[3] for r in rows}
 
 
 def second_pass_only_where_the_first_missed(db, sweep_id) -> None:
@@ -69,7 +57,7 @@ def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_
     api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 5, 300, "5 points")
     kill9(svc)
     api.close()
-    before = attempts_per_point(db, sweep_id)
+    before = results_per_point(db, sweep_id, first_pass_only=True)
     assert len(before) >= 5
 
     svc = ServiceProcess(db, "--bench", str(bench))
@@ -91,7 +79,7 @@ def test_kill9_after_5_of_16_points_then_resume_measures_only_the_rest(emu, tmp_
         assert sweep["progress"]["done"] == 16 and sweep["progress"]["total"] == 16
         assert len(sweep["points"]) == 16
         assert_points_measured_honestly(sweep["points"], min_ok=12)
-        after = attempts_per_point(db, sweep_id)
+        after = results_per_point(db, sweep_id, first_pass_only=True)
         assert len(after) == 16 and set(after.values()) == {1}  # none lost, none measured twice
         second_pass_only_where_the_first_missed(db, sweep_id)
         assert len(api.get(f"/maps/{sweep['map_id']}")["cells"]) == 16

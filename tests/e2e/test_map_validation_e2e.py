@@ -30,9 +30,7 @@ def map_id(rig):
     r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
     assert r.status_code == 202, r.text
     sweep_id = r.json()["id"]
-    sweep = api.wait(
-        lambda: (s := api.get(f"/sweeps/{sweep_id}"))["state"] not in ("queued", "running") and s, 240, "sweep finished"
-    )
+    sweep = api.sweep_finished(sweep_id, 240)
     assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
     return sweep["map_id"]
 

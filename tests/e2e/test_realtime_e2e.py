@@ -28,11 +28,7 @@ def test_a_sweep_and_its_validation_in_real_time(tmp_path):
         started = time.monotonic()
         r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
         assert r.status_code == 202, r.text
-        sweep = api.wait(
-            lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
-            300,
-            "sweep finished",
-        )
+        sweep = api.sweep_finished(r.json()["id"], 300)
         sweep_wall_s = time.monotonic() - started
         assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
         points = [p["result"] for p in sweep["points"]]

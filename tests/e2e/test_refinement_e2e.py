@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import os
 import signal
-import sqlite3
 
 import pytest
 
 from tests.support.bench_rig import Api, EmulatorRig
 from tests.support.service_process import ServiceProcess
+from tests.support.sweep_checks import results_per_point
 
 pytestmark = pytest.mark.e2e
 # across the field-weakening turn: the midpoints at 2200 rpm miss 30 dB, so a round has work to do
@@ -38,23 +38,9 @@ def start(emu: EmulatorRig, db) -> tuple[ServiceProcess, Api]:
 def swept_map(api: Api) -> int:
     r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
     assert r.status_code == 202, r.text
-    sweep = api.wait(
-        lambda: (s := api.get(f"/sweeps/{r.json()['id']}"))["state"] not in ("queued", "running") and s,
-        300,
-        "sweep finished",
-    )
+    sweep = api.sweep_finished(r.json()["id"], 300)
     assert sweep["state"] == "done", sweep
     return sweep["map_id"]
-
-
-def refinement_cells(db, sweep_id: int) -> dict:
-    with sqlite3.connect(db) as conn:
-        rows = conn.execute(
-            "SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? "
-            "GROUP BY torque_nm, speed_rpm, udc_v",
-            (sweep_id,),
-        ).fetchall()
-    return {r[:3]: r[3] for r in rows}
 
 
 def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu, tmp_path):
@@ -90,7 +76,7 @@ def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu
         sweep = api.get(f"/sweeps/{result['refinement_id']}")
         assert sweep["kind"] == "refinement" and sweep["state"] == "done" and sweep["map_id"] == result["map_id"]
         # each cell the refinement identified, once
-        assert set(refinement_cells(db, result["refinement_id"]).values()) <= {1}
+        assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}
         assert not api.get("/bench/status")["busy"]
         api.close()
     finally:
@@ -140,8 +126,8 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         refinement = sweep["refinement"]
         assert refinement["phase"] == "done" and (refinement["holds"] or refinement["stopped"])
         # no cell identified twice across the crash
-        assert set(refinement_cells(db, sweep_id).values()) <= {1}
-        assert refinement["cells_added"] == sum(refinement_cells(db, sweep_id).values())
+        assert set(results_per_point(db, sweep_id).values()) <= {1}
+        assert refinement["cells_added"] == sum(results_per_point(db, sweep_id).values())
         api.close()
     finally:
         svc.stop()

@@ -103,6 +103,9 @@ class Api:
     def job_finished(self, job_id: int, timeout_s: float = 180.0) -> dict:
         return wait_run_finished(lambda: self.get(f"/jobs/{job_id}"), timeout_s, f"job {job_id}")
 
+    def sweep_finished(self, sweep_id: int, timeout_s: float = 180.0) -> dict:
+        return wait_run_finished(lambda: self.get(f"/sweeps/{sweep_id}"), timeout_s, f"sweep {sweep_id}")
+
     def identify(self, op: dict, method: str = "probe", timeout_s: float = 180.0) -> dict:
         r = self.post("/identifications", {"operating_point": op, "method": method})
         assert r.status_code == 202, r.text

@@ -4,6 +4,8 @@ How many cells reach 40 dB is the sweep-quality benchmark's figure, not an end-t
 
 from __future__ import annotations
 
+import sqlite3
+
 MEASURED = ("ok", "below_target", "no_authority")
 
 
@@ -43,3 +45,16 @@ def holes(m: dict) -> int:
     """Cells that would inject nothing in a download with the fill (the default): neither ok nor filled.
     A download refuses the map unless forced when there is one."""
     return sum(1 for c in m["cells"] if c["status"] != "ok" and not c.get("filled"))
+
+
+def results_per_point(db, sweep_id: int, first_pass_only: bool = False) -> dict[tuple, int]:
+    """Stored attempts per operating point of a sweep, read from the database file itself;
+    `first_pass_only`: leave out the second pass, which measures a non-ok cell once more by design."""
+    first_pass = "AND COALESCE(json_extract(detail_json, '$.details.sweep_pass'), 1) = 1 " if first_pass_only else ""
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute(
+            f"SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? {first_pass}"
+            "GROUP BY torque_nm, speed_rpm, udc_v",
+            (sweep_id,),
+        ).fetchall()
+    return {r[:3]: r[3] for r in rows}
