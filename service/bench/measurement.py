@@ -50,6 +50,11 @@ SETTLE_BLOCK_MIN_S = 0.01
 SPEED_TOLERANCE = 0.005
 SETTLE_NOISE_SIGMAS = 3.0
 MIN_SETTLE_PRECISION = 0.002  # 0.2 % of |a|: finer than this is below what any window resolves
+# A phasor that keeps moving at speed may be beating with a line next to the harmonic (e.g. a high
+# order aliased by the sampling): after this many blocks judged without settling, the blocks double
+# (up to SETTLE_BLOCK_MAX_FACTOR x): a beat averages out in longer blocks, a drift shows more in them.
+SETTLE_BLOCKS_BEFORE_LONGER = 8
+SETTLE_BLOCK_MAX_FACTOR = 16
 
 
 def settle_precision(target_db: float) -> float:
@@ -343,7 +348,9 @@ class OperatingPointSession:
         phasor of the last two blocks within settle_precision(target_db) of the mean of the two before,
         or within SETTLE_NOISE_SIGMAS of their noise (a drift below the noise is not seen, and does not
         matter to a window of the same length). No fixed wait: a point that is steady at once costs
-        four blocks. Bounded by max_plant_s on the DAQ clock."""
+        four blocks. A phasor still moving after SETTLE_BLOCKS_BEFORE_LONGER blocks is judged on blocks
+        twice as long (up to SETTLE_BLOCK_MAX_FACTOR x): a line beating with the harmonic averages out
+        in them, a drift does not. Bounded by max_plant_s on the DAQ clock."""
         on_window, self.on_window = self.on_window, None  # settling blocks are not the method's windows
         try:
             return self._settle(target_speed_rpm, target_db, max_plant_s)
@@ -368,12 +375,16 @@ class OperatingPointSession:
         gapped = 0
         blocks = 0
         change = math.inf
+        block_factor = 1  # SETTLE_BLOCKS_BEFORE_LONGER
+        judged_at_factor = 0
         while True:
             if self.speed_rpm_measured is None:
                 # the speed first, from raw blocks, so that blocks of whole turns can be cut
                 s = self.stream.next_exact(raw_block)
             else:
-                turns = max(1, math.ceil(SETTLE_BLOCK_MIN_S * self.harmonic_frequency_hz / self.harmonic_order))
+                turns = block_factor * max(
+                    1, math.ceil(SETTLE_BLOCK_MIN_S * self.harmonic_frequency_hz / self.harmonic_order)
+                )
                 s = self.stream.next_exact(self._samples_for(turns * self.harmonic_order))
             blocks += 1
             sync = (s.flags & FLAG_SYNC_INPUT) != 0
@@ -407,6 +418,11 @@ class OperatingPointSession:
                     steady, change = self._steady(target_speed_rpm, speeds, phasors, noises, precision)
                     if steady:
                         break
+                    judged_at_factor += 1
+                    if judged_at_factor >= SETTLE_BLOCKS_BEFORE_LONGER and block_factor < SETTLE_BLOCK_MAX_FACTOR:
+                        block_factor *= 2  # the phasor keeps moving: judge on longer blocks (a beat averages out)
+                        judged_at_factor = 0
+                        speeds.clear(), phasors.clear(), noises.clear()
             if self.cursor.last_index > deadline:
                 last = f"{self.speed_rpm_measured:.1f} rpm" if self.speed_rpm_measured else "speed unknown"
                 drift = "" if not math.isfinite(change) else f", h-th phasor still moving {100 * change:.1f} %"
