@@ -7,7 +7,8 @@ the map and in every export (VALID stays 1 only for ok cells; FILLED says which 
 and a download chooses whether fills go into the drive.
 
 The rule, per non-ok cell, first that applies:
-1. measured: the cell's own theta where its result beat the uncompensated harmonic clearly:
+1. measured: the cell's own theta where its result (or its best attempt in the sweep, where a later one
+   ended worse: service/maps/build.py) beat the uncompensated harmonic clearly:
    suppression >= MEASURED_MIN_DB (20 dB: the drive then leaves at most a tenth of the harmonic), or,
    for a `no_authority` cell (gamma_max reached: its theta is the best the injection can do there),
    >= NO_AUTHORITY_MIN_DB (6 dB, half the harmonic).
@@ -98,10 +99,11 @@ def _measured(c: dict, status: str) -> Fill | None:
     floor = NO_AUTHORITY_MIN_DB if status == "no_authority" else MEASURED_MIN_DB
     if db < floor:
         return None
+    attempt = f", from its attempt result {c['attempt_id']}" if c.get("attempt_id") is not None else ""
     return Fill(
         float(c["theta_cos"]),
         float(c["theta_sin"]),
-        f"measured: its own theta ({status}, {db:.1f} dB against the uncompensated harmonic)",
+        f"measured: its own theta ({status}, {db:.1f} dB against the uncompensated harmonic{attempt})",
     )
 
 

@@ -8,6 +8,7 @@ import math
 import pytest
 
 from drivers.lut_image import DEFAULT_INTERPOLATION
+from service.maps.build import build_map
 from service.maps.fill import MEASURED_MIN_DB, NO_AUTHORITY_MIN_DB, blend, fill_cells
 from service.maps.neighbours import prior_from_neighbours
 from service.model.operating_point import OperatingPoint
@@ -54,6 +55,37 @@ def test_a_below_target_cell_that_beat_the_harmonic_clearly_keeps_its_own_theta(
     fills = fill_cells(grid_of(make), AXES)
     f = fills[(2.0, 1500.0, 12.0)]
     assert (f.theta_cos, f.theta_sin) == own and f.source.startswith("measured")
+
+
+class FillsOf:
+    """Takes the fills build_map hands to storage (the map's other columns do not matter here)."""
+
+    def create_map(self, *args, fills=None, **kwargs) -> int:
+        self.fills = fills
+        return 1
+
+
+def test_a_second_attempt_that_ended_worse_leaves_the_fill_to_the_first_attempts_theta():
+    """A sweep's second pass may start from a poor prior (interpolated across the field-weakening turn)
+    and end worse than the first pass did: the cell's fill takes the theta that suppressed most."""
+    first, second = theta(2.37, 250.6), theta(1.85, 261.7)
+    rows = [
+        {**cell(t, n, th=theta(3, 280)), "id": 10 + i}
+        for i, (t, n) in enumerate((t, n) for n in AXES["speed_rpm"] for t in AXES["torque_nm"])
+        if (t, n) != (2.0, 1500.0)
+    ]
+    attempt_1 = {**cell(2.0, 1500.0, "below_target", first, db=41.1), "id": 1, "detail": {}}
+    attempt_2 = {**cell(2.0, 1500.0, "below_target", second, db=12.8), "id": 2, "detail": {}}
+    storage = FillsOf()
+    build_map(storage, AXES, rows + [attempt_2], 7, 6, "probe", "test", attempts=[attempt_1, attempt_2])
+    f = storage.fills[(2.0, 1500.0, 12.0)]
+    assert (f.theta_cos, f.theta_sin) == first
+    assert "41.1 dB" in f.source and "attempt result 1" in f.source
+    # the attempt an interlock discarded never counts
+    discarded = {**attempt_1, "detail": {"discarded": "interlock"}}
+    build_map(storage, AXES, rows + [attempt_2], 7, 6, "probe", "test", attempts=[discarded, attempt_2])
+    f = storage.fills[(2.0, 1500.0, 12.0)]
+    assert not f.source.startswith("measured")
 
 
 def test_no_authority_needs_only_to_halve_the_harmonic():
