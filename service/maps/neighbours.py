@@ -14,7 +14,7 @@ import math
 
 from drivers import lut_image
 from service.identification.common import Prior
-from service.maps.fill import interpolate_between
+from service.maps.fill import MEASURED_MIN_DB, interpolate_between
 from service.model.operating_point import OperatingPoint
 
 # the plane the LUT interpolates in: a prior between two cells is what the drive would inject there
@@ -22,7 +22,9 @@ DEFAULT_INTERPOLATION = lut_image.DEFAULT_INTERPOLATION
 
 
 def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, list[float]]) -> Prior | None:
-    """The prior for `op` from the `ok` result rows of the same sweep (None if there is none)."""
+    """The prior for `op` from the result rows of the same sweep: theta from the `ok` neighbours (or from
+    op's own earlier attempt where it beat the harmonic by MEASURED_MIN_DB), S from an ok neighbour at
+    the same speed (None if no row is ok)."""
     ok = [r for r in rows if r["status"] == "ok" and r.get("theta_cos") is not None]
     if not ok:
         return None
@@ -50,6 +52,19 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
     )
     if between is not None:
         theta, source = (between.theta_cos, between.theta_sin), between.source
+    # a point measured before (a second pass) whose theta beat the harmonic clearly starts from it: a
+    # neighbour's, even interpolated, may lie across the field-weakening turn (theta* turns by degrees per rpm)
+    own = [
+        r
+        for r in rows
+        if (r["torque_nm"], r["speed_rpm"], r["udc_v"]) == (op.torque_nm, op.speed_rpm, op.udc_v)
+        and r.get("theta_cos") is not None
+        and (r.get("suppression_db") or -math.inf) >= MEASURED_MIN_DB
+    ]
+    if own:
+        best = max(own, key=lambda r: r["suppression_db"])
+        theta = (float(best["theta_cos"]), float(best["theta_sin"]))
+        source = f"its own earlier attempt ({best['status']}, {best['suppression_db']:.1f} dB)"
     same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
     s_matrix = None
     if same_line:

@@ -175,3 +175,19 @@ def test_the_second_pass_prior_lies_between_the_neighbours_on_both_sides():
     if DEFAULT_INTERPOLATION == "polar":
         assert (prior.theta_cos, prior.theta_sin) == pytest.approx(theta(4.0, 290.0))
     assert prior.s_matrix is not None and "between 1 and 3" in prior.source
+
+
+def test_a_second_pass_starts_from_its_own_first_attempt_where_that_beat_the_harmonic_clearly():
+    """Between neighbours across the field-weakening turn an interpolated prior may be far off; a first
+    attempt that reached 41 dB (below target only by its confirmation margin) is the better start."""
+    s = [[1.0, 0.2], [-0.2, 1.0]]
+    own = theta(2.37, 250.6)
+    first = {**row(2.0, 1500.0, "below_target", own), "suppression_db": MEASURED_MIN_DB + 21.1}
+    rows = [row(1.0, 1500.0, "ok", theta(3.0, 280.0), s=s), row(3.0, 1500.0, "ok", theta(5.0, 300.0)), first]
+    prior = prior_from_neighbours(OperatingPoint(torque_nm=2.0, speed_rpm=1500, udc_v=12), rows, AXES)
+    assert (prior.theta_cos, prior.theta_sin) == pytest.approx(own)
+    assert prior.source.startswith("its own earlier attempt (below_target, 41.1 dB)") and "S from 1 Nm" in prior.source
+    # one that did not beat the harmonic clearly is no better than the neighbours
+    first["suppression_db"] = MEASURED_MIN_DB - 1
+    prior = prior_from_neighbours(OperatingPoint(torque_nm=2.0, speed_rpm=1500, udc_v=12), rows, AXES)
+    assert "between 1 and 3" in prior.source
