@@ -6,9 +6,11 @@ practice); the inverter holds the alpha-beta vector over the period, so the dq a
 voltage is u* sinc(w_e T_s/2) (and rotated by -1.5 w_e T_s without angle compensation): `zoh_average`,
 `applied_voltage`.
 
-Dead time: per phase x the voltage error -U_dc T_dead f_pwm sgn(i_x), averaged over the period (sgn
-linear within the larger of +-i_zc and half the current change per period), transformed to dq with
-the electrical angle at the middle of the period: its own 6k harmonics (`dead_time_voltage`).
+Dead time: per phase x the voltage error -U_dc T_dead f_pwm sgn(i_x) (sgn linear within +-i_zc),
+averaged exactly over the period along the phase current's own path from its value at the start to
+its value at the end of the period, transformed to dq with the electrical angle at the middle of the
+period: its own 6k harmonics (`dead_time_voltage`; the loop predicts the end value with the error
+itself, a few fixed-point passes).
 Units: V, A, s, rad, rad/s.
 """
 
@@ -51,27 +53,42 @@ def applied_voltage(ud_app, uq_app, app_c, app_s, ed, eq):
 
 
 @njit(cache=True, inline="always")
-def dead_time_voltage(i_d, i_q, cphi, sphi, rot_c, rot_s, w_e, ts, dt_amp, inv_izc):
-    """dq dead-time voltage error averaged over the next period, V.
+def _soft_sign_mean(i0, i1, izc):
+    """Mean of clip(i / izc, -1, 1) over the period for a phase current going linearly from i0 to i1
+    (exact: the difference of the antiderivative F(i) = i^2/(2 izc) inside the band, |i| - izc/2
+    outside, over i1 - i0)."""
+    di = i1 - i0
+    if abs(di) <= 1e-9 * izc:
+        return min(1.0, max(-1.0, 0.5 * (i0 + i1) / izc))
+    f0 = i0 * i0 / (2.0 * izc) if abs(i0) < izc else abs(i0) - 0.5 * izc
+    f1 = i1 * i1 / (2.0 * izc) if abs(i1) < izc else abs(i1) - 0.5 * izc
+    return (f1 - f0) / di
 
-    Period average of -dt_amp sgn(i_x(t)) per phase x, dt_amp = U_dc T_dead f_pwm: the phase currents
-    at the middle of the period (dq current at the mid-period angle phi_e + w_e T_s/2, from (cphi,
-    sphi) and (rot_c, rot_s)), sgn linear within the half change of the current over the period (the
-    exact average for a current crossing zero linearly) or the zero-current band 1/inv_izc, whichever
-    is wider. Evaluating sgn only at the sample instants instead would tie the crossings to the
-    sample grid (120 samples per period at 2000 rpm)."""
+
+@njit(cache=True, inline="always")
+def dead_time_voltage(i0_d, i0_q, i1_d, i1_q, cphi, sphi, rot_c, rot_s, dt_amp, izc):
+    """dq dead-time voltage error averaged over the period, V, from the dq currents at its start
+    (i0, angle phi_e) and at its end (i1, angle phi_e + w_e T_s): per phase the exact period mean of
+    -dt_amp sgn(i_x) (sgn linear within +-izc) for a phase current going linearly between its start
+    and end values, so a zero crossing counts by where it falls in the period, whatever the slope
+    (harmonic currents, the dead time's own flattening of the current near zero). Transformed to dq
+    with the electrical angle at the middle of the period. A band fixed by the fundamental's slope
+    instead tied the result to where the crossings fell on the sample grid, a phase that a speed with a
+    whole number of samples per turn kept for a whole run (a run's history changed the harmonic)."""
+    # phase currents at the start and at the end of the period
+    c1 = cphi * (rot_c * rot_c - rot_s * rot_s) - sphi * (2.0 * rot_c * rot_s)
+    s1 = sphi * (rot_c * rot_c - rot_s * rot_s) + cphi * (2.0 * rot_c * rot_s)
+    ia0 = i0_d * cphi - i0_q * sphi
+    ibe0 = i0_d * sphi + i0_q * cphi
+    ia1 = i1_d * c1 - i1_q * s1
+    ibe1 = i1_d * s1 + i1_q * c1
+    ib0 = -0.5 * ia0 + 0.5 * SQRT3 * ibe0
+    ib1 = -0.5 * ia1 + 0.5 * SQRT3 * ibe1
+    sa = _soft_sign_mean(ia0, ia1, izc)
+    sb = _soft_sign_mean(ib0, ib1, izc)
+    sc = _soft_sign_mean(-ia0 - ib0, -ia1 - ib1, izc)
     cm = cphi * rot_c - sphi * rot_s
     sm = sphi * rot_c + cphi * rot_s
-    ia = i_d * cm - i_q * sm
-    ibeta = i_d * sm + i_q * cm
-    i_b = -0.5 * ia + 0.5 * SQRT3 * ibeta
-    i_c = -ia - i_b
-    band = 0.5 * math.sqrt(i_d * i_d + i_q * i_q) * abs(w_e) * ts
-    inv_band = inv_izc if band * inv_izc < 1.0 else 1.0 / band
-    sa = min(1.0, max(-1.0, ia * inv_band))
-    sb = min(1.0, max(-1.0, i_b * inv_band))
-    sc = min(1.0, max(-1.0, i_c * inv_band))
-    # phase errors -dt_amp s_x -> alpha-beta -> dq at the middle of the period
     e_al = -dt_amp * (2.0 / 3.0) * (sa - 0.5 * sb - 0.5 * sc)
     e_be = -dt_amp * (sb - sc) / SQRT3
     return e_al * cm + e_be * sm, -e_al * sm + e_be * cm

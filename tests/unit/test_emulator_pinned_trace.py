@@ -6,8 +6,11 @@ decoupling, field weakening, dead time, saturation tables, disturbance map with 
 order, power stage off, load ramp, over-range clipping, sync flag) must give the recorded traces,
 final states and per-chunk summaries to float rounding, and the recorded DAQ frame bytes exactly.
 The recording is tests/data/physics_trace_pinned.json (written by `record()` from the code at
-commit e535cf8, before the split). One deliberate physics change since: `power_off_load_ramp` was
-recorded again when the disturbance harmonic became the currents' (none with the power stage off).
+commit e535cf8, before the split). Deliberate physics changes since, each recorded again: the
+disturbance harmonic became the currents' (none with the power stage off); the dead-time error became
+the exact period mean along the phase currents' own path (inverter.dead_time_voltage_path: the former
+band assumed the fundamental's slope, so the 6th harmonic depended on where the zero crossings fell on
+the sample grid, a phase a speed with whole samples per turn latched for a whole run).
 """
 
 from __future__ import annotations

@@ -107,31 +107,42 @@ def test_zoh_average_is_the_mean_dq_voltage_of_the_held_vector(angle_comp):
     assert complex(vd, vq) == pytest.approx((2 + 5j) * complex(app_c, app_s) + (0.1 - 0.2j), abs=1e-14)
 
 
-def _dead_time_by_phases(i_d, i_q, phi_mid, dt_amp, band):
-    """Independent: phase currents by the inverse Park/Clarke at phi_mid, per-phase error
-    -dt_amp clip(i_x / band, -1, 1), back by the amplitude-invariant Clarke and Park transforms."""
+def _dead_time_by_phases(i0_dq, i1_dq, phi0, w_e, dt_amp, i_zc, steps=200_001):
+    """Independent: the phase currents at the start (angle phi0) and the end (phi0 + w_e T_s) of the
+    period by the inverse Park/Clarke, each phase linear in between, -dt_amp clip(i_x / i_zc, -1, 1)
+    averaged over the period numerically (midpoint rule), back by the amplitude-invariant Clarke and
+    Park transforms at the middle of the period."""
     angles = np.array([0.0, -2 * math.pi / 3, 2 * math.pi / 3])
-    i_ph = i_d * np.cos(phi_mid + angles) - i_q * np.sin(phi_mid + angles)
-    e_ph = -dt_amp * np.clip(i_ph / band, -1.0, 1.0)
+
+    def phases(i_dq, phi):
+        return i_dq[0] * np.cos(phi + angles) - i_dq[1] * np.sin(phi + angles)
+
+    start, end = phases(i0_dq, phi0), phases(i1_dq, phi0 + w_e * TS)
+    f = (np.arange(steps) + 0.5) / steps
+    paths = start[:, None] + (end - start)[:, None] * f[None, :]
+    e_ph = -dt_amp * np.mean(np.clip(paths / i_zc, -1.0, 1.0), axis=1)
     e_ab = (2.0 / 3.0) * np.sum(e_ph * np.exp(-1j * angles))  # Clarke: phase b at +120 deg
-    e_dq = e_ab * cmath.exp(-1j * phi_mid)
+    e_dq = e_ab * cmath.exp(-1j * (phi0 + 0.5 * w_e * TS))
     return e_dq.real, e_dq.imag
 
 
-@pytest.mark.parametrize("i_d, i_q, w_e", [(-5.0, 60.0, 800.0), (0.0, 0.3, 800.0), (-2.0, 1.0, 20.0)])
-def test_dead_time_voltage_is_the_per_phase_formula(i_d, i_q, w_e):
-    """Per phase -U_dc T_dead f_pwm sgn(i_x), sgn linear within the wider of the zero-current band i_zc
-    and half the current change per period (0.5 |i| |w_e| T_s), at the middle of the period."""
+@pytest.mark.parametrize(
+    "i0, i1, w_e",
+    [((-5.0, 60.0), (-5.2, 60.3), 800.0), ((0.0, 0.3), (0.05, 0.2), 800.0), ((-2.0, 1.0), (-1.9, 1.1), 20.0)],
+)
+def test_dead_time_voltage_is_the_per_phase_mean_along_the_currents_path(i0, i1, w_e):
+    """Per phase the period mean of -U_dc T_dead f_pwm sgn(i_x), sgn linear within +-i_zc, for a phase
+    current going linearly from its start to its end value (crossings anywhere in the period, at any
+    slope), at the middle of the period in dq."""
     udc, t_dead, f_pwm, i_zc = 12.0, 1e-6, 16000.0, 0.5
     dt_amp = udc * t_dead * f_pwm
-    band = max(i_zc, 0.5 * math.hypot(i_d, i_q) * abs(w_e) * TS)
+    half = 0.5 * w_e * TS
     for phi in np.linspace(0.0, 2 * math.pi, 37):
-        half = 0.5 * w_e * TS
         got = inverter.dead_time_voltage(
-            i_d, i_q, math.cos(phi), math.sin(phi), math.cos(half), math.sin(half), w_e, TS, dt_amp, 1.0 / i_zc
+            *i0, *i1, math.cos(phi), math.sin(phi), math.cos(half), math.sin(half), dt_amp, i_zc
         )
-        want = _dead_time_by_phases(i_d, i_q, phi + half, dt_amp, band)
-        np.testing.assert_allclose(got, want, atol=1e-14)
+        want = _dead_time_by_phases(i0, i1, phi, w_e, dt_amp, i_zc)
+        np.testing.assert_allclose(got, want, atol=1e-9)
 
 
 # ---------------------------------------------------------------------------------------------
