@@ -8,7 +8,7 @@ Chunk-rate task (every `chunk` samples, like a real drive's 1 kHz torque task), 
 Per control period k (paper section 2, Fig. 3):
   PI         `pi_current`: u = K_p e + integral + feed-forward of back-EMF and cross coupling computed
              from the REFERENCES (not the measured currents), |u| <= U_dc/sqrt(3) (vector scaling,
-             conditional-integration anti-windup). K_p = 2 pi f_bw L_nom, K_i = 2 pi f_bw R_nom.
+             back-calculation anti-windup, T_t = K_p/K_i). K_p = 2 pi f_bw L_nom, K_i = 2 pi f_bw R_nom.
   FW loop    `field_weakening`: a slow voltage loop (as drives do to survive parameter errors) adds
              delta i_d <= 0 while the PI output |u| exceeds fw_target U_dc/sqrt(3):
              d(delta i_d)/dt = -w_fw (|u| - u_target) / (|w_e| L_d,nom), i_q cut to the current limit.
@@ -234,21 +234,32 @@ def pi_current(id_ref, iq_ref, id_fb, iq_fb, int_d, int_q, w_e, kp_d, kp_q, ki_d
 
     u_d = K_p,d e_d + integral_d - w_e L_q,nom i_q*
     u_q = K_p,q e_q + integral_q + w_e (L_d,nom i_d* + psi_p,nom),  e = i* - i_fb,
-    scaled as a vector to |u| <= u_lim = U_dc/sqrt(3); the integrators advance only while |u| is
-    inside the limit (conditional integration). Returns (u_d, u_q, |u| before the limit, integrals)."""
+    scaled as a vector to |u| <= u_lim = U_dc/sqrt(3). Anti-windup by back-calculation: the
+    integrators integrate always and, while the limit cuts, track back by the part it cut off with
+    the time constant T_t = K_p/K_i per axis: int += K_i T_s e - (K_i T_s/K_p) (u - u_lim u/|u|).
+    Freezing them in the limit (conditional integration) kept whatever value they had when the
+    saturation began: at a point the true machine cannot reach (seeded psi_p, past full field
+    weakening) the PI sat in the limit for good and its voltage angle, hence the currents, the torque
+    and the harmonic, depended on the run's history. Returns (u_d, u_q, |u| before the limit,
+    integrals)."""
     e_d = id_ref - id_fb
     e_q = iq_ref - iq_fb
     # feed-forward of cross coupling and back-EMF from the references (see module doc)
     u_d = kp_d * e_d + int_d - w_e * lq_nom * iq_ref
     u_q = kp_q * e_q + int_q + w_e * (ld_nom * id_ref + psi_nom)
     mag = math.sqrt(u_d * u_d + u_q * u_q)
+    int_d += ki_d * e_d
+    int_q += ki_q * e_q
     if mag > u_lim:
         scale = u_lim / mag if mag > 0.0 else 0.0
+        # back-calculation: the part of u the limit cut off, fed back at K_i T_s / K_p
+        cut = 1.0 - scale
+        if kp_d > 0.0:
+            int_d -= ki_d / kp_d * cut * u_d
+        if kp_q > 0.0:
+            int_q -= ki_q / kp_q * cut * u_q
         u_d *= scale
         u_q *= scale
-    else:
-        int_d += ki_d * e_d
-        int_q += ki_q * e_q
     return u_d, u_q, mag, int_d, int_q
 
 

@@ -8,8 +8,8 @@ machine, mechanics, daq), each tested alone; here they are inlined into one loop
 the loop runs as fast as when it was written as one function.
 
 Per control period k:
-  1. firmware   current control on the measured (decoupled) currents, field weakening, injection
-                (rotation or eq. 11), torque estimate                         (firmware.py)
+  1. firmware   current control on the measured (decoupled) currents (back-calculation anti-windup),
+                field weakening, injection (rotation or eq. 11), torque estimate  (firmware.py)
   2. plant      disturbance d and T_em (machine.py), load machine, dw_m/dt, sensor H(z) (mechanics.py)
   3. DAQ        counts, flags and the frame of sample k                        (daq.py)
   4. inverter   dead-time error over the next period                           (inverter.py)

@@ -8,9 +8,12 @@ final states and per-chunk summaries to float rounding, and the recorded DAQ fra
 The recording is tests/data/physics_trace_pinned.json (written by `record()` from the code at
 commit e535cf8, before the split). Deliberate physics changes since, each recorded again: the
 disturbance harmonic became the currents' (none with the power stage off); the dead-time error became
-the exact period mean along the phase currents' own path (inverter.dead_time_voltage_path: the former
+the exact period mean along the phase currents' own path (inverter.dead_time_voltage: the former
 band assumed the fundamental's slope, so the 6th harmonic depended on where the zero crossings fell on
-the sample grid, a phase a speed with whole samples per turn latched for a whole run).
+the sample grid, a phase a speed with whole samples per turn latched for a whole run); the current
+PI's anti-windup became back-calculation (fw_vest_decoupled_h12 saturates: conditional integration
+froze the integrators for as long as the limit held, so at a point the true machine cannot reach the
+voltage angle, the currents and the harmonic kept the run's history).
 """
 
 from __future__ import annotations

@@ -219,7 +219,7 @@ def test_shaft_acceleration_and_trapezoidal_angle():
 # firmware
 
 
-def test_pi_current_inside_the_limit_integrates_and_outside_scales_and_holds():
+def test_pi_current_inside_the_limit_integrates_and_outside_scales_and_tracks_back():
     args = dict(kp_d=0.2, kp_q=0.3, ki_d=0.01, ki_q=0.02, ld_nom=LD, lq_nom=LQ, psi_nom=PSI)
     w_e = 800.0
     u_d, u_q, mag, int_d, int_q = firmware.pi_current(1.0, 50.0, 0.5, 49.0, 0.1, -0.2, w_e, u_lim=100.0, **args)
@@ -232,7 +232,25 @@ def test_pi_current_inside_the_limit_integrates_and_outside_scales_and_holds():
     )
     assert mag2 == mag and math.hypot(u_d2, u_q2) == pytest.approx(0.5 * mag)
     assert math.atan2(u_q2, u_d2) == pytest.approx(math.atan2(u_q, u_d))
-    assert (int_d2, int_q2) == (0.1, -0.2)
+    # back-calculation: integrate, then track back by the cut-off part at K_i T_s / K_p per axis
+    assert int_d2 == pytest.approx(0.1 + 0.01 * 0.5 - 0.01 / 0.2 * (u_d - u_d2))
+    assert int_q2 == pytest.approx(-0.2 + 0.02 * 1.0 - 0.02 / 0.3 * (u_q - u_q2))
+
+
+def test_pi_current_in_lasting_saturation_forgets_where_its_integrators_started():
+    # a plant the limit cannot satisfy (error held): any start converges to one integrator state
+    args = dict(kp_d=0.02, kp_q=0.02, ki_d=6e-4, ki_q=6e-4, ld_nom=LD, lq_nom=LQ, psi_nom=PSI)
+    ends = []
+    for int0 in ((0.0, 0.0), (-1.4, 1.1), (2.0, -3.0)):
+        int_d, int_q = int0
+        for _ in range(20000):
+            u_d, u_q, mag, int_d, int_q = firmware.pi_current(
+                -113.0, 0.0, -108.0, -60.0, int_d, int_q, 1340.0, u_lim=6.93, **args
+            )
+        assert mag > 6.93
+        ends.append((int_d, int_q))
+    for e in ends[1:]:
+        assert e == pytest.approx(ends[0], abs=1e-9)
 
 
 def test_injection_rotates_exactly_and_the_eq_11_variant_rotates_the_estimate():
