@@ -183,6 +183,10 @@ class DriveClient(Cia402Master):
         self.write(OD_TARGET_TORQUE, 0, per_mille)
         return per_mille
 
+    def torque_actual_nm(self) -> float:
+        """The drive's torque actual 0x6077 (its estimate from the measured currents), Nm."""
+        return int(self.read(OD_TORQUE_ACTUAL)) / PER_MILLE * self._rated_nm()
+
     def set_injection(self, theta_cos_rad: float, theta_sin_rad: float) -> int:
         """Stage theta = [theta_cos, theta_sin] (REAL32, rad) and commit, so that the drive applies the
         pair atomically at its next control period. Exactly one setpoint (one sync toggle); the
@@ -270,16 +274,15 @@ class DriveClient(Cia402Master):
 
     # -- readings -----------------------------------------------------------------------------------
     def read_status(self) -> DriveStatus:
-        rated_nm = self._rated_nm()
         state = self.state()
-        torque_per_mille = int(self.read(OD_TORQUE_ACTUAL))
+        torque_nm = self.torque_actual_nm()
         speed_rpm = float(self.read(OD_VELOCITY_ACTUAL))
         udc_mv = int(self.read(OD_DC_LINK_VOLTAGE))
         ud_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UD_REF))
         uq_ref_v = float(self.read(OD_VOLTAGE_REFERENCE, SUB_UQ_REF))
         return DriveStatus(
             state=state,
-            torque_nm=torque_per_mille / PER_MILLE * rated_nm,
+            torque_nm=torque_nm,
             speed_rpm=speed_rpm,
             udc_v=udc_mv / 1000.0,
             ud_ref_v=ud_ref_v,

@@ -15,7 +15,12 @@ The move to a point, in the order the wires need:
      order, decoupling, injection mode manual; theta 0 where it is not; and the torque, always: its
      toggle marks the sample from which every setpoint of the move is in force (the drive applies
      them in the order written).
-Then the session settles by measurement (OperatingPointSession.settle_operating_point). A failure
+Then the session settles by measurement (OperatingPointSession.settle_operating_point), and the drive's
+torque actual (0x6077) is read: a point where it falls short of the command by more than half (or has
+the other sign) is one the machine cannot reach at this speed and U_dc (past full field weakening the
+current controller sits in its voltage limit and the motor may even brake against its command): it
+fails with that reason instead of being calibrated at an operating point that is not the one asked
+for. The margin is wide because 0x6077 is the drive's estimate from its nominal parameters. A failure
 before the session is handed out names the move.
 
 Each point's wall time is split (PointTiming): move (commands until the last setpoint is written),
@@ -38,6 +43,17 @@ from service.bench.point_stream import PointStream
 from service.identification.session import MeasurementError
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
+
+# torque actual below this share of the command (or of the other sign): the point is not reached
+TORQUE_REACHED_FRACTION = 0.5
+TORQUE_CHECK_MIN_NM = 0.2  # below this command the estimate's offset says nothing
+
+
+def torque_reached(command_nm: float, actual_nm: float) -> bool:
+    """Whether the drive's torque actual shows the commanded torque (module doc)."""
+    if abs(command_nm) < TORQUE_CHECK_MIN_NM:
+        return True
+    return actual_nm * math.copysign(1.0, command_nm) >= TORQUE_REACHED_FRACTION * abs(command_nm)
 
 
 @dataclass
@@ -122,6 +138,13 @@ class BenchRun:
                 session.theta_in_force = self.theta if self.mode == "manual" else None
                 t0 = time.perf_counter()
                 session.settle_operating_point(op.speed_rpm, target_db)
+                actual_nm = bench.drive.torque_actual_nm()
+                if not torque_reached(op.torque_nm, actual_nm):
+                    raise MeasurementError(
+                        f"the drive does not reach {op.torque_nm:g} Nm here: its torque actual reads "
+                        f"{actual_nm:.2f} Nm (the machine is past its voltage and current limits at this speed "
+                        f"and U_dc); nothing is calibrated at a point the motor does not run at"
+                    )
                 timing.settle_s = time.perf_counter() - t0
             except MeasurementError as exc:
                 raise MeasurementError(f"moving to {op.label()}: {exc}", over_range=exc.over_range) from exc

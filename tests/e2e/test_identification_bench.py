@@ -9,7 +9,9 @@ import math
 
 import pytest
 
+from service.bench.run import torque_reached
 from service.calibration_service import CalibrationService
+from service.identification.session import MeasurementError
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import identify_at, parse_options
 from service.settings import load_settings
@@ -220,3 +222,23 @@ def test_a_line_beating_with_the_harmonic_settles_on_longer_blocks(paper):
     lo, mid, hi = (results[n].delta_deg for n in (2340, 2350, 2360))
     expected = lo + _angle_diff_deg(hi, lo) / 2.0
     assert abs(_angle_diff_deg(mid, expected)) < 3.0, (lo, mid, hi)
+
+
+def test_a_point_the_machine_cannot_reach_fails_with_the_drives_torque(tmp_path):
+    """Seed 1's machine has ~18 % more magnet flux than the nominal: at 12 V it runs out of voltage
+    before 3200 rpm, where the current controller sits in its limit and the motor brakes against a
+    +2.5 Nm command. The point fails saying so (the drive's torque actual), instead of a theta
+    calibrated at an operating point the motor does not run at; a point it reaches is still ok."""
+    with _service(tmp_path, **{"emulator.seed": 1}) as svc:
+        with pytest.raises(MeasurementError, match="does not reach 2.5 Nm here: its torque actual reads -"):
+            _run(svc, "probe", OperatingPoint(torque_nm=2.5, speed_rpm=3200, udc_v=12.0))
+        within = _run(svc, "probe", OperatingPoint(torque_nm=2.5, speed_rpm=2000, udc_v=12.0))
+    assert within.status == "ok", within.message
+
+
+@pytest.mark.parametrize(
+    "command_nm, actual_nm, reached",
+    [(2.5, 2.0, True), (2.5, 1.3, True), (2.5, 1.2, False), (2.5, -2.2, False), (-2.0, -1.5, True), (0.1, -0.1, True)],
+)
+def test_torque_reached_is_half_the_command_with_its_sign(command_nm, actual_nm, reached):
+    assert torque_reached(command_nm, actual_nm) is reached
