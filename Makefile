@@ -12,7 +12,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: run test lint format bench paper venv chromium clean
+.PHONY: run test lint format bench paper venv chromium postgresql clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,10 +27,16 @@ chromium:
 	@test -x $(CHROMIUM) || { command -v apt-get >/dev/null && \
 	  { [ "$$(id -u)" = 0 ] && SUDO= || SUDO=sudo; $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; }; }
 
+# Debian's PostgreSQL server binaries for the lab engine's tests (tests/support/postgres.py starts a
+# throwaway cluster from them; the packaged cluster itself is not used)
+postgresql:
+	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { command -v apt-get >/dev/null && \
+	  { [ "$$(id -u)" = 0 ] && SUDO= || SUDO=sudo; $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq postgresql; }; }
+
 run: $(STAMP)
 	$(VENV)/bin/ripplecal serve --emulate --host $(HOST) --port $(PORT)
 
-test: $(STAMP) chromium lint
+test: $(STAMP) chromium postgresql lint
 	$(PY) -m pytest -q
 
 # ruff: lint and format check (config in pyproject.toml); `make format` applies the formatter

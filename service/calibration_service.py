@@ -20,9 +20,11 @@ from service.maps.compare import compare_maps
 from service.runs import lut_download, schedules
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
+from service.runs.lab import Lab, LabWatch, bench_state, new_instance_id
 from service.runs.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
 from service.store.db_claim import DatabaseClaim
+from service.store.engines import database_claim
 from service.store.recordings import RecordingStore, RecordingUnavailable, recordings_directory
 from service.store.records import (
     JobRecord,
@@ -37,6 +39,8 @@ from service.store.records import (
 from service.store.storage import Storage
 
 log = logging.getLogger(__name__)
+
+LAB_PERIOD_S = 1.0  # the bench's heartbeat and the look at other benches' progress
 
 
 def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Settings:
@@ -93,6 +97,9 @@ class CalibrationService:
         self._status_thread: threading.Thread | None = None
         self.shutdown_reason = "service shut down"  # the CLI names the signal (e.g. SIGTERM)
         self.claim = claim
+        self.instance = new_instance_id()  # this process in the lab's benches table (service/runs/lab.py)
+        self.lab = Lab(self.storage, settings.bench_name, self.instance, settings.server.port, __version__)
+        self._lab_thread: threading.Thread | None = None
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
         """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
@@ -105,6 +112,14 @@ class CalibrationService:
         settings = self.settings
         if run_schedules:
             self.claim_database()
+            if not self.lab.claimed:  # the CLI claims it first (a refusal in one line, exit 2)
+                self.lab.claim()  # BenchInUse naming the live holder: before recovery or the bench are touched
+            # the heartbeat from the claim on (its own thread, not the status poller: a slow device read
+            # must not let the bench look offline), so an emulator or bench slow to start keeps the name
+            self._lab_thread = threading.Thread(
+                target=self._lab_round, args=(LAB_PERIOD_S,), name="ripplecal-lab", daemon=True
+            )
+            self._lab_thread.start()
         identity = settings.bench_name
         if settings.bench_mode == "emulate":
             em = settings.emulator
@@ -118,7 +133,7 @@ class CalibrationService:
         rec = settings.recordings
         self.recordings = RecordingStore(
             self.storage,
-            recordings_directory(rec.directory, settings.server.db_path),
+            recordings_directory(rec.directory, self.storage.files_directory),
             rec.keep_gb,
             settings.daq.sample_rate_hz,
             settings.daq.accel_full_scale_rad_s2,
@@ -132,7 +147,16 @@ class CalibrationService:
                 if self.emulator is not None:  # our own emulator not answering is a bug, not a bench to check
                     raise
                 log.error("%s", exc)
-            self.engine = Engine(self.storage, self.bench, settings, self.broker, recordings=self.recordings)
+            # a serve takes every job the database holds for its bench; a CLI run only what it queued
+            self.engine = Engine(
+                self.storage,
+                self.bench,
+                settings,
+                self.broker,
+                recordings=self.recordings,
+                instance=self.instance,
+                lab=run_schedules,
+            )
             self.engine.start(recover=run_schedules)
             if run_schedules:
                 self.scheduler = Scheduler(self.storage, self.engine, settings, self.broker, clock=self.clock)
@@ -145,12 +169,15 @@ class CalibrationService:
                 target=self._poll_status, args=(status_period_s,), name="ripplecal-status", daemon=True
             )
             self._status_thread.start()
+        if run_schedules:
+            self._heartbeat()  # the row says the bench's state as soon as the service is up, not a second later
 
     def claim_database(self) -> None:
         """The process that recovers the database's unfinished work claims it first (service/store/db_claim.py):
         DatabaseInUse naming the holder if another serve has it. Idempotent."""
         if self.claim is None:
-            claim = DatabaseClaim(self.settings.server.db_path, self.settings.server.port)
+            # a flock on a SQLite file; nothing on a shared server, where the lab's bench claim rules
+            claim = database_claim(self.settings.server.db_path, self.settings.server.port)
             claim.acquire()
             self.claim = claim
 
@@ -164,6 +191,9 @@ class CalibrationService:
             self.bench.close()  # leaves the bench safe (torque off, injection off)
         if self.emulator is not None:
             self.emulator.stop()
+        if self._lab_thread is not None:
+            self._lab_thread.join(5.0)
+        self.lab.stopped()  # last: the name is free once the bench is safe
         if self.claim is not None:
             self.claim.release()
 
@@ -190,26 +220,24 @@ class CalibrationService:
     def bench_identity(self) -> str:
         return self.bench.identity
 
-    def submit_identification(self, op, method: str, options) -> int:
-        return self.engine.submit_identification(op, method, options)
+    def submit_identification(self, op, method: str, options, bench: str | None = None) -> int:
+        return self.engine.submit_identification(op, method, options, bench=bench)
 
     def cancel_job(self, job_id: int) -> None:
         self.engine.cancel_job(job_id)
 
-    def submit_sweep(self, grid, method: str, options, regime=None) -> int:
-        return self.engine.submit_sweep(grid, method, options, regime=regime)
+    def submit_sweep(self, grid, method: str, options, regime=None, bench: str | None = None) -> int:
+        return self.engine.submit_sweep(grid, method, options, regime=regime, bench=bench)
 
     def control_sweep(self, sweep_id: int, action: str) -> None:
         """`action`: pause | resume | cancel."""
-        {"pause": self.engine.pause_sweep, "resume": self.engine.resume_sweep, "cancel": self.engine.cancel_sweep}[
-            action
-        ](sweep_id)
+        self.engine.control_sweep(sweep_id, action)
 
-    def submit_validation(self, map_id: int, force: bool, options) -> int:
-        return self.engine.submit_validation(map_id, force, options)
+    def submit_validation(self, map_id: int, force: bool, options, bench: str | None = None) -> int:
+        return self.engine.submit_validation(map_id, force, options, bench=bench)
 
-    def submit_refinement(self, map_id: int, request) -> int:
-        return self.engine.submit_refinement(map_id, request)
+    def submit_refinement(self, map_id: int, request, bench: str | None = None) -> int:
+        return self.engine.submit_refinement(map_id, request, bench=bench)
 
     def download_map(self, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None):
         return lut_download.download_map(
@@ -225,8 +253,12 @@ class CalibrationService:
             raise RecordingUnavailable("recordings are not available: the service has not started")
         return self.recordings.open(result_id)
 
-    def create_schedule(self, name: str, cron: str, timezone: str, sweep, enabled: bool) -> int:
-        return schedules.create_schedule(self.storage, self.settings, self.now(), name, cron, timezone, sweep, enabled)
+    def create_schedule(
+        self, name: str, cron: str, timezone: str, sweep, enabled: bool, bench: str | None = None
+    ) -> int:
+        return schedules.create_schedule(
+            self.storage, self.settings, self.now(), name, cron, timezone, sweep, enabled, bench=bench
+        )
 
     def update_schedule(self, schedule_id: int, changes: dict[str, Any]) -> None:
         schedules.update_schedule(self.storage, self.settings, self.now(), schedule_id, changes)
@@ -237,6 +269,17 @@ class CalibrationService:
     # --- what the API routes call: reads (the public shapes are built from these, service/api/public.py) --
     def token_role(self, token: str) -> str | None:
         return self.storage.token_role(token)
+
+    def benches(self) -> list[dict[str, Any]]:
+        """Every bench of the lab (service/runs/lab.py Lab.overview)."""
+        return self.lab.overview()
+
+    def own_bench(self) -> str:
+        return self.settings.bench_name
+
+    def waiting_for(self, bench: str | None) -> str | None:
+        """What a job or sweep of `bench` waits for (None: this service runs it)."""
+        return self.lab.waiting_for(bench)
 
     def get_job(self, job_id: int) -> JobRecord | None:
         return self.storage.get_job(job_id)
@@ -291,6 +334,28 @@ class CalibrationService:
                 log.exception("bench status round failed")
                 continue
             self.broker.publish("bench.status", status)
+
+    def _lab_round(self, period_s: float) -> None:
+        """The bench's heartbeat in the benches table and the other benches' progress as events. Reads
+        only the bench's cached status (no device I/O); a database away is logged, the bench untouched."""
+        watch = LabWatch(self.storage, self.broker, self.settings.bench_name)
+        while True:  # the first round at once: the name's row is renewed from the claim on
+            self._heartbeat()
+            try:
+                watch.tick()
+                if self.engine is not None:
+                    self.engine.act_on_control_requests()  # pause / resume / cancel asked at other services
+            except Exception as exc:  # noqa: BLE001 - the next round tries again
+                log.debug("lab round failed: %s", exc)
+            if self._status_stop.wait(period_s):
+                return
+
+    def _heartbeat(self) -> None:
+        """The bench's row renewed with its state and what the engine runs (never raises)."""
+        status = self.bench.status() if self.bench is not None else None
+        running = self.engine.running if self.engine is not None else None
+        state = bench_state(status, running) if status is not None and self.engine is not None else "starting"
+        self.lab.heartbeat(state, running is not None or bool(status and status.get("busy")), running)
 
     def __enter__(self) -> "CalibrationService":
         self.start(status_period_s=None, run_schedules=False)

@@ -88,6 +88,10 @@ class JobPublic(BaseModel):
     id: int
     kind: str
     state: str
+    bench: str | None = Field(None, description="the bench it runs on")
+    waiting_for: str | None = Field(
+        None, description="queued for another bench: which, and whether it is online (e.g. not seen since ...)"
+    )
     request: dict[str, Any]
     sweep_id: int | None = None
     error: str | None = None
@@ -146,6 +150,12 @@ class SweepPointPublic(BaseModel):
 class SweepPublic(BaseModel):
     id: int
     state: str
+    bench: str | None = Field(None, description="the bench it runs on")
+    waiting_for: str | None = Field(None, description="queued for another bench: which, and whether it is online")
+    control_request: str | None = Field(
+        None, description="pause | resume | cancel asked at another service, for its bench's service to act on"
+    )
+    control_note: str | None = Field(None, description="a control request its bench's service refused, and why")
     method: str
     harmonic_order: int
     grid: dict[str, Any]
@@ -192,9 +202,27 @@ class ScheduleRunPublic(BaseModel):
     note: str | None = None
 
 
+class BenchPublic(BaseModel):
+    """A bench of the lab: one service per bench, all on one database (service/runs/lab.py)."""
+
+    name: str
+    state: str = Field(description="idle | busy | fault | disconnected | starting | stopped | unknown (never seen)")
+    online: bool = Field(description="its service renewed its row within the last few seconds")
+    seen: str = Field(description="online | not seen since ... | stopped since ... | never seen")
+    last_seen: str | None = Field(None, description="UTC ISO 8601")
+    busy: bool
+    running: str | None = Field(None, description="what it runs now, e.g. sweep 12")
+    queue: int = Field(description="jobs queued for it")
+    software_version: str | None = None
+    host: str | None = None
+    port: int | None = None
+    own: bool = Field(description="the bench of the service that answers")
+
+
 class SchedulePublic(BaseModel):
     id: int
     name: str
+    bench: str | None = Field(None, description="the bench whose service fires it")
     cron: str = Field(description="5 fields: minute hour day-of-month month day-of-week (Debian cron)")
     timezone: str = Field(description="IANA time zone the cron is read in")
     sweep: dict[str, Any] = Field(description="the sweep each firing submits: grid, method, options, confirm_large")
@@ -347,6 +375,18 @@ class Records(Protocol):
     def schedule_runs(self, schedule_id: int, limit: int) -> list[dict]: ...
 
 
+def _waiting_for(records: Records, row: dict) -> str | None:
+    """A queued job or sweep of another bench: what it waits for (only the service layer knows the lab)."""
+    waiting = getattr(records, "waiting_for", None)
+    if row["state"] != "queued" or waiting is None:
+        return None
+    return waiting(row.get("bench"))
+
+
+def bench_public(row: dict) -> BenchPublic:
+    return BenchPublic(**row)
+
+
 def job_public(records: Records, job: dict) -> JobPublic:
     row = records.get_result(job["result_id"]) if job.get("result_id") else None
     validation = records.validation_of_job(job["id"]) if job["kind"] == "validation" else None
@@ -357,6 +397,8 @@ def job_public(records: Records, job: dict) -> JobPublic:
         id=job["id"],
         kind=job["kind"],
         state=job["state"],
+        bench=job.get("bench"),
+        waiting_for=_waiting_for(records, job),
         request=job["request"],
         sweep_id=job["sweep_id"],
         error=job["error"],
@@ -410,6 +452,10 @@ def sweep_public(records: Records, sweep: dict, with_points: bool = False) -> Sw
     return SweepPublic(
         id=sweep["id"],
         state=sweep["state"],
+        bench=sweep.get("bench"),
+        waiting_for=_waiting_for(records, sweep),
+        control_request=sweep.get("control_request"),
+        control_note=sweep.get("control_note"),
         method=sweep["method"],
         harmonic_order=sweep["harmonic_order"],
         grid=sweep["grid"],
@@ -480,6 +526,7 @@ def schedule_public(records: Records, row: dict, now, next_count: int = 5, run_c
     return SchedulePublic(
         id=row["id"],
         name=row["name"],
+        bench=row.get("bench"),
         cron=row["cron"],
         timezone=row["timezone"],
         sweep=row["sweep"],

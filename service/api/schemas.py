@@ -20,6 +20,13 @@ from service.runs.validation import ValidationOptions
 MethodName = Literal[tuple(METHODS)]
 DEFAULT_METHOD = "adaptive"
 
+# the bench a run is for, in a lab of several benches on one database (service/runs/lab.py)
+BENCH_DESCRIPTION = (
+    "the bench it runs on (GET /benches); default: this service's own bench. Another bench's run is stored "
+    "and waits for that bench's service (its answer says what it waits for)"
+)
+BenchName = Annotated[str, Field(min_length=1, max_length=100, description=BENCH_DESCRIPTION)]
+
 
 def _method_of(value: Any) -> str:
     """The union's tag: the `method` of a request body (or model), "adaptive" when it is left out."""
@@ -46,7 +53,7 @@ def _per_method(kind: str, fields: dict[str, Any], example: dict) -> Any:
 
 IdentificationCreate = _per_method(
     "Identification",
-    {"operating_point": (OperatingPoint, ...)},
+    {"operating_point": (OperatingPoint, ...), "bench": (BenchName | None, None)},
     {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}, "options": {}},
 )
 
@@ -54,6 +61,7 @@ SweepCreate = _per_method(
     "Sweep",
     {
         "grid": (Grid, ...),
+        "bench": (BenchName | None, None),
         "confirm_large": (
             bool,
             Field(
@@ -113,6 +121,7 @@ class ScheduleCreate(_ScheduleFields):
     timezone: str = Field("UTC", min_length=1, max_length=64, description="IANA time zone, e.g. Europe/Berlin")
     sweep: SweepCreate
     enabled: bool = True
+    bench: BenchName | None = Field(None, description="the bench whose service fires it; default this service's")
 
 
 class ScheduleUpdate(_ScheduleFields):
@@ -132,6 +141,7 @@ class ValidationCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"force": False, "options": {}}]})
     force: bool = Field(False, description="validate a partial map (cells not ok carry no injection)")
     options: ValidationOptions = Field(default_factory=ValidationOptions)
+    bench: BenchName | None = None
 
 
 class ErrorPublic(BaseModel):

@@ -14,6 +14,7 @@ from service import __version__
 from service.cli import output
 from service.cli.startup import json_option, open_database, settings_from, storage_from
 from service.cli.waiting import follow
+from service.store.engines import display_location
 
 JOB_FINAL = ("done", "failed", "cancelled")
 
@@ -26,16 +27,20 @@ def cmd_serve(args) -> int:
     from service.api.app import create_app
     from service.calibration_service import CalibrationService
     from service.store.db_claim import DatabaseClaim
+    from service.store.engines import database_claim
 
     settings = settings_from(args)
     # before the database is migrated or recovered: a second serve on this database ends here, in one line
-    claim: DatabaseClaim | None = DatabaseClaim(settings.server.db_path, settings.server.port)
+    # (a flock on a SQLite file; on a shared server the lab's bench claim, taken at start, rules)
+    claim: DatabaseClaim | None = database_claim(settings.server.db_path, settings.server.port)
     try:
         claim.acquire()  # DatabaseInUse (a StorageError) names the holder: one line, exit 2
     except OSError:
         claim = None  # no file can be made there: opening the database names why
     try:
         service = CalibrationService(settings, storage=open_database(settings), claim=claim)
+        # the bench's name in a lab's database (service/runs/lab.py): BenchInUse names the live holder, exit 2
+        service.lab.claim()
     except BaseException:
         if claim is not None:
             claim.release()
@@ -113,7 +118,7 @@ def cmd_identify(args) -> int:
             ),
         )
         result = result_public(service.get_result(job["result_id"])).model_dump() if job["result_id"] else None
-    output.identification(op, job_id, job, result, settings.server.db_path, args.json)
+    output.identification(op, job_id, job, result, display_location(settings.server.db_path), args.json)
     return 0 if job["state"] == "done" else 1
 
 
@@ -162,7 +167,7 @@ def cmd_export(args) -> int:
     settings = settings_from(args)
     m = map_public(open_database(settings), args.map_id)
     if m is None:
-        output.note(f"map {args.map_id} does not exist in {settings.server.db_path}")
+        output.note(f"map {args.map_id} does not exist in {display_location(settings.server.db_path)}")
         return 2
     text = export_map(m.model_dump(), args.format)
     if args.out:
@@ -231,12 +236,14 @@ def cmd_schedule(args) -> int:
         schedule_id = create_schedule(
             storage, settings, now, args.name, args.cron, args.timezone, sweep, enabled=not args.disabled
         )
-        output.schedule_added(schedule_public(storage, storage.get_schedule(schedule_id), now), settings.server.db_path)
+        output.schedule_added(
+            schedule_public(storage, storage.get_schedule(schedule_id), now), display_location(settings.server.db_path)
+        )
     elif args.schedule_cmd == "rm":
         try:
             delete_schedule(storage, now, args.schedule_id)
         except KeyError:
-            output.note(f"schedule {args.schedule_id} does not exist in {settings.server.db_path}")
+            output.note(f"schedule {args.schedule_id} does not exist in {display_location(settings.server.db_path)}")
             return 1
         output.line(f"schedule {args.schedule_id} deleted")
     else:
@@ -245,7 +252,8 @@ def cmd_schedule(args) -> int:
             output.as_json([schedule_public(storage, r, now).model_dump() for r in rows])
             return 0
         output.schedules(
-            [schedule_public(storage, r, now, next_count=1, run_count=1) for r in rows], settings.server.db_path
+            [schedule_public(storage, r, now, next_count=1, run_count=1) for r in rows],
+            display_location(settings.server.db_path),
         )
     return 0
 
@@ -279,7 +287,7 @@ def _download_map(args) -> int:
     try:  # refused before the bench is started
         lut = lut_download.prepare(storage, args.map_id, args.force, fill=args.fill, interpolation=args.interpolation)
     except lut_download.MapNotFound as exc:
-        output.error(f"{exc} in {settings.server.db_path}")
+        output.error(f"{exc} in {display_location(settings.server.db_path)}")
         return 2
     except (lut_download.LutRefused, lut_download.PartialMap) as exc:
         output.error(str(exc))
@@ -309,7 +317,7 @@ def cmd_sweeps(args) -> int:
     if args.sweeps_cmd == "show":
         row = storage.get_sweep(args.sweep_id)
         if row is None:
-            output.error(f"sweep {args.sweep_id} does not exist in {storage.path}")
+            output.error(f"sweep {args.sweep_id} does not exist in {storage.location}")
             return 2
         sw = sweep_public(storage, row, with_points=True)
         if args.json:

@@ -53,6 +53,12 @@ def _parser_serve(sub) -> None:
     _add_bench_args(p)
     p.add_argument("--host", help="bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="port (default 8000)")
+    p.add_argument(
+        "--bench-name",
+        metavar="NAME",
+        help="the bench's name in a lab's database (default: bench_name of the settings or bench file; "
+        "'emulated' with --emulate)",
+    )
     p.set_defaults(func=cmd_serve)
 
 

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
-import sqlite3
 from pathlib import Path
 
 from service.cli import output
 from service.settings import Settings, SettingsError, load_settings
+from service.store.engines import display_location, is_server_url
 from service.store.storage import Storage, StorageError
 
 
@@ -35,6 +34,7 @@ def settings_from(args) -> Settings:
     for key in ("host", "port"):
         if getattr(args, key, None) is not None:
             overrides[f"server.{key}"] = getattr(args, key)
+    overrides["bench_name"] = getattr(args, "bench_name", None)
     settings = load_settings(path, overrides=overrides)
     if getattr(args, "bench", None):
         _check_bench_file(args.bench, settings)
@@ -64,23 +64,15 @@ def _check_bench_file(path: str, settings: Settings) -> None:
 
 def open_database(settings: Settings) -> Storage:
     """The command's database, opened and migrated at start, then printed (stderr: stdout stays clean for
-    the token's last line, --json and exports). What makes it unusable is a StartError naming the file."""
-    path = Path(settings.server.db_path)
-    if path.is_dir():
-        raise StartError(
-            f"database {path} is a directory: --db must name a database file, e.g. {path / 'ripplecal.db'}"
-        )
-    if path.exists() and not os.access(path, os.R_OK | os.W_OK):
-        raise StartError(f"database {path} cannot be read and written by this user: check its permissions")
+    the token's last line, --json and exports). What makes it unusable is a StartError naming the file
+    (or the server, without its password)."""
+    path = display_location(settings.server.db_path)
     try:
-        storage = Storage(path, busy_timeout_s=settings.server.db_busy_timeout_s)
-    except StorageError as exc:  # a newer schema, a failed migration; locked, read-only, full
+        storage = Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
+    except (
+        StorageError
+    ) as exc:  # not a database; a newer schema, a failed migration; locked, read-only, full, unreachable
         raise StartError(str(exc)) from None
-    except sqlite3.DatabaseError as exc:  # e.g. "file is not a database": a text file, another format
-        raise StartError(
-            f"database {path} is not a database SQLite can use ({exc}): --db must name a ripplecal "
-            "database or a new file"
-        ) from None
     except (FileExistsError, NotADirectoryError) as exc:
         raise StartError(f"database {path} cannot be created: {exc.filename} is a file, not a directory") from None
     except OSError as exc:
@@ -88,7 +80,7 @@ def open_database(settings: Settings) -> Storage:
             f"database {path} cannot be created: {exc.strerror or type(exc).__name__}"
             + (f" ({exc.filename})" if exc.filename else "")
         ) from None
-    output.database_opened(path)
+    output.database_opened(storage.location)
     return storage
 
 
@@ -97,7 +89,10 @@ def storage_from(args) -> Storage:
 
 
 def resolve_db_path(path: str) -> str:
-    """Absolute once, at start: a relative --db or RIPPLECAL_SERVER__DB_PATH is taken against this working directory."""
+    """Absolute once, at start: a relative --db or RIPPLECAL_SERVER__DB_PATH is taken against this working
+    directory (a postgresql:// URL is kept as it is)."""
+    if is_server_url(path):
+        return path
     return str(Path(path).expanduser().absolute())
 
 

@@ -17,8 +17,8 @@ results.superseded_by). A database that cannot be used is waited for (`durably`)
 
 from __future__ import annotations
 
+import collections
 import logging
-import queue
 import threading
 import traceback
 from typing import Callable
@@ -35,6 +35,7 @@ from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
 from service.runs.events import EventBroker
 from service.runs.identify import check_plant_time, identify_at, parse_options
+from service.runs.lab import job_event, new_instance_id, sweep_event
 from service.runs.plans import Grid, SweepPlan, plan_grid
 from service.runs.refinement import RefineRequest, check_request
 from service.runs.states import (
@@ -80,15 +81,31 @@ EXPECTED_FAILURES = (
 
 
 STORAGE_RETRY_S = (0.5, 10.0)  # first and longest pause between tries of a database that is unavailable
+CLAIM_POLL_S = 0.5  # the worker looks for its bench's jobs this often (and at once when this process queues one)
 
 
 class Engine:
     def __init__(
-        self, storage: Storage, bench, settings: Settings, broker: EventBroker, recordings: RecordingStore | None = None
+        self,
+        storage: Storage,
+        bench,
+        settings: Settings,
+        broker: EventBroker,
+        recordings: RecordingStore | None = None,
+        instance: str | None = None,
+        lab: bool = False,
     ):
+        """`instance`: this process's id in the lab (service/runs/lab.py). `lab`: the worker takes every job
+        the database holds for this bench (a serve); else only the jobs this engine queued itself (a CLI
+        run beside a serve of the same bench must not take the serve's jobs)."""
         self.storage, self.bench, self.settings, self.broker = storage, bench, settings, broker
         self.recordings = recordings  # raw recording of every identification (None: none kept)
-        self._queue: queue.Queue[int | None] = queue.Queue()
+        self.bench_name = settings.bench_name
+        self.instance = instance or new_instance_id()
+        self.lab = lab
+        self._wake = threading.Event()  # a job of this bench was queued here: claim it now, not at the next poll
+        self._mine: collections.deque[int] = collections.deque()  # without `lab`: the jobs this engine queued
+        self.running: str | None = None  # what the worker runs now (the bench's heartbeat shows it)
         self._controls: dict[int, SweepControl] = {}
         self._job_cancel: dict[int, threading.Event] = {}
         self._lock = threading.RLock()  # state read-check-write of jobs and sweeps
@@ -118,7 +135,7 @@ class Engine:
         self._thread = threading.Thread(target=self._work, name="ripplecal-engine", daemon=True)
         self._thread.start()
         if recover and self.settings.engine.auto_resume:
-            for sweep in self.storage.unfinished_sweeps():
+            for sweep in self.storage.bench_unfinished_sweeps(self.bench_name):
                 if sweep["state"] == SweepState.INTERRUPTED.value:
                     log.warning("engine.auto_resume: resuming sweep %s (%s)", sweep["id"], sweep["pause_reason"])
                     try:
@@ -136,7 +153,9 @@ class Engine:
         with the reason); sweeps become `interrupted` (not failed), resumable; a validation cut short
         keeps its points and says which LUT the drive was left holding."""
         held: dict[int, str] = {}
-        for v in self.storage.running_validations():
+        jobs = self.storage.bench_unfinished_jobs(self.bench_name)
+        kept = self._waiting_sweeps(jobs)
+        for v in self.storage.bench_running_validations(self.bench_name):
             download = v["download"] or {}
             cells = v["cells"] or []
             lut = (
@@ -146,22 +165,39 @@ class Engine:
             error = f"the service stopped during this validation: {len(cells)} point(s) measured and kept; {lut}"
             self.storage.update_validation(v["id"], state="failed", error=error, finished_at=now_iso())
             held[v["job_id"]] = lut
-        for job in self.storage.unfinished_jobs():
+        for job in jobs:
+            if self._waits_for_bench(job, kept):
+                continue  # queued for this bench while no service ran it: it runs now
             why = "the service stopped while this job was " + job["state"]
             if job["sweep_id"] is not None:
                 why += f"; its sweep {job['sweep_id']} is interrupted: resume it"
             if job["id"] in held:
                 why += f"; {held[job['id']]}"
             self.set_job(job["id"], JobState.FAILED, error=why, finished_at=now_iso())
-        for sweep in self.storage.unfinished_sweeps():
+        for sweep in self.storage.bench_unfinished_sweeps(self.bench_name):
             state = SweepState(sweep["state"])
-            if state in UNFINISHED_SWEEP_STATES:
+            if state in UNFINISHED_SWEEP_STATES and sweep["id"] not in kept:
                 reason = (
                     f"the service stopped while this sweep was {state.value} (no orderly shutdown: crash or "
                     f"kill); {sweep['done_points']} of {sweep['total_points']} points are stored, resume to "
                     "measure the rest"
                 )
                 self.set_sweep(sweep["id"], SweepState.INTERRUPTED, pause_reason=reason)
+        self.storage.adopt_unnamed_rows(self.bench_name)
+
+    def _waiting_sweeps(self, jobs: list[dict]) -> set[int]:
+        """Sweeps of this bench queued by another bench's service and not yet taken: they wait, untouched."""
+        return {
+            j["sweep_id"]
+            for j in jobs
+            if j["sweep_id"] is not None and j["state"] == "queued" and j["claimed_by"] is None and j["bench"]
+        }
+
+    def _waits_for_bench(self, job: dict, kept: set[int]) -> bool:
+        """A job of this bench that no service has taken yet (queued elsewhere for it): not recovered."""
+        if job["state"] != "queued" or job["claimed_by"] is not None or job["bench"] is None:
+            return False
+        return job["sweep_id"] is None or job["sweep_id"] in kept
 
     def stop(self, reason: str | None = None, timeout_s: float = 30.0) -> None:
         """Orderly shutdown: the run in flight stops (bench left safe), unfinished sweeps become
@@ -173,12 +209,22 @@ class Engine:
             ctl.cancel.set()
         for ev in list(self._job_cancel.values()):
             ev.set()
-        self._queue.put(None)
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
-        for sweep in self.storage.unfinished_sweeps():
+        jobs = self.storage.bench_unfinished_jobs(self.bench_name)
+        kept = self._waiting_sweeps(jobs)
+        for job in jobs:  # what this process queued and did not run (a job queued elsewhere for the bench waits)
+            if job["state"] == "queued" and job["claimed_by"] == self.instance:
+                self.set_job(
+                    job["id"],
+                    JobState.FAILED,
+                    error=f"{self._shutdown_reason} before this job ran",
+                    finished_at=now_iso(),
+                )
+        for sweep in self.storage.bench_unfinished_sweeps(self.bench_name):
             state = SweepState(sweep["state"])
-            if state in UNFINISHED_SWEEP_STATES:
+            if state in UNFINISHED_SWEEP_STATES and sweep["id"] not in kept:
                 self.set_sweep(
                     sweep["id"],
                     SweepState.INTERRUPTED,
@@ -229,73 +275,116 @@ class Engine:
             raise StorageUnavailable("shutdown", f"{what}: state {target.value} not written (service stopping)")
 
     # --- submitting --------------------------------------------------------------------------------------
-    def submit_identification(self, op: OperatingPoint, method: str, options) -> int:
-        self.bench.check_reachable()  # refused now, not failed later
-        check_limits(op, self.settings)  # refuse before anything is queued
-        check_plant_time([op.speed_rpm], method, options, self.settings)
-        job_id = self.storage.create_job(
-            "identification", {"operating_point": op.model_dump(), "method": method, "options": options.model_dump()}
+    def submit_identification(self, op: OperatingPoint, method: str, options, bench: str | None = None) -> int:
+        """`bench`: the bench it is for (default this one). Another bench's job is stored, and checked
+        against that bench's settings by its own service when it takes it."""
+        own = self.is_own(bench)
+        if own:
+            self.bench.check_reachable()  # refused now, not failed later
+            check_limits(op, self.settings)  # refuse before anything is queued
+            check_plant_time([op.speed_rpm], method, options, self.settings)
+        job_id = self._create_job(
+            "identification",
+            {"operating_point": op.model_dump(), "method": method, "options": options.model_dump()},
+            bench=bench,
         )
-        self._job_cancel[job_id] = threading.Event()
-        self._queue.put(job_id)
         self._publish_job(job_id)
         return job_id
 
-    def submit_sweep(self, grid: Grid, method: str, options, schedule_id: int | None = None, regime=None) -> int:
+    def is_own(self, bench: str | None) -> bool:
+        return bench is None or bench == self.bench_name
+
+    def _create_job(self, kind: str, request: dict, bench: str | None, sweep_id: int | None = None) -> int:
+        """A job for this bench is this instance's from the start (claimed_by: no other service takes it; a
+        crash leaves it to recovery); one for another bench waits for whichever service serves that bench."""
+        own = self.is_own(bench)
+        job_id = self.storage.create_job(
+            kind,
+            request,
+            sweep_id=sweep_id,
+            bench=self.bench_name if own else bench,
+            claimed_by=self.instance if own else None,
+        )
+        if own:
+            if sweep_id is None:
+                self._job_cancel[job_id] = threading.Event()
+            self._wake_for(job_id)
+        return job_id
+
+    def _wake_for(self, job_id: int) -> None:
+        """A job of this bench was queued (or queued again) here: the worker claims it now."""
+        self._mine.append(job_id)
+        self._wake.set()
+
+    def submit_sweep(
+        self, grid: Grid, method: str, options, schedule_id: int | None = None, regime=None, bench: str | None = None
+    ) -> int:
         """Queue a sweep over the planned grid: `grid` with the speeds `regime` (service.runs.plans.RegimePlacement)
         places around the predicted field-weakening onset (service.runs.plans.plan_grid, the grid POST
         /sweeps/preview shows). The planned grid is what the sweep stores, so its run and its map use the
-        real axes."""
-        self.bench.check_reachable()
-        grid = plan_grid(grid, regime, self.settings).grid
+        real axes. For another bench (`bench`) the grid is stored as given (its own service places and
+        checks it against its settings when it takes the sweep; a regime placement needs that bench's
+        machine: refused here)."""
+        own = self.is_own(bench)
+        if own:
+            self.bench.check_reachable()
+            grid = plan_grid(grid, regime, self.settings).grid
+        elif regime is not None:
+            raise ValueError(f"regime placement needs bench {bench}'s machine settings: post it to its service")
         plan = SweepPlan.from_grid(grid)
-        check_plant_time(grid.speed_rpm, method, options, self.settings)
-        plan.dry_run(self.settings)  # every setpoint checked before the first frame
+        if own:
+            check_plant_time(grid.speed_rpm, method, options, self.settings)
+            plan.dry_run(self.settings)  # every setpoint checked before the first frame
         sweep_id = self.storage.create_sweep(
             method,
             self.settings.identification.harmonic_order,
             grid.model_dump(),
             options.model_dump(),
             len(plan.points),
-            self.bench.identity,
+            self.bench.identity if own else f"bench {bench}",  # its service writes the identity when it starts it
             __version__,
             schedule_id=schedule_id,
+            bench=self.bench_name if own else bench,
         )
         self._queue_sweep(sweep_id)
         return sweep_id
 
-    def submit_validation(self, map_id: int, force: bool, options: ValidationOptions) -> int:
+    def submit_validation(self, map_id: int, force: bool, options: ValidationOptions, bench: str | None = None) -> int:
         """Queue the validation of a map in the drive's LUT mode (service.runs.validation). Refused before
         anything is queued: KeyError (no such map), ValidationRefused (no valid cell, partial without
-        force), LimitError (a point outside the bench's limits)."""
-        self.bench.check_reachable()
+        force), LimitError (a point outside the bench's limits; another bench's service checks its own)."""
+        own = self.is_own(bench)
+        if own:
+            self.bench.check_reachable()
         row = self.storage.get_map(map_id)
         if row is None:
             raise KeyError(map_id)
         check_validatable(self.storage, map_id, force, fill=options.fill)
-        check_points(row["axes"], self.settings)
-        job_id = self.storage.create_job(
-            "validation", {"map_id": map_id, "force": force, "options": options.model_dump()}
+        if own:
+            check_points(row["axes"], self.settings)
+        job_id = self._create_job(
+            "validation", {"map_id": map_id, "force": force, "options": options.model_dump()}, bench=bench
         )
-        self._job_cancel[job_id] = threading.Event()
-        self._queue.put(job_id)
         self._publish_job(job_id)
         return job_id
 
-    def submit_refinement(self, map_id: int, request: RefineRequest) -> int:
+    def submit_refinement(self, map_id: int, request: RefineRequest, bench: str | None = None) -> int:
         """Queue the refinement of a map (service/runs/refinement.py) as a sweep of kind `refinement`: its
         cells, pause, resume, cancel and crash-resume are a sweep's. Refused before anything is
         queued: KeyError (no such map), ValueError (method or options), LimitError (a validation point
         outside the bench's limits). A partial map is accepted: its non-ok cells are measured first.
         Returns the job's id."""
-        self.bench.check_reachable()
+        own = self.is_own(bench)
+        if own:
+            self.bench.check_reachable()
         m = map_view(self.storage, map_id)
         if m is None:
             raise KeyError(map_id)
         check_request(request)
         options = parse_options(request.method, request.options)
-        check_points(m.axes, self.settings)
-        check_plant_time(m.axes["speed_rpm"], request.method, options, self.settings)
+        if own:
+            check_points(m.axes, self.settings)
+            check_plant_time(m.axes["speed_rpm"], request.method, options, self.settings)
         not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
         state = {
             "target_db": request.target_db,
@@ -316,24 +405,69 @@ class Engine:
             m.axes,
             options.model_dump(),
             len(not_ok),
-            self.bench.identity,
+            self.bench.identity if own else f"bench {bench}",
             __version__,
             kind="refinement",
             source_map_id=map_id,
             refinement=state,
+            bench=self.bench_name if own else bench,
         )
         return self._queue_sweep(sweep_id)
 
     def _queue_sweep(self, sweep_id: int) -> int:
-        kind = self.storage.get_sweep(sweep_id).get("kind") or "sweep"  # a refinement runs as a sweep of its kind
-        job_id = self.storage.create_job(kind, {"sweep_id": sweep_id}, sweep_id=sweep_id)
-        self._controls[sweep_id] = SweepControl()
-        self._job_cancel[job_id] = self._controls[sweep_id].cancel
-        self._queue.put(job_id)
+        sweep = self.storage.get_sweep(sweep_id)
+        kind = sweep.get("kind") or "sweep"  # a refinement runs as a sweep of its kind
+        if self.is_own(sweep.get("bench")):
+            self._controls[sweep_id] = SweepControl()
+        job_id = self._create_job(kind, {"sweep_id": sweep_id}, bench=sweep.get("bench"), sweep_id=sweep_id)
+        if sweep_id in self._controls:
+            self._job_cancel[job_id] = self._controls[sweep_id].cancel
         self.publish_sweep(sweep_id)
         return job_id
 
     # --- controlling sweeps ---------------------------------------------------------------------------------
+    def control_sweep(self, sweep_id: int, action: str) -> None:
+        """`action`: pause | resume | cancel. Another bench's sweep: checked against the table here, then
+        asked of its bench's service through the database (sweeps.control_request), which acts on it within
+        about a second (act_on_control_requests); a queued one no service has taken is cancelled here."""
+        acts = {"pause": self.pause_sweep, "resume": self.resume_sweep, "cancel": self.cancel_sweep}
+        try:
+            sweep = self.storage.get_sweep(sweep_id)
+        except StorageUnavailable:
+            return acts[action](sweep_id)  # a cancel still reaches this process's own run (and says 503)
+        if sweep is None:
+            raise KeyError(sweep_id)
+        if self.is_own(sweep.get("bench")):
+            return acts[action](sweep_id)
+        state = SweepState(sweep["state"])
+        if action == "cancel" and state == SweepState.QUEUED:
+            check_transition(SWEEP_TRANSITIONS, state, SweepState.CANCELLED)
+            check_transition(JOB_TRANSITIONS, JobState.QUEUED, JobState.CANCELLED)
+            if self.storage.cancel_waiting_sweep(sweep_id):
+                return self.publish_sweep(sweep_id)
+        if action == "resume":
+            if state not in (SweepState.PAUSED, SweepState.INTERRUPTED):
+                raise TransitionError(f"sweep {sweep_id} is {state.value}, not paused or interrupted")
+        else:
+            check_transition(SWEEP_TRANSITIONS, state, SweepState.PAUSED if action == "pause" else SweepState.CANCELLED)
+        self.storage.request_sweep_control(sweep_id, action)
+        self.publish_sweep(sweep_id)
+
+    def act_on_control_requests(self) -> None:
+        """Pause, resume or cancel asked at another bench's service for this bench's sweeps (the lab thread
+        calls this every second). A refusal is noted on the sweep (control_note) for whoever asked."""
+        acts = {"pause": self.pause_sweep, "resume": self.resume_sweep, "cancel": self.cancel_sweep}
+        for sweep_id, action in self.storage.sweep_control_requests(self.bench_name):
+            if action not in acts or not self.storage.take_sweep_control(sweep_id, action):
+                continue
+            try:
+                acts[action](sweep_id)
+            except (TransitionError, KeyError) as exc:
+                note = f"{action} asked at another bench's service: refused by bench {self.bench_name}: {exc}"
+                log.warning("sweep %s: %s", sweep_id, note)
+                self.storage.update_sweep(sweep_id, control_note=note)
+                self.publish_sweep(sweep_id)
+
     def pause_sweep(self, sweep_id: int) -> None:
         """Pause takes effect between points: the run ends (bench made safe) and the sweep's job is parked,
         so other jobs run while it waits; resume queues it again."""
@@ -369,7 +503,7 @@ class Engine:
             self.set_sweep(sweep_id, SweepState.QUEUED, pause_reason=None)
             if ctl.parked_job is not None:
                 job_id, ctl.parked_job = ctl.parked_job, None
-                self._queue.put(job_id)
+                self._wake_for(job_id)
         self.publish_sweep(sweep_id)
 
     def cancel_sweep(self, sweep_id: int) -> None:
@@ -410,6 +544,13 @@ class Engine:
         check_transition(JOB_TRANSITIONS, JobState(job["state"]), JobState.CANCELLED)
         if job["sweep_id"] is not None:
             return self.cancel_sweep(job["sweep_id"])
+        if not self.is_own(job.get("bench")):
+            if job["state"] != "queued":  # its run is in the other service's hands
+                raise TransitionError(f"job {job_id} runs on bench {job['bench']}: ask the service of that bench")
+            # queued: no service has taken it; a conditional write, so a claim at this moment wins cleanly
+            if not self.storage.cancel_queued_job(job_id):
+                raise TransitionError(f"job {job_id} was taken by bench {job['bench']} just now: ask its service")
+            return self._publish_job(job_id)
         self._job_cancel.setdefault(job_id, threading.Event()).set()
         if job["state"] == "queued":
             self.set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
@@ -418,18 +559,23 @@ class Engine:
         sweep = self.storage.get_sweep(sweep_id)
         if sweep is None:
             raise KeyError(sweep_id)
+        if not self.is_own(sweep.get("bench")):
+            # only the bench's own service can stop its run between points
+            raise TransitionError(
+                f"sweep {sweep_id} is for bench {sweep['bench']}: ask the service of bench {sweep['bench']} "
+                "(GET /api/v1/benches names its host and port)"
+            )
         return SweepState(sweep["state"])
 
     def _control(self, sweep_id: int) -> SweepControl:
-        ctl = self._controls.get(sweep_id)
-        if ctl is None:  # a paused/queued sweep always has one in this process (others are interrupted)
-            raise TransitionError(f"sweep {sweep_id} is not run by this service process")
-        return ctl
+        # a sweep of this bench queued by another bench's service gets its controls here, as it gets them
+        # when the worker takes it
+        return self._controls.setdefault(sweep_id, SweepControl())
 
     # --- the worker ------------------------------------------------------------------------------------------
     def _work(self) -> None:
         while True:
-            job_id = self._queue.get()
+            job_id = self._next_job()
             if job_id is None:
                 return
             try:
@@ -440,11 +586,43 @@ class Engine:
                 log.warning("job %s ended with a refused transition: %s", job_id, exc)
             except Exception:
                 log.error("job %s: the worker caught an error it did not expect: %s", job_id, traceback.format_exc())
+            finally:
+                self.running = None
+
+    def _next_job(self) -> int | None:
+        """The next job of this bench, taken from the database (queued -> running in one conditional write,
+        Storage.claim_job): polled every CLAIM_POLL_S, at once when this process queued one. None: stopping."""
+        check_transition(JOB_TRANSITIONS, JobState.QUEUED, JobState.RUNNING)  # the claim's write, by the table
+        while not self._shutdown.is_set():
+            try:
+                job_id = self._claim()
+            except StorageUnavailable as exc:
+                log.info("claiming the next job: the database is unavailable (%s)", exc.cause)
+                job_id = None
+            if job_id is not None:
+                return job_id
+            self._wake.wait(CLAIM_POLL_S)
+            self._wake.clear()
+        return None
+
+    def _claim(self) -> int | None:
+        if self.lab:
+            self._mine.clear()  # the database holds them all
+            return self.storage.claim_job(self.bench_name, self.instance)
+        while self._mine:
+            job_id = self.storage.claim_job(self.bench_name, self.instance, job_id=self._mine[0])
+            self._mine.popleft()
+            if job_id is not None:
+                return job_id
+        return None
 
     def _work_on(self, job_id: int) -> None:
         job = self.storage.get_job(job_id)
-        if job is None or job["state"] != "queued":
+        if job is None or job["state"] != "running" or job["claimed_by"] != self.instance:
             return
+        if job["sweep_id"] is not None:  # taken from the database: its controls live in this process now
+            self._job_cancel[job_id] = self._control(job["sweep_id"]).cancel
+        self.running = f"sweep {job['sweep_id']}" if job["sweep_id"] is not None else f"job {job_id}"
         cancel = self._job_cancel.setdefault(job_id, threading.Event())
         if self._shutdown.is_set():
             self.set_job(
@@ -456,14 +634,15 @@ class Engine:
             return
         self.set_job(job_id, JobState.RUNNING, started_at=now_iso())
         try:
+            self._check_here(job)
             if job["kind"] == "identification":
                 self._run_identification(job_id, job)
             elif job["kind"] == "validation":
                 self._run_validation(job_id, job)
             elif job["kind"] == "refinement":
-                self._sweeps.run_refinement(job_id, job["sweep_id"], self._controls[job["sweep_id"]])
+                self._sweeps.run_refinement(job_id, job["sweep_id"], self._control(job["sweep_id"]))
             else:
-                self._sweeps.run_sweep(job_id, job["sweep_id"], self._controls[job["sweep_id"]])
+                self._sweeps.run_sweep(job_id, job["sweep_id"], self._control(job["sweep_id"]))
             final = JobState.CANCELLED if cancel.is_set() else JobState.DONE
             self.set_job(
                 job_id, final, finished_at=now_iso(), error=self._shutdown_reason if self._shutdown.is_set() else None
@@ -493,6 +672,26 @@ class Engine:
                 self.set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
         self._publish_job(job_id)
 
+    def _check_here(self, job: dict) -> None:
+        """A job queued by another bench's service was checked only from its request: this bench's limits
+        and plant time are checked now, and refuse it with the reason (the job fails, and its sweep). A job
+        queued here passed the same checks at submit: checked again, as cheap as it is deterministic."""
+        req = job["request"]
+        if job["kind"] == "identification":
+            op = OperatingPoint.model_validate(req["operating_point"])
+            check_limits(op, self.settings)
+            check_plant_time([op.speed_rpm], req["method"], parse_options(req["method"], req["options"]), self.settings)
+        elif job["kind"] == "validation":
+            check_points(self.storage.get_map(req["map_id"])["axes"], self.settings)
+        elif job["sweep_id"] is not None:
+            sweep = self.storage.get_sweep(job["sweep_id"])
+            if sweep["started_at"] is None and sweep["bench_identity"] != self.bench.identity:
+                if job["kind"] == "sweep":
+                    SweepPlan.from_grid(Grid.model_validate(sweep["grid"])).dry_run(self.settings)
+                else:
+                    check_points(sweep["grid"], self.settings)
+                self.storage.update_sweep(job["sweep_id"], bench_identity=self.bench.identity)
+
     def _park(self, job_id: int, sweep_id: int) -> None:
         """The sweep paused between points: its job waits, queued but out of the worker's queue, until
         resume puts it back (or cancel ends it); the worker goes on with the next job."""
@@ -505,7 +704,7 @@ class Engine:
                 ctl.parked_job = job_id
             else:  # resumed while the run was ending: straight back into the queue
                 self.set_sweep(sweep_id, SweepState.QUEUED, pause_reason=None)
-                self._queue.put(job_id)
+                self._wake_for(job_id)
         log.info("sweep %s paused: its job %s waits; the bench is free for other jobs", sweep_id, job_id)
 
     def _run_identification(self, job_id: int, job: dict) -> None:
@@ -623,9 +822,7 @@ class Engine:
             job = self.storage.get_job(job_id)
         except StorageUnavailable:
             return  # the dashboard hears of it when the database answers again
-        self.broker.publish(
-            "job.state", {"job_id": job_id, "state": job["state"], "kind": job["kind"], "error": job["error"]}
-        )
+        self.broker.publish("job.state", job_event(job))
 
     def _publish_window(self, job_id: int, window) -> None:
         """A run's accepted window as it comes (plant time on the DAQ clock, residual in full scale)."""
@@ -644,15 +841,4 @@ class Engine:
             s = self.storage.get_sweep(sweep_id)
         except StorageUnavailable:
             return
-        self.broker.publish(
-            "sweep.progress",
-            {
-                "sweep_id": sweep_id,
-                "kind": s.get("kind") or "sweep",
-                "state": s["state"],
-                "done": s["done_points"],
-                "total": s["total_points"],
-                "map_id": s["map_id"],
-                "pause_reason": s["pause_reason"],
-            },
-        )
+        self.broker.publish("sweep.progress", sweep_event(s))

@@ -44,6 +44,9 @@ class RefineRequest(BaseModel):
     """POST /maps/{id}/refine. Every field bounded."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    bench: str | None = Field(
+        None, min_length=1, max_length=100, description="the bench it runs on; default this service's own bench"
+    )
     target_db: float = Field(
         30.0,
         ge=0,

@@ -27,7 +27,7 @@ from cronsim import CronSim, CronSimError
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
 from service.settings import Settings
-from service.store.storage import Storage
+from service.store.storage import Storage, StorageUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -143,14 +143,20 @@ def create_schedule(
     timezone_name: str,
     sweep,
     enabled: bool = True,
+    bench: str | None = None,
 ) -> int:
+    """`bench`: the bench whose service fires it (default this one's: settings.bench_name). Another bench's
+    sweep is checked by that bench's service when it fires (the firing fails with the reason)."""
     cron = check_cron(cron)
     check_timezone(timezone_name)
-    check_sweep(settings, sweep)
+    if bench is None or bench == settings.bench_name:
+        check_sweep(settings, sweep)
     if storage.schedule_named(name) is not None:
         raise ScheduleConflict(f"a schedule named {name!r} exists already")
     # handled up to now: a new schedule fires from its next time on, never for times before it existed
-    return storage.create_schedule(name, cron, timezone_name, sweep.model_dump(mode="json"), enabled, iso(now))
+    return storage.create_schedule(
+        name, cron, timezone_name, sweep.model_dump(mode="json"), enabled, iso(now), bench=bench or settings.bench_name
+    )
 
 
 def update_schedule(storage: Storage, settings: Settings, now: datetime, schedule_id: int, changes: dict) -> None:
@@ -221,14 +227,17 @@ class Scheduler:
         while not self._stop.wait(self.settings.schedules.tick_s):
             try:
                 self.tick()
-            except Exception:  # one bad pass (database locked, ...) must not end the scheduler
+            except StorageUnavailable as exc:  # the database away (locked, full, its server lost): the next pass
+                log.warning("scheduler pass skipped: %s", exc)
+            except Exception:  # one bad pass must not end the scheduler
                 log.exception("scheduler pass failed")
 
     def tick(self) -> None:
         with self._tick_lock:
             now = self.clock()
             for schedule in self.storage.list_schedules():
-                if schedule["enabled"]:
+                # a schedule fires only on its bench's service (no bench: from before benches, this one's)
+                if schedule["enabled"] and schedule.get("bench") in (None, self.settings.bench_name):
                     self._handle(schedule, now)
             self.ticks += 1
 
@@ -277,7 +286,7 @@ class Scheduler:
                 note=f"sweep {pending} of this schedule is still waiting for the bench",
             )
             return
-        busy = self.storage.bench_has_work()
+        busy = self.storage.bench_busy(self.settings.bench_name)
         request = schedule["sweep"]
         try:
             regime = RegimePlacement.model_validate(request["regime"]) if request.get("regime") else None

@@ -15,7 +15,7 @@ import os
 from datetime import datetime, timezone
 from pathlib import Path
 
-from service.store.storage import StorageError
+from service.store.errors import StorageError
 
 
 class DatabaseInUse(StorageError):

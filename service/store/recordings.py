@@ -77,10 +77,11 @@ SETPOINT_CHANNELS = ("effect_sample_index", "theta_cos", "theta_sin", "gamma", "
 _WIRE = np.dtype([("index", "<i8"), ("angle", "<u2"), ("alpha", "<i2"), ("flags", "<u2"), ("gap", "u1")])
 
 
-def recordings_directory(directory: str | None, db_path: str) -> Path:
-    """The configured directory, or `recordings` next to the database; made absolute once, at start
-    (as the database path: a relative one is taken against the working directory)."""
-    path = Path(directory).expanduser() if directory else Path(db_path).expanduser().parent / "recordings"
+def recordings_directory(directory: str | None, database_files: Path) -> Path:
+    """The configured directory, or `recordings` in the database's files directory (beside a SQLite file;
+    the user's data directory for a server, Storage.files_directory); made absolute once, at start (as
+    the database path: a relative one is taken against the working directory)."""
+    path = Path(directory).expanduser() if directory else Path(database_files).expanduser() / "recordings"
     return path.absolute()
 
 

@@ -1,5 +1,7 @@
-"""SQLite storage: numbered migrations (migrations/NNNN_*.sql, PRAGMA user_version) and the
-repository functions the service uses. One connection per call, WAL mode, every write in one
+"""Storage: the repository functions the service uses, over one of two engines chosen by the `--db`
+string (service/store/engines.py): a SQLite file (the embedded default) or a PostgreSQL server (a lab).
+The SQL is written once, with `?` placeholders; where the engines differ it asks the engine's dialect
+(service/store/dialect.py). Numbered migrations (service/store/migrations.py); every write in one
 transaction, so a failure in one operating point never touches the results of others."""
 
 from __future__ import annotations
@@ -9,12 +11,13 @@ import hashlib
 import json
 import re
 import secrets
-import sqlite3
-import threading
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
+from service.store.engines import open_engine
+from service.store.errors import StorageError, StorageUnavailable
+from service.store.migrations import MIGRATIONS_DIR, load_migrations, migration_files
 from service.store.records import (
     JobRecord,
     MapRecord,
@@ -25,140 +28,81 @@ from service.store.records import (
     SweepRecord,
     ValidationRecord,
 )
+from service.store.sqlite_engine import unavailable
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
-_MIGRATION_NAME = re.compile(r"^(\d{4})_[a-z0-9_]+\.sql$")
-
-
-class StorageError(RuntimeError):
-    pass
-
-
-class StorageUnavailable(StorageError):
-    """The database cannot be used now, for a reason that passes (another process holds its lock, its
-    filesystem is read-only or full, an I/O error): what needs it waits and tries again; the API answers
-    503 with Retry-After. str() names the cause and the file (for the log); `public` names the file
-    without the server's path to it (for answers and a sweep's pause reason)."""
-
-    def __init__(self, cause: str, message: str, retry_after_s: float = 5.0, public: str | None = None):
-        super().__init__(message)
-        self.cause = cause
-        self.retry_after_s = retry_after_s
-        self.public = public if public is not None else message
-
-
-# sqlite3's OperationalError texts of the causes that pass, and what to tell the operator
-_UNAVAILABLE = (
-    ("database is locked", "locked", "another process holds its lock"),
-    ("readonly database", "read_only", "its filesystem is read-only"),
-    ("read-only", "read_only", "its filesystem is read-only"),
-    ("database or disk is full", "disk_full", "its disk is full"),
-    ("disk i/o error", "io_error", "a disk I/O error"),
-    ("unable to open database file", "cannot_open", "the file cannot be opened"),
-)
-
-
-def unavailable(exc: BaseException, path: Path) -> StorageUnavailable | None:
-    """The StorageUnavailable a sqlite3 error stands for (None: not one that passes)."""
-    if not isinstance(exc, sqlite3.OperationalError):
-        return None
-    text = str(exc).lower()
-    for needle, cause, what in _UNAVAILABLE:
-        if needle in text:
-            return StorageUnavailable(
-                cause, f"database {path}: {what} ({exc})", public=f"database {path.name}: {what} ({exc})"
-            )
-    return None
+__all__ = ["Storage", "StorageError", "StorageUnavailable", "unavailable", "migrations", "now_iso", "MIGRATIONS_DIR"]
 
 
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
 
-def migrations(directory: Path = MIGRATIONS_DIR) -> list[tuple[int, Path]]:
-    found = []
-    for path in sorted(directory.glob("*.sql")):
-        m = _MIGRATION_NAME.match(path.name)
-        if not m:
-            raise StorageError(f"migration file {path.name} is not named NNNN_description.sql")
-        found.append((int(m.group(1)), path))
-    numbers = [n for n, _ in found]
-    if numbers != list(range(1, len(found) + 1)):
-        raise StorageError(f"migrations must be numbered 1..N without gaps, found {numbers}")
-    return found
+def migrations(engine: str = "sqlite", directory: Path = MIGRATIONS_DIR) -> list[tuple[int, Path]]:
+    """[(number, file)] of the engine's migrations (the same numbers on every engine)."""
+    return migration_files(engine, directory)
 
 
 class Storage:
+    # row locking of a claim query: "" on SQLite (one writer at a time); the PostgreSQL engine says
+    # "FOR UPDATE SKIP LOCKED", so two claims never wait on, or take, the same row
+    skip_locked = ""
+
     def __init__(self, path: str | Path, busy_timeout_s: float = 10.0):
-        self.path = Path(path)
-        self.busy_timeout_s = busy_timeout_s  # sqlite3 waits this long for another process's lock before it says so
+        """`path`: a SQLite file, or a `postgresql://user@host:port/dbname` URL (service/store/engines.py).
+        `busy_timeout_s`: how long a call waits for another's lock (or the server's pool) before it says so."""
+        self.engine = open_engine(path, busy_timeout_s)
+        self.dialect = self.engine.dialect
+        self.path = self.engine.path  # the SQLite file (None on a server)
+        self.location = self.engine.location  # the database as the log and the CLI name it (no password)
+        self.skip_locked = self.dialect.skip_locked
+        # a sweep's committed results: current (not superseded) and not discarded by an interlock
+        # (detail_json "discarded" names why; the attempt stays as history and the point is measured again)
+        self._committed = (
+            f"sweep_id = ? AND superseded_by IS NULL AND {self.dialect.json_text('detail_json', 'discarded')} IS NULL"
+        )
         self._known_tokens: dict[
             str, str
         ] = {}  # sha256 -> role of tokens seen valid (used while the database is unavailable)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._write_lock = threading.Lock()
-        self.migrate()
-
-    @contextlib.contextmanager
-    def connect(self) -> Iterator[sqlite3.Connection]:
-        """A connection; a sqlite3 error that passes (lock, read-only or full filesystem) becomes
-        StorageUnavailable, here and in the caller's use of the connection."""
-        conn = None
         try:
-            conn = sqlite3.connect(self.path, timeout=self.busy_timeout_s, isolation_level=None)
-            conn.row_factory = sqlite3.Row
-            conn.execute("PRAGMA foreign_keys = ON")
-            conn.execute("PRAGMA journal_mode = WAL")
-            yield conn
-        except sqlite3.Error as exc:
-            passing = unavailable(exc, self.path)
-            if passing is not None:
-                raise passing from exc
+            self.migrate()
+        except BaseException:
+            self.engine.close()
             raise
-        finally:
-            if conn is not None:
-                conn.close()
 
     @contextlib.contextmanager
-    def transaction(self) -> Iterator[sqlite3.Connection]:
-        with self._write_lock, self.connect() as conn:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield conn
-            except BaseException:
-                with contextlib.suppress(sqlite3.Error):  # a full disk or I/O error may have rolled it back already
-                    conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+    def connect(self) -> Iterator[Any]:
+        """A connection (every statement its own transaction); an error that passes (a lock, a read-only
+        or full filesystem, a lost server) becomes StorageUnavailable, here and in the caller's use of it."""
+        with self.engine.connect() as conn:
+            yield conn
+
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[Any]:
+        """A connection in one transaction, committed when the block ends, rolled back if it raises."""
+        with self.engine.transaction() as conn:
+            yield conn
 
     def migrate(self) -> int:
-        with self._write_lock, self.connect() as conn:
-            current = conn.execute("PRAGMA user_version").fetchone()[0]
-            available = migrations()
-            if current > len(available):
-                raise StorageError(
-                    f"database {self.path} is at schema {current}, newer than this software ({len(available)})"
-                )
-            # SQLite's procedure for a table rebuild (a changed CHECK): foreign keys off outside the
-            # transaction, checked inside it before the commit
-            conn.execute("PRAGMA foreign_keys = OFF")
-            try:
-                for number, path in available[current:]:
-                    conn.execute("BEGIN IMMEDIATE")
-                    try:
-                        for statement in _split_sql(path.read_text()):
-                            conn.execute(statement)
-                        broken = conn.execute("PRAGMA foreign_key_check").fetchall()
-                        if broken:
-                            raise StorageError(f"{len(broken)} foreign key violation(s), first in table {broken[0][0]}")
-                        conn.execute(f"PRAGMA user_version = {number}")
-                        conn.execute("COMMIT")
-                    except Exception as exc:
-                        conn.execute("ROLLBACK")
-                        raise StorageError(f"migration {path.name} failed: {exc}") from exc
-            finally:
-                conn.execute("PRAGMA foreign_keys = ON")
-            return conn.execute("PRAGMA user_version").fetchone()[0]
+        """Apply the migrations the database has not seen (service/store/migrations.py); its schema version."""
+        return self.engine.migrate(load_migrations(self.dialect.name))
+
+    @property
+    def busy_timeout_s(self) -> float:
+        """How long a call waits for another's lock before the database counts as unavailable."""
+        return self.engine.busy_timeout_s
+
+    @busy_timeout_s.setter
+    def busy_timeout_s(self, value: float) -> None:
+        self.engine.busy_timeout_s = value  # SQLite reads it per connection; a server's pool keeps its own
+
+    @property
+    def files_directory(self) -> Path:
+        """Where files that belong with the database go by default (recordings)."""
+        return self.engine.files_directory
+
+    def close(self) -> None:
+        """Let go of the engine's connections (a server's pool); nothing to do on SQLite."""
+        self.engine.close()
 
     # --- tokens ------------------------------------------------------------------------------------
     def create_token(self, role: str, label: str = "") -> tuple[int, str]:
@@ -206,11 +150,22 @@ class Storage:
             ]
 
     # --- jobs --------------------------------------------------------------------------------------
-    def create_job(self, kind: str, request: dict, sweep_id: int | None = None) -> int:
+    def create_job(
+        self,
+        kind: str,
+        request: dict,
+        sweep_id: int | None = None,
+        bench: str | None = None,
+        claimed_by: str | None = None,
+    ) -> int:
+        """`bench`: the bench it is for; `claimed_by`: the service instance that runs it (None: whichever
+        service serves `bench` takes it from the database, Storage.claim_job)."""
+        now = now_iso()
         with self.transaction() as conn:
             return conn.execute(
-                "INSERT INTO jobs (kind, state, request_json, sweep_id, created_at) VALUES (?, 'queued', ?, ?, ?)",
-                (kind, json.dumps(request), sweep_id, now_iso()),
+                "INSERT INTO jobs (kind, state, request_json, sweep_id, created_at, bench, claimed_by, updated_at) "
+                "VALUES (?, 'queued', ?, ?, ?, ?, ?, ?)",
+                (kind, json.dumps(request), sweep_id, now, bench, claimed_by, now),
             ).lastrowid
 
     def update_job(self, job_id: int, **fields: Any) -> None:
@@ -246,13 +201,14 @@ class Storage:
         kind: str = "sweep",
         source_map_id: int | None = None,
         refinement: dict | None = None,
+        bench: str | None = None,
     ) -> int:
         """A sweep, or (kind `refinement`) a map's refinement: its state in `refinement` (service/runs/refinement.py)."""
         with self.transaction() as conn:
             return conn.execute(
                 "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
-                "software_version, created_at, schedule_id, kind, source_map_id, refinement_json) "
-                "VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "software_version, created_at, schedule_id, kind, source_map_id, refinement_json, bench, updated_at) "
+                "VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     method,
                     harmonic_order,
@@ -266,6 +222,8 @@ class Storage:
                     kind,
                     source_map_id,
                     json.dumps(refinement) if refinement is not None else None,
+                    bench,
+                    now_iso(),
                 ),
             ).lastrowid
 
@@ -305,10 +263,10 @@ class Storage:
                     (rid, row["sweep_id"], row["torque_nm"], row["speed_rpm"], row["udc_v"], rid),
                 )
                 conn.execute(
-                    f"UPDATE sweeps SET done_points = (SELECT COUNT(*) FROM results WHERE {_COMMITTED}), "
-                    f"failed_points = (SELECT COUNT(*) FROM results WHERE {_COMMITTED} AND status = 'failed') "
-                    "WHERE id = ?",
-                    (row["sweep_id"], row["sweep_id"], row["sweep_id"]),
+                    f"UPDATE sweeps SET done_points = (SELECT COUNT(*) FROM results WHERE {self._committed}), "
+                    f"failed_points = (SELECT COUNT(*) FROM results WHERE {self._committed} AND status = 'failed'), "
+                    "updated_at = ? WHERE id = ?",
+                    (row["sweep_id"], row["sweep_id"], now_iso(), row["sweep_id"]),
                 )
             return rid
 
@@ -336,7 +294,7 @@ class Storage:
         """Their recordings were deleted (retention): the results say so, and when."""
         with self.transaction() as conn:
             conn.executemany(
-                "UPDATE results SET recording_json = json_set(recording_json, '$.deleted', ?) "
+                f"UPDATE results SET recording_json = {self.dialect.json_set_text('recording_json', 'deleted')} "
                 "WHERE id = ? AND recording_json IS NOT NULL",
                 [(reason, rid) for rid in result_ids],
             )
@@ -377,7 +335,7 @@ class Storage:
             return {
                 (r["torque_nm"], r["speed_rpm"], r["udc_v"])
                 for r in conn.execute(
-                    f"SELECT torque_nm, speed_rpm, udc_v FROM results WHERE {_COMMITTED}", (sweep_id,)
+                    f"SELECT torque_nm, speed_rpm, udc_v FROM results WHERE {self._committed}", (sweep_id,)
                 )
             }
 
@@ -488,13 +446,20 @@ class Storage:
 
     # --- schedules ---------------------------------------------------------------------------------
     def create_schedule(
-        self, name: str, cron: str, timezone_name: str, sweep: dict, enabled: bool, now_utc: str
+        self,
+        name: str,
+        cron: str,
+        timezone_name: str,
+        sweep: dict,
+        enabled: bool,
+        now_utc: str,
+        bench: str | None = None,
     ) -> int:
         with self.transaction() as conn:
             return conn.execute(
-                "INSERT INTO schedules (name, cron, timezone, sweep_json, enabled, created_at, updated_at, last_due_at) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (name, cron, timezone_name, json.dumps(sweep), int(enabled), now_utc, now_utc, now_utc),
+                "INSERT INTO schedules (name, cron, timezone, sweep_json, enabled, created_at, updated_at, last_due_at, "
+                "bench) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (name, cron, timezone_name, json.dumps(sweep), int(enabled), now_utc, now_utc, now_utc, bench),
             ).lastrowid
 
     def update_schedule(self, schedule_id: int, **fields: Any) -> None:
@@ -567,12 +532,228 @@ class Storage:
                 is not None
             )
 
+    # --- a lab: benches, their heartbeat, and the jobs each bench's service claims (issue 20) ---------------
+    # Portable SQL only (SQLite and PostgreSQL): `?` placeholders, INSERT ... ON CONFLICT, RETURNING.
+    def claim_bench(self, bench: dict, stale_before: str) -> dict | None:
+        """Take the bench name for `bench["instance"]` in one statement: inserted, or taken over if the row
+        is this instance's, stopped, or not seen since `stale_before` (UTC ISO). None: claimed; else the
+        row of the live instance that holds it."""
+        row = {**bench, "state": "starting", "busy": 0, "running": None, "stopped_at": None}
+        columns = list(row)
+        updates = ", ".join(f"{c} = excluded.{c}" for c in columns if c != "name")
+        with self.transaction() as conn:
+            taken = conn.execute(
+                f"INSERT INTO benches ({', '.join(columns)}) VALUES ({', '.join('?' for _ in columns)}) "
+                f"ON CONFLICT (name) DO UPDATE SET {updates} WHERE benches.instance = excluded.instance "
+                "OR benches.stopped_at IS NOT NULL OR benches.last_seen < ? RETURNING instance",
+                (*row.values(), stale_before),
+            ).fetchone()
+            if taken is not None:
+                return None
+            return _record(conn.execute("SELECT * FROM benches WHERE name = ?", (bench["name"],)).fetchone())
+
+    def bench_heartbeat(self, name: str, instance: str, state: str, busy: bool, running: str | None) -> bool:
+        """Renew the bench's row; False: another instance has taken the name over."""
+        with self.transaction() as conn:
+            cur = conn.execute(
+                "UPDATE benches SET state = ?, busy = ?, running = ?, last_seen = ? WHERE name = ? AND instance = ?",
+                (state, int(busy), running, now_iso(), name, instance),
+            )
+            return cur.rowcount == 1
+
+    def bench_stopped(self, name: str, instance: str) -> None:
+        """An orderly stop: the row says stopped (the name is free at once)."""
+        now = now_iso()
+        with self.transaction() as conn:
+            conn.execute(
+                "UPDATE benches SET state = 'stopped', busy = 0, running = NULL, last_seen = ?, stopped_at = ? "
+                "WHERE name = ? AND instance = ?",
+                (now, now, name, instance),
+            )
+
+    def get_bench(self, name: str) -> dict | None:
+        with self.connect() as conn:
+            row = conn.execute("SELECT * FROM benches WHERE name = ?", (name,)).fetchone()
+            return _record(row) if row else None
+
+    def list_benches(self) -> list[dict]:
+        with self.connect() as conn:
+            return [_record(r) for r in conn.execute("SELECT * FROM benches ORDER BY name")]
+
+    def queued_per_bench(self) -> dict[str, int]:
+        """Jobs waiting for each bench (a paused sweep's parked job does not count)."""
+        with self.connect() as conn:
+            return {
+                r["bench"]: r["n"]
+                for r in conn.execute(
+                    "SELECT j.bench AS bench, COUNT(*) AS n FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id "
+                    "WHERE j.state = 'queued' AND j.bench IS NOT NULL AND (s.state IS NULL OR s.state != 'paused') "
+                    "GROUP BY j.bench"
+                )
+            }
+
+    def bench_busy(self, bench: str) -> bool:
+        """A job of this bench queued or running: a new sweep for it would wait (bench_has_work, per bench)."""
+        with self.connect() as conn:
+            return (
+                conn.execute(
+                    "SELECT 1 FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id WHERE j.bench = ? AND "
+                    "(j.state = 'running' OR (j.state = 'queued' AND (s.state IS NULL OR s.state != 'paused'))) "
+                    "LIMIT 1",
+                    (bench,),
+                ).fetchone()
+                is not None
+            )
+
+    def claim_job(self, bench: str, instance: str, job_id: int | None = None) -> int | None:
+        """Take the next job of `bench` (oldest first) for `instance`, queued -> running in one statement:
+        one waiting for any service of the bench (claimed_by NULL) or queued by this instance (its own, or
+        its paused sweep's job queued again). A paused sweep's job waits. `job_id`: only that job, and
+        only if this instance queued it (a CLI run takes only what it queued). None: nothing to take."""
+        now = now_iso()
+        if job_id is not None:
+            pick, args = (
+                "SELECT id FROM jobs WHERE id = ? AND bench = ? AND state = 'queued' AND claimed_by = ?",
+                [
+                    job_id,
+                    bench,
+                    instance,
+                ],
+            )
+        else:
+            pick = (
+                "SELECT j.id FROM jobs j WHERE j.bench = ? AND j.state = 'queued' "
+                "AND (j.claimed_by IS NULL OR j.claimed_by = ?) AND NOT EXISTS "
+                "(SELECT 1 FROM sweeps s WHERE s.id = j.sweep_id AND s.state = 'paused') "
+                "ORDER BY j.id LIMIT 1"
+            )
+            args = [bench, instance]
+        # a read first: the worker polls twice a second, and an idle bench must not take the write lock each time
+        with self.connect() as conn:
+            if conn.execute(pick, args).fetchone() is None:
+                return None
+        with self.transaction() as conn:
+            row = conn.execute(
+                f"UPDATE jobs SET state = 'running', claimed_by = ?, started_at = ?, updated_at = ? "
+                f"WHERE id = ({pick} {self.skip_locked}) AND state = 'queued' RETURNING id",
+                (instance, now, now, *args),
+            ).fetchone()
+            return row["id"] if row else None
+
+    def cancel_queued_job(self, job_id: int) -> bool:
+        """Cancel a job no service has taken yet (another bench's): False if it was taken first."""
+        now = now_iso()
+        with self.transaction() as conn:
+            row = conn.execute(
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE id = ? AND state = 'queued' "
+                "RETURNING id",
+                (now, now, job_id),
+            ).fetchone()
+            return row is not None
+
+    def cancel_waiting_sweep(self, sweep_id: int) -> bool:
+        """Cancel a queued sweep whose job no service has taken yet (another bench's), job and sweep in one
+        transaction: False if its bench's service took it first."""
+        now = now_iso()
+        with self.transaction() as conn:
+            job = conn.execute(
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE sweep_id = ? "
+                "AND state = 'queued' AND claimed_by IS NULL RETURNING id",
+                (now, now, sweep_id),
+            ).fetchone()
+            if job is None:
+                return False
+            conn.execute(
+                "UPDATE sweeps SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE id = ? AND state = 'queued'",
+                (now, now, sweep_id),
+            )
+            return True
+
+    def request_sweep_control(self, sweep_id: int, action: str) -> None:
+        """Ask the sweep's bench's service to pause, resume or cancel it (it acts within about a second)."""
+        with self.transaction() as conn:
+            conn.execute(
+                "UPDATE sweeps SET control_request = ?, control_note = NULL, updated_at = ? WHERE id = ?",
+                (action, now_iso(), sweep_id),
+            )
+
+    def sweep_control_requests(self, bench: str) -> list[tuple[int, str]]:
+        """[(sweep id, action)] asked at other services for this bench's sweeps."""
+        with self.connect() as conn:
+            return [
+                (r["id"], r["control_request"])
+                for r in conn.execute(
+                    "SELECT id, control_request FROM sweeps WHERE bench = ? AND control_request IS NOT NULL "
+                    "ORDER BY id",
+                    (bench,),
+                )
+            ]
+
+    def take_sweep_control(self, sweep_id: int, action: str) -> bool:
+        """Take a control request (cleared in the same write): False if it changed or was taken meanwhile."""
+        with self.transaction() as conn:
+            row = conn.execute(
+                "UPDATE sweeps SET control_request = NULL WHERE id = ? AND control_request = ? RETURNING id",
+                (sweep_id, action),
+            ).fetchone()
+            return row is not None
+
+    def bench_unfinished_jobs(self, bench: str) -> list[JobRecord]:
+        """This bench's jobs left queued or running, and those of no bench (from before benches: one
+        database, one bench)."""
+        with self.connect() as conn:
+            return [
+                _record(r)
+                for r in conn.execute(
+                    "SELECT * FROM jobs WHERE state IN ('queued', 'running') AND (bench = ? OR bench IS NULL) "
+                    "ORDER BY id",
+                    (bench,),
+                )
+            ]
+
+    def bench_unfinished_sweeps(self, bench: str) -> list[SweepRecord]:
+        with self.connect() as conn:
+            return [
+                _record(r)
+                for r in conn.execute(
+                    "SELECT * FROM sweeps WHERE state IN ('queued', 'running', 'paused', 'interrupted') "
+                    "AND (bench = ? OR bench IS NULL) ORDER BY id",
+                    (bench,),
+                )
+            ]
+
+    def bench_running_validations(self, bench: str) -> list[ValidationRecord]:
+        with self.connect() as conn:
+            return [
+                _record(r)
+                for r in conn.execute(
+                    "SELECT v.* FROM map_validations v LEFT JOIN jobs j ON j.id = v.job_id WHERE v.state = 'running' "
+                    "AND (j.bench = ? OR j.bench IS NULL)",
+                    (bench,),
+                )
+            ]
+
+    def adopt_unnamed_rows(self, bench: str) -> None:
+        """Rows from before benches (bench NULL) become this bench's: that database served one bench."""
+        with self.transaction() as conn:
+            for table in ("jobs", "sweeps", "schedules"):
+                conn.execute(f"UPDATE {table} SET bench = ? WHERE bench IS NULL", (bench,))
+
+    def changed_since(self, since: str) -> tuple[list[JobRecord], list[SweepRecord]]:
+        """Jobs and sweeps written at or after `since` (UTC ISO), oldest write first."""
+        with self.connect() as conn:
+            jobs = [
+                _record(r)
+                for r in conn.execute("SELECT * FROM jobs WHERE updated_at >= ? ORDER BY updated_at, id", (since,))
+            ]
+            sweeps = [
+                _record(r)
+                for r in conn.execute("SELECT * FROM sweeps WHERE updated_at >= ? ORDER BY updated_at, id", (since,))
+            ]
+            return jobs, sweeps
+
 
 _IDENT = re.compile(r"^[a-z_]+$")
-
-# a sweep's committed results: current (not superseded) and not discarded by an interlock
-# (detail_json "discarded" names why; the attempt stays as history and the point is measured again)
-_COMMITTED = "sweep_id = ? AND superseded_by IS NULL AND json_extract(detail_json, '$.discarded') IS NULL"
 
 
 def _check_columns(fields: dict[str, Any]) -> None:
@@ -593,7 +774,7 @@ JSON_COLUMNS = {
 }
 
 
-def _record(row: sqlite3.Row) -> dict[str, Any]:
+def _record(row: Any) -> dict[str, Any]:
     """A row as the layers above read it (service/store/records.py): every `x_json` column decoded as `x`."""
     record: dict[str, Any] = {}
     for key in row.keys():
@@ -614,7 +795,7 @@ def encode_columns(table: str, fields: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _insert(conn: sqlite3.Connection, table: str, row: dict[str, Any]) -> int:
+def _insert(conn: Any, table: str, row: dict[str, Any]) -> int:
     """One row from a {column: value} dict, in the caller's transaction; its id."""
     row = encode_columns(table, row)
     _check_columns(row)
@@ -622,10 +803,16 @@ def _insert(conn: sqlite3.Connection, table: str, row: dict[str, Any]) -> int:
     return conn.execute(f"INSERT INTO {table} ({', '.join(row)}) VALUES ({marks})", tuple(row.values())).lastrowid
 
 
+# tables whose every write sets updated_at: another bench's service shows their progress from it
+_TRACKED = ("jobs", "sweeps")
+
+
 def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -> None:
     if not fields:
         return
     fields = encode_columns(table, fields)
+    if table in _TRACKED:
+        fields.setdefault("updated_at", now_iso())
     _check_columns(fields)
     sets = ", ".join(f"{k} = ?" for k in fields)
     with storage.transaction() as conn:
@@ -634,9 +821,3 @@ def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -
 
 def _sha256(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
-
-
-def _split_sql(script: str) -> list[str]:
-    """Statements of a migration script (no semicolons inside our literals; comments stripped)."""
-    lines = [line.split("--", 1)[0] for line in script.splitlines()]
-    return [stmt.strip() for stmt in "\n".join(lines).split(";") if stmt.strip()]

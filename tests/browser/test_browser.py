@@ -1167,3 +1167,56 @@ def test_refine_on_drive_shows_its_rounds_and_the_refined_validation_beside_the_
         assert not rec["console"], f"console errors: {rec['console']}"
     finally:
         context.close()
+
+
+def test_lab_overview_lists_every_bench_and_the_picker_sends_a_sweep_to_another_bench(service, browser, tmp_path):
+    """The lab panel shows this service's bench online and a bench only named by a queued job as never
+    seen, with its queue; the top bar's picker (default: this bench) sends the sweep form's run to the
+    bench chosen, where it waits, and the sweep's row says for what."""
+    job = _api(service, "POST", "/identifications", {"operating_point": OP1, "bench": "bench-b"})
+    assert job["state"] == "queued" and job["bench"] == "bench-b"
+    context, page, rec = _open(browser, service["base"])
+    sweep_id = None
+    try:
+        page.fill('[data-testid="token"]', service["token"])
+        own = page.locator('[data-testid="lab-row"][data-bench="emulated"]')
+        own.wait_for(timeout=15_000)
+        assert own.get_attribute("data-online") == "true"
+        assert own.locator('[data-testid="lab-online"]').inner_text() == "online"
+        other = page.locator('[data-testid="lab-row"][data-bench="bench-b"]')
+        other.wait_for(timeout=15_000)
+        assert other.get_attribute("data-online") == "false"
+        assert "never seen" in other.locator('[data-testid="lab-online"]').inner_text()
+        assert other.locator('[data-testid="lab-queue"]').inner_text() == "1"
+        # the picker: this service's bench by default, the others to choose
+        assert page.input_value('[data-testid="bench-pick"]') == "emulated"
+        options = page.eval_on_selector_all('[data-testid="bench-pick"] option', "os => os.map((o) => o.value)")
+        assert options == ["bench-b", "emulated"], options
+        page.select_option('[data-testid="bench-pick"]', "bench-b")
+        page.fill('[data-testid="sweep-torque"]', "1, 2")
+        page.fill('[data-testid="sweep-speed"]', "1000")
+        page.fill('[data-testid="sweep-udc"]', "12")
+        page.click('[data-testid="sweep-submit"]')
+        ok = page.locator('[data-testid="sweep-ok"]')
+        ok.wait_for(state="visible", timeout=10_000)
+        assert "waits for bench bench-b (never seen" in ok.inner_text(), ok.inner_text()
+        sweep = _api(service, "GET", "/sweeps?limit=1")[0]
+        sweep_id = sweep["id"]
+        assert sweep["bench"] == "bench-b" and sweep["state"] == "queued", sweep
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="lab-row"][data-bench="bench-b"] [data-testid="lab-queue"]')
+                .innerText === '2'""",
+            timeout=10_000,
+        )
+        note = page.locator('[data-testid="sweep-waiting-for"]').first
+        note.wait_for(timeout=10_000)
+        assert "bench bench-b" in note.inner_text()
+        page.screenshot(path=str(tmp_path / "lab.png"), full_page=True)
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        assert not rec["console"], f"console errors: {rec['console']}"
+    finally:
+        context.close()
+        # what waits for a bench no service serves is cancelled from here (no service has taken it)
+        _api(service, "POST", f"/jobs/{job['id']}/cancel")
+        if sweep_id is not None:
+            assert _api(service, "POST", f"/sweeps/{sweep_id}/cancel")["state"] == "cancelled"

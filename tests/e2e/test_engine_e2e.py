@@ -98,9 +98,19 @@ def test_a_paused_sweep_releases_the_bench_and_resume_queues_it_again(svc):
     sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
     svc.engine.pause_sweep(sweep_id)
-    wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused" and not svc.bench.busy)
-    sweep_job = next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)
-    assert sweep_job["state"] == "queued"  # parked: out of the worker's queue
+
+    def sweep_job() -> dict:
+        return next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)
+
+    # parked: the sweep paused, the bench free, its job queued again but out of the worker's hands (the
+    # sweep's state is written before its job's: wait for both)
+    wait_for(
+        lambda: (
+            svc.storage.get_sweep(sweep_id)["state"] == "paused"
+            and not svc.bench.busy
+            and sweep_job()["state"] == "queued"
+        )
+    )
     assert not svc.storage.bench_has_work()  # a schedule firing now would start at once
     held = svc.storage.get_sweep(sweep_id)["done_points"]
     job_id = svc.engine.submit_identification(OP1_POINT, "probe", parse_options("probe", {}))
@@ -112,7 +122,7 @@ def test_a_paused_sweep_releases_the_bench_and_resume_queues_it_again(svc):
     sweep = wait_for(lambda: (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed") and s)
     assert sweep["state"] == "done" and sweep["done_points"] == 4 and sweep["map_id"] is not None
     # the same job, resumed (it ends just after its sweep)
-    wait_for(lambda: svc.storage.get_job(sweep_job["id"])["state"] == "done")
+    wait_for(lambda: sweep_job()["state"] == "done")
     assert bench_is_safe(svc)
 
 

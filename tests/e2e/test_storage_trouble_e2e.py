@@ -17,12 +17,11 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.support.bench_rig import Api, EmulatorRig
-from tests.support.service_process import ServiceProcess
+from tests.support.bench_rig import EmulatorRig
+from tests.support.storage_trouble import GRID, drive_safe, start, sweep_through
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.e2e
-GRID = {"torque_nm": [1.5, 2.0, 2.5], "speed_rpm": [1500, 2000], "udc_v": [12]}
 
 
 @pytest.fixture(scope="module")
@@ -43,55 +42,6 @@ def tmpfs(size: str = "4m"):
     finally:
         subprocess.run(["mount", "-o", "remount,rw", str(where)], capture_output=True)
         subprocess.run(["umount", "-l", str(where)], capture_output=True)
-
-
-def start(emu: EmulatorRig, db: Path, monkeypatch) -> tuple[ServiceProcess, Api]:
-    monkeypatch.setenv("RIPPLECAL_SERVER__DB_BUSY_TIMEOUT_S", "1")  # unavailable after 1 s, not 10
-    # the raw recordings on another filesystem: the trouble here is the database's (and a recording being
-    # written, open, would keep Linux from remounting the database's filesystem read-only)
-    monkeypatch.setenv("RIPPLECAL_RECORDINGS__DIRECTORY", str(Path(tempfile.mkdtemp(prefix="ripplecal-rec-"))))
-    # the log beside the test, not on the database's filesystem (an open file would keep it from going read-only)
-    logs = Path(tempfile.mkdtemp(prefix="ripplecal-log-"))
-    svc = ServiceProcess(db, "--bench", str(emu.bench_file(logs)), log_dir=logs)
-    svc.wait_ready()
-    api = Api(svc, db)
-    assert api.post("/bench/fault-reset").status_code == 200  # whatever an earlier test left
-    return svc, api
-
-
-def drive_safe(emu: EmulatorRig) -> bool:
-    f = emu.control({"status": True})["faults"]
-    return f["drive_state"] != "operation_enabled" and f["drive_torque_nm"] == 0.0 and f["drive_injection_mode"] == 0
-
-
-def sweep_through(api: Api, emu: EmulatorRig, trouble_on, trouble_off) -> dict:
-    """A sweep; once it has 2 points, `trouble_on()`; while the database is away: the API answers 503 with
-    Retry-After and a JSON reason, the bench goes safe; then `trouble_off()`: the sweep finishes by itself,
-    every point measured exactly once."""
-    sweep_id = api.post("/sweeps", {"grid": GRID, "method": "probe"}).json()["id"]
-    api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 2, 300, "2 points")
-    trouble_on()
-    try:
-        r = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 503 and r, 60, "a 503")
-        assert r.headers.get("Retry-After") and "database" in r.json()["detail"], r.text
-        assert " /" not in r.json()["detail"], r.text  # the file by its name, no absolute path
-        api.wait(lambda: drive_safe(emu), 60, "the bench made safe while the database is away")
-    finally:
-        trouble_off()
-    sweep = api.wait(
-        lambda: (
-            (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 200
-            and r.json()["state"] in ("done", "failed", "cancelled")
-            and r.json()
-        ),
-        300,
-        "sweep finished",
-    )
-    assert sweep["state"] == "done", sweep
-    assert sweep["progress"]["done"] == sweep["progress"]["total"] == 6 and len(sweep["points"]) == 6
-    history = api.get(f"/sweeps/{sweep_id}")["points"]
-    assert len({(p["operating_point"]["torque_nm"], p["operating_point"]["speed_rpm"]) for p in history}) == 6
-    return sweep
 
 
 def test_a_lock_held_by_another_process_pauses_the_sweep_and_loses_nothing(emu, tmp_path, monkeypatch):

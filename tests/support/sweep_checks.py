@@ -4,7 +4,9 @@ How many cells reach 40 dB is the sweep-quality benchmark's figure, not an end-t
 
 from __future__ import annotations
 
-import sqlite3
+import json
+
+from service.store.storage import Storage
 
 MEASURED = ("ok", "below_target", "no_authority")
 
@@ -48,13 +50,20 @@ def holes(m: dict) -> int:
 
 
 def results_per_point(db, sweep_id: int, first_pass_only: bool = False) -> dict[tuple, int]:
-    """Stored attempts per operating point of a sweep, read from the database file itself;
-    `first_pass_only`: leave out the second pass, which measures a non-ok cell once more by design."""
-    first_pass = "AND COALESCE(json_extract(detail_json, '$.details.sweep_pass'), 1) = 1 " if first_pass_only else ""
-    with sqlite3.connect(db) as conn:
-        rows = conn.execute(
-            f"SELECT torque_nm, speed_rpm, udc_v, COUNT(*) FROM results WHERE sweep_id = ? {first_pass}"
-            "GROUP BY torque_nm, speed_rpm, udc_v",
-            (sweep_id,),
-        ).fetchall()
-    return {r[:3]: r[3] for r in rows}
+    """Stored attempts per operating point of a sweep, read from the database itself (a SQLite file or a
+    postgresql:// URL); `first_pass_only`: leave out the second pass, which measures a non-ok cell once
+    more by design."""
+    storage = Storage(db)
+    try:
+        with storage.connect() as conn:
+            rows = conn.execute(
+                "SELECT torque_nm, speed_rpm, udc_v, detail_json FROM results WHERE sweep_id = ?", (sweep_id,)
+            ).fetchall()
+    finally:
+        storage.close()
+    counts: dict[tuple, int] = {}
+    for r in rows:
+        if first_pass_only and (json.loads(r[3] or "{}").get("details") or {}).get("sweep_pass", 1) != 1:
+            continue
+        counts[(r[0], r[1], r[2])] = counts.get((r[0], r[1], r[2]), 0) + 1
+    return counts

@@ -9,7 +9,6 @@ import pytest
 
 from service.api.public import map_public
 from service.maps.compare import compare_maps, wrap_deg
-from service.store.storage import Storage
 from tests.support.maps import RESIDUAL, S_MEASURED, UNCOMPENSATED, make_map, theta_of
 
 GRID = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000.0, 2000.0], "udc_v": [12.0]}
@@ -25,9 +24,7 @@ def shifted(p):
     return tc + DELTA[0], ts + DELTA[1]
 
 
-@pytest.fixture
-def storage(tmp_path):
-    return Storage(tmp_path / "c.db")
+# `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
 def _gamma_delta_deg(tc, ts):

@@ -13,7 +13,6 @@ import pytest
 from service.api.public import map_public
 from service.maps import quality as map_quality
 from service.maps.lut_export import export_map
-from service.store.storage import Storage
 from tests.support.maps import make_map, theta_of
 
 # non-uniform speed axis: the expected step scales with the grid spacing
@@ -39,9 +38,7 @@ def planted(at, offset):
 OFFSET = np.array(theta_of(1.5, 40.0))  # 1.5 deg, in some direction
 
 
-@pytest.fixture
-def storage(tmp_path):
-    return Storage(tmp_path / "q.db")
+# `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
 def _cell(m, t, n, u=12.0):

@@ -89,9 +89,7 @@ def test_summary_counts_failed_cells_apart_and_never_as_a_number():
     assert empty["grid"]["median_db"] is None and empty["worst"] is None
 
 
-@pytest.fixture
-def storage(tmp_path):
-    return Storage(tmp_path / "r.db")
+# `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
 def test_empty_and_partial_maps_are_refused_unless_forced(storage):
@@ -159,7 +157,7 @@ def test_migration_6_rebuilds_jobs_keeping_every_row(tmp_path):
             f"INSERT INTO results ({', '.join(row)}) VALUES ({', '.join('?' for _ in row)})", tuple(row.values())
         )
     storage = Storage(db)
-    assert MIGRATIONS_DIR.joinpath("0006_map_validations.sql").exists()
+    assert MIGRATIONS_DIR.joinpath("sqlite", "0006_map_validations.sql").exists()
     with sqlite3.connect(db) as conn:
         assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migrations())
         assert conn.execute("SELECT id, kind, state FROM jobs ORDER BY id").fetchall() == [

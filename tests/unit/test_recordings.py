@@ -82,8 +82,7 @@ def _stored_results(storage: Storage, n: int) -> list[int]:
     return [storage.insert_result(result_row(op, "probe", None, "test-bench", now_iso(), error="x")) for _ in range(n)]
 
 
-def test_retention_keeps_the_newest_up_to_keep_gb(tmp_path):
-    storage = Storage(tmp_path / "r.db")
+def test_retention_keeps_the_newest_up_to_keep_gb(storage, tmp_path):  # on SQLite and PostgreSQL (tests/conftest.py)
     directory = tmp_path / "recordings"
     directory.mkdir()
     store = RecordingStore(
@@ -115,8 +114,9 @@ def test_retention_keeps_the_newest_up_to_keep_gb(tmp_path):
         assert handle.read() == b"x" * 400
 
 
-def test_the_newest_recording_is_kept_even_alone_over_the_limit(tmp_path):
-    storage = Storage(tmp_path / "r.db")
+def test_the_newest_recording_is_kept_even_alone_over_the_limit(
+    storage, tmp_path
+):  # on SQLite and PostgreSQL (tests/conftest.py)
     store = RecordingStore(storage, tmp_path, keep_gb=1e-9, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE)
     [rid] = _stored_results(storage, 1)
     store.path(rid).write_bytes(b"x" * 100)
@@ -167,8 +167,9 @@ def test_a_failed_result_insert_leaves_nothing_in_the_recordings_directory(tmp_p
     assert list(directory.iterdir()) == []
 
 
-def test_a_failed_write_leaves_the_error_in_the_result_and_nothing_in_the_directory(tmp_path):
-    storage = Storage(tmp_path / "r.db")
+def test_a_failed_write_leaves_the_error_in_the_result_and_nothing_in_the_directory(
+    storage, tmp_path
+):  # on SQLite and PostgreSQL (tests/conftest.py)
     directory = tmp_path / "recordings"
     store = RecordingStore(storage, directory, keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE)
     recorder = store.recorder()
@@ -186,8 +187,9 @@ def test_a_failed_write_leaves_the_error_in_the_result_and_nothing_in_the_direct
     assert not list(tmp_path.rglob("*.mf4"))
 
 
-def test_a_recording_deleted_behind_the_service_is_missing_without_its_path(tmp_path):
-    storage = Storage(tmp_path / "r.db")
+def test_a_recording_deleted_behind_the_service_is_missing_without_its_path(
+    storage, tmp_path
+):  # on SQLite and PostgreSQL (tests/conftest.py)
     store = RecordingStore(
         storage, tmp_path / "recordings", keep_gb=1.0, sample_rate_hz=RATE_HZ, accel_full_scale_rad_s2=FULL_SCALE
     )

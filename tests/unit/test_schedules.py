@@ -88,11 +88,12 @@ class RecordingEngine:
         return None
 
 
-def _scheduler(tmp_path, clock, **schedules_settings):
+def _scheduler(db_location, clock, **schedules_settings):
+    """A scheduler on `db_location` (tests/conftest.py: each test runs on SQLite and on PostgreSQL)."""
     settings = load_settings(
         environ={},
         overrides={
-            "server.db_path": str(tmp_path / "s.db"),
+            "server.db_path": db_location,
             **{f"schedules.{k}": v for k, v in schedules_settings.items()},
         },
     )
@@ -107,9 +108,9 @@ def _add(storage, settings, clock, cron, zone="Europe/Berlin", name="nightly"):
 
 
 @pytest.mark.parametrize("first_day", [datetime(2027, 3, 26, tzinfo=UTC), datetime(2027, 10, 29, tzinfo=UTC)])
-def test_scheduler_stepped_across_the_dst_change_fires_once_per_local_day(tmp_path, first_day):
+def test_scheduler_stepped_across_the_dst_change_fires_once_per_local_day(db_location, first_day):
     clock = SteppedClock(first_day)
-    storage, engine, settings, scheduler = _scheduler(tmp_path, clock)
+    storage, engine, settings, scheduler = _scheduler(db_location, clock)
     sid = _add(storage, settings, clock, "30 2 * * *")
     while clock.t < first_day + timedelta(days=5):
         clock.t += timedelta(minutes=10)
@@ -122,11 +123,11 @@ def test_scheduler_stepped_across_the_dst_change_fires_once_per_local_day(tmp_pa
     assert len(engine.submitted) == 5
 
 
-def test_a_firing_missed_within_grace_runs_once_and_older_ones_are_recorded_missed(tmp_path):
+def test_a_firing_missed_within_grace_runs_once_and_older_ones_are_recorded_missed(db_location):
     """Down for two days with an every-minute schedule: one row sums up the firings beyond grace, the
     latest (within grace) runs once; no flood of sweeps when the service comes back."""
     clock = SteppedClock(datetime(2027, 6, 1, 12, 0, 30, tzinfo=UTC))
-    storage, engine, settings, scheduler = _scheduler(tmp_path, clock, missed_grace_s=3600)
+    storage, engine, settings, scheduler = _scheduler(db_location, clock, missed_grace_s=3600)
     sid = _add(storage, settings, clock, "* * * * *")
     clock.t += timedelta(days=2)
     scheduler.tick()
@@ -139,9 +140,9 @@ def test_a_firing_missed_within_grace_runs_once_and_older_ones_are_recorded_miss
     assert len(storage.schedule_runs(sid)) == 2
 
 
-def test_a_firing_beyond_grace_is_recorded_missed_not_run(tmp_path):
+def test_a_firing_beyond_grace_is_recorded_missed_not_run(db_location):
     clock = SteppedClock(datetime(2027, 6, 1, 0, 50, tzinfo=UTC))
-    storage, engine, settings, scheduler = _scheduler(tmp_path, clock, missed_grace_s=3600)
+    storage, engine, settings, scheduler = _scheduler(db_location, clock, missed_grace_s=3600)
     sid = _add(storage, settings, clock, "0 1 * * *", zone="UTC")
     clock.t = datetime(2027, 6, 1, 3, 20, tzinfo=UTC)
     scheduler.tick()
@@ -151,11 +152,11 @@ def test_a_firing_beyond_grace_is_recorded_missed_not_run(tmp_path):
     assert engine.submitted == []
 
 
-def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(tmp_path):
+def test_a_disabled_schedule_does_not_fire_and_enabling_counts_from_then(db_location):
     from service.runs.schedules import update_schedule
 
     clock = SteppedClock(datetime(2027, 6, 1, 12, 0, 30, tzinfo=UTC))
-    storage, engine, settings, scheduler = _scheduler(tmp_path, clock)
+    storage, engine, settings, scheduler = _scheduler(db_location, clock)
     sid = _add(storage, settings, clock, "* * * * *")
     update_schedule(storage, settings, clock(), sid, {"enabled": False})
     clock.t += timedelta(minutes=5)

@@ -19,16 +19,18 @@ from service.maps.lut_export import export_map
 from service.store.storage import Storage, StorageError, migrations
 from tests.support.stored_maps import sweep_with_results
 
-
-@pytest.fixture
-def storage(tmp_path):
-    return Storage(tmp_path / "r.db")
+# `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
-def test_migrations_set_user_version_and_are_idempotent(storage):
+def test_migrations_are_idempotent(storage):
+    assert storage.migrate() == len(migrations())
+    assert storage.migrate() == len(migrations())
+
+
+def test_migrations_set_user_version_on_sqlite(tmp_path):
+    storage = Storage(tmp_path / "r.db")
     with sqlite3.connect(storage.path) as conn:
         assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migrations())
-    assert storage.migrate() == len(migrations())
 
 
 def test_newer_database_is_refused(tmp_path):
@@ -42,8 +44,8 @@ def test_newer_database_is_refused(tmp_path):
 def test_tokens_are_stored_hashed(storage):
     token_id, token = storage.create_token("operator")
     assert storage.token_role(token) == "operator"
-    with sqlite3.connect(storage.path) as conn:
-        assert token not in str(conn.execute("SELECT * FROM api_tokens").fetchall())
+    with storage.connect() as conn:
+        assert token not in str([tuple(r) for r in conn.execute("SELECT * FROM api_tokens").fetchall()])
     assert storage.revoke_token(token_id)
     assert storage.token_role(token) is None
 

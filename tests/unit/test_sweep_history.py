@@ -1,21 +1,16 @@
 """Issue 8 storage: one current result per operating point, earlier attempts kept as history,
 progress recounted in the result's own transaction, interlock-discarded attempts not committed.
-A real SQLite file; no bench."""
-
-import pytest
+On a real SQLite file and a real PostgreSQL server; no bench."""
 
 from service import __version__
 from service.identification import AdaptiveOptions
 from service.model.operating_point import OperatingPoint
 from service.store.result_rows import result_row
-from service.store.storage import Storage
 
 GRID = {"torque_nm": [1.0, 2.5], "speed_rpm": [1000.0], "udc_v": [12.0]}
 
 
-@pytest.fixture
-def storage(tmp_path):
-    return Storage(tmp_path / "h.db")
+# `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
 def _failed(op, sweep_id, discarded=False):

@@ -15,10 +15,13 @@ import * as mapValidation from "./panels/map-validation.js";
 import * as identify from "./panels/identify.js";
 import * as resultView from "./panels/result-view.js";
 import * as schedules from "./panels/schedules.js";
+import * as lab from "./panels/lab.js";
+import { coalesced } from "./coalesce.js";
 
 const TOKEN_KEY = "ripplecal.token";
 const SWEEP_POLL_MS = 5000;      // sweep list refresh while SSE is down
 const SCHEDULE_POLL_MS = 15000;  // schedules: next runs move on, firings happen between sweep events
+const LAB_POLL_MS = 2000;        // the lab overview: other benches' heartbeats (last seen, online)
 
 // The token field is remembered in localStorage; the API client reads it when it sends.
 function bindToken() {
@@ -61,6 +64,11 @@ async function init() {
   events.on("sweep.point", sweeps.onPoint);
   events.on("job.state", sweeps.onJobState);
   events.on("job.state", identify.onJobState);
+  // the lab overview: every bench's runs (events of any bench) and heartbeats (timer)
+  const labSoon = coalesced(lab.reload, 300);
+  events.on("job.state", labSoon);
+  events.on("sweep.progress", labSoon);
+  setInterval(lab.reload, LAB_POLL_MS);
   events.on("resync", () => {
     // SSE was down: sweep progress may have been missed
     sweeps.reload();
@@ -78,6 +86,7 @@ async function init() {
   sweeps.reload();
   maps.reload(true);
   schedules.reload();
+  lab.reload();
   identify.resume();
 }
 

@@ -7,6 +7,7 @@ from fastapi import APIRouter, HTTPException, status
 from drivers.errors import FaultReactionActiveError
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.errors import error_responses
+from service.api.public import BenchPublic, bench_public
 from service.bench.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
@@ -18,9 +19,15 @@ def bench_status(service: ServiceDep) -> dict:
     return service.bench_status()
 
 
+@router.get("/benches", response_model=list[BenchPublic])
+def benches(service: ServiceDep) -> list[BenchPublic]:
+    """Every bench of the lab (one service per bench, one database): online, state, what it runs, its queue."""
+    return [bench_public(b) for b in service.benches()]
+
+
 @router.get("/version")
 def version(service: ServiceDep) -> dict:
-    return {"software_version": service.version, "bench": service.bench_identity()}
+    return {"software_version": service.version, "bench": service.bench_identity(), "bench_name": service.own_bench()}
 
 
 @router.post("/bench/fault-reset", responses=error_responses(401, 403, 409, 502))

@@ -22,7 +22,7 @@ router = APIRouter(prefix="/api/v1", tags=["identifications"])
 )
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
     with refused_at(["body", "operating_point"]):
-        job_id = service.submit_identification(body.operating_point, body.method, body.options)
+        job_id = service.submit_identification(body.operating_point, body.method, body.options, bench=body.bench)
     return job_public(service, service.get_job(job_id))
 
 

@@ -147,7 +147,7 @@ def validate_map(
     body = body or ValidationCreate()
     try:
         with refused_at(["path", "map_id"]):
-            job_id = service.submit_validation(map_id, body.force, body.options)
+            job_id = service.submit_validation(map_id, body.force, body.options, bench=body.bench)
     except KeyError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
     return job_public(service, service.get_job(job_id))
@@ -168,7 +168,7 @@ def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: Re
     try:
         with refused_at(["path", "map_id"]):
             try:
-                job_id = service.submit_refinement(map_id, body)
+                job_id = service.submit_refinement(map_id, body, bench=body.bench)
             except ValidationError as exc:  # the method's options
                 raise unprocessable(
                     *(validation_error(["body", "options", *map(str, e["loc"])], e["msg"]) for e in exc.errors())

@@ -78,7 +78,9 @@ def preview(
 )
 def create(body: ScheduleCreate, service: ServiceDep, _: OperatorDep) -> SchedulePublic:
     with _refused():
-        schedule_id = service.create_schedule(body.name, body.cron, body.timezone, body.sweep, body.enabled)
+        schedule_id = service.create_schedule(
+            body.name, body.cron, body.timezone, body.sweep, body.enabled, bench=body.bench or body.sweep.bench
+        )
     return _public(service, schedule_id)
 
 

@@ -25,10 +25,11 @@ router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 )
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
     try:
-        # the size that counts is the planned grid's (speeds placed around the onset included)
-        check_sweep_size(
-            plan_grid(body.grid, body.regime, service.settings).grid, body.confirm_large, service.settings.safety
-        )
+        # the size that counts is the planned grid's (speeds placed around the onset included; another
+        # bench's grid as given: its placement needs that bench's machine)
+        own = body.bench in (None, service.own_bench())
+        grid = plan_grid(body.grid, body.regime, service.settings).grid if own else body.grid
+        check_sweep_size(grid, body.confirm_large, service.settings.safety)
     except RegimeError as exc:
         raise unprocessable(validation_error(["body", "regime"], str(exc))) from None
     except SweepTooLarge as exc:
@@ -38,7 +39,7 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
     except ValueError as exc:
         raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
     with refused_at(["body", "grid"]):
-        sweep_id = service.submit_sweep(body.grid, body.method, body.options, regime=body.regime)
+        sweep_id = service.submit_sweep(body.grid, body.method, body.options, regime=body.regime, bench=body.bench)
     return sweep_public(service, service.get_sweep(sweep_id))
 
 

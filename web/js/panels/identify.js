@@ -3,6 +3,7 @@
 import * as api from "../api.js";
 import { $, setText, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
+import * as benchChoice from "../bench-choice.js";
 
 const JOB_ACTIVE = new Set(["queued", "running"]);
 const JOB_POLL_MS = 1000;        // job poll period while SSE is down
@@ -104,7 +105,8 @@ async function submit(ev) {
   const btn = $("identify-submit");
   btn.disabled = true;
   try {
-    follow(await api.post("/identifications", { operating_point: op, method: f.elements.method.value, options }));
+    follow(await api.post("/identifications",
+      benchChoice.withBench({ operating_point: op, method: f.elements.method.value, options })));
   } catch (e) {
     if (e.status === 422 && Array.isArray(e.detail)) {
       const names = new Set();

@@ -10,6 +10,7 @@ import { $, el, setText, showMsg } from "../dom.js";
 import { fmt } from "../format.js";
 import * as figures from "../figures.js";
 import { coalesced } from "../coalesce.js";
+import * as benchChoice from "../bench-choice.js";
 
 const POLL_MS = 1000;
 const ACTIVE = ["queued", "running", "paused", "interrupted"];   // the refinement's (its sweep's) states
@@ -83,7 +84,7 @@ async function start() {
   const source = mapId;
   $("refine-btn").disabled = true;
   try {
-    const job = await api.post(`/maps/${source}/refine`, { target_db: target, max_cells: maxCells });
+    const job = await api.post(`/maps/${source}/refine`, benchChoice.withBench({ target_db: target, max_cells: maxCells }));
     const r = fresh(job.sweep_id, job.id);
     take(r, job.result, job.state === "queued" ? "queued" : (job.result || {}).state, job.error);
     showMsg("refine-note", [`Refinement ${job.sweep_id} of map ${source} queued (job ${job.id}): target ` +

@@ -9,6 +9,7 @@ import { fmt, shortTime } from "../format.js";
 import * as figures from "../figures.js";
 import * as events from "../events.js";
 import * as refine from "./map-refine.js";
+import * as benchChoice from "../bench-choice.js";
 
 let mapId = null;            // the map the map panel shows
 let udc = null;              // its U_dc slice
@@ -47,7 +48,7 @@ async function start() {
   if (mapId === null) return;
   showMsg("validation-note", null);
   try {
-    const job = await api.post(`/maps/${mapId}/validate`, { force: $("validate-force").checked });
+    const job = await api.post(`/maps/${mapId}/validate`, benchChoice.withBench({ force: $("validate-force").checked }));
     runningJob = job.id;
     showMsg("validation-note", [`Validation job ${job.id} queued: LUT download, then every grid point and midpoint ` +
       "in the drive's LUT mode."]);

@@ -6,6 +6,7 @@ import { coalesced } from "../coalesce.js";
 import { $, el, showMsg } from "../dom.js";
 import { runLevel, shortTime } from "../format.js";
 import { submittedGrid } from "../grid-form.js";
+import * as benchChoice from "../bench-choice.js";
 
 const RELOAD_DEBOUNCE_MS = 300;
 const NEXT_SHOWN = 3;            // next runs per row
@@ -125,7 +126,7 @@ async function submit(ev) {
   const btn = $("schedule-submit");
   btn.disabled = true;
   try {
-    const s = await api.post("/schedules", body);
+    const s = await api.post("/schedules", benchChoice.withBench(body));
     showMsg("schedule-ok", [`Schedule ${s.id} (${s.name}) added; next run ${s.next_runs[0] || "—"}.`]);
     schedules = [...schedules.filter((x) => x.id !== s.id), s].sort((a, b) => a.id - b.id);
     render();

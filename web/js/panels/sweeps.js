@@ -4,6 +4,7 @@ import { coalesced } from "../coalesce.js";
 import { $, el, showMsg } from "../dom.js";
 import { fmt, runLevel, shortTime } from "../format.js";
 import { submittedSweep } from "../grid-form.js";
+import * as benchChoice from "../bench-choice.js";
 
 const RELOAD_DEBOUNCE_MS = 300;  // several events in a burst -> one GET /sweeps
 const sweeps = new Map();        // id -> sweep object, as GET /sweeps answers
@@ -239,6 +240,14 @@ function progressCell(s) {
   if (outcome.length) td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-outcome" }, outcome.join(" · ")));
   const timing = timingText(s);
   if (timing) td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-timing" }, timing));
+  if (s.waiting_for) {
+    td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-waiting-for" }, `waits for ${s.waiting_for}`));
+  }
+  if (s.control_request) {  // asked here, done by the service of the sweep's bench within about a second
+    td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-control-request" },
+      `${s.control_request} asked of bench ${s.bench}'s service`));
+  }
+  if (s.control_note) td.appendChild(el("div", { class: "row-error", "data-testid": "sweep-control-note" }, s.control_note));
   if (s.state === "paused" && s.pause_reason) {
     td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-pause-reason" }, `paused: ${s.pause_reason}`));
   }
@@ -363,12 +372,13 @@ async function submit(ev) {
   const btn = $("sweep-submit");
   btn.disabled = true;
   try {
-    const s = await api.post("/sweeps", body);
+    const s = await api.post("/sweeps", benchChoice.withBench(body));
     if (s && s.id !== undefined) {
       sweeps.set(s.id, s);
       render();
       const n = s.progress && s.progress.total;
-      showMsg("sweep-ok", [`Sweep ${s.id} accepted (${s.state}${n ? `, ${n} operating points` : ""}).`]);
+      showMsg("sweep-ok", [`Sweep ${s.id} accepted (${s.state}${n ? `, ${n} operating points` : ""})`
+        + (s.waiting_for ? `; it waits for ${s.waiting_for}.` : ".")]);
     }
     scheduleReload();
   } catch (e) {
