@@ -37,6 +37,10 @@ MIN_QUIET_SAMPLES = 512  # never less: the emulator applies one queued setpoint 
 QUIET_PER_LATENCY = 2.0  # the window spans twice the largest recent setpoint latency
 LATENCIES_KEPT = 64
 MAX_ESTABLISH_SAMPLES = 131072  # a line that toggles for 8 s of plant time with nothing written is not ours
+# never longer: a latency measured while the reader lagged far behind the stream (a loaded PC) would ask for
+# a window that no gap may interrupt for most of MAX_ESTABLISH_SAMPLES; the drive's commit counter read back
+# at the end of establishing (resync) is the check on a window that was too short
+MAX_QUIET_SAMPLES = MAX_ESTABLISH_SAMPLES // 4
 
 
 class AccountingError(RuntimeError):
@@ -160,10 +164,11 @@ class SetpointAccounting:
 
     def quiet_samples(self) -> int:
         """Quiet (no toggle, no gap) that shows nothing is pending: twice the largest recent setpoint
-        latency, at least MIN_QUIET_SAMPLES; INITIAL_QUIET_SAMPLES before any was measured."""
+        latency, at least MIN_QUIET_SAMPLES, at most MAX_QUIET_SAMPLES; INITIAL_QUIET_SAMPLES before any
+        was measured."""
         if not self.latencies:
             return INITIAL_QUIET_SAMPLES
-        return max(MIN_QUIET_SAMPLES, int(QUIET_PER_LATENCY * max(self.latencies)))
+        return min(MAX_QUIET_SAMPLES, max(MIN_QUIET_SAMPLES, int(QUIET_PER_LATENCY * max(self.latencies))))
 
     # --- runs ------------------------------------------------------------------------------------
     def start_run(self, guard: Callable[[], None]) -> None:
