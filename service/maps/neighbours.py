@@ -14,6 +14,7 @@ import math
 
 from drivers import lut_image
 from service.identification.common import Prior
+from service.maps.build import best_attempts
 from service.maps.fill import MEASURED_MIN_DB, interpolate_between
 from service.model.operating_point import OperatingPoint
 
@@ -54,17 +55,10 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
         theta, source = (between.theta_cos, between.theta_sin), between.source
     # a point measured before (a second pass) whose theta beat the harmonic clearly starts from it: a
     # neighbour's, even interpolated, may lie across the field-weakening turn (theta* turns by degrees per rpm)
-    own = [
-        r
-        for r in rows
-        if (r["torque_nm"], r["speed_rpm"], r["udc_v"]) == (op.torque_nm, op.speed_rpm, op.udc_v)
-        and r.get("theta_cos") is not None
-        and (r.get("suppression_db") or -math.inf) >= MEASURED_MIN_DB
-    ]
-    if own:
-        best = max(own, key=lambda r: r["suppression_db"])
-        theta = (float(best["theta_cos"]), float(best["theta_sin"]))
-        source = f"its own earlier attempt ({best['status']}, {best['suppression_db']:.1f} dB)"
+    own = best_attempts(rows).get((op.torque_nm, op.speed_rpm, op.udc_v))
+    if own is not None and own["suppression_db"] >= MEASURED_MIN_DB:
+        theta = (float(own["theta_cos"]), float(own["theta_sin"]))
+        source = f"its own earlier attempt ({own['status']}, {own['suppression_db']:.1f} dB)"
     same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
     s_matrix = None
     if same_line:

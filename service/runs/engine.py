@@ -81,6 +81,7 @@ EXPECTED_FAILURES = (
 
 
 STORAGE_RETRY_S = (0.5, 10.0)  # first and longest pause between tries of a database that is unavailable
+SWEEP_ACTIONS = ("pause", "resume", "cancel")  # what an operator may ask of a sweep (control_sweep)
 CLAIM_POLL_S = 0.5  # the worker looks for its bench's jobs this often (and at once when this process queues one)
 
 
@@ -430,15 +431,14 @@ class Engine:
         """`action`: pause | resume | cancel. Another bench's sweep: checked against the table here, then
         asked of its bench's service through the database (sweeps.control_request), which acts on it within
         about a second (act_on_control_requests); a queued one no service has taken is cancelled here."""
-        acts = {"pause": self.pause_sweep, "resume": self.resume_sweep, "cancel": self.cancel_sweep}
         try:
             sweep = self.storage.get_sweep(sweep_id)
         except StorageUnavailable:
-            return acts[action](sweep_id)  # a cancel still reaches this process's own run (and says 503)
+            return self._act(sweep_id, action)  # a cancel still reaches this process's own run (and says 503)
         if sweep is None:
             raise KeyError(sweep_id)
         if self.is_own(sweep.get("bench")):
-            return acts[action](sweep_id)
+            return self._act(sweep_id, action)
         state = SweepState(sweep["state"])
         if action == "cancel" and state == SweepState.QUEUED:
             check_transition(SWEEP_TRANSITIONS, state, SweepState.CANCELLED)
@@ -456,17 +456,20 @@ class Engine:
     def act_on_control_requests(self) -> None:
         """Pause, resume or cancel asked at another bench's service for this bench's sweeps (the lab thread
         calls this every second). A refusal is noted on the sweep (control_note) for whoever asked."""
-        acts = {"pause": self.pause_sweep, "resume": self.resume_sweep, "cancel": self.cancel_sweep}
         for sweep_id, action in self.storage.sweep_control_requests(self.bench_name):
-            if action not in acts or not self.storage.take_sweep_control(sweep_id, action):
+            if action not in SWEEP_ACTIONS or not self.storage.take_sweep_control(sweep_id, action):
                 continue
             try:
-                acts[action](sweep_id)
+                self._act(sweep_id, action)
             except (TransitionError, KeyError) as exc:
                 note = f"{action} asked at another bench's service: refused by bench {self.bench_name}: {exc}"
                 log.warning("sweep %s: %s", sweep_id, note)
                 self.storage.update_sweep(sweep_id, control_note=note)
                 self.publish_sweep(sweep_id)
+
+    def _act(self, sweep_id: int, action: str) -> None:
+        """One of SWEEP_ACTIONS on a sweep this process runs."""
+        {"pause": self.pause_sweep, "resume": self.resume_sweep, "cancel": self.cancel_sweep}[action](sweep_id)
 
     def pause_sweep(self, sweep_id: int) -> None:
         """Pause takes effect between points: the run ends (bench made safe) and the sweep's job is parked,
@@ -632,7 +635,7 @@ class Engine:
         if cancel.is_set():
             self.set_job(job_id, JobState.CANCELLED, finished_at=now_iso())
             return
-        self.set_job(job_id, JobState.RUNNING, started_at=now_iso())
+        self._publish_job(job_id)  # the claim wrote running and started_at (Storage.claim_job)
         try:
             self._check_here(job)
             if job["kind"] == "identification":

@@ -43,10 +43,6 @@ def migrations(engine: str = "sqlite", directory: Path = MIGRATIONS_DIR) -> list
 
 
 class Storage:
-    # row locking of a claim query: "" on SQLite (one writer at a time); the PostgreSQL engine says
-    # "FOR UPDATE SKIP LOCKED", so two claims never wait on, or take, the same row
-    skip_locked = ""
-
     def __init__(self, path: str | Path, busy_timeout_s: float = 10.0):
         """`path`: a SQLite file, or a `postgresql://user@host:port/dbname` URL (service/store/engines.py).
         `busy_timeout_s`: how long a call waits for another's lock (or the server's pool) before it says so."""
@@ -54,7 +50,6 @@ class Storage:
         self.dialect = self.engine.dialect
         self.path = self.engine.path  # the SQLite file (None on a server)
         self.location = self.engine.location  # the database as the log and the CLI name it (no password)
-        self.skip_locked = self.dialect.skip_locked
         # a sweep's committed results: current (not superseded) and not discarded by an interlock
         # (detail_json "discarded" names why; the attempt stays as history and the point is measured again)
         self._committed = (
@@ -180,13 +175,6 @@ class Storage:
         with self.connect() as conn:
             return [_record(r) for r in conn.execute("SELECT * FROM jobs ORDER BY id DESC LIMIT ?", (limit,))]
 
-    def unfinished_jobs(self) -> list[JobRecord]:
-        """Jobs left queued or running (on start-up: by a previous process)."""
-        with self.connect() as conn:
-            return [
-                _record(r) for r in conn.execute("SELECT * FROM jobs WHERE state IN ('queued', 'running') ORDER BY id")
-            ]
-
     # --- sweeps ------------------------------------------------------------------------------------
     def create_sweep(
         self,
@@ -234,15 +222,6 @@ class Storage:
         with self.connect() as conn:
             row = conn.execute("SELECT * FROM sweeps WHERE id = ?", (sweep_id,)).fetchone()
             return _record(row) if row else None
-
-    def unfinished_sweeps(self) -> list[SweepRecord]:
-        with self.connect() as conn:
-            return [
-                _record(r)
-                for r in conn.execute(
-                    "SELECT * FROM sweeps WHERE state IN ('queued', 'running', 'paused', 'interrupted') ORDER BY id"
-                )
-            ]
 
     def list_sweeps(self, limit: int = 100) -> list[SweepRecord]:
         with self.connect() as conn:
@@ -428,10 +407,6 @@ class Storage:
     def update_validation(self, validation_id: int, **fields: Any) -> None:
         _update(self, "map_validations", validation_id, fields)
 
-    def running_validations(self) -> list[ValidationRecord]:
-        with self.connect() as conn:
-            return [_record(r) for r in conn.execute("SELECT * FROM map_validations WHERE state = 'running'")]
-
     def latest_validation(self, map_id: int) -> ValidationRecord | None:
         with self.connect() as conn:
             row = conn.execute(
@@ -520,18 +495,6 @@ class Storage:
             ).fetchone()
             return row["id"] if row else None
 
-    def bench_has_work(self) -> bool:
-        """A job queued or running: a new sweep would wait for the bench. The job of a paused sweep is
-        parked (queued, out of the worker's queue: the bench is free) and does not count."""
-        with self.connect() as conn:
-            return (
-                conn.execute(
-                    "SELECT 1 FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id WHERE j.state = 'running' "
-                    "OR (j.state = 'queued' AND (s.state IS NULL OR s.state != 'paused')) LIMIT 1"
-                ).fetchone()
-                is not None
-            )
-
     # --- a lab: benches, their heartbeat, and the jobs each bench's service claims (issue 20) ---------------
     # Portable SQL only (SQLite and PostgreSQL): `?` placeholders, INSERT ... ON CONFLICT, RETURNING.
     def claim_bench(self, bench: dict, stale_before: str) -> dict | None:
@@ -593,7 +556,8 @@ class Storage:
             }
 
     def bench_busy(self, bench: str) -> bool:
-        """A job of this bench queued or running: a new sweep for it would wait (bench_has_work, per bench)."""
+        """A job of this bench queued or running: a new sweep for it would wait. The job of a paused sweep
+        is parked (queued, but no service takes it: the bench is free) and does not count."""
         with self.connect() as conn:
             return (
                 conn.execute(
@@ -612,14 +576,8 @@ class Storage:
         only if this instance queued it (a CLI run takes only what it queued). None: nothing to take."""
         now = now_iso()
         if job_id is not None:
-            pick, args = (
-                "SELECT id FROM jobs WHERE id = ? AND bench = ? AND state = 'queued' AND claimed_by = ?",
-                [
-                    job_id,
-                    bench,
-                    instance,
-                ],
-            )
+            pick = "SELECT id FROM jobs WHERE id = ? AND bench = ? AND state = 'queued' AND claimed_by = ?"
+            args = [job_id, bench, instance]
         else:
             pick = (
                 "SELECT j.id FROM jobs j WHERE j.bench = ? AND j.state = 'queued' "
@@ -635,7 +593,9 @@ class Storage:
         with self.transaction() as conn:
             row = conn.execute(
                 f"UPDATE jobs SET state = 'running', claimed_by = ?, started_at = ?, updated_at = ? "
-                f"WHERE id = ({pick} {self.skip_locked}) AND state = 'queued' RETURNING id",
+                # the dialect's row locking: none on SQLite (one writer at a time), FOR UPDATE SKIP LOCKED on
+                # PostgreSQL (two claims never wait on, or take, the same row)
+                f"WHERE id = ({pick} {self.dialect.skip_locked}) AND state = 'queued' RETURNING id",
                 (instance, now, now, *args),
             ).fetchone()
             return row["id"] if row else None

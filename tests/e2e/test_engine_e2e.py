@@ -111,7 +111,7 @@ def test_a_paused_sweep_releases_the_bench_and_resume_queues_it_again(svc):
             and sweep_job()["state"] == "queued"
         )
     )
-    assert not svc.storage.bench_has_work()  # a schedule firing now would start at once
+    assert not svc.storage.bench_busy(svc.settings.bench_name)  # a schedule firing now would start at once
     held = svc.storage.get_sweep(sweep_id)["done_points"]
     job_id = svc.engine.submit_identification(OP1_POINT, "probe", parse_options("probe", {}))
     job = wait_for(lambda: (j := svc.storage.get_job(job_id))["state"] in ("done", "failed") and j)

@@ -163,7 +163,7 @@ def test_a_busy_bench_queues_one_pending_run_per_schedule(live):
 
     assert client.post(f"{API}/sweeps/{manual}/cancel", headers=operator).status_code == 200
     assert wait_finished(client, f"{API}/sweeps/{first['sweep_id']}")["state"] == "done"
-    wait_until(lambda: not service.storage.bench_has_work(), timeout_s=60, what="the bench free")
+    wait_until(lambda: not service.storage.bench_busy(service.settings.bench_name), timeout_s=60, what="the bench free")
     clock.set(datetime(2027, 6, 2, 12, 3, 0, 200_000, tzinfo=UTC))
     third = wait_until(
         lambda: (runs := _runs(client, sid)) and len(runs) == 3 and runs[0], timeout_s=30, what="the third firing"
