@@ -294,10 +294,15 @@ class CalibrationService:
         return self.storage.validation_of_job(job_id)
 
     def get_sweep(self, sweep_id: int) -> SweepRecord | None:
-        return self.storage.get_sweep(sweep_id)
+        sweep = self.storage.get_sweep(sweep_id)
+        return None if sweep is None else self._as_seen(sweep)
 
     def list_sweeps(self, limit: int) -> list[SweepRecord]:
-        return self.storage.list_sweeps(limit)
+        return [self._as_seen(s) for s in self.storage.list_sweeps(limit)]
+
+    def _as_seen(self, sweep: SweepRecord) -> SweepRecord:
+        """A sweep whose run waits for the database shows paused with why (the engine holds it)."""
+        return sweep if self.engine is None else self.engine.as_seen(sweep)
 
     def sweep_results(self, sweep_id: int) -> list[ResultRecord]:
         return self.storage.sweep_results(sweep_id)

@@ -44,7 +44,8 @@ def _per_method(kind: str, fields: dict[str, Any], example: dict) -> Any:
             __config__=ConfigDict(extra="forbid", json_schema_extra={"examples": [{**example, "method": name}]}),
             __doc__=f"{kind} with the {method.display_name} method: {method.summary}.",
             **fields,
-            method=(Literal[name], Field(name, description=method.display_name)),
+            # required but for the default method: a body without it is then one variant, as documented
+            method=(Literal[name], Field(name if name == DEFAULT_METHOD else ..., description=method.display_name)),
             options=(method.options_model, Field(default_factory=method.options_model)),
         )
         variants.append(Annotated[model, Tag(name)])

@@ -18,10 +18,11 @@ results.superseded_by). A database that cannot be used is waited for (`durably`)
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import threading
 import traceback
-from typing import Callable
+from typing import Callable, Iterator
 
 from drivers.errors import DriverError
 from service import __version__
@@ -61,6 +62,7 @@ from service.runs.validation import (
 )
 from service.settings import Settings
 from service.store.recordings import RecordingStore, RunRecorder
+from service.store.records import SweepRecord
 from service.store.result_rows import result_row
 from service.store.storage import Storage, StorageUnavailable, now_iso
 
@@ -109,6 +111,7 @@ class Engine:
         self.running: str | None = None  # what the worker runs now (the bench's heartbeat shows it)
         self._controls: dict[int, SweepControl] = {}
         self._job_cancel: dict[int, threading.Event] = {}
+        self._storage_waits: dict[int, str] = {}  # sweep id -> why it waits for the database (in memory only)
         self._lock = threading.RLock()  # state read-check-write of jobs and sweeps
         self._thread: threading.Thread | None = None
         self._shutdown = threading.Event()
@@ -844,4 +847,22 @@ class Engine:
             s = self.storage.get_sweep(sweep_id)
         except StorageUnavailable:
             return
-        self.broker.publish("sweep.progress", sweep_event(s))
+        self.broker.publish("sweep.progress", sweep_event(self.as_seen(s)))
+
+    # --- a sweep waiting for the database ------------------------------------------------------------------
+    @contextlib.contextmanager
+    def waiting_for_storage(self, sweep_id: int, reason: str) -> Iterator[None]:
+        """While the sweep's run waits for the database (the bench safe). The database cannot take the
+        pause, so it is held here: a database that can still be read (a full disk reads) shows it."""
+        self._storage_waits[sweep_id] = reason
+        try:
+            yield
+        finally:
+            self._storage_waits.pop(sweep_id, None)
+
+    def as_seen(self, sweep: SweepRecord) -> SweepRecord:
+        """The sweep as stored, or paused with its reason while its run waits for the database."""
+        reason = self._storage_waits.get(sweep["id"])
+        if reason is None:
+            return sweep
+        return {**sweep, "state": SweepState.PAUSED.value, "pause_reason": reason}

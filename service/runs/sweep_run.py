@@ -458,18 +458,21 @@ class SweepRunner:
                 "storage": {"cause": exc.cause, "retry_after_s": exc.retry_after_s},
             },
         )
-        if point.row is not None:
-            # kept even through a cancel: a point measured is never thrown away while the service runs
-            stored = self.host.durably(
-                lambda: self._store_point(sweep_id, point.op, point.row, point.recorder),
-                f"sweep {sweep_id}: storing point {point.op.label()}",
-            )
-            if not stored:
+        with self.host.waiting_for_storage(sweep_id, reason):
+            if point.row is not None:
+                # kept even through a cancel: a point measured is never thrown away while the service runs
+                stored = self.host.durably(
+                    lambda: self._store_point(sweep_id, point.op, point.row, point.recorder),
+                    f"sweep {sweep_id}: storing point {point.op.label()}",
+                )
+                if not stored:
+                    discard_recorder(point.recorder)
+                    point.row = None
+            else:
                 discard_recorder(point.recorder)
-                point.row = None
-        else:
-            discard_recorder(point.recorder)
-            self.host.durably(lambda: self.storage.get_sweep(sweep_id), f"sweep {sweep_id}: the database", ctl.cancel)
+                self.host.durably(
+                    lambda: self.storage.get_sweep(sweep_id), f"sweep {sweep_id}: the database", ctl.cancel
+                )
         self.host.publish_sweep(sweep_id)
 
     def _pause_for_interlock(self, sweep_id: int, ctl: SweepControl, op: OperatingPoint, exc: InterlockTripped) -> None:

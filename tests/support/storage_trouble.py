@@ -8,6 +8,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import httpx
+
 from tests.support.bench_rig import Api, EmulatorRig
 from tests.support.service_process import ServiceProcess
 
@@ -33,17 +35,40 @@ def drive_safe(emu: EmulatorRig) -> bool:
     return f["drive_state"] != "operation_enabled" and f["drive_torque_nm"] == 0.0 and f["drive_injection_mode"] == 0
 
 
-def sweep_through(api: Api, emu: EmulatorRig, trouble_on, trouble_off) -> dict:
-    """A sweep; once it has 2 points, `trouble_on()`; while the database is away: the API answers 503 with
-    Retry-After and a JSON reason, the bench goes safe; then `trouble_off()`: the sweep finishes by itself,
-    every point measured exactly once."""
+def waits_for_the_database(r: httpx.Response) -> bool:
+    """The API says the sweep waits for the database: a 503 with Retry-After and a JSON reason naming the
+    database where it cannot be read (a lock, a read-only filesystem, a server stopped); where it can still
+    be read (a full disk reads while SQLite's WAL index file stays), the sweep shown paused with the database
+    as the reason. Either way the file is named by its name, never an absolute path."""
+    if r.status_code == 503:
+        assert r.headers.get("Retry-After") and "database" in r.json()["detail"], r.text
+        assert " /" not in r.json()["detail"], r.text
+        return True
+    assert r.status_code == 200, r.text
+    sweep = r.json()
+    if sweep["state"] != "paused" or "database" not in (sweep["pause_reason"] or ""):
+        return False
+    assert " /" not in sweep["pause_reason"], sweep["pause_reason"]
+    return True
+
+
+def said_waiting(api: Api, sweep_id: int, keep_on=None) -> bool:
+    """`waits_for_the_database` of the sweep's answer, after `keep_on()` (trouble that must be kept up)."""
+    if keep_on is not None:
+        keep_on()
+    return waits_for_the_database(api.http.get(f"/sweeps/{sweep_id}"))
+
+
+def sweep_through(api: Api, emu: EmulatorRig, trouble_on, trouble_off, keep_on=None) -> dict:
+    """A sweep; once it has 2 points, `trouble_on()`; while the database is away: the API says the sweep
+    waits for it (`waits_for_the_database`), the bench goes safe; then `trouble_off()`: the sweep finishes by
+    itself, every point measured exactly once. `keep_on()` is called at every look until the sweep waits: a
+    full disk gets space back when SQLite deletes its WAL file, and is filled again."""
     sweep_id = api.post("/sweeps", {"grid": GRID, "method": "probe"}).json()["id"]
     api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 2, 300, "2 points")
     trouble_on()
     try:
-        r = api.wait(lambda: (r := api.http.get(f"/sweeps/{sweep_id}")).status_code == 503 and r, 60, "a 503")
-        assert r.headers.get("Retry-After") and "database" in r.json()["detail"], r.text
-        assert " /" not in r.json()["detail"], r.text  # the file by its name, no absolute path
+        api.wait(lambda: said_waiting(api, sweep_id, keep_on), 60, "the sweep said waiting for the database")
         api.wait(lambda: drive_safe(emu), 60, "the bench made safe while the database is away")
     finally:
         trouble_off()
