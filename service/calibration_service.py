@@ -20,7 +20,7 @@ from service.maps.compare import compare_maps
 from service.runs import lut_download, schedules
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
-from service.runs.lab import Lab, LabWatch, bench_state, new_instance_id
+from service.runs.lab import Lab, LabWatch, bench_state, is_own_bench, new_instance_id
 from service.runs.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
 from service.store.db_claim import DatabaseClaim
@@ -276,6 +276,10 @@ class CalibrationService:
 
     def own_bench(self) -> str:
         return self.settings.bench_name
+
+    def is_own_bench(self, bench: str | None) -> bool:
+        """Whether a request for `bench` runs on this service's bench (none named: it does)."""
+        return is_own_bench(bench, self.settings.bench_name)
 
     def waiting_for(self, bench: str | None) -> str | None:
         """What a job or sweep of `bench` waits for (None: this service runs it)."""

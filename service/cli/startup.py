@@ -69,9 +69,8 @@ def open_database(settings: Settings) -> Storage:
     path = display_location(settings.server.db_path)
     try:
         storage = Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
-    except (
-        StorageError
-    ) as exc:  # not a database; a newer schema, a failed migration; locked, read-only, full, unreachable
+    except StorageError as exc:
+        # not a database; a newer schema, a failed migration; locked, read-only, full, unreachable
         raise StartError(str(exc)) from None
     except (FileExistsError, NotADirectoryError) as exc:
         raise StartError(f"database {path} cannot be created: {exc.filename} is a file, not a directory") from None

@@ -36,7 +36,7 @@ from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
 from service.runs.events import EventBroker
 from service.runs.identify import check_plant_time, identify_at, parse_options
-from service.runs.lab import job_event, new_instance_id, sweep_event
+from service.runs.lab import is_own_bench, job_event, new_instance_id, sweep_event
 from service.runs.plans import Grid, SweepPlan, plan_grid
 from service.runs.refinement import RefineRequest, check_request
 from service.runs.states import (
@@ -296,7 +296,7 @@ class Engine:
         return job_id
 
     def is_own(self, bench: str | None) -> bool:
-        return bench is None or bench == self.bench_name
+        return is_own_bench(bench, self.bench_name)
 
     def _create_job(self, kind: str, request: dict, bench: str | None, sweep_id: int | None = None) -> int:
         """A job for this bench is this instance's from the start (claimed_by: no other service takes it; a

@@ -35,6 +35,12 @@ class BenchInUse(StorageError):
     """Another live service serves this bench; str() names it (host, port, pid, since)."""
 
 
+def is_own_bench(bench: str | None, own: str) -> bool:
+    """Whether a row or request for `bench` is the service's own: its name, or none (the default in a
+    request; rows from before benches, when one database served one bench)."""
+    return bench is None or bench == own
+
+
 def new_instance_id() -> str:
     return secrets.token_hex(8)
 
@@ -173,7 +179,7 @@ class Lab:
 
     def waiting_for(self, bench: str | None) -> str | None:
         """What a job for `bench` waits for (None: this service's own bench runs it)."""
-        if bench is None or bench == self.bench_name:
+        if is_own_bench(bench, self.bench_name):
             return None
         row = self.storage.get_bench(bench)
         return f"bench {bench} ({self._seen_text(bench, row)})"
@@ -224,7 +230,7 @@ class LabWatch:
         self._published = {k: v for k, v in self._published.items() if v >= cutoff}
 
     def _fresh(self, kind: str, row: dict) -> bool:
-        if row.get("bench") in (None, self.own_bench) or not row.get("updated_at"):
+        if is_own_bench(row.get("bench"), self.own_bench) or not row.get("updated_at"):
             return False  # this service's own engine publishes those as they happen
         key = (kind, row["id"])
         if self._published.get(key) == row["updated_at"]:

@@ -25,6 +25,7 @@ from zoneinfo import ZoneInfo, available_timezones
 from cronsim import CronSim, CronSimError
 
 from service.runs.identify import check_plant_time, parse_options
+from service.runs.lab import is_own_bench
 from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
 from service.settings import Settings
 from service.store.storage import Storage, StorageUnavailable
@@ -149,7 +150,7 @@ def create_schedule(
     sweep is checked by that bench's service when it fires (the firing fails with the reason)."""
     cron = check_cron(cron)
     check_timezone(timezone_name)
-    if bench is None or bench == settings.bench_name:
+    if is_own_bench(bench, settings.bench_name):
         check_sweep(settings, sweep)
     if storage.schedule_named(name) is not None:
         raise ScheduleConflict(f"a schedule named {name!r} exists already")
@@ -237,7 +238,7 @@ class Scheduler:
             now = self.clock()
             for schedule in self.storage.list_schedules():
                 # a schedule fires only on its bench's service (no bench: from before benches, this one's)
-                if schedule["enabled"] and schedule.get("bench") in (None, self.settings.bench_name):
+                if schedule["enabled"] and is_own_bench(schedule.get("bench"), self.settings.bench_name):
                     self._handle(schedule, now)
             self.ticks += 1
 

@@ -53,6 +53,13 @@ def migration_files(engine: str = "sqlite", directory: Path = MIGRATIONS_DIR) ->
     return chosen
 
 
+def check_not_newer(location: str, current: int, available: list[Migration]) -> None:
+    """StorageError if the database's schema is newer than this software's migrations (a newer ripplecal
+    wrote it): nothing is touched."""
+    if current > len(available):
+        raise StorageError(f"database {location} is at schema {current}, newer than this software ({len(available)})")
+
+
 def load_migrations(engine: str = "sqlite", directory: Path = MIGRATIONS_DIR) -> list[Migration]:
     return [Migration(n, path.name, split_sql(path.read_text())) for n, path in migration_files(engine, directory)]
 

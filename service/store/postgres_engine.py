@@ -23,7 +23,7 @@ from psycopg_pool import ConnectionPool
 from service.settings import default_db_path
 from service.store.dialect import POSTGRESQL, format_placeholders
 from service.store.errors import StorageError, StorageUnavailable
-from service.store.migrations import Migration
+from service.store.migrations import Migration, check_not_newer
 
 CONNECT_TIMEOUT_S = 5  # one connection attempt to the server (libpq's connect_timeout)
 POOL_MIN, POOL_MAX = 1, 8  # one service: its engine worker, the API's threads, the scheduler
@@ -243,10 +243,7 @@ class PostgresEngine:
             if row is None:
                 conn.execute("INSERT INTO schema_version (version) VALUES (0)")
             current = row[0] if row is not None else 0
-            if current > len(available):
-                raise StorageError(
-                    f"database {self.location} is at schema {current}, newer than this software ({len(available)})"
-                )
+            check_not_newer(self.location, current, available)
             for migration in available[current:]:
                 try:
                     with conn.raw.transaction():  # a savepoint: the error names its migration

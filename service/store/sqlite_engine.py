@@ -12,7 +12,7 @@ from typing import Iterator
 
 from service.store.dialect import SQLITE
 from service.store.errors import StorageError, StorageUnavailable
-from service.store.migrations import Migration
+from service.store.migrations import Migration, check_not_newer
 
 # sqlite3's OperationalError texts of the causes that pass, and what to tell the operator
 _UNAVAILABLE = (
@@ -114,10 +114,7 @@ class SqliteEngine:
     def _migrate(self, available: list[Migration]) -> int:
         with self._write_lock, self.connect() as conn:
             current = conn.execute("PRAGMA user_version").fetchone()[0]
-            if current > len(available):
-                raise StorageError(
-                    f"database {self.path} is at schema {current}, newer than this software ({len(available)})"
-                )
+            check_not_newer(self.location, current, available)
             # SQLite's procedure for a table rebuild (a changed CHECK): foreign keys off outside the
             # transaction, checked inside it before the commit
             conn.execute("PRAGMA foreign_keys = OFF")

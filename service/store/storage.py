@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 from service.store.engines import open_engine
 from service.store.errors import StorageError, StorageUnavailable
-from service.store.migrations import MIGRATIONS_DIR, load_migrations, migration_files
+from service.store.migrations import MIGRATIONS_DIR, load_migrations
 from service.store.records import (
     JobRecord,
     MapRecord,
@@ -28,18 +28,12 @@ from service.store.records import (
     SweepRecord,
     ValidationRecord,
 )
-from service.store.sqlite_engine import unavailable
 
-__all__ = ["Storage", "StorageError", "StorageUnavailable", "unavailable", "migrations", "now_iso", "MIGRATIONS_DIR"]
+__all__ = ["Storage", "StorageError", "StorageUnavailable", "now_iso", "MIGRATIONS_DIR"]
 
 
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
-
-
-def migrations(engine: str = "sqlite", directory: Path = MIGRATIONS_DIR) -> list[tuple[int, Path]]:
-    """[(number, file)] of the engine's migrations (the same numbers on every engine)."""
-    return migration_files(engine, directory)
 
 
 class Storage:
@@ -549,9 +543,8 @@ class Storage:
             return {
                 r["bench"]: r["n"]
                 for r in conn.execute(
-                    "SELECT j.bench AS bench, COUNT(*) AS n FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id "
-                    "WHERE j.state = 'queued' AND j.bench IS NOT NULL AND (s.state IS NULL OR s.state != 'paused') "
-                    "GROUP BY j.bench"
+                    "SELECT j.bench AS bench, COUNT(*) AS n FROM jobs j "
+                    f"WHERE j.state = 'queued' AND j.bench IS NOT NULL AND {_NOT_PARKED} GROUP BY j.bench"
                 )
             }
 
@@ -561,9 +554,8 @@ class Storage:
         with self.connect() as conn:
             return (
                 conn.execute(
-                    "SELECT 1 FROM jobs j LEFT JOIN sweeps s ON s.id = j.sweep_id WHERE j.bench = ? AND "
-                    "(j.state = 'running' OR (j.state = 'queued' AND (s.state IS NULL OR s.state != 'paused'))) "
-                    "LIMIT 1",
+                    "SELECT 1 FROM jobs j WHERE j.bench = ? AND "
+                    f"(j.state = 'running' OR (j.state = 'queued' AND {_NOT_PARKED})) LIMIT 1",
                     (bench,),
                 ).fetchone()
                 is not None
@@ -581,8 +573,7 @@ class Storage:
         else:
             pick = (
                 "SELECT j.id FROM jobs j WHERE j.bench = ? AND j.state = 'queued' "
-                "AND (j.claimed_by IS NULL OR j.claimed_by = ?) AND NOT EXISTS "
-                "(SELECT 1 FROM sweeps s WHERE s.id = j.sweep_id AND s.state = 'paused') "
+                f"AND (j.claimed_by IS NULL OR j.claimed_by = ?) AND {_NOT_PARKED} "
                 "ORDER BY j.id LIMIT 1"
             )
             args = [bench, instance]
@@ -712,6 +703,9 @@ class Storage:
             ]
             return jobs, sweeps
 
+
+# a job `j` that is not a paused sweep's: that job is parked (queued, but no service takes it until resume)
+_NOT_PARKED = "NOT EXISTS (SELECT 1 FROM sweeps s WHERE s.id = j.sweep_id AND s.state = 'paused')"
 
 _IDENT = re.compile(r"^[a-z_]+$")
 

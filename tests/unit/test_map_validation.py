@@ -21,8 +21,9 @@ from service.runs.validation import (
     summarize,
     validation_points,
 )
+from service.store.migrations import migration_files
 from service.store.result_rows import result_row
-from service.store.storage import MIGRATIONS_DIR, Storage, encode_columns, migrations
+from service.store.storage import MIGRATIONS_DIR, Storage, encode_columns
 from tests.support.operating_points import OP1_POINT
 from tests.support.stored_maps import sweep_with_results
 
@@ -143,7 +144,7 @@ def test_migration_6_rebuilds_jobs_keeping_every_row(tmp_path):
     the results still point at their jobs, and jobs.kind takes 'validation' but nothing unknown."""
     db = tmp_path / "old.db"
     with sqlite3.connect(db) as conn:
-        for number, path in migrations()[:5]:
+        for number, path in migration_files()[:5]:
             conn.executescript(path.read_text())
         conn.execute("PRAGMA user_version = 5")
         conn.execute(
@@ -159,7 +160,7 @@ def test_migration_6_rebuilds_jobs_keeping_every_row(tmp_path):
     storage = Storage(db)
     assert MIGRATIONS_DIR.joinpath("sqlite", "0006_map_validations.sql").exists()
     with sqlite3.connect(db) as conn:
-        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migrations())
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migration_files())
         assert conn.execute("SELECT id, kind, state FROM jobs ORDER BY id").fetchall() == [
             (1, "identification", "done"),
             (2, "sweep", "failed"),

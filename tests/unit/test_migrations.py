@@ -10,7 +10,7 @@ import psycopg
 import pytest
 
 from service.store.migrations import ENGINES, load_migrations, migration_files
-from service.store.storage import Storage, migrations
+from service.store.storage import Storage
 
 
 def _sqlite_columns(path) -> dict[str, set[str]]:
@@ -35,11 +35,11 @@ def _postgres_columns(url) -> dict[str, set[str]]:
 
 def test_every_number_has_a_common_file_or_one_per_engine():
     numbers = {engine: [n for n, _ in migration_files(engine)] for engine in ENGINES}
-    assert numbers["sqlite"] == numbers["postgresql"] == list(range(1, len(migrations()) + 1))
+    assert numbers["sqlite"] == numbers["postgresql"] == list(range(1, len(migration_files()) + 1))
 
 
 def test_all_migrations_apply_from_empty(storage):  # on each engine (tests/conftest.py)
-    assert storage.migrate() == len(migrations())
+    assert storage.migrate() == len(migration_files())
     assert storage.list_jobs() == [] and storage.list_sweeps() == [] and storage.list_maps() == []
 
 
@@ -84,7 +84,7 @@ def test_an_older_sqlite_database_with_data_migrates(tmp_path):
         _old_database_with_data(conn.execute)
     storage = Storage(db)
     with sqlite3.connect(db) as conn:
-        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migrations())
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migration_files())
         assert conn.execute("PRAGMA foreign_key_check").fetchall() == []
     _check_the_data_survived(storage)
 
@@ -124,7 +124,7 @@ def test_two_services_migrating_one_postgresql_database_at_once(pg_url):
         t.join(timeout=60)
     try:
         assert errors == [] and len(opened) == 2
-        assert [s.migrate() for s in opened] == [len(migrations())] * 2
+        assert [s.migrate() for s in opened] == [len(migration_files())] * 2
     finally:
         for s in opened:
             s.close()

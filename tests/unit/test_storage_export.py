@@ -16,21 +16,22 @@ from service import __version__
 from service.api.public import map_public
 from service.maps.build import build_map_from_sweep
 from service.maps.lut_export import export_map
-from service.store.storage import Storage, StorageError, migrations
+from service.store.migrations import migration_files
+from service.store.storage import Storage, StorageError
 from tests.support.stored_maps import sweep_with_results
 
 # `storage` (tests/conftest.py): every test here runs on SQLite and on PostgreSQL
 
 
 def test_migrations_are_idempotent(storage):
-    assert storage.migrate() == len(migrations())
-    assert storage.migrate() == len(migrations())
+    assert storage.migrate() == len(migration_files())
+    assert storage.migrate() == len(migration_files())
 
 
 def test_migrations_set_user_version_on_sqlite(tmp_path):
     storage = Storage(tmp_path / "r.db")
     with sqlite3.connect(storage.path) as conn:
-        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migrations())
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == len(migration_files())
 
 
 def test_newer_database_is_refused(tmp_path):

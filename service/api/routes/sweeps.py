@@ -27,7 +27,7 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
     try:
         # the size that counts is the planned grid's (speeds placed around the onset included; another
         # bench's grid as given: its placement needs that bench's machine)
-        own = body.bench in (None, service.own_bench())
+        own = service.is_own_bench(body.bench)
         grid = plan_grid(body.grid, body.regime, service.settings).grid if own else body.grid
         check_sweep_size(grid, body.confirm_large, service.settings.safety)
     except RegimeError as exc:
