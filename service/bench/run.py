@@ -30,6 +30,7 @@ accounting, settle (from there to steady), measurement (the caller's use of the 
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -37,12 +38,14 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Iterator
 
 from service.bench.contracts import RunBench
-from service.bench.interlocks import InterlockTripped
+from service.bench.interlocks import InterlockTripped, Trip
 from service.bench.measurement import OperatingPointSession, SessionSettings
 from service.bench.point_stream import PointStream
 from service.identification.session import MeasurementError
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
+
+log = logging.getLogger(__name__)
 
 # torque actual below this share of the command (or of the other sign): the point is not reached
 TORQUE_REACHED_FRACTION = 0.5
@@ -166,11 +169,25 @@ class BenchRun:
             self.theta = self.mode = None
             if bench.accounting.pending() != 0:
                 bench.accounting.doubt("a point ended with setpoints unconfirmed")
-            trip = bench.interlocks.run_trip if bench.interlocks is not None else None
-            if trip is not None and isinstance(exc, Exception) and not isinstance(exc, InterlockTripped):
-                # a drive that faulted shows first as a measurement gone wrong: the trip is the cause
-                raise InterlockTripped(trip) from exc
+            if isinstance(exc, Exception) and not isinstance(exc, InterlockTripped):
+                # a fault shows first as a measurement gone wrong (a drive that faulted, a supply that dropped:
+                # torque actual reads 0, the DC link does not come up): the trip, if any, is the cause
+                trip = self._first_trip()
+                if trip is not None:
+                    raise InterlockTripped(trip) from exc
             raise
+
+    def _first_trip(self) -> Trip | None:
+        """The run's first interlock trip, every interlock read now rather than at its next period (the
+        supply's is 0.5 s: a point can fail on its consequence before the monitor reads it)."""
+        interlocks = self.bench.interlocks
+        if interlocks is None:
+            return None
+        try:
+            return interlocks.check_now(force=True)
+        except Exception as exc:  # noqa: BLE001 - a reading that fails here leaves the monitor's word
+            log.warning("interlocks not read on a point's error path: %s", exc)
+            return interlocks.run_trip
 
     def _move(self, op: OperatingPoint, timing: PointTiming) -> None:
         bench = self.bench
