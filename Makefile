@@ -12,7 +12,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: run test lint format bench paper venv chromium postgresql clean
+.PHONY: run test lint format bench paper venv chromium postgresql faketime clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,10 +33,16 @@ postgresql:
 	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { command -v apt-get >/dev/null && \
 	  { [ "$$(id -u)" = 0 ] && SUDO= || SUDO=sudo; $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq postgresql; }; }
 
+# Debian's libfaketime for the skewed-clock tests (tests/support/skewed_clock.py preloads it into one service,
+# with a small C shim it compiles: gcc)
+faketime:
+	@{ ls /usr/lib/*/faketime/libfaketime.so.1 && command -v cc; } >/dev/null 2>&1 || { command -v apt-get >/dev/null && \
+	  { [ "$$(id -u)" = 0 ] && SUDO= || SUDO=sudo; $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq faketime gcc; }; }
+
 run: $(STAMP)
 	$(VENV)/bin/ripplecal serve --emulate --host $(HOST) --port $(PORT)
 
-test: $(STAMP) chromium postgresql lint
+test: $(STAMP) chromium postgresql faketime lint
 	$(PY) -m pytest -q
 
 # ruff: lint and format check (config in pyproject.toml); `make format` applies the formatter

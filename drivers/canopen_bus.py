@@ -2,8 +2,11 @@
 
 The transport is chosen by the python-can interface string alone (socketcand, socketcan, pcan, kvaser,
 virtual, ...): the same code talks to the emulator and to a real bench. The heartbeat matters for
-safety: the drive consumes it (0x1016) and drops to torque 0 when the service goes silent, so it is
-produced for exactly as long as the bus is connected and stops when the service lets go of the bus.
+safety: the drive consumes it (0x1016) and drops to torque 0 when the service goes silent, so it stops
+when the service lets go of the bus. A device may consume it from power-up (0x1016 stored armed):
+such a device starts watching at the first heartbeat it hears, and faults when it stops. So a master
+that may still give up (a bench not yet complete) connects without it (`connect(heartbeat=False)`)
+and starts it (`start_heartbeat()`) once it stays: a bus let go of before then faults nothing.
 
 One master per node id: a second master on the bus with our node id (another `ripplecal serve`, a
 CLI run with --bench) would command the same drives, and a drive would take its heartbeat for ours.
@@ -154,10 +157,11 @@ class CanBus:
         kwargs.update(self._extra_bus_kwargs)
         return kwargs
 
-    def connect(self) -> "CanBus":
+    def connect(self, heartbeat: bool = True) -> "CanBus":
         """Open the bus, start the canopen notifier, listen for another master using our node id (up
-        to FOREIGN_LISTEN_MAX_S, usually a few tenths of a second), then start the service heartbeat.
-        Raises ForeignMasterError (the bus closed again, nothing sent) when one is heard. Idempotent."""
+        to FOREIGN_LISTEN_MAX_S, usually a few tenths of a second), then start the service heartbeat
+        (heartbeat=False: not yet, see start_heartbeat). Raises ForeignMasterError (the bus closed
+        again, nothing sent) when one is heard. Idempotent."""
         with self._lock:
             if self._network is not None:
                 return self
@@ -178,15 +182,28 @@ class CanBus:
                     # before our own heartbeat goes out: a second one with this id would keep the other
                     # master's drive alive on our account
                     self._listen_for_foreign_master(watch)
-                self._heartbeat_task = network.send_periodic(
-                    self.heartbeat_cob_id, bytes([NMT_STATE_OPERATIONAL]), self.heartbeat_period_ms / 1000.0
-                )
+                if heartbeat:
+                    self._heartbeat_task = self._send_heartbeat(network)
             except BaseException:
                 network.disconnect()
                 raise
             self._network = network
             self._watch = watch
             return self
+
+    def start_heartbeat(self) -> None:
+        """Start producing the service heartbeat on a bus connected without it (connect(heartbeat=False));
+        from now on a device that consumes it faults when it stops. Idempotent."""
+        with self._lock:
+            if self._network is None:
+                raise NotConnectedError(f"CAN bus {self._where()} is not connected (call CanBus.connect() first)")
+            if self._heartbeat_task is None:
+                self._heartbeat_task = self._send_heartbeat(self._network)
+
+    def _send_heartbeat(self, network: canopen.Network):
+        return network.send_periodic(
+            self.heartbeat_cob_id, bytes([NMT_STATE_OPERATIONAL]), self.heartbeat_period_ms / 1000.0
+        )
 
     def _hears_itself(self) -> bool:
         return bool(self._extra_bus_kwargs.get("receive_own_messages"))

@@ -43,6 +43,7 @@ from drivers.errors import (
     SdoError,
     SdoTimeoutError,
     StateTransitionError,
+    WrongDeviceError,
 )
 
 OD_CONTROLWORD = 0x6040
@@ -50,8 +51,13 @@ OD_STATUSWORD = 0x6041
 OD_ERROR_CODE = 0x603F
 OD_MODE_OF_OPERATION = 0x6060
 OD_MODE_DISPLAY = 0x6061
+OD_DEVICE_NAME = 0x1008
 OD_CONSUMER_HEARTBEAT = 0x1016
 OD_PRODUCER_HEARTBEAT = 0x1017
+OD_IDENTITY = 0x1018
+SUB_VENDOR_ID = 1
+SUB_PRODUCT_CODE = 2
+IDENTITY_FIELDS = ((SUB_VENDOR_ID, "vendor id"), (SUB_PRODUCT_CODE, "product code"))
 
 CONSUMER_HEARTBEAT_TIME_MS = 500
 """How long the device waits for the service heartbeat before it falls safe (0x1016:1, low 16 bits)."""
@@ -104,6 +110,7 @@ class Cia402Master:
         self.node_id = node_id
         self.mode_of_operation = mode_of_operation
         self.sdo_timeout_s = sdo_timeout_s
+        self.eds_path = Path(eds_path)
         self.node = canopen.RemoteNode(node_id, str(eds_path))
         # per-instance override of the class default (0.3 s); one attempt, no silent retries
         self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
@@ -119,9 +126,12 @@ class Cia402Master:
         self.heartbeat_period_ms: int | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------------
-    def connect(self) -> None:
-        """Attach the node to the bus's network, start heartbeat monitoring, set NMT OPERATIONAL and
-        configure the device to consume the service heartbeat (so it falls safe if we die)."""
+    def connect(self, arm_consumer: bool = True) -> None:
+        """Attach the node to the bus's network, check that the node is the device the EDS describes
+        (identity 0x1018, WrongDeviceError before anything is written), start heartbeat monitoring,
+        set NMT OPERATIONAL and (arm_consumer) configure the device to consume the service heartbeat
+        (so it falls safe if we die). arm_consumer=False leaves 0x1016 as found, for a caller that
+        arms it (arm_heartbeat_consumer) only once it knows it stays."""
         network = self.bus.network
         if self._network is not None:
             return
@@ -132,9 +142,10 @@ class Cia402Master:
         network.subscribe(0x700 + self.node_id, self._on_heartbeat)
         self._network = network
         try:
+            self._check_identity()
             self.node.nmt.state = "OPERATIONAL"
-            consumer = (self.bus.service_node_id << 16) | CONSUMER_HEARTBEAT_TIME_MS
-            self.write(OD_CONSUMER_HEARTBEAT, 1, consumer)
+            if arm_consumer:
+                self.arm_heartbeat_consumer()
             period_ms = int(self.read(OD_PRODUCER_HEARTBEAT))
             if period_ms == 0:
                 self.write(OD_PRODUCER_HEARTBEAT, 0, DEFAULT_PRODUCER_HEARTBEAT_MS)
@@ -146,11 +157,64 @@ class Cia402Master:
             self.close()
             raise
 
+    def arm_heartbeat_consumer(self) -> None:
+        """The device consumes the service heartbeat (0x1016:1 = service node << 16 | 500 ms): it falls
+        safe (FAULT, EMCY 0x8130) when the heartbeat stops for longer."""
+        self.write(OD_CONSUMER_HEARTBEAT, 1, (self.bus.service_node_id << 16) | CONSUMER_HEARTBEAT_TIME_MS)
+
+    def heartbeat_consumer(self) -> int:
+        """0x1016:1 as the device holds it (node << 16 | time in ms; 0: it consumes no heartbeat)."""
+        return int(self.read(OD_CONSUMER_HEARTBEAT, 1))
+
+    def set_heartbeat_consumer(self, value: int) -> None:
+        """0x1016:1 written back as it was found (heartbeat_consumer())."""
+        self.write(OD_CONSUMER_HEARTBEAT, 1, value)
+
     def disarm_heartbeat_consumer(self) -> None:
         """Orderly stop: tell the device to stop consuming the service heartbeat (0x1016:1 = 0), so that
         the service letting go of the bus is not a lost heartbeat (no FAULT, no reset needed at the next
-        start). Call it after disable(); connect() arms it again."""
+        start). Call it after disable(); arm_heartbeat_consumer (or connect()) arms it again."""
         self.write(OD_CONSUMER_HEARTBEAT, 1, 0)
+
+    def _check_identity(self) -> None:
+        """The node answers with the vendor id and product code (0x1018:1, :2) of our EDS, else
+        WrongDeviceError naming what answered: node ids swapped, or another device at this id, would
+        otherwise be commanded with the wrong object dictionary. A device without a product code
+        (0x1018:2 is optional in CiA 301) is judged on its vendor id alone."""
+        expected = {sub: self._eds_default(OD_IDENTITY, sub) for sub, _ in IDENTITY_FIELDS}
+        found = {}
+        for sub, want in expected.items():
+            if want is None:
+                continue
+            try:
+                found[sub] = int(self.read(OD_IDENTITY, sub))
+            except SdoAbortError:
+                if sub == SUB_VENDOR_ID:
+                    raise  # mandatory in CiA 301: a node without it is no CANopen device we know
+        if all(found[sub] == expected[sub] for sub in found):
+            return
+        name = self._device_name()
+        answers = ", ".join(f"{label} 0x{found[sub]:X}" for sub, label in IDENTITY_FIELDS if sub in found)
+        wants = ", ".join(f"{label} 0x{expected[sub]:X}" for sub, label in IDENTITY_FIELDS if expected[sub] is not None)
+        raise WrongDeviceError(
+            f"node {self.node_id} is not the {self.device_kind}: it answers as {answers}"
+            + (f" ('{name}')" if name else "")
+            + f", where the {self.device_kind} ({self.eds_path.name}) has {wants}"
+        )
+
+    def _eds_default(self, index: int, subindex: int) -> int | None:
+        try:
+            value = self.node.object_dictionary[index][subindex].default
+        except KeyError:
+            return None
+        return None if value is None else int(value)
+
+    def _device_name(self) -> str | None:
+        """The node's own name (0x1008), for the message only: None when it has none to give."""
+        try:
+            return str(self.read(OD_DEVICE_NAME)).strip("\x00 ") or None
+        except (SdoError, ValueError, UnicodeDecodeError):
+            return None
 
     def _wait_first_heartbeat(self) -> None:
         # the heartbeat interlock trips on a device never heard; the bench is ready only once each was heard

@@ -32,6 +32,15 @@ instead of taking half of the frames. URLs (socket://, loop://, ...) have no suc
 
 What the port holds when it is first opened was streamed while nobody read: whole frames missing in
 it are the DAQ's overruns (as after a backpressure pause), not line errors.
+
+Frame rate (`check_frame_rate`, at connect): the sequence numbers' advance over the wall clock (the
+slope over every arrival in the window), from the first fresh frame on, against the rate the DAQ is
+configured at. Only a stream paced by its own
+clock can be judged so: one that streams as fast as it is read (the emulator at `--speedup 0`, which
+waits for its reader) says nothing about its sample clock; a stream over FREE_RUNNING_RATIO times
+the rate it should have is taken for one (`FrameRateCheck.judged` False) rather than called wrong.
+A rate outside FRAME_RATE_TOLERANCE is measured once more over a longer window before it is called
+wrong (a loaded PC's hiccup at either end of a short window is not a wrong rate).
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ import errno
 import fcntl
 import os
 import select
+import stat
 import struct
 import termios
 import threading
@@ -51,9 +61,27 @@ import numpy as np
 import serial
 
 from drivers.daq_protocol import FLAG_SENSOR_FAULT, FRAME_BYTES, DecodedSamples, DecoderCounters, FrameDecoder
-from drivers.errors import DaqDisconnected, DaqPortBusy, DaqTimeout
+from drivers.errors import (
+    DaqDisconnected,
+    DaqNotSerialPort,
+    DaqNotStreaming,
+    DaqPortBusy,
+    DaqRateMismatch,
+    DaqTimeout,
+)
 
-__all__ = ["DaqReader", "DaqTimeout", "DaqDisconnected", "DaqPortBusy", "DecodedSamples", "DecoderCounters"]
+__all__ = [
+    "DaqReader",
+    "DaqTimeout",
+    "DaqDisconnected",
+    "DaqPortBusy",
+    "DaqNotSerialPort",
+    "DaqNotStreaming",
+    "DaqRateMismatch",
+    "DecodedSamples",
+    "DecoderCounters",
+    "FrameRateCheck",
+]
 
 SERIAL_READ_TIMEOUT_S = 0.05
 """pyserial read timeout: how long the thread waits for a first byte; bounds how long it takes to
@@ -67,6 +95,44 @@ DEFAULT_BAUDRATE = 2_000_000
 
 RECONNECT_BACKOFF_S = (0.05, 0.5)
 """First and longest pause between attempts to reopen a lost port (doubling in between)."""
+
+FRAME_RATE_SETTLE_S = 0.1
+"""check_frame_rate reads this long before its window starts: the backlog the port held arrives in it."""
+
+FRAME_RATE_WINDOW_S = 0.5
+"""Wall time over which the frame rate is measured (what a healthy bench pays at connect) ..."""
+
+FRAME_RATE_CONFIRM_S = 2.0
+"""... and the longer window that confirms a rate outside the tolerance before it is called wrong."""
+
+FRAME_RATE_TOLERANCE = 0.20
+"""A measured rate within +-20 % of the expected one passes: a wide margin for a loaded PC (at load 8 on
+2 cores the slope measured within 1 % of a paced pty and of the emulator at --speedup 1; taken from
+the window's two ends alone it was up to 19 % off: tests/benchmarks/bench_daq_rate.py), narrow enough
+for the settings people get wrong (a factor of 2; 8 vs 10 kHz, 25 %)."""
+
+FREE_RUNNING_RATIO = 5.0
+"""A stream over this many times its expected rate is taken as one that streams as fast as it is read
+(not judged); a paced DAQ set wrong by a factor up to 5 is still called wrong."""
+
+FRAME_RATE_MIN_ELAPSED_S = 0.05
+"""A free-running stream is recognised after this much of the window (no need to decode a whole
+window of it)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameRateCheck:
+    """What check_frame_rate found: measured_hz (frames per wall second, from the sequence numbers),
+    expected_hz, and judged (False: a stream as fast as it is read, whose rate says nothing)."""
+
+    measured_hz: float
+    expected_hz: float
+    judged: bool
+
+
+def rate_text(hz: float) -> str:
+    """A rate as people say it: three significant digits (16023.4 -> '16000')."""
+    return f"{float(f'{hz:.3g}'):g}"
 
 
 class DaqReader:
@@ -173,6 +239,9 @@ class DaqReader:
                     "reader per DAQ; is another ripplecal (serve, or identify / sweep / maps download with "
                     "--bench) reading it? Stop that one first"
                 ) from exc
+            not_a_port = _not_a_serial_port(self.url) if lockable else None
+            if not_a_port is not None:
+                raise DaqNotSerialPort(f"DAQ {self.url} {not_a_port}, not a serial port") from exc
             raise
 
     def _run(self) -> None:
@@ -433,6 +502,76 @@ class DaqReader:
             self._cond.notify_all()
             return dropped
 
+    # -- frame rate ---------------------------------------------------------------------------------
+    def wait_first_frame(self, timeout_s: float) -> None:
+        """A frame arrives within timeout_s (left queued), else DaqNotStreaming: the port opened, but
+        is it the DAQ's, and is the DAQ streaming?"""
+        try:
+            with self._cond:
+                self._wait_buffered(1, timeout_s, lambda: "no frame arrived")
+        except DaqTimeout as exc:
+            raise self._not_streaming(timeout_s) from exc
+
+    def _not_streaming(self, timeout_s: float) -> DaqNotStreaming:
+        return DaqNotStreaming(
+            f"DAQ {self.url}: the port opened but no frame came within {timeout_s:g} s "
+            f"({self.bytes_read} bytes read, decoder {self.counters}): is it the DAQ's port, and is the DAQ streaming?"
+        )
+
+    def measure_frame_rate(
+        self, window_s: float, first_frame_timeout_s: float, stop_above_hz: float | None = None
+    ) -> float:
+        """Frames per second of wall time, from the sequence numbers over window_s (frames the DAQ
+        streamed but the line lost count too), from the first fresh frame on: what was queued is
+        dropped and FRAME_RATE_SETTLE_S read first, so the port's backlog is not taken for a burst.
+        Consumes what it reads. stop_above_hz: return early once the rate is surely above it.
+        DaqNotStreaming when no frame comes within first_frame_timeout_s (or the stream stops)."""
+        self.discard_buffered()
+        try:
+            last = self.read_available(1 << 16, first_frame_timeout_s)
+            settle_until = time.monotonic() + FRAME_RATE_SETTLE_S
+            while time.monotonic() < settle_until:
+                last = self.read_available(1 << 16, first_frame_timeout_s)
+            start_at, start_index = time.monotonic(), int(last.index[-1])
+            # (wall time, frames since the start) at each arrival: the slope over all of them, not the two
+            # ends alone, so that one late wake-up of a loaded PC at either end does not make the rate
+            arrivals_s, counts = [0.0], [0]
+            while True:
+                last = self.read_available(1 << 16, first_frame_timeout_s)
+                elapsed_s = time.monotonic() - start_at
+                frames = int(last.index[-1]) - start_index
+                arrivals_s.append(elapsed_s)
+                counts.append(frames)
+                if elapsed_s >= window_s:
+                    return float(np.polyfit(arrivals_s, counts, 1)[0]) if len(counts) >= 3 else frames / elapsed_s
+                if stop_above_hz is not None and elapsed_s >= FRAME_RATE_MIN_ELAPSED_S:
+                    # even if the window's end came at once, the rate would stay above stop_above_hz
+                    if frames / window_s > stop_above_hz:
+                        return frames / elapsed_s
+        except DaqTimeout as exc:
+            raise self._not_streaming(first_frame_timeout_s) from exc
+
+    def check_frame_rate(self, expected_hz: float, first_frame_timeout_s: float) -> FrameRateCheck:
+        """The DAQ streams at expected_hz (frames per wall second), within FRAME_RATE_TOLERANCE: else
+        DaqRateMismatch naming both rates, after a confirming FRAME_RATE_CONFIRM_S window. A stream over
+        FREE_RUNNING_RATIO x expected_hz is not judged (module doc). DaqNotStreaming if none comes."""
+        if not expected_hz > 0:
+            raise ValueError(f"expected_hz must be > 0, got {expected_hz!r}")
+        free_running_hz = FREE_RUNNING_RATIO * expected_hz
+        measured = self.measure_frame_rate(FRAME_RATE_WINDOW_S, first_frame_timeout_s, free_running_hz)
+        for confirm in (False, True):
+            if measured > free_running_hz:
+                return FrameRateCheck(measured, expected_hz, judged=False)
+            if abs(measured / expected_hz - 1.0) <= FRAME_RATE_TOLERANCE:
+                return FrameRateCheck(measured, expected_hz, judged=True)
+            if not confirm:
+                measured = self.measure_frame_rate(FRAME_RATE_CONFIRM_S, first_frame_timeout_s, free_running_hz)
+        raise DaqRateMismatch(
+            f"DAQ {self.url} streams {rate_text(measured)} frames/s, {rate_text(expected_hz)} expected",
+            measured,
+            expected_hz,
+        )
+
     # -- introspection ------------------------------------------------------------------------------
     @property
     def counters(self) -> DecoderCounters:
@@ -495,6 +634,29 @@ class DaqReader:
                 "disconnects": self._disconnects,
                 "buffered_samples": self._buffered,
             }
+
+
+def _not_a_serial_port(path: str) -> str | None:
+    """What the path is when it cannot be a serial port ('is a regular file'), None when it may be one
+    (a terminal, or nothing there: the open's own error says that)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return "is a regular file"
+    if stat.S_ISDIR(mode):
+        return "is a directory"
+    if stat.S_ISCHR(mode):
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+        except OSError:
+            return None
+        try:
+            return None if os.isatty(fd) else "is a character device that is not a terminal"
+        finally:
+            os.close(fd)
+    return "is neither a terminal nor a regular file"
 
 
 def _bytes_waiting(port: serial.SerialBase) -> int:

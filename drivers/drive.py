@@ -9,6 +9,7 @@ goes out, so a refused value never reaches the bench half-applied.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -24,6 +25,10 @@ OD_VELOCITY_ACTUAL = 0x606C  # I32, rpm (mechanical)
 OD_TARGET_TORQUE = 0x6071  # I16, per mille of rated torque
 OD_RATED_TORQUE = 0x6076  # U32, mNm
 OD_TORQUE_ACTUAL = 0x6077  # I16, per mille of rated torque
+OD_RATED_CURRENT = 0x6075  # U32, mA
+OD_CURRENT_ACTUAL = 0x6078  # I16, |i_dq| (the current vector's magnitude), per mille of rated current
+ACTUALS_TPDO = 1  # TPDO1 (0x1800/0x1A00): torque, velocity and current actual, every 10 ms (docs/interfaces.md)
+ACTUALS_OBJECTS = (OD_TORQUE_ACTUAL, OD_VELOCITY_ACTUAL, OD_CURRENT_ACTUAL)
 OD_DC_LINK_VOLTAGE = 0x6079  # U32, mV
 OD_INJECTION = 0x2000
 SUB_HARMONIC_ORDER = 1  # U8
@@ -76,6 +81,16 @@ class DriveStatus:
 
 
 @dataclass(frozen=True)
+class DriveActuals:
+    """One TPDO of the drive's actuals (ACTUALS_TPDO), in SI-ish units."""
+
+    torque_nm: float  # torque actual 0x6077 (the drive's estimate from its measured currents)
+    speed_rpm: float  # velocity actual 0x606C, mechanical
+    current_a: float  # current actual 0x6078, |i_dq|, A (peak phase current)
+    received_at: float  # time.monotonic() of its arrival here
+
+
+@dataclass(frozen=True)
 class LutInForce:
     """Which LUT the drive holds, as it reports it (0x2001:4, :2, :3)."""
 
@@ -102,6 +117,10 @@ class DriveClient(Cia402Master):
         self.commits_expected: int | None = None  # the drive's commit counter as we expect it (mod 256)
         # told the running number of every setpoint accepted (the service times its sync toggle)
         self.on_setpoint: Callable[[int], None] | None = None
+        self.rated_current_a: float | None = None
+        # told every TPDO of the actuals, from the CAN receive thread: must be quick, never an SDO
+        self.on_actuals: Callable[[DriveActuals], None] | None = None
+        self.actuals: DriveActuals | None = None  # the latest
 
     def write(self, index: int, subindex: int, value) -> None:
         try:
@@ -158,6 +177,49 @@ class DriveClient(Cia402Master):
                 "cannot scale torque setpoints"
             )
         self.rated_torque_nm = rated_mnm / 1000.0
+        rated_ma = int(self.read(OD_RATED_CURRENT))
+        if rated_ma <= 0:
+            raise ConfigurationError(
+                f"drive node {self.node_id}: motor rated current 0x6075 is {rated_ma} mA; cannot scale current actual"
+            )
+        self.rated_current_a = rated_ma / 1000.0
+        self._subscribe_actuals()
+
+    def _subscribe_actuals(self) -> None:
+        """Listen to the TPDO of the actuals, mapped as the EDS says (the drive sends it cyclically once
+        NMT OPERATIONAL); a mapping without torque, velocity and current actual is a configuration error."""
+        self.node.tpdo.read(from_od=True)  # subscribes the enabled maps on the network
+        tpdo = self.node.tpdo[ACTUALS_TPDO]
+        mapped = {var.index for var in tpdo.map}
+        if not tpdo.enabled or not set(ACTUALS_OBJECTS) <= mapped:
+            raise ConfigurationError(
+                f"drive node {self.node_id}: TPDO{ACTUALS_TPDO} must be enabled and map torque, velocity and "
+                f"current actual (0x6077, 0x606C, 0x6078); its EDS maps {sorted(hex(i) for i in mapped)}"
+            )
+        tpdo.add_callback(self._on_actuals_pdo)
+
+    def _on_actuals_pdo(self, pdo_map) -> None:
+        values = {var.index: var.raw for var in pdo_map.map}
+        actuals = DriveActuals(
+            torque_nm=int(values[OD_TORQUE_ACTUAL]) / PER_MILLE * self.rated_torque_nm,
+            speed_rpm=float(values[OD_VELOCITY_ACTUAL]),
+            current_a=int(values[OD_CURRENT_ACTUAL]) / PER_MILLE * self.rated_current_a,
+            received_at=time.monotonic(),
+        )
+        self.actuals = actuals
+        if self.on_actuals is not None:
+            self.on_actuals(actuals)
+
+    def close(self) -> None:
+        network = self._network
+        if network is not None:
+            for pdo_map in self.node.tpdo.map.values():
+                if pdo_map.cob_id is not None:
+                    try:
+                        network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
+                    except (KeyError, ValueError):
+                        pass
+        super().close()
 
     def _safe_steps(self):
         return [("target torque 0", lambda: self.write(OD_TARGET_TORQUE, 0, 0)), ("injection off", self.injection_off)]

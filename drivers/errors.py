@@ -79,6 +79,11 @@ class DriveFaultError(DriverError):
     """The device is in FAULT; the message names its error code. Only a fault reset clears it."""
 
 
+class WrongDeviceError(DriverError):
+    """The node answers with another identity (0x1018) than the device its EDS describes (node ids
+    swapped, or another device at this id): nothing was written to it."""
+
+
 class ConfigurationError(DriverError):
     """The device reports a configuration the driver cannot work with (e.g. rated torque 0)."""
 
@@ -100,6 +105,23 @@ class DaqDisconnected(DaqError, ConnectionError):
 
 class DaqPortBusy(DaqError):
     """The DAQ port is held (exclusively locked) by another reader: one reader per DAQ."""
+
+
+class DaqRateMismatch(DaqError):
+    """The DAQ streams at another frame rate than the one it is configured at (measured at connect)."""
+
+    def __init__(self, message: str, measured_hz: float, expected_hz: float):
+        super().__init__(message)
+        self.measured_hz = measured_hz
+        self.expected_hz = expected_hz
+
+
+class DaqNotSerialPort(DaqError):
+    """The DAQ path names something that cannot be a serial port (a regular file, /dev/null, ...)."""
+
+
+class DaqNotStreaming(DaqError, TimeoutError):
+    """The DAQ port opened but no frame arrived (a silent port, or not the DAQ's)."""
 
 
 # --- DC supply (SCPI) ------------------------------------------------------------------------------

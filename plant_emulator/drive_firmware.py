@@ -24,6 +24,11 @@ command, measured speed, measured U_dc), clamped at the axis ends; entries at fl
 (filled) cells, nothing at flag 0; then |theta| clamped to gamma_max; the injection runs at the LUT's
 harmonic order.
 
+Actuals (TPDO1, 0x1800/0x1A00 of the EDS): torque actual 0x6077, velocity actual 0x606C and current actual
+0x6078 (|i_dq|, the current vector's magnitude, per mille of the rated current 0x6075), sent every event
+timer period (0x1800:5, 10 ms) while the node is NMT OPERATIONAL, as a drive's cyclic actuals are: the
+service's actuals interlock trips on them within a control period of the bus.
+
 Safety: power (torque, injection) only in OPERATION_ENABLED with U_dc >= udc_min_v; heartbeat loss
 -> FAULT, EMCY 0x8130, target torque 0 and injection mode off (applied at once, without toggles:
 this is the drive's reaction, not a service setpoint).
@@ -62,6 +67,8 @@ class DriveFirmware(Cia402Device):
         super().__init__(network, node_id, eds_path)
         od = self.node.object_dictionary
         self.rated_torque_nm = int(od[0x6076].default) / 1000.0
+        self.rated_current_a = int(od[0x6075].default) / 1000.0
+        self.node.tpdo.read(from_od=True)  # TPDO1: the actuals, mapped as the EDS says
         self.udc_min_v = udc_min_v
         # setpoints in force in the control loop
         self.torque_nm = 0.0
@@ -84,6 +91,7 @@ class DriveFirmware(Cia402Device):
         # measurements published by the control loop
         self.speed_rpm = 0.0
         self.torque_actual_nm = 0.0
+        self.current_a = 0.0
         self.udc_v = 0.0
         self.ud_ref_v = 0.0
         self.uq_ref_v = 0.0
@@ -94,6 +102,8 @@ class DriveFirmware(Cia402Device):
             return int(np.clip(round(self.torque_actual_nm / self.rated_torque_nm * PER_MILLE), -32768, 32767))
         if index == 0x606C:
             return int(round(self.speed_rpm))
+        if index == 0x6078:
+            return self._current_per_mille()
         if index == 0x6079:
             return int(max(0.0, round(self.udc_v * 1000.0)))
         if index == 0x2010:
@@ -244,10 +254,47 @@ class DriveFirmware(Cia402Device):
             sp[ph.S_SYNC] = float(self.sync_level)
             return applied
 
-    def publish(self, speed_rpm: float, torque_nm: float, udc_v: float, ud_ref_v: float, uq_ref_v: float) -> None:
-        """Measurements of the control loop, served by SDO (0x606C, 0x6077, 0x6079, 0x2010)."""
+    def publish(
+        self, speed_rpm: float, torque_nm: float, udc_v: float, ud_ref_v: float, uq_ref_v: float, current_a: float = 0.0
+    ) -> None:
+        """Measurements of the control loop, served by SDO (0x606C, 0x6077, 0x6078, 0x6079, 0x2010) and TPDO1."""
         self.speed_rpm = speed_rpm
         self.torque_actual_nm = torque_nm
+        self.current_a = current_a
         self.udc_v = udc_v
         self.ud_ref_v = ud_ref_v
         self.uq_ref_v = uq_ref_v
+
+    # -- TPDO1: the actuals ----------------------------------------------------------------------------
+    def _current_per_mille(self) -> int:
+        return int(np.clip(round(self.current_a / self.rated_current_a * PER_MILLE), -32768, 32767))
+
+    def transmit_actuals(self) -> bool:
+        """Send TPDO1 once with the actuals published last (torque, speed, current); only in NMT OPERATIONAL.
+        Returns whether it was sent."""
+        tpdo = self.node.tpdo[1]
+        if not tpdo.enabled or self.node.nmt.state != "OPERATIONAL":
+            return False
+        values = {
+            0x6077: self.read_object(0x6077, 0),
+            0x606C: self.read_object(0x606C, 0),
+            0x6078: self._current_per_mille(),
+        }
+        for var in tpdo.map:  # PDO values are not linked to the LocalNode's dictionary: copied here
+            var.raw = values[var.index]
+        tpdo.transmit()
+        return True
+
+    def actuals_loop(self, stop: threading.Event) -> None:
+        """The TPDO's event timer (0x1800:5, ms; 0: not sent) in wall time: CAN is a real-time wire even when the
+        plant runs faster."""
+        while True:
+            period_ms = int(self.stored(0x1800, 5))
+            if stop.wait(period_ms / 1000.0 if period_ms > 0 else 0.1):
+                return
+            if period_ms <= 0:
+                continue
+            try:
+                self.transmit_actuals()
+            except Exception:  # noqa: BLE001 - one lost frame must not end the drive's actuals
+                log.exception("drive: TPDO1 not sent")

@@ -157,6 +157,7 @@ class Emulator:
         self._threads = [
             threading.Thread(target=self._plant_loop, name="plant", daemon=True),
             threading.Thread(target=self._watchdog, name="heartbeat-watchdog", daemon=True),
+            threading.Thread(target=self.drive.actuals_loop, args=(self.stop_event,), name="drive-tpdo", daemon=True),
         ]
         for t in self._threads:
             t.start()
@@ -262,6 +263,7 @@ class Emulator:
             udc,
             sum(r[0] for r in uref) / filled,
             sum(r[1] for r in uref) / filled,
+            math.hypot(float(self.plant.x[ph.X_ID]), float(self.plant.x[ph.X_IQ])),  # |i_dq| at the piece's end
         )
         self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / last_count)
         return self.faults.apply_daq(frames.tobytes())

@@ -41,6 +41,11 @@ from service.store.storage import Storage
 log = logging.getLogger(__name__)
 
 LAB_PERIOD_S = 1.0  # the bench's heartbeat and the look at other benches' progress
+# a shutdown's bounds (a database that hangs must not hold it: the bench is made safe before any of them)
+STOP_WORKER_S = 2.0  # the engine's worker is waited for this long after its run was stopped
+STOP_BOOKKEEPING_S = 2.0  # marking what was unfinished (the database) is given this long, then left to recovery
+STOP_THREAD_S = 0.5  # each helper thread (scheduler, lab heartbeat) is waited for this long
+STOP_NAME_S = 1.5  # freeing the bench's name (else it goes stale, and a restart may wait for that)
 
 
 def settings_with_emulator(settings: Settings, endpoints: dict[str, Any]) -> Settings:
@@ -84,7 +89,11 @@ class CalibrationService:
         self.storage = (
             storage
             if storage is not None
-            else Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
+            else Storage(
+                settings.server.db_path,
+                busy_timeout_s=settings.server.db_busy_timeout_s,
+                statement_timeout_s=settings.server.db_statement_timeout_s,
+            )
         )
         self.broker = EventBroker()
         self.emulator: EmulatorProcess | None = None
@@ -100,6 +109,8 @@ class CalibrationService:
         self.instance = new_instance_id()  # this process in the lab's benches table (service/runs/lab.py)
         self.lab = Lab(self.storage, settings.bench_name, self.instance, settings.server.port, __version__)
         self._lab_thread: threading.Thread | None = None
+        self._stop_lock = threading.Lock()
+        self._stopped = False
 
     def start(self, status_period_s: float | None = 1.0, run_schedules: bool = True) -> None:
         """Start the emulator (emulate mode), connect the bench, start the engine and the status poller
@@ -181,19 +192,43 @@ class CalibrationService:
             claim.acquire()
             self.claim = claim
 
-    def stop(self) -> None:
-        self._status_stop.set()
-        if self.scheduler is not None:
-            self.scheduler.stop()  # first: no firing into an engine that is stopping
-        if self.engine is not None:
-            self.engine.stop(self.shutdown_reason)
+    def stop_bench_now(self, reason: str | None = None) -> None:
+        """Make the bench safe at once if a run holds it (the bench watchdog's thread acts): no lock, no I/O,
+        never blocks, so a signal's first reaction may call it."""
         if self.bench is not None:
-            self.bench.close()  # leaves the bench safe (torque off, injection off)
+            self.bench.stop_now(reason or self.shutdown_reason)
+
+    def stop(self) -> None:
+        """Orderly, idempotent and bounded (a second call returns at once): the bench made safe first,
+        whatever the worker is doing; then the worker waited for, with a timeout; what needs the database
+        (marking unfinished work, freeing the bench's name) is given a bounded time, else left to the next
+        start's recovery."""
+        with self._stop_lock:
+            if self._stopped:
+                return
+            self._stopped = True
+        self._status_stop.set()
+        self.stop_bench_now()
+        if self.scheduler is not None:
+            self.scheduler.stop(STOP_THREAD_S)  # first: no firing into an engine that is stopping
+        if self.engine is not None:
+            engine = self.engine
+            _bounded(
+                lambda: engine.stop(self.shutdown_reason, timeout_s=STOP_WORKER_S),
+                STOP_WORKER_S + STOP_BOOKKEEPING_S,
+                "the engine's stop",
+            )
+        if self.bench is not None:
+            self.bench.close()  # leaves the bench safe (torque off, injection off), heartbeat consumers disarmed
         if self.emulator is not None:
             self.emulator.stop()
         if self._lab_thread is not None:
-            self._lab_thread.join(5.0)
-        self.lab.stopped()  # last: the name is free once the bench is safe
+            # its heartbeat in flight must land before the name is freed, or it renews the name after it
+            self._lab_thread.join(STOP_THREAD_S if self.storage.known_unavailable() else STOP_NAME_S)
+        if self.storage.known_unavailable() is None:  # last: the name is free once the bench is safe
+            _bounded(self.lab.stopped, STOP_NAME_S, "freeing the bench's name")
+        else:
+            log.warning("shutdown: the bench's name is not freed (the database does not answer): it goes stale")
         if self.claim is not None:
             self.claim.release()
 
@@ -372,3 +407,24 @@ class CalibrationService:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _bounded(step, timeout_s: float, what: str) -> None:
+    """Run `step` in a thread of its own and wait for it at most `timeout_s` (a shutdown must not wait on a
+    database that hangs); an error or an overrun is logged, never raised."""
+
+    def run() -> None:
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - a shutdown goes on whatever one step says
+            log.warning("shutdown: %s failed: %s", what, exc)
+
+    thread = threading.Thread(target=run, name=f"ripplecal-stop: {what}", daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    if thread.is_alive():
+        log.warning(
+            "shutdown: %s did not end within %.0f s (the database does not answer?): left to the next start",
+            what,
+            timeout_s,
+        )

@@ -12,9 +12,11 @@ from __future__ import annotations
 import os
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from service.names import check_name
 
 
 class _Section(BaseModel):
@@ -123,6 +125,31 @@ class SafetySettings(_Section):
     min_udc_v: float = Field(6.0, ge=0)
     max_udc_v: float = Field(60.0, gt=0)
     max_sweep_points_unconfirmed: int = Field(400, ge=1, description="a bigger sweep needs confirm_large = true")
+    # the envelope held on what the motor does (service/model/limits.py, service/bench/interlocks.py ActualsOutsideLimits)
+    torque_tolerance_fraction: float = Field(
+        0.2,
+        gt=0,
+        le=1.0,
+        description="a point's torque actual may differ from its command by this fraction of the command (or "
+        "torque_tolerance_nm, whichever is wider): beyond it the result is never ok, and a point the model "
+        "predicts beyond it is refused up front (0x6077 is the drive's estimate from its nominal parameters)",
+    )
+    torque_tolerance_nm: float = Field(0.25, gt=0, description="... or this many Nm, whichever is wider")
+    actuals_margin_fraction: float = Field(
+        0.1,
+        gt=0,
+        le=1.0,
+        description="the actuals interlock trips on a torque actual beyond max_torque_nm by this fraction, of "
+        "the sign torque_sign forbids beyond this fraction of max_torque_nm, and on a speed actual beyond "
+        "max_speed_rpm by this fraction",
+    )
+    current_trip_fraction: float = Field(
+        1.25,
+        ge=1.0,
+        le=3.0,
+        description="the actuals interlock trips on a current actual above this multiple of motor.i_max_a (the "
+        "injection's harmonic current rides on the limit the firmware holds)",
+    )
     max_plant_s_per_point: float = Field(
         600.0,
         gt=0,
@@ -159,6 +186,13 @@ class InterlockSettings(_Section):
         False, description="reset a drive/load FAULT without a person (off: POST /bench/fault-reset)"
     )
     auto_fault_reset_per_hour: int = Field(2, ge=0, le=60, description="at most this many automatic resets per hour")
+    watchdog_s: float = Field(
+        3.0,
+        gt=0,
+        le=60,
+        description="the bench watchdog disables drive and load when a run's loop has not reported for this "
+        "long (wall time): a worker stuck (e.g. on a database that hangs) never holds the bench at torque",
+    )
 
 
 class EngineSettings(_Section):
@@ -228,11 +262,48 @@ class ServerSettings(_Section):
         "process's lock before the service treats the database as unavailable (a sweep "
         "then waits with the bench safe, the API answers 503)",
     )
+    db_statement_timeout_s: float = Field(
+        5.0,
+        gt=0,
+        le=600,
+        description="how long one database statement may take (PostgreSQL statement_timeout, and the "
+        "client's own bound on an answer from a server or session that hangs) before the service treats "
+        "the database as unavailable",
+    )
+    # TLS and exposure: a bind beyond loopback carries bearer tokens over the lab network
+    ssl_certfile: str | None = Field(
+        None, description="TLS certificate chain (PEM): with it the API is served over HTTPS"
+    )
+    ssl_keyfile: str | None = Field(
+        None, description="the certificate's private key (PEM), unless ssl_certfile holds it"
+    )
+    insecure: bool = Field(
+        False,
+        description="serve plain HTTP on an address beyond loopback (tokens and answers cross the network in clear)",
+    )
+    # connections: a flood of idle ones must not use up the process's open files
+    max_connections: int = Field(
+        512,
+        ge=4,
+        le=100_000,
+        description="open HTTP connections at most (lowered to half the process's open-file limit); at the cap a new "
+        "connection closes the longest-idle one, or gets 503 when every one is in a request",
+    )
+    request_head_timeout_s: float = Field(
+        10.0, gt=0, le=300, description="a connection that sends no complete request head within this is closed"
+    )
+    keep_alive_timeout_s: int = Field(5, ge=1, le=300, description="an idle keep-alive connection is closed after this")
+    # authentication: wrong tokens are throttled per client address
+    auth_max_failures: int = Field(
+        10, ge=1, description="wrong tokens one client address may send within auth_failure_window_s; then 429"
+    )
+    auth_failure_window_s: float = Field(60.0, gt=0, le=86_400, description="the window auth_max_failures counts in")
 
 
 class Settings(_Section):
     bench_mode: Literal["emulate", "bench"] = "emulate"
-    bench_name: str = "emulated"
+    # the bench's name in a lab's database: printable text, as every name (service/names.py)
+    bench_name: Annotated[str, AfterValidator(lambda v: check_name(v, "bench name"))] = "emulated"
     can: CanSettings = CanSettings()
     daq: DaqSettings = DaqSettings()
     supply: SupplySettings = SupplySettings()

@@ -11,7 +11,11 @@ Fixtures shared by several modules:
   module-level dict `LIVE_SETTINGS`.
 - `pg_cluster` (one throwaway PostgreSQL server per session, tests/support/postgres.py) and `pg_url`
   (a fresh database on it per test).
-- `db_location`, `storage`: a storage test once per engine, SQLite and PostgreSQL (`storage` migrated)."""
+- `db_location`, `storage`: a storage test once per engine, SQLite and PostgreSQL (`storage` migrated).
+
+What the fixtures start ends with the session, also when pytest is killed (kill -9: no teardown runs):
+the PostgreSQL server and the services with a parent-death signal (tests/support/parent_death.py), the
+emulators when their stdin pipe closes (tests/e2e/test_session_cleanup_e2e.py proves it)."""
 
 from __future__ import annotations
 

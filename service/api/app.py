@@ -15,6 +15,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
 from service import __version__
+from service.api.auth_throttle import AuthThrottle
 from service.api.body_limit import BodySizeLimit
 from service.api.errors import EVERY_ROUTE, ErrorAnswers, request_validation_error
 from service.api.routes import ROUTERS
@@ -47,6 +48,8 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
         description="Hardware-in-the-loop calibration of torque-harmonic compensation for PMSM drives.",
     )
     app.state.service = service
+    server = service.settings.server
+    app.state.auth_throttle = AuthThrottle(server.auth_max_failures, server.auth_failure_window_s)
     for router in ROUTERS:
         app.include_router(router, responses=EVERY_ROUTE)  # every route documents 500 and 503
     app.add_exception_handler(RequestValidationError, request_validation_error)

@@ -1,4 +1,5 @@
-"""Annotated dependencies: the service layer and bearer-token roles (viewer < operator < admin)."""
+"""Annotated dependencies: the service layer and bearer-token roles (viewer < operator < admin), wrong
+tokens throttled per client address (service/api/auth_throttle.py)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.api.auth_throttle import AuthThrottle
 from service.calibration_service import CalibrationService
 
 ROLE_RANK = {"viewer": 0, "operator": 1, "admin": 2}
@@ -23,9 +25,16 @@ ServiceDep = Annotated[CalibrationService, Depends(get_service)]
 ResourceId = Annotated[int, Path(ge=1, le=2**63 - 1, description="id (a positive 64-bit integer)")]
 
 
+def get_auth_throttle(request: Request) -> AuthThrottle:
+    return request.app.state.auth_throttle
+
+
 def require_role(minimum: str):
     def check(
-        service: ServiceDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+        request: Request,
+        service: ServiceDep,
+        throttle: Annotated[AuthThrottle, Depends(get_auth_throttle)],
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
     ) -> str:
         if credentials is None or credentials.scheme.lower() != "bearer":
             raise HTTPException(
@@ -33,8 +42,18 @@ def require_role(minimum: str):
                 "a bearer token is required for this route",
                 headers={"WWW-Authenticate": "Bearer"},
             )
+        client = request.client.host if request.client else "unknown"
+        retry_after_s = throttle.retry_after_s(client)
+        if retry_after_s is not None:  # before the token is looked at: a throttled client learns nothing from it
+            raise HTTPException(
+                status.HTTP_429_TOO_MANY_REQUESTS,
+                f"too many unknown or revoked tokens from {client}: try again in {retry_after_s} s "
+                f"(at most {throttle.max_failures} wrong tokens per {throttle.window_s:g} s)",
+                headers={"Retry-After": str(retry_after_s)},
+            )
         role = service.token_role(credentials.credentials)
         if role is None:
+            throttle.failed(client)
             raise HTTPException(
                 status.HTTP_401_UNAUTHORIZED, "token unknown or revoked", headers={"WWW-Authenticate": "Bearer"}
             )

@@ -29,7 +29,9 @@ class UnavailablePublic(BaseModel):
     detail: str = Field(
         ..., description="what is wrong with the database, e.g. 'database ripplecal.db: its disk is full (...)'"
     )
-    cause: str = Field(..., description="locked | read_only | disk_full | io_error | cannot_open")
+    cause: str = Field(
+        ..., description="locked | read_only | disk_full | io_error | cannot_open | unreachable | timeout"
+    )
     retry_after_s: float = Field(..., description="try again after this many seconds (also the Retry-After header)")
 
 
@@ -47,6 +49,8 @@ _DESCRIPTIONS = {
     404: "No such resource",
     409: "The resource's state does not allow this now (e.g. resume a finished sweep, bench busy)",
     413: "Request body larger than server.max_body_bytes",
+    429: "Too many unknown or revoked tokens from this client address (server.auth_max_failures per "
+    "server.auth_failure_window_s): try again after Retry-After",
     500: "Internal error: the body's error_id names the log line with the traceback",
     502: "The drive refused or did not answer",
     503: "The database cannot be used now (locked by another process, read-only or full filesystem, I/O error): "
@@ -57,12 +61,15 @@ _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying ag
 
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """`responses=` for a route: each status it can answer besides its success."""
+    """`responses=` for a route: each status it can answer besides its success (a route that checks a
+    token can also answer 429: service/api/auth_throttle.py)."""
+    if 401 in codes:
+        codes = (*codes, 429)
     return {
         code: {
             "model": _MODELS.get(code, ErrorPublic),
             "description": _DESCRIPTIONS[code],
-            **({"headers": _RETRY_AFTER} if code == 503 else {}),
+            **({"headers": _RETRY_AFTER} if code in (429, 503) else {}),
         }
         for code in codes
     }

@@ -69,6 +69,11 @@ class ResultPublic(BaseModel):
     noise_floor_db: float | None = Field(
         None, description="rms noise phasor of the final window against |uncompensated|"
     )
+    torque_actual_nm: float | None = Field(
+        None,
+        description="the torque the point ran at: the drive's torque actual, mean over the measurement, Nm "
+        "(a result whose torque left its command beyond safety.torque_tolerance_* is never ok)",
+    )
     plant_time_s: float | None = Field(None, description="DAQ samples / rate, counted from each setpoint's effect")
     windows_used: int | None = None
     windows_discarded: int | None = None
@@ -328,6 +333,7 @@ def result_public(row: dict, with_traces: bool = True) -> ResultPublic:
         suppression_db=row.get("suppression_db"),
         target_db=row.get("target_db"),
         noise_floor_db=row.get("noise_floor_db"),
+        torque_actual_nm=row.get("torque_actual_nm"),
         plant_time_s=row.get("plant_time_s"),
         windows_used=row.get("windows_used"),
         windows_discarded=detail.get("windows_discarded"),

@@ -20,10 +20,8 @@ def unprocessable(*errors: dict[str, Any]) -> HTTPException:
 def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
     """The bench's safety limits refused a setpoint: one 422 item per operating-point field at fault."""
     if not exc.problems:
-        return unprocessable(validation_error(where, str(exc), "value_error.bench_limits"))
-    return unprocessable(
-        *(validation_error([*where, field], msg, "value_error.bench_limits") for field, msg in exc.problems)
-    )
+        return unprocessable(validation_error(where, str(exc), exc.kind))
+    return unprocessable(*(validation_error([*where, field], msg, exc.kind) for field, msg in exc.problems))
 
 
 @contextlib.contextmanager

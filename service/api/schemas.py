@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
 
 from service.identification.registry import METHODS
 from service.model.operating_point import OperatingPoint
+from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.plans import Grid, RegimePlacement
 from service.runs.schedules import check_cron, check_timezone
 from service.runs.validation import ValidationOptions
@@ -23,9 +24,24 @@ DEFAULT_METHOD = "adaptive"
 # the bench a run is for, in a lab of several benches on one database (service/runs/lab.py)
 BENCH_DESCRIPTION = (
     "the bench it runs on (GET /benches); default: this service's own bench. Another bench's run is stored "
-    "and waits for that bench's service (its answer says what it waits for)"
+    "and waits for that bench's service (its answer says what it waits for). Printable text: no control "
+    "characters, no whitespace at either end"
 )
-BenchName = Annotated[str, Field(min_length=1, max_length=100, description=BENCH_DESCRIPTION)]
+# names are stored and shown lab-wide: printable text on both engines (service/names.py), else a 422 saying why
+BenchName = Annotated[
+    str,
+    Field(min_length=1, max_length=MAX_NAME_LENGTH, description=BENCH_DESCRIPTION),
+    AfterValidator(lambda v: check_name(v, "bench name")),
+]
+ScheduleName = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=MAX_NAME_LENGTH,
+        description="unique among the schedules. Printable text: no control characters, no whitespace at either end",
+    ),
+    AfterValidator(lambda v: check_name(v, "schedule name")),
+]
 
 
 def _method_of(value: Any) -> str:
@@ -117,7 +133,7 @@ class ScheduleCreate(_ScheduleFields):
     """A sweep submitted at the times of a cron expression; `sweep` is checked exactly as POST /sweeps is."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_SCHEDULE_EXAMPLE]})
-    name: str = Field(..., min_length=1, max_length=100, description="unique among the schedules")
+    name: ScheduleName
     cron: str = Field(..., min_length=1, max_length=200, description=_CRON)
     timezone: str = Field("UTC", min_length=1, max_length=64, description="IANA time zone, e.g. Europe/Berlin")
     sweep: SweepCreate
@@ -129,7 +145,7 @@ class ScheduleUpdate(_ScheduleFields):
     """The fields to change; the others stay. A new cron or zone, or enabling, counts from now."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"enabled": False}]})
-    name: str = Field(None, min_length=1, max_length=100)
+    name: ScheduleName = None
     cron: str = Field(None, min_length=1, max_length=200, description=_CRON)
     timezone: str = Field(None, min_length=1, max_length=64, description="IANA time zone")
     sweep: SweepCreate = None

@@ -5,7 +5,8 @@ parts, each given what it needs (calls go downward only; `busy` and `after_run` 
   - `BenchLinks` (service/bench/connections.py): the links, connect/close, reachability;
   - `BenchFaults` (service/bench/faults.py): the interlocks, trips, refusals, fault resets;
   - `RunLifecycle` (service/bench/lifecycle.py): runs (open, the commands during one, end),
-    make_safe, the setpoint accounting;
+    make_safe, the setpoint accounting, and the bench watchdog (service/bench/watchdog.py) that makes
+    the bench safe from its own thread when a run's loop goes silent or a stop is asked (`stop_now`);
   - `BenchStatus` (service/bench/status.py): the /bench/status view and the poller's reads.
 A run (service/bench/run.py) is given the facade as its `RunBench` (service/bench/contracts.py).
 """
@@ -25,7 +26,7 @@ from drivers.load_machine import LoadClient
 from service.bench.connections import BenchLinks
 from service.bench.errors import BenchError, BenchUnreachable, RunError
 from service.bench.faults import BenchFaults
-from service.bench.interlocks import InterlockMonitor, SupplyOutOfRange, Trip
+from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange, Trip
 from service.bench.lifecycle import RunLifecycle
 from service.bench.live_values import LiveValues
 from service.bench.measurement import OperatingPointSession
@@ -37,6 +38,9 @@ from service.model.operating_point import OperatingPoint
 from service.settings import Settings
 
 __all__ = ["Bench", "BenchError", "BenchUnreachable", "RunError"]
+
+CLOSE_SAFE_WAIT_S = 5.0  # a shutdown waits this long for the watchdog's stop (each SDO step is bounded)
+CLOSE_LOCK_WAIT_S = 2.0  # ... and this long for the run lock before its own make_safe (a stuck worker holds it)
 
 
 class Bench:
@@ -104,6 +108,11 @@ class Bench:
         return self._faults.supply_interlock
 
     @property
+    def actuals(self) -> ActualsOutsideLimits | None:
+        """The drive's actuals held against the limits; also a point's mean torque actual."""
+        return self._faults.actuals
+
+    @property
     def accounting(self) -> SetpointAccounting | None:
         """The drive's setpoints against the DAQ sync line."""
         return self._runs.accounting
@@ -124,6 +133,7 @@ class Bench:
         self._runs.attach_accounting()
         self._faults.start()
         self._runs.establish_accounting()
+        self._runs.watchdog.start()
         self.refresh_status()
 
     def close(self) -> None:
@@ -131,8 +141,12 @@ class Bench:
         the links closed (the service heartbeat stops last): the devices do not fault, and the next
         start runs without a reset. connect() arms the consumers again."""
         if self._faults.interlocks is not None:  # connected: leave it safe first
+            # at once, whatever the worker is doing (it may hold the run lock, stuck on the database)
+            self.stop_now("the service is shutting down")
+            self._runs.watchdog.wait_safe(CLOSE_SAFE_WAIT_S)
             with contextlib.suppress(Exception):
-                self.make_safe()
+                self._runs.make_safe(lock_timeout_s=CLOSE_LOCK_WAIT_S)
+            self._runs.watchdog.close()
             self._faults.stop()
             self._links.disarm_heartbeat_consumers()
         self._links.close()
@@ -154,8 +168,14 @@ class Bench:
         return result
 
     def guard(self, cancel: threading.Event | None = None) -> None:
-        """Checked before every DAQ read of a run: raises to stop it (interlock trip, the run's cancel token)."""
-        self._faults.guard(cancel)
+        """Checked before every DAQ read of a run: kicks the watchdog; raises to stop it (interlock trip,
+        the run's cancel token, the watchdog's stop)."""
+        self._runs.guard(cancel)
+
+    def stop_now(self, reason: str) -> None:
+        """A cancel or a shutdown: drive and load disabled at once by the watchdog's thread if a run holds
+        the bench, whatever its worker is doing. Never blocks (no lock, no I/O: safe in a signal handler)."""
+        self._runs.watchdog.request_stop(reason)
 
     # --- status ------------------------------------------------------------------------------------------
     def refresh_status(self) -> dict[str, Any]:
@@ -163,8 +183,19 @@ class Bench:
         return self._view.refresh()
 
     def status(self) -> dict[str, Any]:
-        """The truth per device, with ages and the first thing wrong (BenchStatus.status)."""
-        return self._view.status()
+        """The truth per device, with ages and the first thing wrong (BenchStatus.status), and the bench
+        watchdog's latest stop (why the bench was made safe under a run)."""
+        status = self._view.status()
+        watchdog = self._runs.watchdog
+        stopped = watchdog.last_stop
+        status["watchdog"] = {
+            "bound_s": watchdog.bound_s,
+            "last_stop": stopped.public() if stopped else None,
+            "silent_since_monotonic": watchdog.silent_since_monotonic,  # the host's CLOCK_MONOTONIC (fault timing)
+        }
+        if watchdog.tripped is not None and self._runs.busy and not status.get("error"):
+            status["error"] = watchdog.tripped.reason  # the run in progress was stopped under it
+        return status
 
     def _after_run(self) -> None:
         if self.connected:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable, Protocol
 if TYPE_CHECKING:
     from drivers.drive import DriveClient
     from drivers.load_machine import LoadClient
-    from service.bench.interlocks import InterlockMonitor, SupplyOutOfRange
+    from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange
     from service.bench.live_values import LiveValues
     from service.bench.setpoint_accounting import SetpointAccounting
     from service.model.demodulation import ResonanceTracker
@@ -54,6 +54,10 @@ class RunBench(Protocol):
 
     @property
     def supply_interlock(self) -> SupplyOutOfRange: ...
+
+    @property
+    def actuals(self) -> ActualsOutsideLimits:
+        """The drive's actuals held against the limits (pushed from its TPDO); a point's mean torque actual."""
 
     @property
     def resonance(self) -> ResonanceTracker: ...

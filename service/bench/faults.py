@@ -19,6 +19,7 @@ from drivers.cia402 import Command402
 from service.bench.connections import BenchLinks
 from service.bench.errors import BenchError
 from service.bench.interlocks import (
+    ActualsOutsideLimits,
     DaqLost,
     DeviceFault,
     ForeignMaster,
@@ -55,6 +56,7 @@ class BenchFaults:
         self.on_trip = on_trip
         self.interlocks: InterlockMonitor | None = None
         self.supply_interlock: SupplyOutOfRange | None = None
+        self.actuals: ActualsOutsideLimits | None = None  # the envelope held on what the motor does
         self._auto_resets: list[float] = []  # monotonic times of automatic fault resets (rate limit)
 
     @property
@@ -68,6 +70,7 @@ class BenchFaults:
         drive, load = self.links.drive, self.links.load
         drive_fault, load_fault = DeviceFault(drive), DeviceFault(load)
         self.supply_interlock = SupplyOutOfRange(self.links.supply, il.supply_tolerance_fraction, il.supply_tolerance_v)
+        self.actuals = ActualsOutsideLimits(drive, self.settings.safety, self.settings.motor.i_max_a)
         self.interlocks = InterlockMonitor(
             [
                 drive_fault,
@@ -78,6 +81,7 @@ class BenchFaults:
                 ForeignMaster(self.links.bus),
                 DaqLost(self.links.daq),
                 self.supply_interlock,
+                self.actuals,
             ],
             on_trip=self._tripped,
             period_s=il.monitor_period_s,
@@ -85,7 +89,16 @@ class BenchFaults:
         )
         drive.add_emcy_callback(lambda e: self.interlocks.emcy(drive_fault, e.code))
         load.add_emcy_callback(lambda e: self.interlocks.emcy(load_fault, e.code))
+        drive.on_actuals = self._on_actuals
         self.interlocks.start()
+
+    def _on_actuals(self, actuals) -> None:
+        """Every TPDO of the drive's actuals (CAN receive thread): into the point's mean, then decided at once."""
+        try:
+            self.actuals.push(actuals)
+            self.interlocks.pushed(self.actuals, actuals)
+        except Exception:  # noqa: BLE001 - the receive thread must go on; the monitor's poll still reads them
+            log.exception("actuals interlock: a TPDO could not be decided")
 
     def _tripped(self, trip: Trip) -> None:
         """Monitor/CAN thread: torque off now if a run holds the bench, then report. The full make_safe

@@ -8,8 +8,8 @@ Unlike a suspender, a trip never resumes a run by itself: the measurement in fli
 sweep pauses; a *latched* interlock (drive FAULT/EMCY) also stays tripped until a person acknowledges
 it (POST /bench/fault-reset), the others clear when their condition does.
 
-`InterlockMonitor` polls the interlocks from its own thread (EMCY arrives pushed, from the CAN receive
-thread), keeps the first trip of the run in flight (`run_trip`, read by the bench's guard before every
+`InterlockMonitor` polls the interlocks from its own thread (EMCY and the drive's actuals arrive pushed,
+from the CAN receive thread, and are decided there at once), keeps the first trip of the run in flight (`run_trip`, read by the bench's guard before every
 DAQ read) and calls `on_trip` at once, so the bench goes safe without waiting for the run to notice.
 """
 
@@ -92,6 +92,9 @@ class Interlock(ABC):
         self._next_read = now + self.period_s
         return True
 
+    def armed_changed(self, armed: bool) -> None:
+        """The monitor armed (a run started) or disarmed (it ended); an interlock that watches runs only listens."""
+
     def evaluate(self) -> str | None:
         """Read and decide; returns the reason while tripped. A latched trip is kept until reset()."""
         try:
@@ -99,6 +102,10 @@ class Interlock(ABC):
         except Exception as exc:  # noqa: BLE001 - an unreadable signal decides nothing (its own interlock covers the link)
             log.debug("%s: cannot read: %s", self.name, exc)
             return self.reason
+        return self.decide(value)
+
+    def decide(self, value: Any) -> str | None:
+        """Decide on a value (read, or pushed: InterlockMonitor.pushed); returns the reason while tripped."""
         if self.should_trip(value):
             if self.reason is None:
                 self.reason = self.justification(value)
@@ -274,6 +281,96 @@ class SupplyOutOfRange(Interlock):
         )
 
 
+class ActualsOutsideLimits(Interlock):
+    """The envelope held on what the motor does: the drive's actuals (torque, current and speed actual, its TPDO
+    every 10 ms, pushed from the CAN receive thread and decided at once: InterlockMonitor.pushed) against the
+    hard limits and the torque sign, during every run. Setpoints are checked before they are sent; this is
+    for a motor that leaves them (past full field weakening the inverter's diodes rectify and the machine
+    brakes uncontrolled, at currents far above i_max). Margins (settings.safety): torque beyond max_torque_nm
+    by actuals_margin_fraction, of the forbidden sign beyond that fraction of max_torque_nm, speed beyond
+    max_speed_rpm by that fraction; current above current_trip_fraction x motor.i_max_a. During a run, actuals
+    older than `stale_s` trip too (the drive stopped telling what it does). Latched: a person looks at a
+    machine that ran away before it runs again.
+
+    It also keeps the mean torque actual from `start_mean()` on (a point's measurement: `mean_torque()`)."""
+
+    name = "actuals"
+    latched = True
+    period_s = 0.1  # the poll decides on staleness only: the values are decided as they arrive
+
+    def __init__(self, drive, safety, i_max_a: float, stale_s: float = 1.0):
+        super().__init__()
+        self.drive = drive
+        self.safety = safety
+        self.i_max_a = i_max_a
+        self.stale_s = stale_s
+        self._watching = False
+        self._since = 0.0  # monotonic: actuals before this are not the run's
+        self._mean_lock = threading.Lock()
+        self._sum_nm, self._count = 0.0, 0
+
+    def armed_changed(self, armed: bool) -> None:
+        self._watching = armed
+        self._since = time.monotonic()
+
+    def read(self):
+        return self.drive.actuals
+
+    def push(self, actuals) -> None:
+        """A new TPDO of the actuals (CAN receive thread): counted into the mean (the decision is the monitor's)."""
+        with self._mean_lock:
+            self._sum_nm += actuals.torque_nm
+            self._count += 1
+
+    def start_mean(self) -> None:
+        with self._mean_lock:
+            self._sum_nm, self._count = 0.0, 0
+
+    def mean_torque(self) -> tuple[float | None, int]:
+        """(mean torque actual since start_mean, Nm, or None without any; how many TPDOs it averages)."""
+        with self._mean_lock:
+            return (self._sum_nm / self._count if self._count else None), self._count
+
+    def _stale_s(self, actuals) -> float | None:
+        if not self._watching:
+            return None
+        age = time.monotonic() - (self._since if actuals is None else max(actuals.received_at, self._since))
+        return age if age > self.stale_s else None
+
+    def _violation(self, actuals) -> str | None:
+        s, m = self.safety, self.safety.actuals_margin_fraction
+        if actuals is None:
+            return None
+        if abs(actuals.current_a) > s.current_trip_fraction * self.i_max_a:
+            return (
+                f"current actual {actuals.current_a:.1f} A above {s.current_trip_fraction:g} x motor.i_max_a = "
+                f"{s.current_trip_fraction * self.i_max_a:.1f} A"
+            )
+        if abs(actuals.torque_nm) > s.max_torque_nm * (1.0 + m):
+            return f"torque actual {actuals.torque_nm:.2f} Nm beyond the limit of {s.max_torque_nm:g} Nm (safety.max_torque_nm)"
+        forbidden = {"positive": -1.0, "negative": 1.0}.get(s.torque_sign)
+        if forbidden is not None and actuals.torque_nm * forbidden > m * s.max_torque_nm:
+            return f"torque actual {actuals.torque_nm:.2f} Nm: this bench allows {s.torque_sign} torque only (safety.torque_sign)"
+        if abs(actuals.speed_rpm) > s.max_speed_rpm * (1.0 + m):
+            return f"speed actual {actuals.speed_rpm:.0f} rpm beyond the limit of {s.max_speed_rpm:g} rpm (safety.max_speed_rpm)"
+        return None
+
+    def should_trip(self, actuals) -> bool:
+        return self._violation(actuals) is not None or self._stale_s(actuals) is not None
+
+    def justification(self, actuals) -> str:
+        violation = self._violation(actuals)
+        if violation is not None:
+            return (
+                f"the motor left the envelope: {violation} (drive node {self.drive.node_id}: torque "
+                f"{actuals.torque_nm:.2f} Nm, current {actuals.current_a:.0f} A, speed {actuals.speed_rpm:.0f} rpm)"
+            )
+        return (
+            f"no actuals (TPDO1: torque, current, speed) from drive node {self.drive.node_id} for "
+            f"{self._stale_s(actuals):.1f} s: nothing watches what the motor does"
+        )
+
+
 class InterlockMonitor:
     """Watches the interlocks from a thread of its own; keeps the first trip of the run in flight.
 
@@ -333,6 +430,8 @@ class InterlockMonitor:
         with self._lock:
             self._armed = True
             self._run_trip = None
+            for lock in self.interlocks:
+                lock.armed_changed(True)
             # an armed-only interlock is not read between runs: a reason from the last run is stale
             for lock in self.interlocks:
                 if lock.armed_only and not lock.latched:
@@ -351,6 +450,8 @@ class InterlockMonitor:
         """End of a run: returns its first trip (None if it ran clean)."""
         with self._lock:
             self._armed = False
+            for lock in self.interlocks:
+                lock.armed_changed(False)
             trip, self._run_trip = self._run_trip, None
             return trip
 
@@ -381,6 +482,17 @@ class InterlockMonitor:
                 with self._lock:
                     self._reported.pop(lock.name, None)
         return self.run_trip
+
+    def pushed(self, interlock: Interlock, value: Any) -> None:
+        """A value pushed to `interlock` (the drive's actuals, CAN receive thread): decided now, not at the
+        next monitor round, so a trip takes the torque off within the push's period."""
+        with self._lock:
+            armed = self._armed
+        if interlock.armed_only and not armed:
+            return
+        reason = interlock.decide(value)
+        if reason is not None:
+            self._tripped(interlock.name, reason, interlock.latched)
 
     def emcy(self, interlock: DeviceFault, code: int) -> None:
         """EMCY callback path (CAN receive thread)."""

@@ -26,6 +26,7 @@ from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import OperatingPointSession, RunCancelled
 from service.bench.run import BenchRun, gamma_max_for_run
 from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
+from service.bench.watchdog import BenchWatchdog
 from service.model import limits
 from service.model.harmonic import mechanical_speed_rpm
 from service.model.limits import LimitError
@@ -56,6 +57,23 @@ class RunLifecycle:
         self.busy = False
         self._gamma_max_rad: float | None = None  # of the run in progress
         self._run: BenchRun | None = None
+        # makes the bench safe from its own thread when the run's loop goes silent or a stop is asked
+        # (service/bench/watchdog.py); it reports through the faults' reporter (the service's SSE)
+        self.watchdog = BenchWatchdog(
+            lambda: links.drive,
+            lambda: links.load,
+            settings.interlocks.watchdog_s,
+            on_stop=lambda trip: faults.on_trip(trip) if faults.on_trip is not None else None,
+        )
+
+    def guard(self, cancel: threading.Event | None = None) -> None:
+        """Checked before every DAQ read of a run: the run's loop is alive (the watchdog kicked); raises
+        to stop it (interlock trip, the run's cancel token, the watchdog's stop)."""
+        self.watchdog.kick()
+        self.faults.guard(cancel)
+        stopped = self.watchdog.tripped
+        if stopped is not None and self.busy:
+            raise InterlockTripped(stopped)
 
     # --- the setpoint accounting -----------------------------------------------------------------------
     def attach_accounting(self) -> None:
@@ -108,6 +126,7 @@ class RunLifecycle:
     def _wait_supply(self, udc_v: float, timeout_s: float = 5.0) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
+            self.watchdog.kick()  # waiting on the supply is the run's loop at work
             measured = self.links.supply.measure_voltage()
             if abs(measured - udc_v) <= max(0.02 * udc_v, 0.05):
                 return
@@ -145,6 +164,7 @@ class RunLifecycle:
             )
             self._run = run
             self.faults.interlocks.arm()
+            self.watchdog.arm()
             first: BaseException | None = None
             try:
                 self.accounting.start_run(run.guard)
@@ -175,6 +195,8 @@ class RunLifecycle:
         raise what happened: the trip (with make_safe's outcome), else the run's own error (with
         make_safe's error added if it failed too), else make_safe's error."""
         interlocks = self.faults.interlocks
+        # before make_safe: its braking reads the DAQ without kicking, and the run's own stop follows
+        self.watchdog.disarm()
         try:
             if first is not None and not isinstance(first, (RunCancelled, GeneratorExit)):
                 interlocks.check_now(force=True)  # an EMCY/FAULT may be why the run failed
@@ -208,10 +230,11 @@ class RunLifecycle:
             raise BenchError(f"bench may not be safe: {safe_error}") from safe_error
 
     # --- safe --------------------------------------------------------------------------------------------
-    def make_safe(self, standstill_timeout_plant_s: float = 5.0) -> None:
+    def make_safe(self, standstill_timeout_plant_s: float = 5.0, lock_timeout_s: float | None = None) -> None:
         """Torque off, injection off, drive disabled, load stopped; then wait (on the DAQ clock, or on
         the load's own speed reading if the DAQ is gone; bounded) for standstill. Tries every step,
-        raises the first error."""
+        raises the first error. `lock_timeout_s`: wait no longer for the bench's run lock (a shutdown
+        whose worker is stuck inside a run: the watchdog has made the bench safe without it)."""
         drive, load = self.links.drive, self.links.load
         errors = []
         steps = []
@@ -223,13 +246,20 @@ class RunLifecycle:
                 # brake with the load's speed loop before disabling it (a disabled load coasts)
                 steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))
             steps.append(load.disable)
-        with self._lock:
+        if not self._lock.acquire(timeout=-1 if lock_timeout_s is None else lock_timeout_s):
+            raise BenchError(
+                f"make_safe: the run lock is still held after {lock_timeout_s:g} s (a worker stuck in a run); "
+                "the bench watchdog disabled drive and load without it"
+            )
+        try:
             for step in steps:
                 try:
                     step()
                 except Exception as exc:
                     errors.append(exc)
                     log.error("make_safe step failed: %s", exc)
+        finally:
+            self._lock.release()
         if errors:
             raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
 

@@ -21,7 +21,9 @@ the other sign) is one the machine cannot reach at this speed and U_dc (past ful
 current controller sits in its voltage limit and the motor may even brake against its command): it
 fails with that reason instead of being calibrated at an operating point that is not the one asked
 for. The margin is wide because 0x6077 is the drive's estimate from its nominal parameters. A failure
-before the session is handed out names the move.
+before the session is handed out names the move. From there on the drive's torque actual TPDOs are
+averaged (`torque_actual`): what a result records as the torque it ran at, judged against its command
+with the narrower safety.torque_tolerance_* (service/runs/identify.py hold_to_command).
 
 Each point's wall time is split (PointTiming): move (commands until the last setpoint is written),
 accounting, settle (from there to steady), measurement (the caller's use of the session).
@@ -155,6 +157,8 @@ class BenchRun:
                 exc.add_note(f"while moving to {op.label()}")
                 raise
             session.reset_plant_time()
+            if bench.actuals is not None:
+                bench.actuals.start_mean()  # the point's torque actual: over its measurement from here
             self.points += 1
             t0 = time.perf_counter()
             try:
@@ -176,6 +180,16 @@ class BenchRun:
                 if trip is not None:
                     raise InterlockTripped(trip) from exc
             raise
+
+    def torque_actual(self) -> tuple[float | None, int]:
+        """The torque the point in progress runs at: the mean torque actual of the drive's TPDOs from the end of
+        its settling on, and how many it averages. A measurement shorter than the TPDO period (the emulator
+        running faster than real time) is read once by SDO instead (count 0), at the point."""
+        actuals = self.bench.actuals
+        mean_nm, count = actuals.mean_torque() if actuals is not None else (None, 0)
+        if count == 0:
+            mean_nm = self.bench.drive.torque_actual_nm()
+        return mean_nm, count
 
     def _first_trip(self) -> Trip | None:
         """The run's first interlock trip, every interlock read now rather than at its next period (the

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from service import __version__
 from service.cli import output
-from service.cli.startup import json_option, open_database, settings_from, storage_from
+from service.cli.startup import StartError, json_option, open_database, settings_from, storage_from
 from service.cli.waiting import follow
 from service.store.engines import display_location
 
@@ -20,16 +20,20 @@ JOB_FINAL = ("done", "failed", "cancelled")
 
 
 def cmd_serve(args) -> int:
-    import signal
-
     import uvicorn
 
     from service.api.app import create_app
     from service.calibration_service import CalibrationService
+    from service.cli import connection_guard, exposure, repeat_limiter
+    from service.cli.server import ServiceServer
     from service.store.db_claim import DatabaseClaim
     from service.store.engines import database_claim
 
     settings = settings_from(args)
+    # plain HTTP beyond loopback refused without --insecure, TLS files checked: before anything is opened
+    exposure_warning = exposure.check(settings.server)
+    if exposure_warning:
+        output.note(exposure_warning)
     # before the database is migrated or recovered: a second serve on this database ends here, in one line
     # (a flock on a SQLite file; on a shared server the lab's bench claim, taken at start, rules)
     claim: DatabaseClaim | None = database_claim(settings.server.db_path, settings.server.port)
@@ -47,27 +51,50 @@ def cmd_serve(args) -> int:
         raise
     app = create_app(service)
 
-    class Server(uvicorn.Server):
-        """uvicorn's own signal handling, plus the signal's name for the sweeps it interrupts."""
-
-        def handle_exit(self, sig: int, frame) -> None:
-            service.shutdown_reason = f"service shut down ({signal.Signals(sig).name})"
-            service.broker.close()  # open SSE streams end now: uvicorn waits for them before shutting down
-            super().handle_exit(sig, frame)
-
-    output.serving(__version__, settings.server.host, settings.server.port)
-    # timeout_graceful_shutdown: a backstop for a connection that does not end by itself
-    server = Server(
-        uvicorn.Config(
-            app, host=settings.server.host, port=settings.server.port, log_level="info", timeout_graceful_shutdown=10
+    # connections bounded below the open files (service/cli/connection_guard.py)
+    open_files = connection_guard.raise_open_files_limit()
+    cap = connection_guard.connection_cap(settings.server.max_connections, open_files)
+    if cap < settings.server.max_connections:
+        output.note(
+            f"ripplecal: at most {cap} connections (server.max_connections {settings.server.max_connections}): "
+            f"this process may open {open_files} files (raise `ulimit -n` for more)"
         )
+    guard = connection_guard.ConnectionGuard(cap, settings.server.request_head_timeout_s)
+    try:
+        listeners = connection_guard.listening_sockets(settings.server.host, settings.server.port, guard)
+    except StartError:
+        service.stop()  # made, not started: frees what it holds (the database claim, the bench's name)
+        raise
+    output.serving(
+        __version__, settings.server.host, settings.server.port, "https" if settings.server.ssl_certfile else "http"
+    )
+    # signals stop it bench safe, a second one forced, within bounds (service/cli/server.py);
+    # timeout_graceful_shutdown: a backstop for a connection that does not end by itself
+    server = ServiceServer(
+        uvicorn.Config(
+            app,
+            host=settings.server.host,
+            port=settings.server.port,
+            log_level="info",
+            timeout_graceful_shutdown=10,
+            http=connection_guard.guarded_h11_protocol(guard),
+            timeout_keep_alive=settings.server.keep_alive_timeout_s,
+            backlog=connection_guard.accept_batch(cap),
+            ssl_certfile=settings.server.ssl_certfile,
+            ssl_keyfile=settings.server.ssl_keyfile,
+        ),
+        service,
     )
     logging.getLogger("uvicorn.access").addFilter(_path_without_query)  # after uvicorn's logging config
+    limiters = repeat_limiter.install()  # after uvicorn's logging config too: on its handlers and the root's
     try:
-        server.run()
+        server.run(sockets=listeners)
     except KeyboardInterrupt:
         # uvicorn re-raises the Ctrl+C it handled once the shutdown is done: exit as interrupted, quietly
         return 130
+    finally:
+        for limiter in limiters:
+            limiter.close()  # the summaries still held back
     return 0
 
 

@@ -38,8 +38,8 @@ def starting_bench(bench_file: str | None) -> None:
     print(f"starting the {'bench ' + bench_file if bench_file else 'emulated bench'} ...", file=sys.stderr, flush=True)
 
 
-def serving(version: str, host: str, port: int) -> None:
-    print(f"ripplecal {version}: dashboard at http://{host}:{port}/", flush=True)
+def serving(version: str, host: str, port: int, scheme: str = "http") -> None:
+    print(f"ripplecal {version}: dashboard at {scheme}://{host}:{port}/", flush=True)
 
 
 # --- progress (stderr) ---------------------------------------------------------------------------------
@@ -50,9 +50,11 @@ class JobProgress:
     def __init__(self, out=None):
         self.out = out
         self._last_line = -math.inf
+        self._last_state: str | None = None  # a state is printed once, however often it is published
 
     def queued(self, job_id: int) -> int:
         print(f"job {job_id}: queued", file=self._file, flush=True)
+        self._last_state = "queued"
         return job_id
 
     @property
@@ -63,7 +65,8 @@ class JobProgress:
         """One published event; True if it is this job's (its state is then read again)."""
         if event.get("job_id") != job_id:
             return False
-        if kind == "job.state" and event["state"] != "queued":
+        if kind == "job.state" and event["state"] != self._last_state:
+            self._last_state = event["state"]
             print(
                 f"job {job_id}: {event['state']}" + (f" ({event['error']})" if event.get("error") else ""),
                 file=self._file,

@@ -51,8 +51,16 @@ def _db_args(p: argparse.ArgumentParser) -> None:
 def _parser_serve(sub) -> None:
     p = sub.add_parser("serve", help="run the REST API and dashboard")
     _add_bench_args(p)
-    p.add_argument("--host", help="bind address (default 127.0.0.1)")
+    p.add_argument("--host", help="bind address (default 127.0.0.1; beyond loopback: TLS, or --insecure)")
     p.add_argument("--port", type=int, help="port (default 8000)")
+    p.add_argument("--ssl-certfile", metavar="FILE", help="TLS certificate (PEM): serve HTTPS (README: TLS for a lab)")
+    p.add_argument("--ssl-keyfile", metavar="FILE", help="the certificate's private key (PEM)")
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,  # not given: server.insecure of the settings
+        help="allow plain HTTP on an address beyond loopback: tokens and answers cross the network in clear",
+    )
     p.add_argument(
         "--bench-name",
         metavar="NAME",

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from service.cli import output
+from service.names import check_name
 from service.settings import Settings, SettingsError, load_settings
 from service.store.engines import display_location, is_server_url
 from service.store.storage import Storage, StorageError
@@ -31,7 +32,7 @@ def settings_from(args) -> Settings:
                 "emulator.speedup": getattr(args, "speedup", None),
             }
         )
-    for key in ("host", "port"):
+    for key in ("host", "port", "ssl_certfile", "ssl_keyfile", "insecure"):  # serve's; None: not given
         if getattr(args, key, None) is not None:
             overrides[f"server.{key}"] = getattr(args, key)
     overrides["bench_name"] = getattr(args, "bench_name", None)
@@ -39,8 +40,14 @@ def settings_from(args) -> Settings:
     if getattr(args, "bench", None):
         _check_bench_file(args.bench, settings)
         if "bench_name" not in settings.model_fields_set:
-            # a bench file without bench_name: the bench is called after its file
-            settings = settings.model_copy(update={"bench_name": Path(args.bench).stem})
+            # a bench file without bench_name: the bench is called after its file (a valid name too)
+            try:
+                name = check_name(Path(args.bench).stem, "bench name")
+            except ValueError as exc:
+                raise SettingsError(
+                    f"bench file {args.bench} sets no bench_name and its file name is no name: {exc}"
+                ) from None
+            settings = settings.model_copy(update={"bench_name": name})
     settings.server.db_path = resolve_db_path(settings.server.db_path)
     return settings
 
@@ -68,7 +75,11 @@ def open_database(settings: Settings) -> Storage:
     (or the server, without its password)."""
     path = display_location(settings.server.db_path)
     try:
-        storage = Storage(settings.server.db_path, busy_timeout_s=settings.server.db_busy_timeout_s)
+        storage = Storage(
+            settings.server.db_path,
+            busy_timeout_s=settings.server.db_busy_timeout_s,
+            statement_timeout_s=settings.server.db_statement_timeout_s,
+        )
     except StorageError as exc:
         # not a database; a newer schema, a failed migration; locked, read-only, full, unreachable
         raise StartError(str(exc)) from None

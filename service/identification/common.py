@@ -60,6 +60,12 @@ class MethodOptions(BaseModel):
         "injection without it (sec. 2.4). Default: the settings' identification.decoupling. "
         "A map is valid in the drive only with the decoupling it was measured with",
     )
+    override_envelope_model: bool = Field(
+        False,
+        description="run points the envelope model of the motor settings refuses (service.model.limits."
+        "check_envelope), for a machine known to exceed its nominal settings; never the hard limits "
+        "(max torque, max speed, torque sign), which the actuals interlock holds on what the motor does",
+    )
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,8 @@ class IdentificationResult:
     s_measured: complex | None = None
     target_db: float = 40.0  # the suppression `ok` requires
     noise_floor_db: float | None = None  # rms noise phasor of the final window against |uncompensated|
+    # the torque the point ran at: the drive's torque actual, mean over the measurement (None: not known)
+    torque_actual_nm: float | None = None
     details: dict[str, Any] = field(default_factory=dict)
     traces: dict[str, Any] = field(default_factory=dict)
 

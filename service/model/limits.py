@@ -2,23 +2,48 @@
 
 One module, imported by the plans, the engine, the API and the bench; it needs only the settings and
 the operating point, so declaring a request schema never imports the drivers.
+
+Two kinds of check:
+  - the hard limits (`check_limits`: max torque, torque sign, speed range, U_dc range): never overridden;
+  - the envelope model (`check_envelope`): a point the NOMINAL motor settings predict the drive cannot hold
+    (service.model.operating_point.torque_envelope: current limit, voltage limit with field weakening, the
+    back-EMF above what the DC link holds) is refused up front with the reason. A machine that exceeds its
+    model may be run anyway with `override_envelope_model` (an option of every request that moves the
+    bench); the actuals interlock (service/bench/interlocks.py, ActualsOutsideLimits) then holds the hard limits on
+    what the motor does.
+`torque_tolerance_nm` is the one tolerance between a torque command and the torque a point ran at: the
+model refuses a point predicted beyond it, and a result measured beyond it is never ok (`torque_departure`).
 """
 
 from __future__ import annotations
 
 import math
 
-from service.model.operating_point import OperatingPoint
-from service.settings import Settings
+from service.model.operating_point import OperatingPoint, torque_envelope
+from service.settings import SafetySettings, Settings
 
 
 class LimitError(ValueError):
     """A setpoint outside the bench's safety limits (checked before anything is sent).
     `problems` pairs each operating-point field at fault with what is wrong (the API's 422 names them)."""
 
+    kind = "value_error.bench_limits"  # the 422 item's type
+    hint = ""  # what to do about it, said once per refusal
+
     def __init__(self, message: str, problems: tuple[tuple[str, str], ...] = ()):
         super().__init__(message)
         self.problems = problems
+
+
+class EnvelopeError(LimitError):
+    """A point the envelope model predicts the drive cannot hold (check_envelope); `override_envelope_model`
+    lets it run, the hard limits still held on the actuals."""
+
+    kind = "value_error.envelope"
+    hint = (
+        "a lower torque or speed, or a higher udc_v; override_envelope_model: true only for a machine known to "
+        "exceed its nominal motor settings"
+    )
 
 
 def check_limits(op: OperatingPoint, settings: Settings) -> None:
@@ -58,3 +83,94 @@ def gamma_max_rad(requested_deg: float | None, settings: Settings) -> float:
     (paper sec. 2.4; the bench refuses and the drive clamps anything above it)."""
     ceiling_rad = math.radians(settings.identification.gamma_max_deg)
     return ceiling_rad if requested_deg is None else min(math.radians(requested_deg), ceiling_rad)
+
+
+def torque_tolerance_nm(command_nm: float, safety: SafetySettings) -> float:
+    """How far a point's torque actual may be from its command, Nm: safety.torque_tolerance_fraction of |command|
+    or safety.torque_tolerance_nm, whichever is wider (the drive's 0x6077 is its estimate from nominal parameters,
+    and a point past its base speed reaches a little less than its command)."""
+    return max(safety.torque_tolerance_fraction * abs(command_nm), safety.torque_tolerance_nm)
+
+
+def torque_departure(command_nm: float, actual_nm: float | None, safety: SafetySettings) -> str | None:
+    """Why a result measured at torque actual `actual_nm` is not a result at `command_nm` (None: it ran at its
+    command, within torque_tolerance_nm). No reading says so too: a result must say the torque it ran at."""
+    if actual_nm is None or not math.isfinite(actual_nm):
+        return f"no torque actual was received during the measurement (commanded {command_nm:g} Nm)"
+    tolerance = torque_tolerance_nm(command_nm, safety)
+    if abs(actual_nm - command_nm) <= tolerance:
+        return None
+    return (
+        f"the motor ran at {actual_nm:.2f} Nm (torque actual, mean over the measurement), not at its command of "
+        f"{command_nm:g} Nm (tolerance +-{tolerance:.2f} Nm: safety.torque_tolerance_fraction / torque_tolerance_nm): "
+        "nothing is calibrated at a point the motor does not run at"
+    )
+
+
+def check_envelope(op: OperatingPoint, settings: Settings) -> None:
+    """Raise EnvelopeError if the envelope model (module doc) predicts the drive cannot hold `op`: its currents not
+    held at all at this speed and U_dc, or its torque short of the command by more than torque_tolerance_nm.
+    A point outside the hard limits is theirs to refuse (check_limits): nothing is said of it here."""
+    try:
+        check_limits(op, settings)
+    except LimitError:
+        return
+    env = torque_envelope(op.speed_rpm, op.udc_v, settings.motor, settings.control.voltage_margin)
+    if not env.holds_currents:
+        up_to = "" if env.max_speed_rpm is None else f" (up to {env.max_speed_rpm:.0f} rpm at {op.udc_v:g} V)"
+        field, msg = "speed_rpm", f"{op.label()}: the back-EMF exceeds what the DC link holds{up_to}"
+        why = (
+            "outside the envelope of the motor settings: the back-EMF exceeds what the DC link holds even with full "
+            f"field weakening (i_d = -motor.i_max_a){up_to}; the current controller would sit in its voltage limit, "
+            "the inverter's diodes rectify and the machine brake uncontrolled"
+        )
+    else:
+        tolerance = torque_tolerance_nm(op.torque_nm, settings.safety)
+        if abs(op.torque_nm) <= env.max_torque_nm + tolerance:
+            return
+        limit = (
+            f"the current limit motor.i_max_a = {settings.motor.i_max_a:g} A"
+            if env.limited_by == "current"
+            else f"the voltage limit {env.u_limit_v:.2f} V (control.voltage_margin * U_dc / sqrt(3)) with field weakening"
+        )
+        field = "torque_nm"
+        why = (
+            f"outside the envelope of the motor settings: the drive holds at most {env.max_torque_nm:.2f} Nm here "
+            f"({limit}), beyond the torque tolerance of {tolerance:.2f} Nm"
+        )
+        msg = f"{op.label()}: {why}"
+    raise EnvelopeError(f"{op.label()}: {why}; {EnvelopeError.hint}", ((field, f"{msg}; {EnvelopeError.hint}"),))
+
+
+def outside_envelope(op: OperatingPoint, settings: Settings, override_envelope_model: bool = False) -> str | None:
+    """Why the envelope model refuses `op` (None: inside it, or the model overridden). A grid's points are judged
+    one by one: a sweep or a validation runs the points inside the envelope and stores each point outside it as
+    not run, with this reason, as a full-load curve clips a test bench's grid."""
+    if override_envelope_model:
+        return None
+    try:
+        check_envelope(op, settings)
+    except EnvelopeError as exc:
+        return f"not run: {exc}"
+    return None
+
+
+def check_any_inside(points: list[OperatingPoint], settings: Settings, override_envelope_model: bool = False) -> None:
+    """A grid before bench work is queued (its hard limits checked apart, point by point): EnvelopeError if no
+    point is inside the envelope model (nothing would run); the points outside it are not run (outside_envelope)."""
+    if override_envelope_model or not points:
+        return
+    refused = [why for op in points if (why := outside_envelope(op, settings)) is not None]
+    if len(refused) == len(points):
+        raise EnvelopeError(
+            f"every one of the {len(points)} point(s) is outside the envelope of the motor settings: "
+            + " | ".join(w.removeprefix("not run: ") for w in refused[:3])
+        )
+
+
+def check_point(op: OperatingPoint, settings: Settings, override_envelope_model: bool = False) -> None:
+    """Every check a point passes before bench work is queued: the hard limits (never overridden), then the
+    envelope model unless `override_envelope_model`."""
+    check_limits(op, settings)
+    if not override_envelope_model:
+        check_envelope(op, settings)

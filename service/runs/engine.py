@@ -32,7 +32,7 @@ from service.bench.setpoint_accounting import AccountingError
 from service.identification.session import MeasurementError
 from service.maps.build import build_map_from_sweep
 from service.maps.view import map_view
-from service.model.limits import LimitError, check_limits
+from service.model.limits import LimitError, check_point
 from service.model.operating_point import OperatingPoint
 from service.runs.events import EventBroker
 from service.runs.identify import check_plant_time, identify_at, parse_options
@@ -109,6 +109,7 @@ class Engine:
         self._wake = threading.Event()  # a job of this bench was queued here: claim it now, not at the next poll
         self._mine: collections.deque[int] = collections.deque()  # without `lab`: the jobs this engine queued
         self.running: str | None = None  # what the worker runs now (the bench's heartbeat shows it)
+        self._running_job: tuple[int, int | None] | None = None  # (job id, sweep id) the worker runs now
         self._controls: dict[int, SweepControl] = {}
         self._job_cancel: dict[int, threading.Event] = {}
         self._storage_waits: dict[int, str] = {}  # sweep id -> why it waits for the database (in memory only)
@@ -208,6 +209,9 @@ class Engine:
         `interrupted` with `reason` (e.g. "service shut down (SIGTERM)") in their pause_reason."""
         if reason:
             self._shutdown_reason = reason
+        if self._running_job is not None:
+            # the bench first, at once: the worker may be stuck (on the database) inside its run
+            self.bench.stop_now(self._shutdown_reason)
         self._shutdown.set()
         for ctl in list(self._controls.values()):
             ctl.cancel.set()
@@ -216,6 +220,22 @@ class Engine:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                log.warning(
+                    "the engine's worker did not end within %.0f s of the shutdown (stuck on the database?): what "
+                    "it ran is marked interrupted here if the database answers, else at the next start",
+                    timeout_s,
+                )
+        known = self.storage.known_unavailable()
+        try:
+            if known is not None:  # not waited for again: the worker's last try has just said so
+                raise known
+            self._mark_unfinished()
+        except StorageUnavailable as exc:
+            log.warning("shutdown: unfinished jobs and sweeps not marked (%s): the next start does it", exc)
+
+    def _mark_unfinished(self) -> None:
+        """At shutdown: jobs this process queued and did not run fail, unfinished sweeps are interrupted."""
         jobs = self.storage.bench_unfinished_jobs(self.bench_name)
         kept = self._waiting_sweeps(jobs)
         for job in jobs:  # what this process queued and did not run (a job queued elsewhere for the bench waits)
@@ -285,7 +305,7 @@ class Engine:
         own = self.is_own(bench)
         if own:
             self.bench.check_reachable()  # refused now, not failed later
-            check_limits(op, self.settings)  # refuse before anything is queued
+            check_point(op, self.settings, options.override_envelope_model)  # refuse before anything is queued
             check_plant_time([op.speed_rpm], method, options, self.settings)
         job_id = self._create_job(
             "identification",
@@ -338,7 +358,8 @@ class Engine:
         plan = SweepPlan.from_grid(grid)
         if own:
             check_plant_time(grid.speed_rpm, method, options, self.settings)
-            plan.dry_run(self.settings)  # every setpoint checked before the first frame
+            # every setpoint checked before the first frame
+            plan.dry_run(self.settings, options.override_envelope_model)
         sweep_id = self.storage.create_sweep(
             method,
             self.settings.identification.harmonic_order,
@@ -365,7 +386,7 @@ class Engine:
             raise KeyError(map_id)
         check_validatable(self.storage, map_id, force, fill=options.fill)
         if own:
-            check_points(row["axes"], self.settings)
+            check_points(row["axes"], self.settings, options.override_envelope_model)
         job_id = self._create_job(
             "validation", {"map_id": map_id, "force": force, "options": options.model_dump()}, bench=bench
         )
@@ -387,7 +408,12 @@ class Engine:
         check_request(request)
         options = parse_options(request.method, request.options)
         if own:
-            check_points(m.axes, self.settings)
+            # a refinement measures cells (its method options) and validates (its validation options)
+            check_points(
+                m.axes,
+                self.settings,
+                options.override_envelope_model and request.validation.override_envelope_model,
+            )
             check_plant_time(m.axes["speed_rpm"], request.method, options, self.settings)
         not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
         state = {
@@ -433,11 +459,19 @@ class Engine:
     def control_sweep(self, sweep_id: int, action: str) -> None:
         """`action`: pause | resume | cancel. Another bench's sweep: checked against the table here, then
         asked of its bench's service through the database (sweeps.control_request), which acts on it within
-        about a second (act_on_control_requests); a queued one no service has taken is cancelled here."""
+        about a second (act_on_control_requests); a queued one no service has taken is cancelled here.
+        A cancel of the sweep this process runs acts on the bench first, before the database is asked."""
+        if action == "cancel":
+            self._cancel_running(sweep_id=sweep_id)
+            known = self.storage.known_unavailable()
+            if known is not None:  # the run (if any) is stopped: the rest waits for the database (503 at once)
+                raise StorageUnavailable(known.cause, str(known), known.retry_after_s, known.public)
         try:
             sweep = self.storage.get_sweep(sweep_id)
         except StorageUnavailable:
-            return self._act(sweep_id, action)  # a cancel still reaches this process's own run (and says 503)
+            if action == "cancel":
+                raise  # its run is stopped and its bench safe already (503: the rest when the database answers)
+            return self._act(sweep_id, action)
         if sweep is None:
             raise KeyError(sweep_id)
         if self.is_own(sweep.get("bench")):
@@ -543,7 +577,26 @@ class Engine:
                     self.set_sweep(sweep_id, SweepState.CANCELLED, finished_at=now_iso())
         self.publish_sweep(sweep_id)
 
+    def _cancel_running(self, job_id: int | None = None, sweep_id: int | None = None) -> None:
+        """A cancel of what the worker runs now: its token set and the bench made safe at once (the
+        watchdog's thread), whatever the worker is doing; no database, no lock. Anything else: nothing."""
+        running = self._running_job
+        if running is None or not (
+            (job_id is not None and running[0] == job_id) or (sweep_id is not None and running[1] == sweep_id)
+        ):
+            return
+        if running[1] is not None:
+            self._control(running[1]).cancel.set()
+        if running[0] in self._job_cancel:
+            self._job_cancel[running[0]].set()
+        what = f"sweep {running[1]}" if running[1] is not None else f"job {running[0]}"
+        self.bench.stop_now(f"{what} cancelled")
+
     def cancel_job(self, job_id: int) -> None:
+        self._cancel_running(job_id=job_id)
+        known = self.storage.known_unavailable()
+        if known is not None:  # the run (if any) is stopped: the rest waits for the database (503 at once)
+            raise StorageUnavailable(known.cause, str(known), known.retry_after_s, known.public)
         job = self.storage.get_job(job_id)
         if job is None:
             raise KeyError(job_id)
@@ -594,6 +647,7 @@ class Engine:
                 log.error("job %s: the worker caught an error it did not expect: %s", job_id, traceback.format_exc())
             finally:
                 self.running = None
+                self._running_job = None
 
     def _next_job(self) -> int | None:
         """The next job of this bench, taken from the database (queued -> running in one conditional write,
@@ -629,6 +683,7 @@ class Engine:
         if job["sweep_id"] is not None:  # taken from the database: its controls live in this process now
             self._job_cancel[job_id] = self._control(job["sweep_id"]).cancel
         self.running = f"sweep {job['sweep_id']}" if job["sweep_id"] is not None else f"job {job_id}"
+        self._running_job = (job_id, job["sweep_id"])
         cancel = self._job_cancel.setdefault(job_id, threading.Event())
         if self._shutdown.is_set():
             self.set_job(
@@ -685,17 +740,22 @@ class Engine:
         req = job["request"]
         if job["kind"] == "identification":
             op = OperatingPoint.model_validate(req["operating_point"])
-            check_limits(op, self.settings)
-            check_plant_time([op.speed_rpm], req["method"], parse_options(req["method"], req["options"]), self.settings)
+            options = parse_options(req["method"], req["options"])
+            check_point(op, self.settings, options.override_envelope_model)
+            check_plant_time([op.speed_rpm], req["method"], options, self.settings)
         elif job["kind"] == "validation":
-            check_points(self.storage.get_map(req["map_id"])["axes"], self.settings)
+            override = bool(req["options"].get("override_envelope_model", False))
+            check_points(self.storage.get_map(req["map_id"])["axes"], self.settings, override)
         elif job["sweep_id"] is not None:
             sweep = self.storage.get_sweep(job["sweep_id"])
             if sweep["started_at"] is None and sweep["bench_identity"] != self.bench.identity:
+                override = bool(sweep["options"].get("override_envelope_model", False))
                 if job["kind"] == "sweep":
-                    SweepPlan.from_grid(Grid.model_validate(sweep["grid"])).dry_run(self.settings)
+                    SweepPlan.from_grid(Grid.model_validate(sweep["grid"])).dry_run(self.settings, override)
                 else:
-                    check_points(sweep["grid"], self.settings)
+                    validation = (sweep.get("refinement") or {}).get("validation") or {}
+                    override = override and bool(validation.get("override_envelope_model", False))
+                    check_points(sweep["grid"], self.settings, override)
                 self.storage.update_sweep(job["sweep_id"], bench_identity=self.bench.identity)
 
     def _park(self, job_id: int, sweep_id: int) -> None:

@@ -11,19 +11,23 @@ END = ("", "")  # the message that ends a stream
 
 
 class EventBroker:
+    """Subscribers are a frozenset replaced whole on (un)subscribe, under a lock; publish and close read
+    it with no lock, so close is safe from any context (a signal handler, the event loop, any thread)."""
+
     def __init__(self, max_queue: int = 1000):
-        self._lock = threading.Lock()
-        self._subscribers: set[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = set()
+        self._lock = threading.Lock()  # serialises subscribe and unsubscribe only
+        self._subscribers: frozenset[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = frozenset()
         self.max_queue = max_queue
         self.closed = False
 
     def close(self) -> None:
         """Shutting down: every open stream gets END and ends (uvicorn waits for open connections
-        before the app's shutdown runs, so streams must end first). Callable from any thread."""
+        before the app's shutdown runs, so streams must end first). Takes no lock and waits on nothing;
+        idempotent (a second call finds it closed)."""
+        if self.closed:
+            return
         self.closed = True
-        with self._lock:
-            subscribers = list(self._subscribers)
-        for loop, queue in subscribers:
+        for loop, queue in self._subscribers:
             try:
                 loop.call_soon_threadsafe(_offer, queue, END)
             except RuntimeError:  # loop closed
@@ -31,9 +35,7 @@ class EventBroker:
 
     def publish(self, event_type: str, data: dict[str, Any]) -> None:
         message = (event_type, json.dumps(data, default=str))
-        with self._lock:
-            subscribers = list(self._subscribers)
-        for loop, queue in subscribers:
+        for loop, queue in self._subscribers:
             try:
                 loop.call_soon_threadsafe(_offer, queue, message)
             except RuntimeError:  # loop closed: the subscriber is gone
@@ -42,12 +44,12 @@ class EventBroker:
     def subscribe(self) -> tuple[asyncio.AbstractEventLoop, asyncio.Queue]:
         token = (asyncio.get_running_loop(), asyncio.Queue(self.max_queue))
         with self._lock:
-            self._subscribers.add(token)
+            self._subscribers = self._subscribers | {token}
         return token
 
     def unsubscribe(self, token) -> None:
         with self._lock:
-            self._subscribers.discard(token)
+            self._subscribers = self._subscribers - {token}
 
 
 def _offer(queue: asyncio.Queue, message) -> None:

@@ -8,7 +8,7 @@ from typing import Any, Callable
 from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
 from service.identification.session import MeasurementError, Window
-from service.model.limits import gamma_max_rad
+from service.model.limits import gamma_max_rad, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.model.secondary_path import model_secondary_path
 from service.settings import Settings
@@ -123,6 +123,17 @@ def identify_in_run(
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
         result.details["decoupling"] = decoupling  # the drive must run the LUT with the same setting
         result.details["resonance"] = run.bench.resonance.snapshot()
+        hold_to_command(result, op, run, settings)
     # wall seconds of the point by what they were spent on (the run's end, make_safe, comes after)
     result.details["bench_time_s"] = run.timing.public()
     return result
+
+
+def hold_to_command(result: IdentificationResult, op: OperatingPoint, run, settings: Settings) -> None:
+    """Record the torque the point ran at (the run's mean torque actual over the measurement) and fail a result
+    whose torque left its command beyond the tolerance (service.model.limits.torque_departure): never ok."""
+    result.torque_actual_nm, result.details["torque_actual_tpdos"] = run.torque_actual()
+    departure = torque_departure(op.torque_nm, result.torque_actual_nm, settings.safety)
+    if departure is not None:
+        was = f" (the method said {result.status}: {result.message})" if result.message else ""
+        result.status, result.message = "failed", departure + was

@@ -11,6 +11,11 @@ A crash leaves the row as it was: it goes stale after `stale_s` (no renewal) and
 it over. A restart within that window waits until the old heartbeat has not been renewed for
 `stale_s` (a dead process does not renew it), so a restart after kill -9 works at once or within a
 few seconds, and a second live service is refused as soon as it sees the first renew its row.
+
+Liveness is judged on one clock for the lab, the database's (issue 25): the heartbeat is stamped by it
+and its age computed by it (Storage.claim_bench, get_bench's `seen_s`). A bench PC's clock that is off
+(30 s behind or ahead) changes nothing: only this PC's monotonic clock paces the waits here. A holder
+that cannot be proven stale by the database's clock is never taken over.
 """
 
 from __future__ import annotations
@@ -20,11 +25,11 @@ import os
 import secrets
 import socket
 import time
-from datetime import datetime, timedelta, timezone
+from datetime import datetime, timedelta
 from typing import Any
 
 from service.runs.events import EventBroker
-from service.store.storage import Storage, StorageError, now_iso
+from service.store.storage import Storage, StorageError
 
 log = logging.getLogger(__name__)
 
@@ -43,16 +48,6 @@ def is_own_bench(bench: str | None, own: str) -> bool:
 
 def new_instance_id() -> str:
     return secrets.token_hex(8)
-
-
-def iso_ago(seconds: float) -> str:
-    return (datetime.now(timezone.utc) - timedelta(seconds=seconds)).isoformat(timespec="milliseconds")
-
-
-def age_s(text: str | None) -> float | None:
-    if not text:
-        return None
-    return (datetime.now(timezone.utc) - datetime.fromisoformat(text)).total_seconds()
 
 
 def bench_state(status: dict[str, Any], running: str | None = None) -> str:
@@ -89,12 +84,17 @@ class Lab:
     # --- the claim ---------------------------------------------------------------------------------------
     def claim(self, poll_s: float = 0.5) -> None:
         """Take the bench's name, or BenchInUse naming the live holder. A holder whose row is not renewed
-        (a crashed process) is waited out, up to stale_s; one that renews it is alive: refused at once."""
+        (a crashed process) is waited out until it is stale by the database's clock; one that renews it
+        is alive: refused at once. A row that does not go stale within stale_s (its heartbeat dated ahead
+        of the database's clock, by software from before issue 25) cannot be proven dead: refused."""
         row = self._try_claim()
         if row is None:
             return
         seen, holder = row["last_seen"], row["instance"]
-        deadline = time.monotonic() + self.stale_s + 2 * poll_s
+        # the row goes stale stale_s after its heartbeat (by the database's clock); a margin covers the
+        # database's round trips. Paced by this PC's monotonic clock: its rate counts, never its setting.
+        age_s = row["seen_s"] if row["seen_s"] is not None else 0.0
+        deadline = time.monotonic() + min(self.stale_s, max(0.0, self.stale_s - age_s)) + 2 * poll_s + 1.0
         while time.monotonic() < deadline:
             time.sleep(poll_s)
             row = self._try_claim()
@@ -103,13 +103,15 @@ class Lab:
                 return
             if row["instance"] != holder or row["last_seen"] != seen:
                 break  # its heartbeat was renewed: a live service
+        ahead = ""
+        if row["seen_s"] is not None and row["seen_s"] < 0:
+            ahead = f"; its heartbeat is dated {-row['seen_s']:.1f} s ahead of the database's clock: not provably stale"
         raise BenchInUse(
             f"bench {self.bench_name} is served by another ripplecal serve ({holder_text(row)}; last seen "
-            f"{row['last_seen']}): stop it first, or give this one another --bench-name"
+            f"{row['last_seen']}{ahead}): stop it first, or give this one another --bench-name"
         )
 
     def _try_claim(self) -> dict | None:
-        now = now_iso()
         row = self.storage.claim_bench(
             {
                 "name": self.bench_name,
@@ -118,10 +120,8 @@ class Lab:
                 "port": self.port,
                 "pid": os.getpid(),
                 "software_version": self.version,
-                "started_at": now,
-                "last_seen": now,
             },
-            iso_ago(self.stale_s),
+            self.stale_s,
         )
         self.claimed = row is None
         return row
@@ -185,10 +185,10 @@ class Lab:
         return f"bench {bench} ({self._seen_text(bench, row)})"
 
     def _online(self, row: dict | None) -> bool:
+        """Renewed within stale_s, by the database's clock (the row's `seen_s`, Storage.get_bench)."""
         if row is None or row["stopped_at"]:
             return False
-        seen = age_s(row["last_seen"])
-        return seen is not None and seen <= self.stale_s
+        return row["seen_s"] is not None and row["seen_s"] <= self.stale_s
 
     def _seen_text(self, name: str, row: dict | None) -> str:
         if row is None:
@@ -203,16 +203,20 @@ class Lab:
 class LabWatch:
     """Other benches' progress as this service's events: every second, the jobs and sweeps written since
     the last look by other benches' services, published as the engine publishes its own, with `bench`.
-    Writes are read back a few seconds (clocks of bench PCs differ a little); each is published once."""
+    Rows are stamped (updated_at) and looked for on the database's clock, whatever the bench PCs' clocks
+    say. Writes are read back a few seconds (a write stamped before another's commit may become visible
+    after it); each is published once."""
 
     OVERLAP_S = 5.0
 
     def __init__(self, storage: Storage, broker: EventBroker, own_bench: str):
         self.storage, self.broker, self.own_bench = storage, broker, own_bench
-        self._since = now_iso()
+        self._since: str | None = None  # the database's clock at the first look
         self._published: dict[tuple[str, int], str] = {}
 
     def tick(self) -> None:
+        if self._since is None:
+            self._since = self.storage.database_now()
         look_from = (datetime.fromisoformat(self._since) - timedelta(seconds=self.OVERLAP_S)).isoformat(
             timespec="milliseconds"
         )

@@ -1,7 +1,8 @@
 """Sweep plans: what to do, separate from the engine that does it (bluesky's plans / run engine).
 
 A plan is the ordered list of operating points of a grid; `dry_run` checks every setpoint
-against the bench limits before the first frame goes out.
+against the bench limits, and against the envelope model of the motor settings unless the request
+overrides the model (service.model.limits), before the first frame goes out.
 
 Plans that know the regime: above the field-weakening (FW) onset, which depends on torque and U_dc,
 theta* turns by tens of degrees within a few hundred rpm, so a LUT whose speed axis straddles the
@@ -21,7 +22,12 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
-from service.model.limits import LimitError, check_limits
+from service.model.limits import (
+    LimitError,
+    check_any_inside,
+    check_limits,
+    outside_envelope,
+)
 from service.model.operating_point import OperatingPoint, field_weakening_onset
 from service.runs.identify import PlantTimeError, check_plant_time
 from service.settings import SafetySettings, Settings
@@ -85,22 +91,37 @@ class SweepPlan:
                 points += [OperatingPoint(torque_nm=t, speed_rpm=speed, udc_v=udc) for t in torques]
         return cls(tuple(points))
 
-    def dry_run(self, settings: Settings) -> None:
-        """Raise LimitError naming every point that violates the bench limits; sends nothing."""
+    def dry_run(self, settings: Settings, override_envelope_model: bool = False) -> None:
+        """Raise LimitError naming every point that violates the bench limits (never overridden), then
+        EnvelopeError if no point is inside the envelope model (unless `override_envelope_model`); the points
+        outside it are not run (service.model.limits.outside_envelope: the sweep stores them failed with the
+        reason, as a full-load curve clips a bench's grid). Sends nothing."""
+        self.check_limits(settings)
+        check_any_inside(list(self.points), settings, override_envelope_model)
+
+    def check_limits(self, settings: Settings) -> None:
+        """LimitError naming every point outside the bench limits (never overridden)."""
+        self._check_each(check_limits, settings, "outside the bench limits", LimitError)
+
+    def _check_each(self, check, settings: Settings, what: str, error: type[LimitError]) -> None:
         problems, fields = [], {}
         for op in self.points:
             try:
-                check_limits(op, settings)
+                check(op, settings)
             except LimitError as exc:
-                problems.append(f"{op.label()}: {exc}")
+                problems.append(_named(op, str(exc)))
                 for field, msg in exc.problems:
-                    fields.setdefault(field, []).append(f"{op.label()}: {msg}")
+                    fields.setdefault(field, []).append(_named(op, msg.removesuffix(f"; {error.hint}")))
         if problems:
             # one entry per grid field, the first few points named (a 400-point grid would flood the answer)
-            per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5])) for f, m in fields.items())
-            raise LimitError(
-                f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]), per_field
-            )
+            fix = f"; {error.hint}" if error.hint else ""
+            per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5]) + fix) for f, m in fields.items())
+            raise error(f"{len(problems)} point(s) {what}: " + " | ".join(problems[:10]), per_field)
+
+
+def _named(op: OperatingPoint, msg: str) -> str:
+    """`msg` beginning with the point it is about (the envelope's messages name it already)."""
+    return msg if msg.startswith(op.label()) else f"{op.label()}: {msg}"
 
 
 # --- plans that know the regime ---------------------------------------------------------------------
@@ -280,7 +301,7 @@ class SweepPreview(BaseModel):
         ...,
         description="what POST /sweeps would refuse, as the items of its 422 "
         "detail ({loc, msg, type}); unlike POST /sweeps, which stops at the first "
-        "kind (size, plant time, bench limits), every kind is listed",
+        "kind (size, plant time, bench limits, envelope model: type value_error.envelope), every kind is listed",
     )
     total: int = Field(..., description="number of operating points")
     requested_grid: Grid = Field(..., description="the grid as requested")
@@ -299,6 +320,12 @@ class SweepPreview(BaseModel):
     voltage_margin: float = Field(..., description="control.voltage_margin the onsets were predicted with")
     estimate: BenchTimeEstimate | None = Field(
         ..., description="bench time, an estimate (null when the grid cannot be planned)"
+    )
+    not_run: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="the points the envelope model of the motor settings refuses ({operating_point, reason}): the "
+        "sweep stores each failed with its reason and never moves the bench there (override_envelope_model runs "
+        "them, the actuals interlock still holding the hard limits)",
     )
 
 
@@ -346,7 +373,8 @@ def preview_sweep(
 ) -> SweepPreview:
     """The plan POST /sweeps would queue for this request (plan_grid, then SweepPlan.from_grid, the same
     steps Engine.submit_sweep takes) and every check it would make, answered as a list: the grid's size
-    (confirm_large), the options' plant time, the dry run against the bench limits. Moves nothing."""
+    (confirm_large), the options' plant time, the dry run against the bench limits and (unless the options
+    override it) the envelope model of the motor settings. Moves nothing."""
     problems: list[dict[str, Any]] = []
     try:
         planned = plan_grid(grid, regime, settings)
@@ -360,6 +388,7 @@ def preview_sweep(
     except ValueError as exc:
         problems.append(_problem(["body", "grid"], str(exc)))
     points: tuple[OperatingPoint, ...] = ()
+    override = bool(getattr(options, "override_envelope_model", False))
     if planned.grid.size() <= MAX_GRID_POINTS:
         try:
             points = SweepPlan.from_grid(planned.grid).points
@@ -370,12 +399,18 @@ def preview_sweep(
             check_plant_time(planned.grid.speed_rpm, method, options, settings)
         except PlantTimeError as exc:
             problems.append(_problem(["body", "options"], str(exc), "value_error.plant_time"))
-        try:
-            SweepPlan(points).dry_run(settings)
-        except LimitError as exc:
-            problems += [
-                _problem(["body", "grid", field], msg, "value_error.bench_limits") for field, msg in exc.problems
-            ] or [_problem(["body", "grid"], str(exc), "value_error.bench_limits")]
+        plan = SweepPlan(points)
+        # the hard limits, then the envelope model unless the request overrides it (service.model.limits):
+        # refused only when no point is inside it; the points outside are listed apart (not run)
+        for check in (plan.check_limits, lambda s: check_any_inside(list(points), s, override)):
+            try:
+                check(settings)
+            except LimitError as exc:
+                problems += [_problem(["body", "grid", field], msg, exc.kind) for field, msg in exc.problems] or [
+                    _problem(["body", "grid"], str(exc), exc.kind)
+                ]
+    not_run = [(op, why) for op in points if (why := outside_envelope(op, settings, override)) is not None]
+    runs = tuple(op for op in points if all(op is not other for other, _ in not_run)) or points
     return SweepPreview(
         accepted=not problems,
         problems=problems,
@@ -387,5 +422,6 @@ def preview_sweep(
         added_speeds_rpm=planned.added_speeds_rpm,
         onsets=list(planned.onsets),
         voltage_margin=settings.control.voltage_margin,
-        estimate=_estimate(points, method, options, settings) if points else None,
+        estimate=_estimate(runs, method, options, settings) if runs else None,
+        not_run=[{"operating_point": op.model_dump(), "reason": why} for op, why in not_run],
     )

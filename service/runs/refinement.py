@@ -28,10 +28,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from itertools import product
+from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from service.identification.registry import METHODS
+from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.validation import ValidationOptions
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
@@ -44,8 +46,13 @@ class RefineRequest(BaseModel):
     """POST /maps/{id}/refine. Every field bounded."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    bench: str | None = Field(
-        None, min_length=1, max_length=100, description="the bench it runs on; default this service's own bench"
+    # printable text as every name (service/names.py): a NUL or a newline is a 422, not a bench nobody serves
+    bench: Annotated[str, AfterValidator(lambda v: check_name(v, "bench name"))] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_NAME_LENGTH,
+        description="the bench it runs on; default this service's own bench. Printable text: no control "
+        "characters, no whitespace at either end",
     )
     target_db: float = Field(
         30.0,

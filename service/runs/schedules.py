@@ -24,6 +24,7 @@ from zoneinfo import ZoneInfo, available_timezones
 
 from cronsim import CronSim, CronSimError
 
+from service.names import check_name
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.lab import is_own_bench
 from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
@@ -130,7 +131,7 @@ def check_sweep(settings: Settings, sweep) -> None:
     made when the schedule is created, so a schedule cannot fail at 3 am on a request refused at 5 pm."""
     grid = plan_grid(sweep.grid, getattr(sweep, "regime", None), settings).grid  # the grid the sweep will measure
     check_sweep_size(grid, sweep.confirm_large, settings.safety)
-    SweepPlan.from_grid(grid).dry_run(settings)
+    SweepPlan.from_grid(grid).dry_run(settings, sweep.options.override_envelope_model)
     check_plant_time(grid.speed_rpm, sweep.method, sweep.options, settings)
 
 
@@ -148,6 +149,7 @@ def create_schedule(
 ) -> int:
     """`bench`: the bench whose service fires it (default this one's: settings.bench_name). Another bench's
     sweep is checked by that bench's service when it fires (the firing fails with the reason)."""
+    check_name(name, "schedule name")  # the API's schema checks it too; the CLI comes here directly
     cron = check_cron(cron)
     check_timezone(timezone_name)
     if is_own_bench(bench, settings.bench_name):

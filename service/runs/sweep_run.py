@@ -22,7 +22,7 @@ from service.identification.session import MeasurementError
 from service.maps.build import build_map, build_map_from_sweep
 from service.maps.neighbours import prior_from_neighbours
 from service.maps.view import map_view
-from service.model.limits import LimitError
+from service.model.limits import LimitError, outside_envelope
 from service.model.operating_point import OperatingPoint
 from service.runs.events import EventBroker
 from service.runs.identify import identify_in_run, parse_options, run_settings
@@ -86,7 +86,11 @@ class SweepRunner:
         first = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
         in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
         if in_flight is None and not ctl.cancel.is_set() and not self.host.shutting_down():
-            again = second_pass_points(plan, self.storage.sweep_results(sweep_id))
+            again = [
+                op
+                for op in second_pass_points(plan, self.storage.sweep_results(sweep_id))
+                if outside_envelope(op, self.settings, options.override_envelope_model) is None
+            ]
             if again:
                 log.info(
                     "sweep %s: %d point(s) not ok measured once more with their neighbours' priors",
@@ -128,6 +132,16 @@ class SweepRunner:
         tags = {"sweep_pass": sweep_pass, **(tags or {})}
         if options.stop_margin_db is None:  # a cell meant for a LUT: identified to a margin below its target
             options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
+        # points the envelope model refuses are stored failed with the reason and never run (a full-load curve
+        # clipping the grid, service.model.limits.outside_envelope); the rest are measured
+        inside = []
+        for op in points:
+            why = outside_envelope(op, self.settings, options.override_envelope_model)
+            if why is None:
+                inside.append(op)
+            elif not ctl.cancel.is_set():
+                self._store_point(sweep_id, op, self._not_run_row(op, sweep, options, why, sweep_id, tags), None)
+        points = inside
         point = _PointInFlight()
         i = 0
         while i < len(points):
@@ -220,6 +234,20 @@ class SweepRunner:
             sweep_id=sweep_id,
             harmonic_order=self.settings.identification.harmonic_order,
             detail={"message": error_text(exc), "details": dict(tags)},
+        )
+
+    def _not_run_row(self, op: OperatingPoint, sweep, options, why: str, sweep_id: int, tags: dict) -> dict:
+        """A point the envelope model refuses (service.model.limits.outside_envelope): failed, never run."""
+        return result_row(
+            op,
+            sweep["method"],
+            options,
+            self.bench.identity,
+            now_iso(),
+            error=why,
+            sweep_id=sweep_id,
+            harmonic_order=self.settings.identification.harmonic_order,
+            detail={"message": why, "details": {**tags, "not_run": "outside_envelope"}},
         )
 
     def run_refinement(self, job_id: int, sweep_id: int, ctl: SweepControl) -> None:

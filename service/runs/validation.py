@@ -38,7 +38,7 @@ from service.bench.measurement import RunCancelled
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.identification.session import MeasurementError
 from service.maps.view import map_view
-from service.model.limits import check_limits
+from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
 from service.settings import Settings
@@ -69,6 +69,11 @@ class ValidationOptions(BaseModel):
     )
     interpolation: Literal["cartesian", "polar"] | None = Field(
         None, description="what the drive interpolates between cells (default: the service's)"
+    )
+    override_envelope_model: bool = Field(
+        False,
+        description="validate at points the envelope model of the motor settings refuses (a machine known "
+        "to exceed its nominal settings); never the hard limits, held on the actuals by the interlock",
     )
 
 
@@ -168,6 +173,10 @@ def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
         plant_time_s = session.plant_time_s
         speed_rpm = session.speed_rpm_measured
         f_h = session.harmonic_frequency_hz
+        torque_actual_nm, _ = run.torque_actual()  # the torque the point ran at, over its measurement
+    departure = torque_departure(op.torque_nm, torque_actual_nm, run.bench.settings.safety)
+    if departure is not None:
+        raise MeasurementError(departure)  # a figure at a torque the motor did not run at is no figure of the map
     a = residual.phasor.amplitude
     if a0 <= 0 or a <= 0:
         raise ValueError(f"a phasor of zero amplitude (uncompensated {a0:g}, LUT {a:g} fs): nothing to compare")
@@ -180,6 +189,7 @@ def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
         "plant_time_s": plant_time_s,
         "speed_rpm_measured": speed_rpm,
         "harmonic_frequency_hz": f_h,
+        "torque_actual_nm": torque_actual_nm,
         "bench_time_s": run.timing.public(),
     }
 
@@ -241,6 +251,13 @@ def run_validation(
             with bench.run(h, decoupling=decoupling, cancel=cancel) as brun:
                 while i < len(points) and not cancel.is_set():
                     cell = new_cell(*points[i])
+                    why = outside_envelope(points[i][0], settings, options.override_envelope_model)
+                    if why is not None:  # never run where the envelope model says the drive cannot hold it
+                        cell.update(status="not_measured", error=why)
+                        finish(cell)
+                        cell = None
+                        i += 1
+                        continue
                     try:
                         cell.update(status="measured", error=None, **measure_point(brun, points[i][0], options))
                     except (MeasurementError, ValueError) as exc:
@@ -336,7 +353,11 @@ def store_validation(
     return run.row_id
 
 
-def check_points(axes: dict[str, list[float]], settings: Settings) -> None:
-    """Every point of the finer grid of the map's axes within the bench's limits (before anything is queued)."""
-    for op, _kind in validation_points(axes):
+def check_points(axes: dict[str, list[float]], settings: Settings, override_envelope_model: bool = False) -> None:
+    """Every point of the finer grid of the map's axes within the bench's limits, and at least one within the
+    envelope model unless overridden (before anything is queued); the points outside it are not measured
+    (run_validation: a cell `not_measured` with the reason)."""
+    points = [op for op, _kind in validation_points(axes)]
+    for op in points:
         check_limits(op, settings)
+    check_any_inside(points, settings, override_envelope_model)

@@ -14,6 +14,13 @@ class Dialect:
     skip_locked: str
     json_text_form: str  # {column}, {key}: a JSON key's value as SQL text, NULL where absent or null
     json_set_form: str  # {column}, {key}: the column's JSON with the key set to the text parameter `?`
+    # the database's own clock (one clock for a lab: a bench PC's may be off), as UTC ISO 8601 text in
+    # the form of storage.now_iso(), so it compares as text with the timestamps Python writes
+    now_text: str
+    seconds_since_form: str  # {column}: seconds from the column's UTC ISO time to the database's clock
+
+    def seconds_since(self, column: str) -> str:
+        return self.seconds_since_form.format(column=column)
 
     def json_text(self, column: str, key: str) -> str:
         return self.json_text_form.format(column=column, key=key)
@@ -27,6 +34,9 @@ SQLITE = Dialect(
     skip_locked="",
     json_text_form="json_extract({column}, '$.{key}')",
     json_set_form="json_set({column}, '$.{key}', ?)",
+    # SQLite's 'now' is its host's clock: the one clock of the services sharing a file (all on that host)
+    now_text="strftime('%Y-%m-%dT%H:%M:%f+00:00', 'now')",
+    seconds_since_form="((julianday('now') - julianday({column})) * 86400.0)",
 )
 
 POSTGRESQL = Dialect(
@@ -34,6 +44,9 @@ POSTGRESQL = Dialect(
     skip_locked=" FOR UPDATE SKIP LOCKED",
     json_text_form="({column}::jsonb ->> '{key}')",
     json_set_form="jsonb_set({column}::jsonb, '{{{key}}}', to_jsonb(?::text))::text",
+    # the server's clock (statement_timestamp: one instant for the whole statement)
+    now_text="to_char(statement_timestamp() AT TIME ZONE 'UTC', 'YYYY-MM-DD\"T\"HH24:MI:SS.MS\"+00:00\"')",
+    seconds_since_form="(EXTRACT(EPOCH FROM statement_timestamp() - ({column})::timestamptz)::float8)",
 )
 
 

@@ -24,7 +24,10 @@ def engine_class(location: str | Path):
     return SqliteEngine
 
 
-def open_engine(location: str | Path, busy_timeout_s: float = 10.0):
+def open_engine(location: str | Path, busy_timeout_s: float = 10.0, statement_timeout_s: float | None = None):
+    """`statement_timeout_s`: a server's bound on one statement (SQLite's only wait is its busy timeout)."""
+    if is_server_url(location) and statement_timeout_s is not None:
+        return engine_class(location)(location, busy_timeout_s, statement_timeout_s)
     return engine_class(location)(location, busy_timeout_s)
 
 

@@ -86,6 +86,7 @@ def result_row(
             "windows_used": result.windows_used,
             "target_db": result.target_db,
             "noise_floor_db": result.noise_floor_db,
+            "torque_actual_nm": result.torque_actual_nm,
             "detail": detail,
             "traces": result.traces,
         }

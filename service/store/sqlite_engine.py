@@ -87,8 +87,23 @@ class SqliteEngine:
                 conn.close()
 
     @contextlib.contextmanager
+    def _writer(self) -> Iterator[None]:
+        """This process's one writer at a time, waited for no longer than SQLite waits for another process's
+        lock (a writer stuck on a filesystem that hangs must not hold every other thread for good)."""
+        if not self._write_lock.acquire(timeout=self.busy_timeout_s):
+            raise StorageUnavailable(
+                "locked",
+                f"database {self.path}: another write of this service held it for {self.busy_timeout_s:g} s",
+                public=f"database {self.path.name}: another write of this service held it for {self.busy_timeout_s:g} s",
+            )
+        try:
+            yield
+        finally:
+            self._write_lock.release()
+
+    @contextlib.contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
-        with self._write_lock, self.connect() as conn:
+        with self._writer(), self.connect() as conn:
             conn.execute("BEGIN IMMEDIATE")
             try:
                 yield conn

@@ -37,10 +37,11 @@ def now_iso() -> str:
 
 
 class Storage:
-    def __init__(self, path: str | Path, busy_timeout_s: float = 10.0):
+    def __init__(self, path: str | Path, busy_timeout_s: float = 10.0, statement_timeout_s: float | None = None):
         """`path`: a SQLite file, or a `postgresql://user@host:port/dbname` URL (service/store/engines.py).
-        `busy_timeout_s`: how long a call waits for another's lock (or the server's pool) before it says so."""
-        self.engine = open_engine(path, busy_timeout_s)
+        `busy_timeout_s`: how long a call waits for another's lock (or the server's pool) before it says so;
+        `statement_timeout_s`: a server's bound on one statement (default: the engine's)."""
+        self.engine = open_engine(path, busy_timeout_s, statement_timeout_s)
         self.dialect = self.engine.dialect
         self.path = self.engine.path  # the SQLite file (None on a server)
         self.location = self.engine.location  # the database as the log and the CLI name it (no password)
@@ -64,6 +65,12 @@ class Storage:
         or full filesystem, a lost server) becomes StorageUnavailable, here and in the caller's use of it."""
         with self.engine.connect() as conn:
             yield conn
+
+    def known_unavailable(self) -> StorageUnavailable | None:
+        """Why the database's last call failed, while no call has succeeded since (None: not known to be
+        away; SQLite's calls answer quickly either way): what must answer at once need not wait on it again."""
+        known = getattr(self.engine, "known_unavailable", None)
+        return known() if known is not None else None
 
     @contextlib.contextmanager
     def transaction(self) -> Iterator[Any]:
@@ -115,6 +122,8 @@ class Storage:
         process has seen valid before stays valid (an operator can still cancel or pause; revoking one
         needs the database anyway)."""
         digest = _sha256(token)
+        if digest in self._known_tokens and self.known_unavailable() is not None:
+            return self._known_tokens[digest]  # an operator's cancel is not held for the database's timeout
         try:
             with self.connect() as conn:
                 row = conn.execute(
@@ -153,8 +162,8 @@ class Storage:
         with self.transaction() as conn:
             return conn.execute(
                 "INSERT INTO jobs (kind, state, request_json, sweep_id, created_at, bench, claimed_by, updated_at) "
-                "VALUES (?, 'queued', ?, ?, ?, ?, ?, ?)",
-                (kind, json.dumps(request), sweep_id, now, bench, claimed_by, now),
+                f"VALUES (?, 'queued', ?, ?, ?, ?, ?, {self.dialect.now_text})",
+                (kind, json.dumps(request), sweep_id, now, bench, claimed_by),
             ).lastrowid
 
     def update_job(self, job_id: int, **fields: Any) -> None:
@@ -190,7 +199,7 @@ class Storage:
             return conn.execute(
                 "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
                 "software_version, created_at, schedule_id, kind, source_map_id, refinement_json, bench, updated_at) "
-                "VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                f"VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, {self.dialect.now_text})",
                 (
                     method,
                     harmonic_order,
@@ -205,7 +214,6 @@ class Storage:
                     source_map_id,
                     json.dumps(refinement) if refinement is not None else None,
                     bench,
-                    now_iso(),
                 ),
             ).lastrowid
 
@@ -238,8 +246,8 @@ class Storage:
                 conn.execute(
                     f"UPDATE sweeps SET done_points = (SELECT COUNT(*) FROM results WHERE {self._committed}), "
                     f"failed_points = (SELECT COUNT(*) FROM results WHERE {self._committed} AND status = 'failed'), "
-                    "updated_at = ? WHERE id = ?",
-                    (row["sweep_id"], row["sweep_id"], now_iso(), row["sweep_id"]),
+                    f"updated_at = {self.dialect.now_text} WHERE id = ?",
+                    (row["sweep_id"], row["sweep_id"], row["sweep_id"]),
                 )
             return rid
 
@@ -491,51 +499,70 @@ class Storage:
 
     # --- a lab: benches, their heartbeat, and the jobs each bench's service claims (issue 20) ---------------
     # Portable SQL only (SQLite and PostgreSQL): `?` placeholders, INSERT ... ON CONFLICT, RETURNING.
-    def claim_bench(self, bench: dict, stale_before: str) -> dict | None:
+    # Liveness is on the database's clock (issue 25): a heartbeat is stamped, and its age judged, by the
+    # database, never by a bench PC's clock, which may be off by any amount.
+    def claim_bench(self, bench: dict, stale_s: float) -> dict | None:
         """Take the bench name for `bench["instance"]` in one statement: inserted, or taken over if the row
-        is this instance's, stopped, or not seen since `stale_before` (UTC ISO). None: claimed; else the
-        row of the live instance that holds it."""
+        is this instance's, stopped, or proven stale: its heartbeat older than `stale_s` by the database's
+        clock. None: claimed; else the row of the instance that holds it (get_bench's, with `seen_s`)."""
         row = {**bench, "state": "starting", "busy": 0, "running": None, "stopped_at": None}
         columns = list(row)
+        values = ["?" for _ in columns] + [self.dialect.now_text] * 2
+        columns += ["started_at", "last_seen"]
         updates = ", ".join(f"{c} = excluded.{c}" for c in columns if c != "name")
         with self.transaction() as conn:
             taken = conn.execute(
-                f"INSERT INTO benches ({', '.join(columns)}) VALUES ({', '.join('?' for _ in columns)}) "
+                f"INSERT INTO benches ({', '.join(columns)}) VALUES ({', '.join(values)}) "
                 f"ON CONFLICT (name) DO UPDATE SET {updates} WHERE benches.instance = excluded.instance "
-                "OR benches.stopped_at IS NOT NULL OR benches.last_seen < ? RETURNING instance",
-                (*row.values(), stale_before),
+                f"OR benches.stopped_at IS NOT NULL OR {self.dialect.seconds_since('benches.last_seen')} > ? "
+                "RETURNING instance",
+                (*row.values(), stale_s),
             ).fetchone()
             if taken is not None:
                 return None
-            return _record(conn.execute("SELECT * FROM benches WHERE name = ?", (bench["name"],)).fetchone())
+            return self._bench_row(conn, bench["name"])
 
     def bench_heartbeat(self, name: str, instance: str, state: str, busy: bool, running: str | None) -> bool:
-        """Renew the bench's row; False: another instance has taken the name over."""
+        """Renew the bench's row (stamped by the database's clock); False: another instance has taken the
+        name over."""
         with self.transaction() as conn:
             cur = conn.execute(
-                "UPDATE benches SET state = ?, busy = ?, running = ?, last_seen = ? WHERE name = ? AND instance = ?",
-                (state, int(busy), running, now_iso(), name, instance),
+                f"UPDATE benches SET state = ?, busy = ?, running = ?, last_seen = {self.dialect.now_text} "
+                "WHERE name = ? AND instance = ?",
+                (state, int(busy), running, name, instance),
             )
             return cur.rowcount == 1
 
     def bench_stopped(self, name: str, instance: str) -> None:
         """An orderly stop: the row says stopped (the name is free at once)."""
-        now = now_iso()
+        now = self.dialect.now_text
         with self.transaction() as conn:
             conn.execute(
-                "UPDATE benches SET state = 'stopped', busy = 0, running = NULL, last_seen = ?, stopped_at = ? "
+                f"UPDATE benches SET state = 'stopped', busy = 0, running = NULL, last_seen = {now}, stopped_at = {now} "
                 "WHERE name = ? AND instance = ?",
-                (now, now, name, instance),
+                (name, instance),
             )
 
     def get_bench(self, name: str) -> dict | None:
+        """The bench's row with `seen_s`: the age of its last heartbeat by the database's clock."""
         with self.connect() as conn:
-            row = conn.execute("SELECT * FROM benches WHERE name = ?", (name,)).fetchone()
-            return _record(row) if row else None
+            return self._bench_row(conn, name)
 
     def list_benches(self) -> list[dict]:
+        """Every bench's row, each with `seen_s` as get_bench's."""
         with self.connect() as conn:
-            return [_record(r) for r in conn.execute("SELECT * FROM benches ORDER BY name")]
+            return [
+                _record(r)
+                for r in conn.execute(
+                    f"SELECT *, {self.dialect.seconds_since('last_seen')} AS seen_s FROM benches ORDER BY name"
+                )
+            ]
+
+    def _bench_row(self, conn: Any, name: str) -> dict | None:
+        row = conn.execute(
+            f"SELECT *, {self.dialect.seconds_since('last_seen')} AS seen_s FROM benches WHERE name = ?", (name,)
+        ).fetchone()
+        return _record(row) if row else None
 
     def queued_per_bench(self) -> dict[str, int]:
         """Jobs waiting for each bench (a paused sweep's parked job does not count)."""
@@ -583,11 +610,11 @@ class Storage:
                 return None
         with self.transaction() as conn:
             row = conn.execute(
-                f"UPDATE jobs SET state = 'running', claimed_by = ?, started_at = ?, updated_at = ? "
+                f"UPDATE jobs SET state = 'running', claimed_by = ?, started_at = ?, updated_at = {self.dialect.now_text} "
                 # the dialect's row locking: none on SQLite (one writer at a time), FOR UPDATE SKIP LOCKED on
                 # PostgreSQL (two claims never wait on, or take, the same row)
                 f"WHERE id = ({pick} {self.dialect.skip_locked}) AND state = 'queued' RETURNING id",
-                (instance, now, now, *args),
+                (instance, now, *args),
             ).fetchone()
             return row["id"] if row else None
 
@@ -596,9 +623,9 @@ class Storage:
         now = now_iso()
         with self.transaction() as conn:
             row = conn.execute(
-                "UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE id = ? AND state = 'queued' "
-                "RETURNING id",
-                (now, now, job_id),
+                f"UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = {self.dialect.now_text} "
+                "WHERE id = ? AND state = 'queued' RETURNING id",
+                (now, job_id),
             ).fetchone()
             return row is not None
 
@@ -608,15 +635,16 @@ class Storage:
         now = now_iso()
         with self.transaction() as conn:
             job = conn.execute(
-                "UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE sweep_id = ? "
-                "AND state = 'queued' AND claimed_by IS NULL RETURNING id",
-                (now, now, sweep_id),
+                f"UPDATE jobs SET state = 'cancelled', finished_at = ?, updated_at = {self.dialect.now_text} "
+                "WHERE sweep_id = ? AND state = 'queued' AND claimed_by IS NULL RETURNING id",
+                (now, sweep_id),
             ).fetchone()
             if job is None:
                 return False
             conn.execute(
-                "UPDATE sweeps SET state = 'cancelled', finished_at = ?, updated_at = ? WHERE id = ? AND state = 'queued'",
-                (now, now, sweep_id),
+                f"UPDATE sweeps SET state = 'cancelled', finished_at = ?, updated_at = {self.dialect.now_text} "
+                "WHERE id = ? AND state = 'queued'",
+                (now, sweep_id),
             )
             return True
 
@@ -624,8 +652,9 @@ class Storage:
         """Ask the sweep's bench's service to pause, resume or cancel it (it acts within about a second)."""
         with self.transaction() as conn:
             conn.execute(
-                "UPDATE sweeps SET control_request = ?, control_note = NULL, updated_at = ? WHERE id = ?",
-                (action, now_iso(), sweep_id),
+                f"UPDATE sweeps SET control_request = ?, control_note = NULL, updated_at = {self.dialect.now_text} "
+                "WHERE id = ?",
+                (action, sweep_id),
             )
 
     def sweep_control_requests(self, bench: str) -> list[tuple[int, str]]:
@@ -690,8 +719,13 @@ class Storage:
             for table in ("jobs", "sweeps", "schedules"):
                 conn.execute(f"UPDATE {table} SET bench = ? WHERE bench IS NULL", (bench,))
 
+    def database_now(self) -> str:
+        """The database's clock as UTC ISO text: the lab's one clock, that updated_at and heartbeats use."""
+        with self.connect() as conn:
+            return conn.execute(f"SELECT {self.dialect.now_text}").fetchone()[0]
+
     def changed_since(self, since: str) -> tuple[list[JobRecord], list[SweepRecord]]:
-        """Jobs and sweeps written at or after `since` (UTC ISO), oldest write first."""
+        """Jobs and sweeps written at or after `since` (UTC ISO on the database's clock), oldest write first."""
         with self.connect() as conn:
             jobs = [
                 _record(r)
@@ -757,7 +791,8 @@ def _insert(conn: Any, table: str, row: dict[str, Any]) -> int:
     return conn.execute(f"INSERT INTO {table} ({', '.join(row)}) VALUES ({marks})", tuple(row.values())).lastrowid
 
 
-# tables whose every write sets updated_at: another bench's service shows their progress from it
+# tables whose every write sets updated_at, on the database's clock (the one clock of a lab: a bench PC's
+# may be off): another bench's service shows their progress from it (service/runs/lab.py LabWatch)
 _TRACKED = ("jobs", "sweeps")
 
 
@@ -765,10 +800,10 @@ def _update(storage: Storage, table: str, row_id: int, fields: dict[str, Any]) -
     if not fields:
         return
     fields = encode_columns(table, fields)
-    if table in _TRACKED:
-        fields.setdefault("updated_at", now_iso())
     _check_columns(fields)
     sets = ", ".join(f"{k} = ?" for k in fields)
+    if table in _TRACKED and "updated_at" not in fields:
+        sets += f", updated_at = {storage.dialect.now_text}"
     with storage.transaction() as conn:
         conn.execute(f"UPDATE {table} SET {sets} WHERE id = ?", (*fields.values(), row_id))
 

@@ -5,6 +5,11 @@ it; faults go through the emulator's control socket. Prints:
 - fault-to-safe time per fault kind: from the fault (the control socket's reply time, or the SIGSTOP
   of the service) to the drive's power stage going off, both on the emulator's side
   (time.monotonic(), CLOCK_MONOTONIC is system-wide); the fault hits a grid search in flight;
+- a frozen database (issue 25): the service on a throwaway PostgreSQL server, its postmaster and its
+  backends stopped (SIGSTOP, tests/support/frozen_database.py) while a sweep holds the drive at torque:
+  freeze to drive power stage off, the run's silence to power off (the bench watchdog's own figure), and
+  SIGTERM to the service's exit while the database stays frozen. The figures of the code before the bench
+  watchdog (commit 03eb74f, this script run on that tree) are printed beside them (OLD_FIGURES);
 - fault kinds survived: after each fault (and the acknowledgement a person would give), the next
   probe identification succeeds without a restart;
 - crash cycles: kill -9 of the service three times during one 16-point sweep, restart, fault reset,
@@ -16,16 +21,33 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 from tests.support.bench_rig import Api, EmulatorRig
+from tests.support.frozen_database import BackendFreezer
+from tests.support.postgres import PostgresCluster
 from tests.support.service_process import ServiceProcess
 
 OP1 = {"torque_nm": 2.5, "speed_rpm": 2000, "udc_v": 12}
 GRID16 = {"torque_nm": [1.0, 1.5, 2.0, 2.5], "speed_rpm": [1500, 1750, 2000, 2250], "udc_v": [12]}
+FROZEN_WAIT_S = 30.0  # a drive not off this long after the database froze is reported "none"
+TERM_WAIT_S = 30.0  # a service not ended this long after SIGTERM (database frozen) is reported "none", then killed
+FROZEN_KIND = "database frozen (PostgreSQL SIGSTOP)"
+# measured with this script on commit 03eb74f (before the bench watchdog; `git worktree add /tmp/old 03eb74f`,
+# this file and tests/support/frozen_database.py copied in), 2 cores shared with other work; ms, None: never
+OLD_FIGURES: dict[str, float | None] = {
+    "emcy 0x3210 (drive faults itself)": 0.0,
+    "emcy 0x4310 only (drive stays enabled)": 5.0,
+    "drive heartbeat missing": 980.0,
+    "DAQ disconnect": 5.0,
+    "service stalled (SIGSTOP 1.5 s)": 445.0,
+    FROZEN_KIND: None,  # the drive stayed at torque for the whole 30 s
+}
+OLD_FROZEN_TERM_S: float | None = None  # SIGTERM did not end it within 30 s (killed)
 
 
 def power_off_after(emu: EmulatorRig, t0: float, timeout_s: float = 10.0) -> float | None:
@@ -101,6 +123,51 @@ def fault_kinds(emu: EmulatorRig, svc: ServiceProcess, api: Api) -> tuple[dict, 
     return times, survived, failed
 
 
+def frozen_database(emu: EmulatorRig, workdir: Path) -> tuple[float | None, float | None, float | None]:
+    """A sweep at torque on PostgreSQL, the database frozen: (freeze -> drive off, the run's silence -> drive off
+    as the bench watchdog reports it (None on a tree without one), SIGTERM -> exit), seconds; None: not within
+    FROZEN_WAIT_S / TERM_WAIT_S."""
+    cluster = PostgresCluster().init()
+    try:
+        cluster.start()
+        url = cluster.create_database()
+        svc = ServiceProcess(url, "--bench", str(emu.bench_file(workdir)), log_dir=workdir)
+        freezer = None
+        try:
+            svc.wait_ready()
+            api = Api(svc, url)
+            api.post("/bench/fault-reset")
+            sweep_id = api.post("/sweeps", {"grid": GRID16, "method": "probe"}).json()["id"]
+            api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["progress"]["done"] >= 2, 600, "2 points")
+            api.wait(
+                lambda: emu.control({"status": True})["faults"]["drive_state"] == "operation_enabled", 60, "torque"
+            )
+            freezer = BackendFreezer(cluster)
+            t0 = time.monotonic()
+            freezer.freeze()
+            to_safe = power_off_after(emu, t0, FROZEN_WAIT_S)
+            silence_to_safe = None
+            if to_safe is not None:
+                watchdog = api.http.get("/bench/status", timeout=10).json().get("watchdog") or {}
+                if watchdog.get("silent_since_monotonic") is not None:
+                    silence_to_safe = t0 + to_safe - watchdog["silent_since_monotonic"]
+            os.killpg(svc.proc.pid, signal.SIGTERM)
+            t_term = time.monotonic()
+            try:
+                svc.proc.wait(TERM_WAIT_S)
+                term_s = time.monotonic() - t_term
+            except subprocess.TimeoutExpired:
+                term_s = None
+            api.close()
+        finally:
+            if freezer is not None:
+                freezer.thaw()
+            svc.stop()
+        return to_safe, silence_to_safe, term_s
+    finally:
+        cluster.remove()
+
+
 def crash_cycles(emu: EmulatorRig, workdir: Path, kills_after=(3, 7, 11)) -> tuple[int, int, int]:
     db, bench = workdir / "crash.db", emu.bench_file(workdir)
     sweep_id = None
@@ -152,9 +219,46 @@ def main() -> int:
             times, survived, failed = fault_kinds(emu, svc, api)
             api.close()
             svc.stop()
+            print("a database that hangs under a sweep at torque (service on PostgreSQL):", flush=True)
+            frozen_to_safe, silence_to_safe, term_s = frozen_database(emu, workdir)
+            times[FROZEN_KIND] = frozen_to_safe
+            print(
+                f"  {FROZEN_KIND:<42} fault-to-safe "
+                + (
+                    f"{frozen_to_safe * 1000:6.0f} ms"
+                    if frozen_to_safe is not None
+                    else f"  none within {FROZEN_WAIT_S:g} s"
+                )
+                + (
+                    f" (the run silent -> safe {silence_to_safe * 1000:.0f} ms)"
+                    if silence_to_safe is not None
+                    else " (no bench watchdog)"
+                )
+                + "; SIGTERM -> exit "
+                + (f"{term_s:.1f} s" if term_s is not None else f"none within {TERM_WAIT_S:g} s (killed)"),
+                flush=True,
+            )
             cycles, lost, twice = crash_cycles(emu, workdir)
         finally:
             emu.stop()
+    print("fault-to-safe per fault kind, old (commit 03eb74f, before the bench watchdog) and new (this tree):")
+    for name, new in times.items():
+        if name not in OLD_FIGURES:
+            continue
+        old = OLD_FIGURES[name]
+        print(
+            f"  {name:<42} old "
+            + (f"{old:6.0f} ms" if old is not None else f"none within {FROZEN_WAIT_S:g} s")
+            + "  new "
+            + (f"{new * 1000:6.0f} ms" if new is not None else f"none within {FROZEN_WAIT_S:g} s")
+        )
+    if OLD_FIGURES:
+        print(
+            f"  {'SIGTERM -> exit, database frozen':<42} old "
+            + (f"{OLD_FROZEN_TERM_S:5.1f} s" if OLD_FROZEN_TERM_S is not None else f"none within {TERM_WAIT_S:g} s")
+            + "  new "
+            + (f"{term_s:5.1f} s" if term_s is not None else f"none within {TERM_WAIT_S:g} s")
+        )
     measured = [t for t in times.values() if t is not None]
     print(
         f"fault-to-safe time: worst {max(measured) * 1000:.0f} ms over {len(measured)} fault kinds "
@@ -165,7 +269,8 @@ def main() -> int:
         + (f" (failed: {', '.join(failed)})" if failed else "")
     )
     print(f"crash cycles: {cycles} x kill -9 during one 16-point sweep: {lost} point(s) lost, {twice} measured twice")
-    return 0 if not failed and lost == 0 and twice == 0 else 1
+    frozen_safe = times[FROZEN_KIND] is not None and term_s is not None
+    return 0 if not failed and lost == 0 and twice == 0 and frozen_safe else 1
 
 
 if __name__ == "__main__":

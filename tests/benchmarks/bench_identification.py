@@ -67,7 +67,7 @@ def main() -> None:
         )
         t0 = time.perf_counter()
         sweep_id = svc.engine.submit_sweep(
-            Grid(torque_nm=[1, 2.5, 4], speed_rpm=[1000, 2000, 2500], udc_v=[12]),
+            Grid(torque_nm=[1, 2.5, 4], speed_rpm=[1000, 2000, 2200], udc_v=[12]),  # within the envelope at 12 V
             "adaptive",
             parse_options("adaptive", {}),
         )

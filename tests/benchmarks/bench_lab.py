@@ -47,7 +47,10 @@ def client(svc: ServiceProcess, token: str) -> httpx.Client:
 
 
 def post_sweep(http: httpx.Client, grid: dict, bench: str) -> int:
-    r = http.post("/sweeps", json={"grid": grid, "method": "probe", "bench": bench})
+    # the 10 x 10 paper-bench grid reaches past the envelope of the motor settings (issue 25): run as before, its
+    # cells beyond the torque tolerance are failed saying the torque they ran at (timing figures stay comparable)
+    options = {"override_envelope_model": True}
+    r = http.post("/sweeps", json={"grid": grid, "method": "probe", "options": options, "bench": bench})
     r.raise_for_status()
     return r.json()["id"]
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.lut_image import FLAG_OK, INTERPOLATIONS, Lut
 from service.calibration_service import CalibrationService
+from service.model.limits import EnvelopeError
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import parse_options
 from service.settings import load_settings
@@ -85,7 +86,11 @@ def scan(svc, torque_nm: float, step_rpm: int) -> tuple[list[float], list[comple
     speeds, thetas, not_ok = [], [], 0
     for n in range(SPEED_RANGE_RPM[0], SPEED_RANGE_RPM[1] + 1, step_rpm):
         op = OperatingPoint(torque_nm=torque_nm, speed_rpm=n, udc_v=UDC_V)
-        job_id = svc.engine.submit_identification(op, "probe", parse_options("probe", {}))
+        try:
+            job_id = svc.engine.submit_identification(op, "probe", parse_options("probe", {}))
+        except EnvelopeError:  # beyond what the motor settings hold here (4 Nm past ~2450 rpm at 12 V): not ok
+            not_ok += 1
+            continue
         while (job := svc.storage.get_job(job_id))["state"] not in ("done", "failed", "cancelled"):
             time.sleep(0.02)
         result = svc.storage.get_result(job["result_id"]) if job.get("result_id") else None

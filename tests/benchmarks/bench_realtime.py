@@ -91,7 +91,9 @@ def timed_job(api: Api, ends: JobEnds, path: str, body: dict, timeout_s: float =
 
 def timed_sweep(api: Api, ends: JobEnds, grid: dict, method: str = "probe") -> tuple[dict, float]:
     t0 = time.perf_counter()
-    r = api.post("/sweeps", {"grid": grid, "method": method})
+    # the 10 x 10 paper-bench grid reaches past the envelope of the motor settings (issue 25): run as before, its
+    # cells beyond the torque tolerance are failed saying the torque they ran at (timing figures stay comparable)
+    r = api.post("/sweeps", {"grid": grid, "method": method, "options": {"override_envelope_model": True}})
     assert r.status_code == 202, r.text
     sweep_id = r.json()["id"]
     job_id = next(j["id"] for j in api.get("/jobs") if j.get("sweep_id") == sweep_id)

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from tests.support.operating_points import OP1
+from tests.support.parent_death import die_with_parent
 from tests.support.service_process import free_port
 from tests.support.waiting import wait_until
 
@@ -117,6 +118,7 @@ def service(tmp_path_factory):
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             start_new_session=True,
+            preexec_fn=die_with_parent(signal.SIGTERM),  # ends with pytest, even killed
         )
     base = f"http://127.0.0.1:{port}"
     try:
@@ -708,7 +710,8 @@ def test_sweep_view_lists_non_ok_points_and_fits_1400_px(service, browser, tmp_p
             "POST",
             "/sweeps",
             {
-                "grid": {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [2000, 2500], "udc_v": [12]},
+                # 2200 rpm: 4 Nm at 2500 rpm is outside the envelope of the motor settings (422)
+                "grid": {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [2000, 2200], "udc_v": [12]},
                 "method": "probe",
                 "options": {"target_db": 80},
             },
@@ -1029,7 +1032,12 @@ def test_sweep_preview_shows_the_onset_per_torque_and_the_speeds_placed_around_i
             summary.startswith("44 operating points (20 requested; 6 speed values added") and "would queue" in summary
         )
         estimate = page.inner_text('[data-testid="sweep-preview-estimate"]')
-        assert "Estimated bench time ≈ 38 s" in estimate and "estimate at speedup 1" in estimate, estimate
+        # 4 N·m at 2600 rpm is beyond what the motor settings hold at 12 V: listed, not run, not in the estimate
+        assert "Estimated bench time ≈ 37 s" in estimate and "estimate at speedup 1" in estimate, estimate
+        not_run = page.inner_text('[data-testid="sweep-preview-not-run"]')
+        assert not_run.startswith("1 point outside the envelope of the motor settings, not run: 4 N·m @ 2600 rpm"), (
+            not_run
+        )
         assert page.inner_text('[data-testid="sweep-preview-margin"]') == "0.95"
         page.screenshot(path=str(tmp_path / "sweep_preview.png"), full_page=True)
 

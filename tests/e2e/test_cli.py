@@ -20,7 +20,7 @@ import pytest
 from service.api.public import map_public
 from service.maps.lut_export import lut_image
 from service.store.storage import Storage
-from tests.support.service_process import REPO, free_port
+from tests.support.service_process import REPO, free_port, make_run
 from tests.support.sweep_checks import holes
 
 pytestmark = pytest.mark.e2e
@@ -69,22 +69,7 @@ def test_make_run_takes_port_and_host_and_serve_knows_a_token_made_elsewhere(hom
     stamp.touch()
     port = free_port()
     log = open(tmp_path / "make.log", "w")
-    proc = subprocess.Popen(
-        [
-            "make",
-            "--no-print-directory",
-            "run",
-            f"PORT={port}",
-            "HOST=127.0.0.1",
-            f"VENV={Path(sys.executable).parent.parent}",
-            f"STAMP={stamp}",
-        ],
-        cwd=REPO,
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
+    proc = make_run(port, env, log, stamp)
     try:
         base = f"http://127.0.0.1:{port}/api/v1"
         deadline = time.monotonic() + 120

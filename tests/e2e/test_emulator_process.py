@@ -25,6 +25,7 @@ from drivers.daq_protocol import FLAG_SYNC_INPUT, FrameDecoder
 from drivers.daq_reader import DaqReader
 from drivers.load_machine import LoadClient
 from tests.support.bench_rig import EmulatorRig, emulator_control
+from tests.support.parent_death import die_with_parent
 from tests.support.waiting import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -38,6 +39,7 @@ def emulator():
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        preexec_fn=die_with_parent(signal.SIGTERM),  # ends with pytest, even killed
     )
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 60.0)

@@ -14,6 +14,7 @@ import httpx
 import pytest
 
 from tests.support.operating_points import OP1
+from tests.support.parent_death import die_with_parent
 from tests.support.service_process import REPO, ServiceProcess, create_token, free_port
 
 pytestmark = pytest.mark.e2e
@@ -89,6 +90,7 @@ url = "socket://127.0.0.1:{port}"
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            preexec_fn=die_with_parent(signal.SIGTERM),  # ends with pytest, even killed
         )
     base = f"http://127.0.0.1:{base_port}"
     try:

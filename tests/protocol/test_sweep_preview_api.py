@@ -18,6 +18,8 @@ from service.settings import load_settings
 EXAMPLE = {
     "grid": {"torque_nm": [1, 2, 3, 4], "speed_rpm": [1000, 1400, 1800, 2200, 2600], "udc_v": [12]},
     "method": "adaptive",
+    # 3 and 4 Nm at 2600 rpm are beyond what the motor settings hold at 12 V (test_envelope_...)
+    "options": {"override_envelope_model": True},
     "regime": {"speeds_around_onset": True, "spacing_rpm": 100},
 }
 
@@ -102,7 +104,7 @@ def test_post_sweeps_with_the_regime_stores_the_grid_the_preview_showed(api):
     [
         {"grid": {"torque_nm": [1, 9], "speed_rpm": [50, 2000]}},  # bench limits
         {
-            "grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
+            "grid": {"torque_nm": [1 + 0.1 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
             "method": "probe",
             "regime": {"speeds_around_onset": True},
         },  # 400 points, more once placed
@@ -116,6 +118,7 @@ def test_post_sweeps_with_the_regime_stores_the_grid_the_preview_showed(api):
             "method": "probe",
             "options": {"max_newton_steps": 50, "max_window_s": 5, "settle_s": 2},
         },  # plant time
+        {"grid": {"torque_nm": [-2.5, 2.5, 5], "speed_rpm": [5000, 6000]}},  # no point inside the envelope model
     ],
 )
 def test_preview_problems_are_the_422_items_post_sweeps_answers(api, body):
@@ -129,7 +132,7 @@ def test_preview_problems_are_the_422_items_post_sweeps_answers(api, body):
 def test_the_placed_speeds_count_in_the_sweep_size(api):
     client, operator, _ = api
     body = {
-        "grid": {"torque_nm": [1 + 0.15 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
+        "grid": {"torque_nm": [1 + 0.1 * k for k in range(20)], "speed_rpm": [1000 + 80 * k for k in range(20)]},
         "method": "probe",
         "regime": {"speeds_around_onset": True},
     }
@@ -202,3 +205,37 @@ def test_openapi_documents_every_field_of_the_preview(api):
         assert not missing, f"{name}: fields without a description: {missing}"
     regime = schemas["RegimePlacement"]["properties"]
     assert regime["spacing_rpm"]["minimum"] == 10 and regime["spacing_rpm"]["maximum"] == 2000
+
+
+def test_points_outside_the_envelope_of_the_motor_settings_are_not_run_unless_overridden(api):
+    """Issue 25: -2.5 and 2.5 Nm at 5000 rpm, 5 Nm at 6000 rpm (limits 5 Nm, 6000 rpm, 12 V) were accepted while
+    the preview's own note said 5 Nm is not reached at any speed. A point the envelope model refuses (the back-EMF
+    above what the DC link holds, a torque beyond the voltage and current limits) is listed with its reason and
+    never run, as a full-load curve clips a bench's grid; a grid with no point inside is refused; a single point
+    outside is refused. The override lets the model pass (a machine that exceeds its settings), never the hard
+    limits."""
+    client, operator, _ = api
+    body = {"grid": {"torque_nm": [-2.5, 2.5, 5], "speed_rpm": [2600, 5000, 6000]}, "method": "probe"}
+    p = _preview(client, body)
+    assert p["accepted"] and p["problems"] == [], p["problems"]
+    not_run = {
+        (c["operating_point"]["torque_nm"], c["operating_point"]["speed_rpm"]): c["reason"] for c in p["not_run"]
+    }
+    assert set(not_run) == {(t, n) for t in (-2.5, 2.5, 5) for n in (5000, 6000)} | {(5, 2600)}, sorted(not_run)
+    assert "back-EMF exceeds what the DC link holds" in not_run[(2.5, 5000)]
+    assert "up to 3266 rpm at 12 V" in not_run[(2.5, 5000)]
+    # 5 Nm at 2600 rpm: 2.58 Nm at most (the voltage limit with field weakening), beyond 20 % of the command
+    assert "holds at most 2.58 Nm" in not_run[(5, 2600)] and "override_envelope_model" in not_run[(5, 2600)]
+    assert _preview(client, {**body, "options": {"override_envelope_model": True}})["not_run"] == []
+    outside = {"grid": {"torque_nm": [-2.5, 2.5, 5], "speed_rpm": [5000, 6000]}, "method": "probe"}
+    p = _preview(client, outside)
+    assert not p["accepted"] and [e["type"] for e in p["problems"]] == ["value_error.envelope"], p["problems"]
+    assert "every one of the 6 point(s)" in p["problems"][0]["msg"]
+    assert "override_envelope_model" in client.post("/api/v1/sweeps", json=outside, headers=operator).text
+    assert _preview(client, {**outside, "options": {"override_envelope_model": True}})["accepted"] is True
+    one = {"operating_point": {"torque_nm": -2.5, "speed_rpm": 5000, "udc_v": 12}, "method": "probe"}
+    r = client.post("/api/v1/identifications", json=one, headers=operator)
+    assert r.status_code == 422 and r.json()["detail"][0]["type"] == "value_error.envelope", r.text
+    # the override is for the model only: 6 Nm stays refused by the bench limit
+    hard = {"grid": {"torque_nm": [6.0], "speed_rpm": [2000]}, "options": {"override_envelope_model": True}}
+    assert [e["type"] for e in _preview(client, hard)["problems"]] == ["value_error.bench_limits"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from datetime import datetime, timedelta, timezone
 
 import pytest
 
@@ -161,3 +162,41 @@ def test_other_benches_progress_is_published_once_with_its_bench(storage):
         ("sweep.progress", sweep, "queued", "B"),
         ("sweep.progress", sweep, "running", "B"),
     ]
+
+
+def _date_heartbeat(storage: Storage, bench: str, offset_s: float) -> None:
+    """The bench's last heartbeat moved `offset_s` from now on the database's clock (as software from before
+    issue 25, which stamped it with its own PC's clock, left it)."""
+    Lab(storage, bench, "holder", 8001, "1.0").claim()
+    moved = (datetime.fromisoformat(storage.database_now()) + timedelta(seconds=offset_s)).isoformat(
+        timespec="milliseconds"
+    )
+    with storage.transaction() as conn:
+        conn.execute("UPDATE benches SET last_seen = ? WHERE name = ?", (moved, bench))
+
+
+def test_liveness_is_the_age_of_the_heartbeat_on_the_databases_clock(storage):
+    lab = Lab(storage, "A", "me", 8000, "1.0", stale_s=5.0)
+    lab.claim()
+    assert 0 <= storage.get_bench("A")["seen_s"] < 5.0  # stamped by the database: no PC clock involved
+    _date_heartbeat(storage, "B", -10.0)
+    benches = {b["name"]: b for b in lab.overview()}
+    assert benches["A"]["online"] and not benches["B"]["online"]
+    assert 9.5 < storage.get_bench("B")["seen_s"] < 60.0
+    assert benches["B"]["seen"].startswith("not seen since")
+
+
+def test_a_heartbeat_that_cannot_be_proven_stale_is_not_taken_over(storage):
+    _date_heartbeat(storage, "B", +30.0)  # dated ahead of the database's clock: its age cannot prove it dead
+    with pytest.raises(BenchInUse) as refused:
+        Lab(storage, "B", "second", 8002, "1.0", stale_s=0.5).claim(poll_s=0.1)
+    assert "ahead of the database's clock: not provably stale" in str(refused.value)
+    assert storage.get_bench("B")["instance"] == "holder"
+
+
+def test_the_databases_clock_reads_as_the_timestamps_python_writes(storage):
+    # the same UTC ISO form (so they compare as text), and on one host the same time within a wide margin
+    now = storage.database_now()
+    python_now = datetime.now(timezone.utc)
+    assert len(now) == len(python_now.isoformat(timespec="milliseconds")) and now.endswith("+00:00"), now
+    assert abs((datetime.fromisoformat(now) - python_now).total_seconds()) < 60

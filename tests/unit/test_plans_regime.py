@@ -202,7 +202,8 @@ def test_too_many_speed_values_after_placement_is_a_regime_error():
 
 # --- the preview and the engine ------------------------------------------------------------------------
 def test_preview_points_are_the_plan_of_the_planned_grid_and_the_estimate_is_its_arithmetic():
-    options = parse_options("adaptive", {})
+    # 4 Nm at 2600 rpm is beyond what the motor settings hold at 12 V: the envelope model overridden here
+    options = parse_options("adaptive", {"override_envelope_model": True})
     p = preview_sweep(EXAMPLE, AROUND, "adaptive", options, False, SETTINGS)
     assert p.accepted and p.problems == []
     assert tuple(p.points) == SweepPlan.from_grid(plan_grid(EXAMPLE, AROUND, SETTINGS).grid).points
@@ -227,7 +228,7 @@ def test_preview_lists_every_problem_post_sweeps_would_refuse():
     assert {tuple(e["loc"]) for e in p.problems} == {("body", "grid", "torque_nm"), ("body", "grid", "speed_rpm")}
     assert all(e["type"] == "value_error.bench_limits" for e in p.problems)
     # 400 points requested: the placed speeds make it larger than safety.max_sweep_points_unconfirmed
-    big = Grid(torque_nm=[1 + 0.15 * k for k in range(20)], speed_rpm=[1000 + 80 * k for k in range(20)])
+    big = Grid(torque_nm=[1 + 0.1 * k for k in range(20)], speed_rpm=[1000 + 80 * k for k in range(20)])
     p = preview_sweep(big, AROUND, "probe", parse_options("probe", {}), False, SETTINGS)
     assert [e["loc"] for e in p.problems] == [["body", "confirm_large"]] and p.total > 400
     assert preview_sweep(big, AROUND, "probe", parse_options("probe", {}), True, SETTINGS).accepted
@@ -246,7 +247,7 @@ class _Bench:
 def test_engine_submit_sweep_stores_the_grid_and_plan_the_preview_shows(tmp_path):
     storage = Storage(str(tmp_path / "plans.db"))
     engine = Engine(storage, _Bench(), SETTINGS, EventBroker())  # never started: the sweep stays queued
-    options = parse_options("probe", {})
+    options = parse_options("probe", {"override_envelope_model": True})  # 4 Nm at 2600 rpm: beyond the model
     sweep_id = engine.submit_sweep(EXAMPLE, "probe", options, regime=AROUND)
     sweep = storage.get_sweep(sweep_id)
     preview = preview_sweep(EXAMPLE, AROUND, "probe", options, False, SETTINGS)

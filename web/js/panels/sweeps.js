@@ -350,6 +350,17 @@ function renderPreview(p) {
     ? `Estimated bench time ≈ ${duration(est.estimated_s)} (worst case ${duration(est.worst_case_s)}); ${est.basis}.`
     : "No estimate: the grid cannot be planned.";
 
+  // points the envelope model of the motor settings refuses: stored failed with the reason, never run
+  const notRun = $("sweep-preview-not-run");
+  const outside = p.not_run || [];
+  notRun.hidden = !outside.length;
+  notRun.textContent = outside.length
+    ? `${outside.length} point${outside.length > 1 ? "s" : ""} outside the envelope of the motor settings, not run: ` +
+      outside.slice(0, 6).map((c) => `${fmt(c.operating_point.torque_nm)} N·m @ ${fmt(c.operating_point.speed_rpm)} rpm`).join(", ") +
+      (outside.length > 6 ? ", …" : "")
+    : "";
+  notRun.title = outside.map((c) => c.reason).slice(0, 6).join("\n");
+
   const problems = $("sweep-preview-problems");
   problems.replaceChildren();
   problems.hidden = p.accepted;

@@ -1,0 +1,168 @@
+"""The bench watchdog: the bench made safe without waiting on the worker, storage or the network.
+
+A run's loop kicks the watchdog (every guard check, before each DAQ read, and while it waits for the
+supply). While a run is armed, a loop silent for `bound_s` of wall time (the worker stuck: a database
+that hangs, a lock, a bug) or a stop asked from outside (a cancel, a shutdown, a signal) makes the
+watchdog's own thread disable drive and load at once: the drivers' disable (torque 0, injection off,
+power stage off), then the load braked on its own speed loop and disabled. It takes none of the locks
+the worker may hold (the bench's run lock); the drivers serialise single SDO transfers only, each
+bounded by the SDO timeout. The run then ends at its next guard (`tripped`), and the stop is logged
+and reported (`on_stop`, the service's SSE) with why.
+
+`request_stop` only sets a flag and wakes the thread: it is safe from a signal handler or an HTTP
+request, and never blocks.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from datetime import datetime, timezone
+from typing import Callable
+
+from service.bench.interlocks import Trip
+
+log = logging.getLogger(__name__)
+
+PERIOD_S = 0.05  # how often the watchdog looks at the run's last kick
+STANDSTILL_RPM = 20.0  # the load is disabled once its own speed reading is below this ...
+STANDSTILL_TIMEOUT_S = 3.0  # ... or after this long braking (wall clock): it is disabled either way
+
+
+class BenchWatchdog:
+    """Disables drive and load when an armed run stops kicking or a stop is asked (module doc).
+    `drive()` / `load()`: the current driver objects (None when not connected); `on_stop(trip)`: the
+    service's reporter, called from the watchdog's thread after the bench is safe."""
+
+    def __init__(
+        self,
+        drive: Callable[[], object | None],
+        load: Callable[[], object | None],
+        bound_s: float,
+        on_stop: Callable[[Trip], None] | None = None,
+    ):
+        self._drive = drive
+        self._load = load
+        self.bound_s = bound_s
+        self.on_stop = on_stop
+        self._armed = False
+        self._last_kick = time.monotonic()
+        self._asked: str | None = None  # why a stop was asked from outside (cancel, shutdown)
+        self._wake = threading.Event()
+        self._closed = threading.Event()
+        self._safe = threading.Event()  # set once a stop has disabled drive and load (or none was needed)
+        self._safe.set()
+        self.tripped: Trip | None = None  # the stop of the current run (None: none)
+        self.last_stop: Trip | None = None  # the latest stop, kept for the status until the next one
+        # time.monotonic() (system-wide CLOCK_MONOTONIC) of the run's last kick before a stop for silence
+        self.silent_since_monotonic: float | None = None
+        self._thread: threading.Thread | None = None
+
+    # --- the run's side (the worker) ---------------------------------------------------------------------
+    def arm(self) -> None:
+        """A run starts: watched from now on."""
+        self.tripped = None
+        self._asked = None
+        self._last_kick = time.monotonic()
+        self._armed = True
+
+    def kick(self) -> None:
+        """The run's loop is alive."""
+        self._last_kick = time.monotonic()
+
+    def disarm(self) -> Trip | None:
+        """The run has ended (made safe by its own make_safe); the watchdog's stop of it, if any."""
+        self._armed = False
+        return self.tripped
+
+    # --- from outside (routes, shutdown, signal handlers) -------------------------------------------------
+    def request_stop(self, reason: str) -> None:
+        """Disable drive and load now if a run is armed (no lock, no I/O here: the watchdog's thread acts)."""
+        if self._armed and self._asked is None:
+            self._asked = reason
+            self._safe.clear()
+        self._wake.set()
+
+    def wait_safe(self, timeout_s: float) -> bool:
+        """After request_stop: True once the watchdog's stop has run (or none was needed)."""
+        return self._safe.wait(timeout_s)
+
+    # --- the thread ----------------------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._watch, name="ripplecal-bench-watchdog", daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        self._closed.set()
+        self._wake.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(5.0)
+
+    def _watch(self) -> None:
+        while not self._closed.is_set():
+            self._wake.wait(PERIOD_S)
+            self._wake.clear()
+            try:
+                self._look()
+            except Exception:  # noqa: BLE001 - the watchdog must outlive any one bad round
+                log.exception("bench watchdog round failed")
+
+    def _look(self) -> None:
+        if not self._armed or self.tripped is not None:
+            self._safe.set()
+            return
+        silent_s = time.monotonic() - self._last_kick
+        if self._asked is not None:
+            reason, kind = f"{self._asked}: drive and load disabled at once by the bench watchdog", "stop_asked"
+            self.silent_since_monotonic = None
+        elif silent_s > self.bound_s:
+            self.silent_since_monotonic = self._last_kick
+            reason = (
+                f"the run's loop did not report for {silent_s:.1f} s (bound {self.bound_s:g} s; the worker is "
+                "stuck, e.g. waiting for the database): drive and load disabled by the bench watchdog"
+            )
+            kind = "stalled"
+        else:
+            return
+        trip = Trip(
+            "bench_watchdog",
+            reason,
+            latched=False,
+            at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            monotonic=time.monotonic(),
+        )
+        self.tripped = self.last_stop = trip
+        outcome = self._disable_all()
+        (log.warning if kind == "stop_asked" else log.error)("%s (%s)", reason, outcome)
+        self._safe.set()
+        if self.on_stop is not None:
+            try:
+                self.on_stop(trip)
+            except Exception:  # noqa: BLE001 - a reporter that fails must not undo the stop
+                log.exception("bench watchdog: reporting the stop failed")
+
+    def _disable_all(self) -> str:
+        """Drive first (its torque is what hurts), then the load braked on its speed loop and disabled.
+        Every step is tried; returns what happened, for the log."""
+        failed = []
+        drive, load = self._drive(), self._load()
+        if drive is not None:
+            try:
+                drive.disable()
+            except Exception as exc:  # noqa: BLE001 - the load is stopped whatever the drive says
+                failed.append(f"drive: {exc}")
+        if load is not None:
+            try:
+                load.set_speed_rpm(0.0)
+                deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
+                while time.monotonic() < deadline and abs(load.read_status().speed_rpm) >= STANDSTILL_RPM:
+                    time.sleep(0.05)
+            except Exception as exc:  # noqa: BLE001 - disabled below either way
+                failed.append(f"load braking: {exc}")
+            try:
+                load.disable()
+            except Exception as exc:  # noqa: BLE001
+                failed.append(f"load: {exc}")
+        return "bench made safe" if not failed else "not every step succeeded: " + "; ".join(failed)
