@@ -45,10 +45,12 @@ run: $(STAMP)
 test: $(STAMP) chromium postgresql faketime lint
 	$(PY) -m pytest -q
 
-# ruff: lint and format check (config in pyproject.toml); `make format` applies the formatter
+# ruff: lint and format check; mypy: the type checker, strict on the packages pyproject.toml names
+# (config of both in pyproject.toml); `make format` applies the formatter
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format .

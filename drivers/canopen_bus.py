@@ -25,7 +25,6 @@ from typing import Any
 
 import can
 import canopen
-from threadpoolctl import threadpool_limits
 
 from drivers.errors import ForeignMasterError, NotConnectedError
 
@@ -50,14 +49,6 @@ some 0.2 s is heard within it even behind socketcand's 0.2 s handshake hold)."""
 
 FOREIGN_MASTER_HOLD_S = 2.0
 """foreign_master() reports another master for this long after its last heartbeat was heard."""
-
-
-def one_blas_thread() -> None:
-    """Run BLAS on one thread in this process, for good (call once at process start; both the
-    service and the emulated devices do). OpenBLAS workers spin while they wait for work: on a
-    loaded 2-core PC they kept the heartbeat thread off the CPU for over a second and the drive fell
-    safe (EMCY 0x8130). Our least-squares problems have tens of columns: one thread is as fast."""
-    threadpool_limits(limits=1)
 
 
 # python-can keyword arguments that suit a transport unless the settings say otherwise (can.options):

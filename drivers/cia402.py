@@ -2,12 +2,16 @@
 
 The drive firmware in plant_emulator walks `DEVICE_TRANSITIONS`; the master in drivers/ decodes the
 statusword with `decode_statusword` and follows `PATH_TO_OPERATION_ENABLED`. Bit patterns are those of
-CiA 402 (IEC 61800-7-201), section "Statusword" and "Controlword".
+CiA 402 (IEC 61800-7-201), section "Statusword" and "Controlword", taken from canopen's own table
+(`canopen.profiles.p402.State402`: SW_MASK and the CW_* words), so the master, the emulated devices and
+the library agree on one definition; what is ours is the names, the device's transitions and the path.
 """
 
 from __future__ import annotations
 
 from enum import Enum
+
+from canopen.profiles.p402 import State402 as _P402
 
 
 class State402(str, Enum):
@@ -21,16 +25,10 @@ class State402(str, Enum):
     FAULT = "fault"
 
 
-# statusword (mask, value) per state
+# statusword (mask, value) per state: canopen's table, keyed by our names ("SWITCH ON DISABLED" ->
+# State402.SWITCH_ON_DISABLED); the patterns are disjoint, so their order does not matter
 STATUSWORD_PATTERNS: dict[State402, tuple[int, int]] = {
-    State402.NOT_READY_TO_SWITCH_ON: (0x4F, 0x00),
-    State402.SWITCH_ON_DISABLED: (0x4F, 0x40),
-    State402.READY_TO_SWITCH_ON: (0x6F, 0x21),
-    State402.SWITCHED_ON: (0x6F, 0x23),
-    State402.OPERATION_ENABLED: (0x6F, 0x27),
-    State402.QUICK_STOP_ACTIVE: (0x6F, 0x07),
-    State402.FAULT_REACTION_ACTIVE: (0x4F, 0x0F),
-    State402.FAULT: (0x4F, 0x08),
+    State402[name.replace(" ", "_")]: pattern for name, pattern in _P402.SW_MASK.items()
 }
 
 STATUSWORD_VOLTAGE_ENABLED = 1 << 4
@@ -48,15 +46,16 @@ class Command402(str, Enum):
     FAULT_RESET = "fault_reset"
 
 
-# controlword value the master sends for each command
+# controlword value the master sends for each command (canopen's CW_* words; its CW_SWITCH_ON_DISABLED
+# is the fault reset, transition 15, and 'disable operation' is coded as 'switch on')
 CONTROLWORD: dict[Command402, int] = {
-    Command402.SHUTDOWN: 0x0006,
-    Command402.SWITCH_ON: 0x0007,
-    Command402.ENABLE_OPERATION: 0x000F,
-    Command402.DISABLE_VOLTAGE: 0x0000,
-    Command402.QUICK_STOP: 0x0002,
-    Command402.DISABLE_OPERATION: 0x0007,
-    Command402.FAULT_RESET: 0x0080,
+    Command402.SHUTDOWN: _P402.CW_SHUTDOWN,
+    Command402.SWITCH_ON: _P402.CW_SWITCH_ON,
+    Command402.ENABLE_OPERATION: _P402.CW_OPERATION_ENABLED,
+    Command402.DISABLE_VOLTAGE: _P402.CW_DISABLE_VOLTAGE,
+    Command402.QUICK_STOP: _P402.CW_QUICK_STOP,
+    Command402.DISABLE_OPERATION: _P402.CW_SWITCH_ON,
+    Command402.FAULT_RESET: _P402.CW_SWITCH_ON_DISABLED,
 }
 
 # (current state, command) -> next state; anything not in the table leaves the state unchanged
@@ -114,17 +113,21 @@ def encode_statusword(state: State402, extra_bits: int = STATUSWORD_REMOTE) -> i
 
 
 def decode_controlword(controlword: int) -> Command402 | None:
-    """Command a controlword (0x6040) carries, per the CiA 402 command coding table."""
-    if controlword & 0x80:
+    """Command a controlword (0x6040) carries, per the CiA 402 command coding table: the fault reset
+    bit (7) first, then enable voltage (bit 1) and quick stop (bit 2, active low), then bits 0-3."""
+    if controlword & CONTROLWORD[Command402.FAULT_RESET]:
         return Command402.FAULT_RESET
-    if controlword & 0x02 == 0:
+    if controlword & _CW_ENABLE_VOLTAGE == 0:
         return Command402.DISABLE_VOLTAGE
-    if controlword & 0x04 == 0:
+    if controlword & _CW_QUICK_STOP_OFF == 0:
         return Command402.QUICK_STOP
-    if controlword & 0x0F == 0x06:
-        return Command402.SHUTDOWN
-    if controlword & 0x0F == 0x07:
-        return Command402.SWITCH_ON  # also 'disable operation' (same coding)
-    if controlword & 0x0F == 0x0F:
-        return Command402.ENABLE_OPERATION
-    return None
+    # 'disable operation' has the coding of 'switch on': it decodes as SWITCH_ON
+    return _COMMAND_BY_LOW_BITS.get(controlword & _CW_COMMAND_BITS)
+
+
+_CW_ENABLE_VOLTAGE = 1 << 1
+_CW_QUICK_STOP_OFF = 1 << 2
+_CW_COMMAND_BITS = 0x0F
+_COMMAND_BY_LOW_BITS = {
+    CONTROLWORD[c]: c for c in (Command402.SHUTDOWN, Command402.SWITCH_ON, Command402.ENABLE_OPERATION)
+}

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -54,11 +55,12 @@ FRAME_DTYPE = np.dtype(
 )
 assert FRAME_DTYPE.itemsize == FRAME_BYTES
 # byte offsets of the little-endian uint16/int16 fields, from the dtype
-OFFSET_SEQ = FRAME_DTYPE.fields["seq"][1]
-OFFSET_ANGLE = FRAME_DTYPE.fields["angle"][1]
-OFFSET_ACCEL = FRAME_DTYPE.fields["accel"][1]
-OFFSET_FLAGS = FRAME_DTYPE.fields["flags"][1]
-OFFSET_CRC = FRAME_DTYPE.fields["crc"][1]
+_FIELDS: Mapping[str, tuple[Any, ...]] = FRAME_DTYPE.fields or {}  # a structured dtype: never None
+OFFSET_SEQ = _FIELDS["seq"][1]
+OFFSET_ANGLE = _FIELDS["angle"][1]
+OFFSET_ACCEL = _FIELDS["accel"][1]
+OFFSET_FLAGS = _FIELDS["flags"][1]
+OFFSET_CRC = _FIELDS["crc"][1]
 CRC_FIRST, CRC_STOP = OFFSET_SEQ, OFFSET_CRC  # the CRC covers bytes [CRC_FIRST, CRC_STOP)
 CRC_INIT = 0xFFFF
 

@@ -244,6 +244,7 @@ def decode(blob: bytes) -> Lut:
         raise LutImageError("map_id 0 is reserved (the drive reports 0 when it holds no LUT)")
     if h < 1:
         raise LutImageError("harmonic_order must be >= 1")
+    allowed: tuple[int, ...]  # the flags this version knows
     if version >= 3:
         if mode_code >= len(INTERPOLATIONS):
             raise LutImageError(f"interpolation {mode_code} unknown (0 cartesian, 1 polar)")

@@ -51,7 +51,7 @@ import canopen
 import numpy as np
 
 from drivers import DRIVE_EDS, LOAD_EDS
-from drivers.canopen_bus import one_blas_thread
+from drivers.blas_threads import one_blas_thread
 
 from . import physics as ph
 from . import scenario as scn

@@ -148,7 +148,7 @@ def validate(sc: Scenario) -> None:
 def tables(sc: Scenario) -> tuple[np.ndarray, dict]:
     """The flat table array of physics.simulate and the offsets/lengths to put into the parameters."""
     parts: list[np.ndarray] = []
-    meta = {}
+    meta: dict[str, tuple[int, ...]] = {}  # table name -> (its lengths..., offset)
     off = 0
     sat = sc.section("saturation")
     if sat:

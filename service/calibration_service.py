@@ -12,10 +12,12 @@ import threading
 import time
 from typing import Any
 
-from drivers.canopen_bus import one_blas_thread
+from drivers.blas_threads import one_blas_thread
+from drivers.errors import FaultReactionActiveError
 from service import __version__
-from service.bench.bench import Bench, BenchUnreachable
+from service.bench.bench import Bench, BenchError, BenchUnreachable
 from service.bench.emulator_process import EmulatorProcess
+from service.errors import BenchFailed, Conflict, not_found
 from service.maps.compare import compare_maps
 from service.runs import lut_download, schedules
 from service.runs.engine import Engine
@@ -241,8 +243,16 @@ class CalibrationService:
         self.broker.publish("bench.interlock", trip.public())
 
     def fault_reset(self) -> dict:
-        """A person acknowledges a drive/load fault (POST /bench/fault-reset)."""
-        result = self.bench.fault_reset()
+        """A person acknowledges a drive/load fault (POST /bench/fault-reset). Conflict: the bench is busy or
+        a device is still braking (try again); BenchFailed: an SDO timeout, the drive stayed in FAULT."""
+        try:
+            result = self.bench.fault_reset()
+        except BenchError:
+            raise
+        except FaultReactionActiveError as exc:
+            raise Conflict(str(exc)) from None
+        except Exception as exc:  # say which: the operator reads it at the bench
+            raise BenchFailed(f"fault reset failed: {type(exc).__name__}: {exc}") from None
         self.broker.publish("bench.fault_reset", result)
         self.broker.publish("bench.status", self.bench.status())
         return result
@@ -259,25 +269,35 @@ class CalibrationService:
         return self.engine.submit_identification(op, method, options, bench=bench)
 
     def cancel_job(self, job_id: int) -> None:
-        self.engine.cancel_job(job_id)
+        with not_found(f"job {job_id} does not exist"):
+            self.engine.cancel_job(job_id)
 
-    def submit_sweep(self, grid, method: str, options, regime=None, bench: str | None = None) -> int:
-        return self.engine.submit_sweep(grid, method, options, regime=regime, bench=bench)
+    def submit_sweep(self, grid, method: str, options, regime=None, bench: str | None = None, planned=None) -> int:
+        """`planned`: the grid's plan (service.runs.plans.plan_grid) when the caller made it already."""
+        return self.engine.submit_sweep(grid, method, options, regime=regime, bench=bench, planned=planned)
 
     def control_sweep(self, sweep_id: int, action: str) -> None:
         """`action`: pause | resume | cancel."""
-        self.engine.control_sweep(sweep_id, action)
+        with not_found(f"sweep {sweep_id} does not exist in this service run"):
+            self.engine.control_sweep(sweep_id, action)
 
     def submit_validation(self, map_id: int, force: bool, options, bench: str | None = None) -> int:
-        return self.engine.submit_validation(map_id, force, options, bench=bench)
+        with not_found(f"map {map_id} does not exist"):
+            return self.engine.submit_validation(map_id, force, options, bench=bench)
 
     def submit_refinement(self, map_id: int, request, bench: str | None = None) -> int:
-        return self.engine.submit_refinement(map_id, request, bench=bench)
+        with not_found(f"map {map_id} does not exist"):
+            return self.engine.submit_refinement(map_id, request, bench=bench)
 
     def download_map(self, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None):
-        return lut_download.download_map(
-            self.storage, self.bench, map_id, force, fill=fill, interpolation=interpolation
-        )
+        try:
+            return lut_download.download_map(
+                self.storage, self.bench, map_id, force, fill=fill, interpolation=interpolation
+            )
+        except (lut_download.MapNotFound, lut_download.LutRefused, lut_download.PartialMap, BenchError):
+            raise
+        except Exception as exc:  # SDO abort / timeout: the drive refused or did not answer
+            raise BenchFailed(f"drive refused the LUT: {exc}") from None
 
     def compare_maps(self, map_a: int, map_b: int):
         return compare_maps(self.storage, map_a, map_b)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import ErrorDetails
 
 from service.names import check_name
 
@@ -387,7 +388,7 @@ def _put(data: dict[str, Any], parts: list[str], value: Any, source: str, path: 
     node[parts[-1]] = value
 
 
-def _problem(error: dict[str, Any], sources: dict[tuple[str, ...], str]) -> str:
+def _problem(error: ErrorDetails, sources: dict[tuple[str, ...], str]) -> str:
     """'key: what is wrong', with where the key came from when that is not the file."""
     loc = tuple(str(x) for x in error["loc"])
     msg = "unknown key" if error["type"] == "extra_forbidden" else error["msg"].removeprefix("Value error, ")

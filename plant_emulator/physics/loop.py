@@ -571,6 +571,10 @@ class Plant:
             tr,
         )
         self.samples += m
+        # None: no frames asked for
+        angle: np.ndarray | None
+        accel: np.ndarray | None
+        flags: np.ndarray | None
         if frames:
             f = np.frombuffer(fr.tobytes(), dtype=FRAME_DTYPE)
             angle, accel, flags = f["angle"].copy(), f["accel"].copy(), f["flags"].copy()

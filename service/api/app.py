@@ -17,7 +17,14 @@ from fastapi.staticfiles import StaticFiles
 from service import __version__
 from service.api.auth_throttle import AuthThrottle
 from service.api.body_limit import BodySizeLimit
-from service.api.errors import EVERY_ROUTE, ErrorAnswers, request_validation_error
+from service.api.errors import (
+    ANSWERED_KINDS,
+    EVERY_ROUTE,
+    ErrorAnswers,
+    request_validation_error,
+    service_error,
+    value_error,
+)
 from service.api.routes import ROUTERS
 from service.calibration_service import CalibrationService
 
@@ -53,6 +60,10 @@ def create_app(service: CalibrationService, manage_lifecycle: bool = True) -> Fa
     for router in ROUTERS:
         app.include_router(router, responses=EVERY_ROUTE)  # every route documents 500 and 503
     app.add_exception_handler(RequestValidationError, request_validation_error)
+    # the one place a refusal becomes an answer: routes hold no `try` (service/errors.py declares the statuses)
+    for kind in ANSWERED_KINDS:
+        app.add_exception_handler(kind, service_error)
+    app.add_exception_handler(ValueError, value_error)
     app.add_middleware(BodySizeLimit, max_body_bytes=service.settings.server.max_body_bytes)
     # added last: outermost, so an error anywhere below (the body limit too) is a JSON answer, never plain text
     app.add_middleware(ErrorAnswers)

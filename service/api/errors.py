@@ -1,7 +1,8 @@
 """Error answers: one shape (FastAPI's `{"detail": ...}`), documented in the OpenAPI per route, and a
 422 handler that can always serialise what it refuses (NaN, inf, deep or huge inputs). Never a plain-text
 500: storage trouble that passes is a 503 with Retry-After, anything unexpected a JSON 500 whose
-`error_id` is in the log line with the traceback."""
+`error_id` is in the log line with the traceback. A ServiceError (service/errors.py) answers its kind's
+status through the one handler here (`service_error`, registered once in app.py): routes hold no `try`."""
 
 from __future__ import annotations
 
@@ -14,11 +15,12 @@ from typing import Any
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationError
 
+from service.api.refusals import location
 from service.api.schemas import ErrorPublic
+from service.errors import BenchFailed, Conflict, Invalid, NotFound, ServiceError, Unavailable
 from service.identification.registry import METHODS
-from service.store.storage import StorageUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -111,12 +113,48 @@ async def request_validation_error(request: Request, exc: RequestValidationError
     return JSONResponse(status_code=422, content={"detail": detail})
 
 
+def _invalid_items(exc: Invalid, request: Request) -> list[dict[str, Any]]:
+    where = location(request, exc.at) or ["body"]
+    if not exc.problems:
+        return [validation_error(where, str(exc), exc.error_type)]
+    return [validation_error([*where, field], msg, exc.error_type) for field, msg in exc.problems]
+
+
+# the kinds the handler answers; Unavailable (503 with Retry-After) and the bare root (a fault: 500 with its
+# traceback logged) go on to ErrorAnswers, which answers them wherever they come from (a stream, a middleware)
+ANSWERED_KINDS: tuple[type[ServiceError], ...] = (NotFound, Conflict, BenchFailed, Invalid)
+
+
+async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+    """The one answer of every ServiceError kind a route meets: its kind's status (service/errors.py), the
+    detail in FastAPI's shape (a 422's items name the field at fault where the route declares it)."""
+    if isinstance(exc, Invalid):
+        return JSONResponse({"detail": _invalid_items(exc, request)}, status_code=exc.http_status)
+    return JSONResponse({"detail": str(exc)}, status_code=exc.http_status)
+
+
+async def value_error(request: Request, exc: ValueError) -> JSONResponse:
+    """A plain ValueError from the service layer on a route that declares its refusals (refusals_at) is a 422
+    at the request's subject; a method's options refused by their model, one item per field where the
+    route declares `method_options`. Anywhere else it is a fault of the service (500 by ErrorAnswers)."""
+    where = location(request, "subject")
+    if where is None:
+        raise exc
+    options_at = location(request, "method_options", default=None)
+    if isinstance(exc, ValidationError) and options_at is not None:
+        items = [validation_error([*options_at, *map(str, e["loc"])], e["msg"]) for e in exc.errors()]
+    else:
+        items = [validation_error(where, str(exc))]
+    return JSONResponse({"detail": items}, status_code=422)
+
+
 class ErrorAnswers:
-    """Pure ASGI middleware around the whole app (outside the body limit): StorageUnavailable from anywhere
-    below a route (the route, the service, the auth dependency reading tokens) answers 503 with Retry-After;
-    any other exception answers 500 as JSON with a short error_id, logged with its traceback under the same
-    id. Answers name no server paths: the database is named by its file name (StorageUnavailable.public). Once a response has started
-    (a stream), nothing can be answered any more: the error is logged and the connection ends."""
+    """Pure ASGI middleware around the whole app (outside the body limit): an Unavailable kind
+    (StorageUnavailable) from anywhere below a route (the route, the service, the auth dependency reading
+    tokens) answers 503 with Retry-After; any other exception answers 500 as JSON with a short error_id,
+    logged with its traceback under the same id. Answers name no server paths: the database is named by its
+    file name (StorageUnavailable.public). Once a response has started (a stream), nothing can be answered
+    any more: the error is logged and the connection ends."""
 
     def __init__(self, app):
         self.app = app
@@ -136,15 +174,16 @@ class ErrorAnswers:
         what = f"{scope.get('method', '?')} {scope.get('path', '?')}"  # never the query: it may hold a token
         try:
             await self.app(scope, receive, tracked_send)
-        except StorageUnavailable as exc:
+        except Unavailable as exc:
             log.warning("%s: 503, %s", what, exc)
             if not started:
-                await _answer(
-                    send,
-                    503,
-                    {"detail": exc.public, "cause": exc.cause, "retry_after_s": exc.retry_after_s},
-                    [(b"retry-after", str(max(1, math.ceil(exc.retry_after_s))).encode())],
-                )
+                # the database named by its file name (StorageUnavailable.public), never a server path
+                body = {
+                    "detail": getattr(exc, "public", str(exc)),
+                    "cause": getattr(exc, "cause", "unavailable"),
+                    "retry_after_s": exc.retry_after_s,
+                }
+                await _answer(send, 503, body, [(b"retry-after", str(max(1, math.ceil(exc.retry_after_s))).encode())])
         except Exception as exc:  # noqa: BLE001 - the one place an unexpected fault becomes an answer
             error_id = secrets.token_hex(4)
             log.error("internal error %s answering %s: %s: %s", error_id, what, type(exc).__name__, exc, exc_info=exc)

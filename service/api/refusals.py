@@ -1,41 +1,38 @@
-"""Refusals the routes share: 422 items naming the field at fault (bench limits, plant time)."""
+"""Where a route's refusals point: a route declares, once in its decorator, which part of its request each
+kind of refusal is about (`dependencies=[refusals_at(...)]`); the one handler for ServiceError
+(service/api/errors.py) reads it to name the field at fault in a 422. The service layer says what is wrong
+(`Invalid.at`: "subject", "options", "confirm_large", ...), the route says where that is in its request."""
 
 from __future__ import annotations
 
-import contextlib
-from typing import Any, Iterator
+from typing import Any
 
-from fastapi import HTTPException, status
+from fastapi import Depends, Request
 
-from service.api.errors import validation_error
-from service.bench.bench import BenchUnreachable
-from service.model.limits import LimitError
-from service.runs.identify import PlantTimeError
+Location = list[str | int]
 
 
-def unprocessable(*errors: dict[str, Any]) -> HTTPException:
-    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, list(errors))
+def refusals_at(subject: list[str], options: tuple[str, ...] = ("body", "options"), **more: list[str]) -> Any:
+    """The route's locations: `subject` is what the request is about (body.grid, path.map_id...): bench
+    limits, a plain ValueError and any refusal without a location of its own name it; `options` the
+    method's options (a plant-time refusal); `more` any other part a refusal may name (regime=...,
+    confirm_large=..., cron=...). A refusal whose part the route does not declare names the subject."""
+    locations: dict[str, Location] = {"subject": list(subject), "options": list(options)}
+    locations.update({name: list(where) for name, where in more.items()})
+
+    def declare(request: Request) -> None:
+        request.state.refusals_at = locations
+
+    return Depends(declare)
 
 
-def limit_error(exc: LimitError, where: list[str]) -> HTTPException:
-    """The bench's safety limits refused a setpoint: one 422 item per operating-point field at fault."""
-    if not exc.problems:
-        return unprocessable(validation_error(where, str(exc), exc.kind))
-    return unprocessable(*(validation_error([*where, field], msg, exc.kind) for field, msg in exc.problems))
+_SUBJECT: Any = object()
 
 
-@contextlib.contextmanager
-def refused_at(setpoints: list[str], options_at: tuple[str, ...] = ("body", "options")) -> Iterator[None]:
-    """Submitting a run: a bench not reached at start is a 409 naming the device; bench limits become
-    422s at the setpoint fields (`setpoints`, e.g. body.grid), a plant-time refusal a 422 at the options
-    (`options_at`), any other ValueError a 422 at the setpoints."""
-    try:
-        yield
-    except BenchUnreachable as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    except LimitError as exc:
-        raise limit_error(exc, setpoints) from None
-    except PlantTimeError as exc:
-        raise unprocessable(validation_error(list(options_at), str(exc), "value_error.plant_time")) from None
-    except ValueError as exc:
-        raise unprocessable(validation_error(setpoints, str(exc))) from None
+def location(request: Request, at: str, default: Any = _SUBJECT) -> Location | None:
+    """The route's location for a refusal about `at`; a part it does not declare: `default`, else its
+    subject. None: the route declares no refusals."""
+    locations: dict[str, Location] | None = getattr(request.state, "refusals_at", None)
+    if locations is None:
+        return None
+    return locations.get(at, locations["subject"] if default is _SUBJECT else default)

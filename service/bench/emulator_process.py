@@ -53,8 +53,10 @@ class EmulatorProcess:
             start_new_session=True,
             close_fds=True,
         )
+        stdout = self.process.stdout
+        assert stdout is not None  # stdout=PIPE
         sel = selectors.DefaultSelector()
-        sel.register(self.process.stdout, selectors.EVENT_READ)
+        sel.register(stdout, selectors.EVENT_READ)
         deadline = time.monotonic() + self.start_timeout_s
         line = ""
         while time.monotonic() < deadline:
@@ -63,7 +65,7 @@ class EmulatorProcess:
                     f"plant_emulator exited with code {self.process.returncode} before naming its endpoints"
                 )
             if sel.select(timeout=0.2):
-                line = self.process.stdout.readline()
+                line = stdout.readline()
                 break
         sel.close()
         if not line:

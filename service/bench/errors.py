@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from service.errors import BenchRefused, Conflict
 
-class BenchError(RuntimeError):
+
+class BenchError(Conflict, RuntimeError):
     pass
 
 
-class BenchUnreachable(BenchError):
+class BenchUnreachable(BenchRefused, BenchError):
     """connect() failed: str() is one line naming the device, its address and what to check."""
 
 

@@ -25,6 +25,7 @@ from typing import Any, Callable
 
 from drivers.cia402 import State402
 from drivers.emcy_codes import describe_emcy
+from service.errors import BenchRefused
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ class Trip:
         return d
 
 
-class InterlockTripped(RuntimeError):
+class InterlockTripped(BenchRefused, RuntimeError):
     """A run stopped (or was refused) because an interlock tripped; str() is the first cause."""
 
     def __init__(self, trip: Trip, refused: bool = False, outcome: str | None = None):

@@ -210,14 +210,14 @@ class BenchRun:
         at, self.at = self.at, None  # unknown until the move is through
         first = at is None
         self.guard()
-        if first or op.udc_v != at.udc_v:
+        if at is None or op.udc_v != at.udc_v:  # first
             if self.points:
                 drive.set_torque_nm(0.0)  # no torque while the DC link changes
             bench.set_dc_link(op.udc_v)
         self.guard()
         if first:
             load.enable()
-        if first or op.speed_rpm != at.speed_rpm:
+        if at is None or op.speed_rpm != at.speed_rpm:  # first
             load.set_speed_rpm(op.speed_rpm)
         self.guard()
         if first:

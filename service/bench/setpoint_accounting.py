@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from drivers.daq_protocol import FLAG_SYNC_INPUT, DecodedSamples
+from service.errors import BenchFailed
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,7 @@ MAX_ESTABLISH_SAMPLES = 131072  # a line that toggles for 8 s of plant time with
 MAX_QUIET_SAMPLES = MAX_ESTABLISH_SAMPLES // 4
 
 
-class AccountingError(RuntimeError):
+class AccountingError(BenchFailed, RuntimeError):
     """The setpoint count could not be established (the line never went quiet)."""
 
 

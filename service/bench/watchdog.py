@@ -21,6 +21,8 @@ import time
 from datetime import datetime, timezone
 from typing import Callable
 
+from drivers.drive import DriveClient
+from drivers.load_machine import LoadClient
 from service.bench.interlocks import Trip
 
 log = logging.getLogger(__name__)
@@ -37,8 +39,8 @@ class BenchWatchdog:
 
     def __init__(
         self,
-        drive: Callable[[], object | None],
-        load: Callable[[], object | None],
+        drive: Callable[[], DriveClient | None],
+        load: Callable[[], LoadClient | None],
         bound_s: float,
         on_stop: Callable[[Trip], None] | None = None,
     ):

@@ -30,7 +30,7 @@ def as_json(value: Any) -> None:
 
 
 # --- start ---------------------------------------------------------------------------------------------
-def database_opened(path: Path) -> None:
+def database_opened(path: Path | str) -> None:
     print(f"ripplecal: database {path}", file=sys.stderr, flush=True)
 
 

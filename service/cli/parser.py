@@ -224,7 +224,9 @@ COMMANDS = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ripplecal", description=sys.modules[__package__].__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="ripplecal", description=str(sys.modules[__package__].__doc__).splitlines()[0]
+    )
     parser.add_argument("--version", action="version", version=f"ripplecal {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true")
     sub = parser.add_subparsers(dest="command", required=True)

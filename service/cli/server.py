@@ -24,6 +24,7 @@ import select
 import signal
 import threading
 import time
+from typing import cast
 
 import uvicorn
 
@@ -84,7 +85,7 @@ class ServiceServer(uvicorn.Server):
         """Ends the process if its stop does not end in time (module doc). Waits on the pipe only."""
         first_at = second_at = None
         while True:
-            deadlines = []
+            deadlines: list[float] = []
             if first_at is not None:
                 deadlines.append(first_at + self.unforced_exit_s)
             if second_at is not None:
@@ -114,7 +115,8 @@ class ServiceServer(uvicorn.Server):
     def _exit_now(self, first_at: float | None, second_at: float | None) -> None:
         """The stop did not end: out now. Written straight to stderr (no logging lock: the stuck thread
         may hold it)."""
-        waited_s = time.monotonic() - (second_at if second_at is not None else first_at)
+        # a deadline passed, so a signal came: first_at is set (a cast, never an assert on the way out)
+        waited_s = time.monotonic() - cast(float, second_at if second_at is not None else first_at)
         after = "the second signal" if second_at is not None else "the signal"
         message = (
             f"ripplecal: the service did not stop within {waited_s:.0f} s of {after}: exiting now, unorderly; "

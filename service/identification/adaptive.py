@@ -28,6 +28,7 @@ theta seen is restored and the probe method takes over from there.
 from __future__ import annotations
 
 import math
+from typing import Any, cast
 
 import numpy as np
 from pydantic import Field
@@ -88,7 +89,7 @@ class AdaptiveOptions(MethodOptions):
         return self.max_plant_s + 4 * window_s + probe.plant_time_bound_s(harmonic_frequency_hz)
 
 
-def _row(w: Window, theta: np.ndarray) -> list:
+def _row(w: Window, theta: np.ndarray) -> list[float]:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
 
 
@@ -110,8 +111,9 @@ def identify_adaptive(
         math.cos(math.radians(options.s_hat_phase_offset_deg)), math.sin(math.radians(options.s_hat_phase_offset_deg))
     )
     s_model = s_matrix(s_hat * offset)
-    s_used = prior.s() if prior is not None and prior.s_matrix is not None else s_model
-    s_source = prior.source if s_used is not s_model else "model (eq. 14-20)"
+    s_prior = prior.s() if prior is not None and prior.s_matrix is not None else None
+    s_used = s_prior if s_prior is not None else s_model
+    s_source = prior.source if prior is not None and s_used is not s_model else "model (eq. 14-20)"
     try:
         before = measure_reference(session, block_periods, max_periods)
     except MeasurementError as exc:
@@ -254,7 +256,7 @@ def identify_adaptive(
                 gamma_max_rad,
                 before=before,
                 conditions=conditions,
-                start_theta=tuple(best_theta),
+                start_theta=cast(tuple[float, float], tuple(best_theta)),  # float64 is a float
                 history=history,
                 method="adaptive",
                 details={**details, "fallback": "probe"},
@@ -290,10 +292,20 @@ def identify_adaptive(
 
 
 def _result(
-    session, status, message, theta, before, after, history, s_hat, s_fitted, options, details
+    session: MeasurementSession,
+    status: str,
+    message: str,
+    theta: np.ndarray,
+    before: Window,
+    after: Window,
+    history: list[list[float]],
+    s_hat: complex,
+    s_fitted: np.ndarray | None,
+    options: AdaptiveOptions,
+    details: dict[str, Any],
 ) -> IdentificationResult:
     s_measured = None if s_fitted is None else rotation_part(s_fitted)
-    if s_measured is not None:
+    if s_fitted is not None and s_measured is not None:  # both or neither
         details = {
             **details,
             "s_matrix": s_fitted.tolist(),

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -90,7 +91,8 @@ LUT_MARGIN_DB = 6.0  # sweep cells: their LUT entry holds 40 dB in a later sessi
 
 
 def target_amplitude(uncompensated_fs: float, target_db: float) -> float:
-    return uncompensated_fs * 10.0 ** (-target_db / 20.0)
+    gain: float = 10.0 ** (-target_db / 20.0)  # a float's power of a float: typed Any
+    return uncompensated_fs * gain
 
 
 def stop_amplitude(uncompensated_fs: float, options: "MethodOptions") -> float:
@@ -224,10 +226,10 @@ def verdict(
     return "below_target", f"{head}: " + "; ".join(reasons)
 
 
-def spectrum_traces(before: Window | None, after: Window) -> dict:
+def spectrum_traces(before: Window | None, after: Window) -> dict[str, Any]:
     """Data for the paper's Fig. 10: alpha over a few periods and its order spectrum, before/after."""
 
-    def snippet(w: Window) -> dict:
+    def snippet(w: Window) -> dict[str, Any]:
         n = min(SNIPPET_SAMPLES, len(w.alpha_fs))
         return {
             "angle_rad": np.round(np.unwrap(w.angle_rad[:n]), 5).tolist(),
@@ -248,7 +250,7 @@ def spectrum_traces(before: Window | None, after: Window) -> dict:
     return traces
 
 
-def time_to_suppression(history: list, uncompensated_amplitude: float, target_db: float) -> float | None:
+def time_to_suppression(history: list[list[float]], uncompensated_amplitude: float, target_db: float) -> float | None:
     """Plant time (s) at the end of the first window whose residual is `target_db` below the
     uncompensated amplitude; None if none was. history rows: [plant_time_s, theta_cos, theta_sin, amplitude]."""
     limit = uncompensated_amplitude * 10 ** (-target_db / 20.0)
@@ -278,4 +280,5 @@ def affine_s_from_history(thetas: np.ndarray, phasors: np.ndarray, min_spread_ra
         return None
     design = np.column_stack([thetas, np.ones(len(thetas))])
     coef, *_ = np.linalg.lstsq(design, phasors, rcond=None)
-    return coef[:2].T
+    s_ss: np.ndarray = coef[:2].T
+    return s_ss

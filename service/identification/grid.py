@@ -18,6 +18,7 @@ removes what other non-linearity (dead time, saturation) leaves.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
@@ -27,6 +28,7 @@ from service.identification.common import (
     PRECISION_FOR_TARGET,
     Conditions,
     MethodOptions,
+    Prior,
     measure_reference,
     noise_floor_db,
     periods_for,
@@ -88,7 +90,7 @@ class GridOptions(MethodOptions):
             return step
         if stop < start:
             raise ValueError("delta_stop_deg must be >= delta_start_deg")
-        g = [info.data.get(k) for k in ("gamma_start_deg", "gamma_stop_deg", "gamma_step_deg")]
+        g: list[Any] = [info.data.get(k) for k in ("gamma_start_deg", "gamma_stop_deg", "gamma_step_deg")]
         n_gamma = _count(*g) if None not in g else 1
         if n_gamma * _count(start, stop, step) > MAX_GRID_POINTS:
             raise ValueError(
@@ -163,7 +165,7 @@ def identify_grid(
     options: GridOptions,
     gamma_max_rad: float,
     *,
-    prior=None,
+    prior: Prior | None = None,
     conditions: Conditions | None = None,
 ) -> IdentificationResult:
     """The paper's grid; `prior` is accepted for a common signature and not used (the grid is a cross-check)."""

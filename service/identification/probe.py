@@ -25,6 +25,7 @@ phasor is computed from the affine model, A_0 = a(theta) - S_ss theta, and repor
 from __future__ import annotations
 
 import math
+from typing import Any, cast
 
 import numpy as np
 from pydantic import Field
@@ -70,7 +71,7 @@ class ProbeOptions(MethodOptions):
         return (2 * self.max_newton_steps + 8) * (self.max_window_s + self.settle_s)
 
 
-def _row(w: Window, theta: np.ndarray) -> list:
+def _row(w: Window, theta: np.ndarray) -> list[float]:
     return [w.end_time_s, float(theta[0]), float(theta[1]), w.phasor.amplitude]
 
 
@@ -92,7 +93,17 @@ def _probe_size(amplitude_fs: float, s_hat: complex, gamma_max_rad: float, optio
 PROBE_HALVINGS = 3  # a probe that drives the sensor over range is halved, at most this often
 
 
-def _probe_within_range(session, theta, a, probe_rad, s_hat, min_periods, max_periods, history, notes):
+def _probe_within_range(
+    session: MeasurementSession,
+    theta: np.ndarray,
+    a: np.ndarray,
+    probe_rad: float,
+    s_hat: complex,
+    min_periods: int,
+    max_periods: int,
+    history: list[list[float]],
+    notes: list[str],
+) -> tuple[np.ndarray, float]:
     """S_ss from two probes; where the model underestimated the path (a shaft resonance nearer than
     the settings say) and a probe drives the sensor over range, the probe is halved and measured again."""
     for halvings in range(PROBE_HALVINGS + 1):
@@ -121,7 +132,7 @@ def measure_s_matrix(
     periods: int,
     max_periods: int,
     noise_limit_fs: float,
-    history: list,
+    history: list[list[float]],
 ) -> np.ndarray:
     """S_ss measured by two probes around theta (one column each)."""
     columns = []
@@ -145,9 +156,9 @@ def identify_probe(
     conditions: Conditions | None = None,
     before: Window | None = None,
     start_theta: tuple[float, float] | None = None,
-    history: list | None = None,
+    history: list[list[float]] | None = None,
     method: str = "probe",
-    details: dict | None = None,
+    details: dict[str, Any] | None = None,
 ) -> IdentificationResult:
     """Probe + Newton. The adaptive method's fallback passes what it has already measured (the
     uncompensated window, its history) and the best theta it saw, to start from there."""
@@ -184,6 +195,7 @@ def identify_probe(
     start = np.array(start_theta, dtype=float) if start_theta is not None and any(start_theta) else None
     if start is None and prior is not None and np.any(prior.theta):
         start = prior.theta
+    w: Window | None  # a Newton step's window is None when it failed
     if start is not None:
         theta, _ = clamp(start, gamma_max_rad)
         session.apply_theta(*theta)
@@ -193,6 +205,8 @@ def identify_probe(
         )
         a = w.phasor.vector
         history.append(_row(w, theta))
+    # None only over range at theta = 0 with a zero prior theta: that edge fails below as it always has
+    a = cast(np.ndarray, a)
     s_ss = prior.s() if prior is not None and prior.s_matrix is not None else None
     probe_rad = 0.0
     if s_ss is None:
@@ -204,6 +218,7 @@ def identify_probe(
         s_probed = s_ss.copy()
     else:
         s_probed = None
+        assert prior is not None  # s_ss came from it
         notes.append(f"started from {prior.source or 'a prior'} (theta and measured S)")
     if abs(np.linalg.det(s_ss)) < 1e-30:
         raise MeasurementError("the probe response is zero: the injection has no effect on the measured harmonic here")
@@ -279,7 +294,8 @@ def identify_probe(
     message = f"{message} ({how})" + "".join(f"; {n}" for n in notes)
     s_reported = s_probed if s_probed is not None else s_ss
     s_measured = rotation_part(s_reported)
-    uncompensated_phasor = before.phasor if before is not None else Phasor(*map(float, a - s_ss @ theta), 0, 0)
+    residual = a - s_ss @ theta
+    uncompensated_phasor = before.phasor if before is not None else Phasor(float(residual[0]), float(residual[1]), 0, 0)
     return IdentificationResult(
         method=method,
         harmonic_order=h,

@@ -6,7 +6,7 @@ MeasurementSession (session.py) with the signature of identify_probe."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 from pydantic import BaseModel
 
@@ -21,7 +21,7 @@ class Method:
     display_name: str
     summary: str
     options_model: type[BaseModel]
-    run: Callable
+    run: Callable[..., Any]
 
 
 METHODS: dict[str, Method] = {

@@ -7,10 +7,11 @@ from typing import Protocol
 
 import numpy as np
 
+from service.errors import BenchFailed
 from service.model.harmonic import Phasor
 
 
-class MeasurementError(RuntimeError):
+class MeasurementError(BenchFailed, RuntimeError):
     """The bench did not deliver what a measurement needs (settling, valid windows, sync).
     `over_range`: the windows were refused because the sensor was clipped over most of them (a
     method can try a smaller step; the caller can say how near the resonance the harmonic is)."""

@@ -6,6 +6,8 @@ cells whose identification failed keep their status so exports can mark them inv
 
 from __future__ import annotations
 
+from typing import Any, Mapping, Sequence
+
 from drivers import lut_image
 from service import __version__
 from service.maps.fill import fill_cells
@@ -34,20 +36,20 @@ def build_map_from_sweep(storage: Storage, sweep_id: int) -> int:
 def build_map(
     storage: Storage,
     axes: dict[str, list[float]],
-    results: list[dict],
+    results: Sequence[Mapping[str, Any]],
     sweep_id: int | None,
     harmonic_order: int,
     method: str,
     bench_identity: str,
     refined_from: int | None = None,
-    provenance: dict | None = None,
-    attempts: list[dict] | None = None,
+    provenance: dict[str, Any] | None = None,
+    attempts: Sequence[Mapping[str, Any]] | None = None,
 ) -> int:
     """A map over `axes` from result rows (the latest per cell wins), with the fill rule applied to the
     cells that are not ok (service/maps/fill.py), in the plane the LUT interpolates in. `attempts`: every
     attempt at the cells (a sweep's history): a non-ok cell's fill may take the theta of its best one
     (a second pass started from a poor prior may end worse than the first did)."""
-    latest: dict[tuple[float, float, float], dict] = {}
+    latest: dict[tuple[float, float, float], Mapping[str, Any]] = {}
     for row in results:
         latest[(row["torque_nm"], row["speed_rpm"], row["udc_v"])] = row
     best = best_attempts(attempts or [])
@@ -75,10 +77,10 @@ def build_map(
     )
 
 
-def best_attempts(attempts: list[dict]) -> dict[tuple[float, float, float], dict]:
+def best_attempts(attempts: Sequence[Mapping[str, Any]]) -> dict[tuple[float, float, float], Mapping[str, Any]]:
     """Per operating point the attempt with a theta that suppressed the harmonic most (attempts an
     interlock discarded do not count: their data were not good)."""
-    best: dict[tuple[float, float, float], dict] = {}
+    best: dict[tuple[float, float, float], Mapping[str, Any]] = {}
     for row in attempts:
         if row.get("theta_cos") is None or row.get("suppression_db") is None:
             continue
@@ -90,7 +92,7 @@ def best_attempts(attempts: list[dict]) -> dict[tuple[float, float, float], dict
     return best
 
 
-def _cell_fields(row: dict | None, best: dict | None = None) -> dict:
+def _cell_fields(row: Mapping[str, Any] | None, best: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """What the fill rule sees of a cell: its current result's status, and the theta and figure of its
     best attempt where that suppressed more than the current one (module service/maps/fill.py, rule 1)."""
     if row is None:

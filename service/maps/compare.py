@@ -20,11 +20,13 @@ non-uniform (a refined map inserts breakpoints): the cells meet on their operati
 from __future__ import annotations
 
 import math
+from typing import Any, Mapping, cast
 
 import numpy as np
 from pydantic import BaseModel, Field
 
-from service.maps.view import MapView, map_view
+from service.errors import Invalid, NotFound
+from service.maps.view import MapCell, MapView, map_view
 from service.model.operating_point import OperatingPoint
 from service.model.secondary_path import s_matrix
 from service.store.storage import Storage
@@ -96,7 +98,7 @@ class MapComparison(BaseModel):
     only_in_b: list[OperatingPoint]
 
 
-class MapCompareError(ValueError):
+class MapCompareError(Invalid, ValueError):
     """The two maps cannot be compared (a different harmonic order)."""
 
 
@@ -119,11 +121,12 @@ def predicted_suppression_db(
 
 
 def compare_maps(storage: Storage, map_a: int, map_b: int) -> MapComparison:
-    """Raises KeyError for a map that does not exist, MapCompareError for maps of different harmonics."""
+    """Raises NotFound for a map that does not exist, MapCompareError for maps of different harmonics."""
     a, b = map_view(storage, map_a), map_view(storage, map_b)
     for map_id, m in ((map_a, a), (map_b, b)):
         if m is None:
-            raise KeyError(f"map {map_id} does not exist")
+            raise NotFound(f"map {map_id} does not exist")
+    assert a is not None and b is not None  # the loop raised otherwise
     if a.harmonic_order != b.harmonic_order:
         raise MapCompareError(
             f"map {map_a} is for harmonic h = {a.harmonic_order} and map {map_b} for "
@@ -133,7 +136,7 @@ def compare_maps(storage: Storage, map_a: int, map_b: int) -> MapComparison:
     return compare_views(a, b, results)
 
 
-def compare_views(a: MapView, b: MapView, results: dict) -> MapComparison:
+def compare_views(a: MapView, b: MapView, results: Mapping[Any, Mapping[str, Any]]) -> MapComparison:
     """Map b against map a, both as the API shows them; `results`: map a's result rows by id (their
     measured S, residual and uncompensated phasor)."""
     map_a, map_b = a.id, b.id
@@ -151,23 +154,26 @@ def compare_views(a: MapView, b: MapView, results: dict) -> MapComparison:
     )
 
 
-def _point(torque_nm: float, speed_rpm: float, udc_v: float) -> tuple[float, float, float]:
+Point = tuple[float, float, float]  # a cell's (torque_nm, speed_rpm, udc_v), rounded
+
+
+def _point(torque_nm: float, speed_rpm: float, udc_v: float) -> Point:
     return (round(float(torque_nm), 6), round(float(speed_rpm), 6), round(float(udc_v), 6))
 
 
-def _by_point(m: MapView) -> dict:
+def _by_point(m: MapView) -> dict[Point, MapCell]:
     return {_point(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
 
 
-def _axes(m: MapView) -> dict:
+def _axes(m: MapView) -> dict[str, list[float]]:
     return {k: sorted(round(float(v), 6) for v in values) for k, values in m.axes.items()}
 
 
-def _op(c) -> OperatingPoint:
+def _op(c: MapCell | MapCompareCell) -> OperatingPoint:
     return OperatingPoint(torque_nm=c.torque_nm, speed_rpm=c.speed_rpm, udc_v=c.udc_v)
 
 
-def _cell(map_a: int, ca, cb, row: dict | None) -> MapCompareCell:
+def _cell(map_a: int, ca: MapCell, cb: MapCell, row: Mapping[str, Any] | None) -> MapCompareCell:
     out = MapCompareCell(
         torque_nm=ca.torque_nm,
         speed_rpm=ca.speed_rpm,
@@ -185,7 +191,12 @@ def _cell(map_a: int, ca, cb, row: dict | None) -> MapCompareCell:
         )
         out.note = f"not compared: {which} here (only ok cells carry a measured theta; a fill is not compared)"
         return out
-    theta_a, theta_b = (ca.theta_cos, ca.theta_sin), (cb.theta_cos, cb.theta_sin)
+    # both ok: each carries theta, gamma and delta (service/maps/view.py)
+    theta_a = cast(tuple[float, float], (ca.theta_cos, ca.theta_sin))
+    theta_b = cast(tuple[float, float], (cb.theta_cos, cb.theta_sin))
+    gamma_a, gamma_b, delta_a, delta_b = cast(
+        tuple[float, float, float, float], (ca.gamma_deg, cb.gamma_deg, ca.delta_deg, cb.delta_deg)
+    )
     out.compared = True
     out.gamma_a_deg, out.gamma_b_deg, out.delta_a_deg, out.delta_b_deg = (
         ca.gamma_deg,
@@ -193,8 +204,8 @@ def _cell(map_a: int, ca, cb, row: dict | None) -> MapCompareCell:
         ca.delta_deg,
         cb.delta_deg,
     )
-    out.delta_gamma_deg = cb.gamma_deg - ca.gamma_deg
-    out.delta_delta_deg = wrap_deg(cb.delta_deg - ca.delta_deg)
+    out.delta_gamma_deg = gamma_b - gamma_a
+    out.delta_delta_deg = wrap_deg(delta_b - delta_a)
     out.delta_theta_deg = math.degrees(math.hypot(theta_b[0] - theta_a[0], theta_b[1] - theta_a[1]))
     detail = (row or {}).get("detail") or {}
     s, residual, unc = detail.get("s_measured"), detail.get("residual"), detail.get("uncompensated")
@@ -204,6 +215,7 @@ def _cell(map_a: int, ca, cb, row: dict | None) -> MapCompareCell:
             "no predicted suppression"
         )
         return out
+    assert row is not None  # the detail came from it
     s_complex = complex(s["re"], s["im"])
     out.s_measured_a = ComplexGain(**s)
     # the result's own theta is the point the residual was measured at
@@ -217,14 +229,16 @@ def _median_max(values: list[float]) -> tuple[float | None, float | None]:
     return (float(np.median(values)), float(np.max(values))) if values else (None, None)
 
 
-def _summary(cells: list[MapCompareCell], cells_a: dict, cells_b: dict) -> MapCompareSummary:
-    done = [c for c in cells if c.compared]
+def _summary(
+    cells: list[MapCompareCell], cells_a: dict[Point, MapCell], cells_b: dict[Point, MapCell]
+) -> MapCompareSummary:
+    done = [c for c in cells if c.compared]  # a compared cell has its deltas (_cell)
     predicted = [c for c in done if c.predicted_suppression_db is not None]
-    med_theta, max_theta = _median_max([c.delta_theta_deg for c in done])
-    med_gamma, max_gamma = _median_max([abs(c.delta_gamma_deg) for c in done])
-    med_delta, max_delta = _median_max([abs(c.delta_delta_deg) for c in done])
-    worst = max(done, key=lambda c: c.delta_theta_deg, default=None)
-    worst_predicted = min(predicted, key=lambda c: c.predicted_suppression_db, default=None)
+    med_theta, max_theta = _median_max([cast(float, c.delta_theta_deg) for c in done])
+    med_gamma, max_gamma = _median_max([abs(cast(float, c.delta_gamma_deg)) for c in done])
+    med_delta, max_delta = _median_max([abs(cast(float, c.delta_delta_deg)) for c in done])
+    worst = max(done, key=lambda c: cast(float, c.delta_theta_deg), default=None)
+    worst_predicted = min(predicted, key=lambda c: cast(float, c.predicted_suppression_db), default=None)
     return MapCompareSummary(
         compared=len(done),
         not_compared=len(cells) - len(done),

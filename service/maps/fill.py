@@ -26,11 +26,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Any, Iterable, cast
 
 MEASURED_MIN_DB = 20.0
 NO_AUTHORITY_MIN_DB = 6.0
 AXES = ("torque_nm", "speed_rpm", "udc_v")
+Key = tuple[float, float, float]  # a cell by its AXES values
 
 
 @dataclass(frozen=True)
@@ -40,8 +41,8 @@ class Fill:
     source: str
 
 
-def _key(cell: dict) -> tuple[float, float, float]:
-    return tuple(float(cell[a]) for a in AXES)
+def _key(cell: dict[str, Any]) -> Key:
+    return cast(Key, tuple(float(cell[a]) for a in AXES))  # AXES: three
 
 
 def _polar(theta: tuple[float, float]) -> tuple[float, float]:
@@ -67,7 +68,9 @@ def blend(points: list[tuple[float, tuple[float, float]]], interpolation: str) -
     return (sum(w * t[0] for w, t in points) / total, sum(w * t[1] for w, t in points) / total)
 
 
-def fill_cells(cells: Iterable[dict], axes: dict[str, list[float]], interpolation: str = "cartesian") -> dict:
+def fill_cells(
+    cells: Iterable[dict[str, Any]], axes: dict[str, list[float]], interpolation: str = "cartesian"
+) -> dict[Key, Fill]:
     """{(torque, speed, udc): Fill} for the non-ok cells the rule fills (module doc). cells: dicts with
     the axes' keys, status, theta_cos, theta_sin and suppression_db (the cell's current result)."""
     cells = list(cells)
@@ -92,7 +95,7 @@ def fill_cells(cells: Iterable[dict], axes: dict[str, list[float]], interpolatio
     return fills
 
 
-def _measured(c: dict, status: str) -> Fill | None:
+def _measured(c: dict[str, Any], status: str) -> Fill | None:
     db = c.get("suppression_db")
     if c.get("theta_cos") is None or db is None:
         return None
@@ -108,7 +111,10 @@ def _measured(c: dict, status: str) -> Fill | None:
 
 
 def _interpolated(
-    key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]], interpolation: str
+    key: tuple[float, float, float],
+    ok: dict[Key, tuple[float, float]],
+    axes: dict[str, list[float]],
+    interpolation: str,
 ) -> Fill | None:
     between = interpolate_between(key, ok, axes, interpolation)
     if between is not None:
@@ -117,7 +123,10 @@ def _interpolated(
 
 
 def interpolate_between(
-    key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]], interpolation: str
+    key: tuple[float, float, float],
+    ok: dict[Key, tuple[float, float]],
+    axes: dict[str, list[float]],
+    interpolation: str,
 ) -> Fill | None:
     """theta at `key` from the ok cells on either side of it along each axis of its lines (rule 2;
     ok: {(torque, speed, udc): (theta_cos, theta_sin)}); None where no axis has both sides."""
@@ -139,7 +148,9 @@ def interpolate_between(
     return Fill(theta[0], theta[1], f"interpolated ({interpolation}) from ok cells: " + "; ".join(sides))
 
 
-def _held(key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]]) -> Fill | None:
+def _held(
+    key: tuple[float, float, float], ok: dict[Key, tuple[float, float]], axes: dict[str, list[float]]
+) -> Fill | None:
     """No axis with ok cells on both sides: hold the nearest ok cell on the cell's lines."""
     nearest = None
     for i, axis in enumerate(AXES):
@@ -164,4 +175,4 @@ def _held(key: tuple[float, float, float], ok: dict, axes: dict[str, list[float]
 def _with(key: tuple[float, float, float], i: int, value: float) -> tuple[float, float, float]:
     out = list(key)
     out[i] = value
-    return tuple(out)
+    return cast(Key, tuple(out))

@@ -18,7 +18,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable, cast
 
 from drivers import lut_image as lut_codec
 from service import __version__
@@ -27,7 +27,7 @@ from service.maps import quality as map_quality
 JSON_FORMAT_VERSION = 2  # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
 
 
-def cell_flag(c: dict | None, fill: bool = True) -> int:
+def cell_flag(c: dict[str, Any] | None, fill: bool = True) -> int:
     """The LUT flag of a map cell: FLAG_OK for ok, FLAG_FILLED for a filled cell that carries theta
     (only with `fill`), FLAG_NONE otherwise (no entry: the drive injects nothing there)."""
     if c is None:
@@ -39,16 +39,16 @@ def cell_flag(c: dict | None, fill: bool = True) -> int:
     return lut_codec.FLAG_NONE
 
 
-def _grid_values(m: dict, key: str, fill: bool = True) -> list[list[list[float]]]:
+def _grid_values(m: dict[str, Any], key: str, fill: bool = True) -> list[list[list[float]]]:
     """[udc][speed][torque] array of a cell field, or of its flag: key "flag" (0/1/2), "valid" (1 only
     for ok), "filled" (1 only where a fill is carried); theta is 0 where the cell has no entry."""
     axes = m["axes"]
     by_op = {(c["torque_nm"], c["speed_rpm"], c["udc_v"]): c for c in m["cells"]}
-    out = []
+    out: list[list[list[float]]] = []
     for u in axes["udc_v"]:
-        plane = []
+        plane: list[list[float]] = []
         for n in axes["speed_rpm"]:
-            row = []
+            row: list[float] = []
             for t in axes["torque_nm"]:
                 c = by_op.get((t, n, u))
                 flag = cell_flag(c, fill)
@@ -59,13 +59,13 @@ def _grid_values(m: dict, key: str, fill: bool = True) -> list[list[list[float]]
                 elif key == "filled":
                     row.append(1 if flag == lut_codec.FLAG_FILLED else 0)
                 else:
-                    row.append(float(c[key]) if flag != lut_codec.FLAG_NONE else 0.0)
+                    row.append(float(c[key]) if flag != lut_codec.FLAG_NONE and c is not None else 0.0)  # no cell: NONE
             plane.append(row)
         out.append(plane)
     return out
 
 
-def _gamma_delta_deg(c: dict) -> tuple[float, float]:
+def _gamma_delta_deg(c: dict[str, Any]) -> tuple[float, float]:
     """gamma = |theta|, delta = -atan2(theta_sin, theta_cos) in [0, 360) deg (eq. 21-22)."""
     if c.get("gamma_deg") is not None and c.get("delta_deg") is not None:
         return c["gamma_deg"], c["delta_deg"]
@@ -80,17 +80,17 @@ def _interpolation_text(interpolation: str) -> str:
     }[interpolation]
 
 
-def _filled_text(m: dict) -> str:
+def _filled_text(m: dict[str, Any]) -> str:
     n = sum(1 for c in m["cells"] if cell_flag(c) == lut_codec.FLAG_FILLED)
     return f"{n} filled cell(s) (a LUT download takes them only with fill)" if n else "no filled cell"
 
 
-def _counts_text(m: dict) -> str:
+def _counts_text(m: dict[str, Any]) -> str:
     counts = m.get("status_counts") or {}
     return ", ".join(f"{n} {status}" for status, n in counts.items() if n) or "none"
 
 
-def _quality_text(m: dict) -> str:
+def _quality_text(m: dict[str, Any]) -> str:
     """One comment line: the map's outlier and smoothed cells (GET /maps/{id} has each reason)."""
     q = m.get("quality") or {}
 
@@ -111,7 +111,7 @@ def _quality_text(m: dict) -> str:
     return text
 
 
-def _quality_json(m: dict) -> dict:
+def _quality_json(m: dict[str, Any]) -> dict[str, Any]:
     marked = [
         {key: c.get(key) for key in ("torque_nm", "speed_rpm", "udc_v", *map_quality.CELL_FIELDS)}
         for c in m["cells"]
@@ -120,7 +120,7 @@ def _quality_json(m: dict) -> dict:
     return {**(m.get("quality") or {}), "smoothed_view": bool(m.get("smoothed")), "cells": marked}
 
 
-def _validation_text(m: dict) -> str:
+def _validation_text(m: dict[str, Any]) -> str:
     """The latest validation in the drive's LUT mode, one line (every export carries it)."""
     v = m.get("validation")
     if not v:
@@ -151,7 +151,7 @@ def _validation_text(m: dict) -> str:
     )
 
 
-def export_csv(m: dict, interpolation: str | None = None) -> str:
+def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
     mode = lut_codec.check_interpolation(interpolation)
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
@@ -208,7 +208,7 @@ def export_csv(m: dict, interpolation: str | None = None) -> str:
     return buf.getvalue()
 
 
-def export_json(m: dict, interpolation: str | None = None) -> str:
+def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
     mode = lut_codec.check_interpolation(interpolation)
     return json.dumps(
         {
@@ -245,13 +245,13 @@ def export_json(m: dict, interpolation: str | None = None) -> str:
     )
 
 
-def _c_array(values) -> str:
+def _c_array(values: Any) -> str:
     if isinstance(values, list) and values and isinstance(values[0], list):
         return "{" + ", ".join(_c_array(v) for v in values) + "}"
     return "{" + ", ".join(_c_float(v) for v in values) + "}"
 
 
-def _c_u8_array(values) -> str:
+def _c_u8_array(values: Any) -> str:
     if isinstance(values, list) and values and isinstance(values[0], list):
         return "{" + ", ".join(_c_u8_array(v) for v in values) + "}"
     return "{" + ", ".join(f"{int(v)}u" for v in values) + "}"
@@ -264,7 +264,7 @@ def _c_float(value: float) -> str:
     return text + "f"
 
 
-def export_c(m: dict, interpolation: str | None = None) -> str:
+def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
     mode = lut_codec.check_interpolation(interpolation)
     nt, nn, nu = (len(m["axes"][k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
     # every name carries the map id, so the headers of several maps go into one translation unit
@@ -326,7 +326,7 @@ def _dcm_number(x: float) -> str:
     return text[:-2] if text.endswith(".0") else text
 
 
-def export_dcm(m: dict, interpolation: str | None = None) -> str:
+def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
     """DCM 2.0 (calibration data exchange format read by INCA / CANape): one KENNFELD per U_dc and
     theta component, VALID and FILLED, x = torque (Nm), y = speed (rpm), each with its axis points
     (ST/X, ST/Y: the map's own breakpoints, non-uniform as they are)."""
@@ -366,7 +366,7 @@ def export_dcm(m: dict, interpolation: str | None = None) -> str:
     return "\n".join(out)
 
 
-def lut_image(m: dict, fill: bool = True, interpolation: str | None = None) -> bytes:
+def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
     filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry);
@@ -375,12 +375,50 @@ def lut_image(m: dict, fill: bool = True, interpolation: str | None = None) -> b
     axes = m["axes"]
     return lut_codec.encode(
         m["harmonic_order"],
-        *(axes[key] for key in lut_codec.AXES),
+        *cast(tuple[Any, Any, Any], tuple(axes[key] for key in lut_codec.AXES)),  # torque, speed, udc
         _grid_values(m, "theta_cos", fill),
         _grid_values(m, "theta_sin", fill),
         _grid_values(m, "flag", fill),
         map_id=m["id"],
         interpolation=interpolation,
+    )
+
+
+# -- what the layers above see of a map's LUT image (service/runs/lut_download.py: the download rules and
+# the receipt), so that they never import the wire codec (drivers/lut_image.py) themselves
+LUT_FORMAT_VERSION = lut_codec.FORMAT_VERSION  # what lut_image writes
+DEFAULT_INTERPOLATION = lut_codec.DEFAULT_INTERPOLATION  # the drive's mode when a download names none
+crc_hex = lut_codec.crc_hex  # a CRC as the service shows it everywhere: 0x and 8 hex digits
+
+
+@dataclass(frozen=True)
+class LutEntries:
+    """What a map's LUT image holds under a fill choice: the cells by flag and the header's mode."""
+
+    cells: int
+    ok: int  # flag 1: a result at its target
+    filled: int  # flag 2: a fill (0 without fill)
+    fills_left_out: int  # cells that carry a fill but go in as holes (only without fill)
+    interpolation: str  # the header's mode
+
+    @property
+    def holes(self) -> int:
+        """Cells without an entry: the drive injects nothing there."""
+        return self.cells - self.ok - self.filled
+
+
+def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> LutEntries:
+    """The entries of the image `lut_image(m, fill, interpolation)` would carry, without building it.
+    Raises ValueError for an interpolation the drive does not know (the message names the ones it does)."""
+    mode = lut_codec.check_interpolation(interpolation)
+    flags = [cell_flag(c, fill) for c in m["cells"]]
+    left_out = 0 if fill else sum(1 for c in m["cells"] if cell_flag(c, True) == lut_codec.FLAG_FILLED)
+    return LutEntries(
+        cells=len(flags),
+        ok=flags.count(lut_codec.FLAG_OK),
+        filled=flags.count(lut_codec.FLAG_FILLED),
+        fills_left_out=left_out,
+        interpolation=mode,
     )
 
 
@@ -406,7 +444,7 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {
 }
 
 
-def export_map(m: dict, fmt: str, interpolation: str | None = None) -> str:
+def export_map(m: dict[str, Any], fmt: str, interpolation: str | None = None) -> str:
     """The map (MapPublic.model_dump()) as a file of format `fmt`; `interpolation`: the LUT mode the
     export names (None: drivers.lut_image.DEFAULT_INTERPOLATION)."""
     if fmt not in EXPORT_FORMATS:

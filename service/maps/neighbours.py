@@ -11,6 +11,7 @@ and DC-link voltage (the plan's innermost axis is torque: usually the point just
 from __future__ import annotations
 
 import math
+from typing import Any, cast
 
 from drivers import lut_image
 from service.identification.common import Prior
@@ -18,11 +19,13 @@ from service.maps.build import best_attempts
 from service.maps.fill import MEASURED_MIN_DB, interpolate_between
 from service.model.operating_point import OperatingPoint
 
+S2x2 = tuple[tuple[float, float], tuple[float, float]]  # a measured S_ss, fs/rad
+
 # the plane the LUT interpolates in: a prior between two cells is what the drive would inject there
 DEFAULT_INTERPOLATION = lut_image.DEFAULT_INTERPOLATION
 
 
-def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, list[float]]) -> Prior | None:
+def prior_from_neighbours(op: OperatingPoint, rows: list[dict[str, Any]], axes: dict[str, list[float]]) -> Prior | None:
     """The prior for `op` from the result rows of the same sweep: theta from the `ok` neighbours (or from
     op's own earlier attempt where it beat the harmonic by MEASURED_MIN_DB), S from an ok neighbour at
     the same speed (None if no row is ok)."""
@@ -34,7 +37,7 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
         values = axes.get(name) or [0.0]
         return max(max(values) - min(values), 1e-9)
 
-    def distance(r: dict) -> float:
+    def distance(r: dict[str, Any]) -> float:
         return math.sqrt(
             ((r["torque_nm"] - op.torque_nm) / span("torque_nm")) ** 2
             + ((r["speed_rpm"] - op.speed_rpm) / span("speed_rpm")) ** 2
@@ -66,7 +69,7 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict], axes: dict[str, 
         details = (s_row.get("detail") or {}).get("details") or {}
         matrix = details.get("s_matrix_refined") or details.get("s_matrix")
         if matrix is not None:
-            s_matrix = tuple(tuple(float(v) for v in row) for row in matrix)
+            s_matrix = cast(S2x2, tuple(tuple(float(v) for v in row) for row in matrix))  # 2x2 as stored
             source += f", S from {s_row['torque_nm']:g} Nm"
     return Prior(theta[0], theta[1], s_matrix, source)
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import statistics
 from dataclasses import dataclass, field
+from typing import Any
 
 from service.model.secondary_path import gamma_delta
 
@@ -76,11 +77,11 @@ class MapQuality:
         return sum(1 for c in self.cells.values() if c.quality == quality)
 
 
-def cell_key(cell: dict) -> Key:
+def cell_key(cell: dict[str, Any]) -> Key:
     return (float(cell["torque_nm"]), float(cell["speed_rpm"]), float(cell["udc_v"]))
 
 
-def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
+def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQuality:
     """Quality of every ok cell of a map (cells as MapCellPublic dicts, axes as the map's)."""
     # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok
     theta = {
@@ -149,7 +150,7 @@ def assess(cells: list[dict], axes: dict[str, list[float]]) -> MapQuality:
     return MapQuality(evaluated, gradients)
 
 
-def _gradients(pairs, flagged: set[Key]) -> dict[str, float | None]:
+def _gradients(pairs: list[tuple[Key, Key, str, float]], flagged: set[Key]) -> dict[str, float | None]:
     per_axis: dict[str, list[float]] = {a: [] for a in AXES}
     for k, other, a, g in pairs:
         if k not in flagged and other not in flagged:
@@ -157,9 +158,11 @@ def _gradients(pairs, flagged: set[Key]) -> dict[str, float | None]:
     return {a: (statistics.median(g) if g else None) for a, g in per_axis.items()}
 
 
-def _fit(
-    key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[float, float]]
-) -> tuple[list, tuple[float, float] | None, float | None]:
+# (the reference neighbours, their median theta, this cell's distance to it): _fit's answer
+Fitted = tuple[list[tuple[Key, str, float]], tuple[float, float] | None, float | None]
+
+
+def _fit(key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[float, float]]) -> Fitted:
     """(the reference neighbours, the component-wise median of their theta with each pair across the
     cell centred on its interpolation at the cell's position, this cell's distance to it)."""
     if len(around) < MIN_NEIGHBOURS:
@@ -182,10 +185,10 @@ def _fit(
     return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1])
 
 
-def _evaluate(fitted, gradients: dict[str, float | None]) -> CellQuality:
+def _evaluate(fitted: Fitted, gradients: dict[str, float | None]) -> CellQuality:
     around, fit, deviation = fitted
     neighbours = [o for o, _, _ in around]
-    steps = [gradients[a] * dx for _, a, dx in around if gradients[a] is not None]
+    steps = [g * dx for _, a, dx in around if (g := gradients[a]) is not None]
     if fit is None or not steps:
         return CellQuality("unchecked", neighbours=neighbours)
     expected = max(statistics.median(steps), math.radians(MIN_STEP_DEG))
@@ -196,6 +199,8 @@ def _evaluate(fitted, gradients: dict[str, float | None]) -> CellQuality:
 
 def _reason(value: tuple[float, float], c: CellQuality, gradients: dict[str, float | None]) -> str:
     g_here, d_here = (math.degrees(x) for x in gamma_delta(*value))
+    # a flagged cell was scored: it has a fit, a deviation and an expected step
+    assert c.fit is not None and c.deviation_rad is not None and c.expected_step_rad is not None
     g_fit, d_fit = (math.degrees(x) for x in gamma_delta(*c.fit))
     per_axis = ", ".join(f"{math.degrees(g):.3g} deg per {AXIS_UNITS[a]}" for a, g in gradients.items() if g)
     return (

@@ -7,7 +7,7 @@ download, the validation and the comparison all read a map through `map_view`; t
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 from pydantic import BaseModel, Field
 
@@ -101,28 +101,29 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
     if row is None:
         return None
     cells = []
-    for c in row["cells"]:
-        status = c["status"] or "missing"
+    for record in row["cells"]:
+        status = record["status"] or "missing"
         ok = status == "ok"
         cell = MapCell(
-            torque_nm=c["torque_nm"],
-            speed_rpm=c["speed_rpm"],
-            udc_v=c["udc_v"],
+            torque_nm=record["torque_nm"],
+            speed_rpm=record["speed_rpm"],
+            udc_v=record["udc_v"],
             status=status,
-            result_id=c["result_id"],
-            gamma_deg=c["gamma_deg"] if ok else None,
-            delta_deg=c["delta_deg"] if ok else None,
-            theta_cos=c["theta_cos"] if ok else None,
-            theta_sin=c["theta_sin"] if ok else None,
-            suppression_db=c["suppression_db"],
-            target_db=c.get("target_db"),
-            noise_floor_db=c.get("noise_floor_db"),
-            error=c["error"],
+            result_id=record["result_id"],
+            gamma_deg=record["gamma_deg"] if ok else None,
+            delta_deg=record["delta_deg"] if ok else None,
+            theta_cos=record["theta_cos"] if ok else None,
+            theta_sin=record["theta_sin"] if ok else None,
+            suppression_db=record["suppression_db"],
+            target_db=record.get("target_db"),
+            noise_floor_db=record.get("noise_floor_db"),
+            error=record["error"],
         )
-        if not ok and c.get("fill_theta_cos") is not None:  # the fill rule's entry (service/maps/fill.py)
-            cell.theta_cos, cell.theta_sin = c["fill_theta_cos"], c["fill_theta_sin"]
-            cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(cell.theta_cos, cell.theta_sin))
-            cell.filled, cell.fill_source = True, c["fill_source"]
+        if not ok and record.get("fill_theta_cos") is not None:  # the fill rule's entry (service/maps/fill.py)
+            cell.theta_cos, cell.theta_sin = record["fill_theta_cos"], record["fill_theta_sin"]
+            theta = cast(tuple[float, float], (cell.theta_cos, cell.theta_sin))  # fill.py writes both or neither
+            cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(*theta))
+            cell.filled, cell.fill_source = True, record["fill_source"]
         cells.append(cell)
     counts = {status: 0 for status in CELL_STATUSES}
     for c in cells:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -237,7 +238,7 @@ class ResonanceTracker:
         with self._lock:
             return self._learned_from > 0
 
-    def snapshot(self) -> dict:
+    def snapshot(self) -> dict[str, Any]:
         with self._lock:
             mode = self.nominal.scaled(self._scale)
             std_hz = self._std_hz()
@@ -271,7 +272,8 @@ class ResonanceTracker:
         with self._lock:
             center = self._scale
             learned = self._learned_from > 0
-            known = learned and self._std_hz() < LEARNED_STD_HZ
+            std_hz = self._std_hz()  # not None once learned (precision > 0)
+            known = learned and std_hz is not None and std_hz < LEARNED_STD_HZ
         # until learned, every window is searched (a mode at the wrong frequency hides its own ring);
         # afterwards only a strong ring refines it, until the frequency is known (the shaft does not change)
         if known or (learned and result.ring_fs <= RING_SNR_TO_LEARN * max(result.ring_std_fs, 1e-12)):

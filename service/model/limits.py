@@ -19,15 +19,17 @@ from __future__ import annotations
 
 import math
 
+from service.errors import Invalid
 from service.model.operating_point import OperatingPoint, torque_envelope
 from service.settings import SafetySettings, Settings
 
 
-class LimitError(ValueError):
+class LimitError(Invalid, ValueError):
     """A setpoint outside the bench's safety limits (checked before anything is sent).
     `problems` pairs each operating-point field at fault with what is wrong (the API's 422 names them)."""
 
     kind = "value_error.bench_limits"  # the 422 item's type
+    error_type = kind
     hint = ""  # what to do about it, said once per refusal
 
     def __init__(self, message: str, problems: tuple[tuple[str, str], ...] = ()):
@@ -40,6 +42,7 @@ class EnvelopeError(LimitError):
     lets it run, the hard limits still held on the actuals."""
 
     kind = "value_error.envelope"
+    error_type = kind
     hint = (
         "a lower torque or speed, or a higher udc_v; override_envelope_model: true only for a machine known to "
         "exceed its nominal motor settings"

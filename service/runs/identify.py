@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 from typing import Any, Callable
 
+from service.errors import Invalid
 from service.identification import METHODS, IdentificationResult
 from service.identification.common import Conditions, Prior
 from service.identification.session import MeasurementError, Window
@@ -21,8 +22,11 @@ def parse_options(method: str, options: dict[str, Any] | None):
     return METHODS[method].options_model.model_validate(options or {})
 
 
-class PlantTimeError(ValueError):
+class PlantTimeError(Invalid, ValueError):
     """A method's options would ask for more plant time at one point than the bench allows."""
+
+    at = "options"
+    error_type = "value_error.plant_time"
 
 
 def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Settings) -> None:

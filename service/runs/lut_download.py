@@ -5,8 +5,9 @@ The drive injects at the LUT's entries: `ok` cells (flag 1) and, when the downlo
 Every other cell is a hole: the drive injects nothing there. A map without one ok cell is refused
 (whatever its fills: no cell met its target); a map with holes under the chosen fill goes only when
 asked with `force`, so a LUT with holes is never loaded by mistake. The interpolation mode goes into
-the image's header (None: drivers.lut_image.DEFAULT_INTERPOLATION). The image (drivers/lut_image.py)
-carries the map id; the drive reports map id and CRC back, and /bench/status shows them. Used by
+the image's header (None: lut_export.DEFAULT_INTERPOLATION). The image (service/maps/lut_export.py,
+encoded by drivers/lut_image.py: the runs floor sees the LUT image through maps only) carries the map
+id; the drive reports map id and CRC back, and /bench/status shows them. Used by
 POST /maps/{id}/download, the CLI's `maps download` and the validation job (which calls `download_map`).
 """
 
@@ -16,10 +17,9 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, Field
 
-from drivers import lut_image as lut_codec
-from drivers.lut_image import crc_hex
 from service.bench.bench import Bench, BenchError
-from service.maps.lut_export import cell_flag, lut_image
+from service.errors import Conflict, Invalid, NotFound
+from service.maps.lut_export import DEFAULT_INTERPOLATION, LUT_FORMAT_VERSION, crc_hex, lut_entries, lut_image
 from service.maps.view import map_view
 from service.store.storage import Storage
 
@@ -51,15 +51,15 @@ class LutDownload(BaseModel):
     forced: bool = Field(description="true when a map with holes (cells that inject nothing) went in on force=true")
 
 
-class MapNotFound(LookupError):
+class MapNotFound(NotFound):
     pass
 
 
-class LutRefused(ValueError):
+class LutRefused(Invalid, ValueError):
     """The map cannot go into the drive at all (no ok cell, or it cannot become an image)."""
 
 
-class PartialMap(ValueError):
+class PartialMap(Conflict, ValueError):
     """Some cells would inject nothing under the chosen fill: the map goes only with force."""
 
     def __init__(
@@ -89,8 +89,8 @@ class PreparedLut:
     forced: bool  # holes under the chosen fill, loaded on force
     filled_cells: int = 0  # filled cells in the image (flag 2); 0 without fill
     fill: bool = True
-    interpolation: str = lut_codec.DEFAULT_INTERPOLATION
-    format_version: int = lut_codec.FORMAT_VERSION
+    interpolation: str = DEFAULT_INTERPOLATION
+    format_version: int = LUT_FORMAT_VERSION
 
     @property
     def holes(self) -> int:
@@ -114,44 +114,40 @@ def prepare(
     m = map_view(storage, map_id)
     if m is None:
         raise MapNotFound(f"map {map_id} does not exist")
+    view = m.model_dump()
     try:
-        mode = lut_codec.check_interpolation(interpolation)
-    except lut_codec.LutImageError as exc:
+        entries = lut_entries(view, fill, interpolation)
+    except ValueError as exc:
         raise LutRefused(str(exc)) from None
-    cells = [c.model_dump() for c in m.cells]
-    flags = [cell_flag(c, fill) for c in cells]
-    valid = flags.count(lut_codec.FLAG_OK)
-    filled = flags.count(lut_codec.FLAG_FILLED)
-    holes = len(cells) - valid - filled
+    valid, filled, holes, cells = entries.ok, entries.filled, entries.holes, entries.cells
     if valid == 0:
         raise LutRefused(
-            f"map {map_id} has no valid cell (0 of {len(cells)} ok): a LUT without one would inject "
+            f"map {map_id} has no valid cell (0 of {cells} ok): a LUT without one would inject "
             f"nothing at a measured target; measure the sweep again"
         )
     if holes and not force:
-        filled_left_out = 0 if fill else sum(1 for c in cells if cell_flag(c, True) == lut_codec.FLAG_FILLED)
         raise PartialMap(
             map_id,
             holes,
-            len(cells),
+            cells,
             "load it anyway with force (API: ?force=true, CLI: --force)",
             fill,
-            filled_left_out,
+            entries.fills_left_out,
         )
     try:
-        image = lut_image(m.model_dump(), fill=fill, interpolation=mode)
+        image = lut_image(view, fill=fill, interpolation=entries.interpolation)
     except ValueError as exc:
         raise LutRefused(f"map {map_id} cannot become a LUT: {exc}") from None
     return PreparedLut(
         map_id,
         image,
-        len(cells),
+        cells,
         valid,
         m.harmonic_order,
         forced=holes > 0,
         filled_cells=filled,
         fill=fill,
-        interpolation=mode,
+        interpolation=entries.interpolation,
     )
 
 

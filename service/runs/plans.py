@@ -22,6 +22,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
+from service.errors import Invalid
 from service.model.limits import (
     LimitError,
     check_any_inside,
@@ -59,8 +60,11 @@ class Grid(BaseModel):
         return len(self.torque_nm) * len(self.speed_rpm) * len(self.udc_v)
 
 
-class SweepTooLarge(ValueError):
+class SweepTooLarge(Invalid, ValueError):
     """A grid above `safety.max_sweep_points_unconfirmed` sent without `confirm_large`."""
+
+    at = "confirm_large"
+    error_type = "value_error.confirm_large"
 
 
 def check_sweep_size(grid: Grid, confirm_large: bool, safety: SafetySettings) -> None:
@@ -175,8 +179,10 @@ class SpeedValue(BaseModel):
     )
 
 
-class RegimeError(ValueError):
+class RegimeError(Invalid, ValueError):
     """Placing speeds around the onset gives a grid that cannot be measured (too many speed values)."""
+
+    at = "regime"
 
 
 @dataclass(frozen=True)

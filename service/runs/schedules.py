@@ -24,6 +24,7 @@ from zoneinfo import ZoneInfo, available_timezones
 
 from cronsim import CronSim, CronSimError
 
+from service.errors import Conflict, Invalid, NotFound
 from service.names import check_name
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.lab import is_own_bench
@@ -54,7 +55,7 @@ def parse_utc(text: str) -> datetime:
     return datetime.fromisoformat(text).astimezone(UTC)
 
 
-class ScheduleConflict(ValueError):
+class ScheduleConflict(Conflict, ValueError):
     """The request collides with another schedule (e.g. the same name)."""
 
 
@@ -98,6 +99,23 @@ def next_runs(cron: str, zone: ZoneInfo, after: datetime, count: int) -> list[da
     except (StopIteration, OverflowError, ValueError):  # no firing left before year 9999
         pass
     return runs
+
+
+def preview_runs(cron: str, timezone_name: str, start: datetime, count: int) -> tuple[str, list[datetime]]:
+    """A schedule's next `count` firings from `start` (its cron with single spaces, the firings); each
+    refusal names the part at fault (Invalid.at: cron, timezone, start)."""
+    try:
+        cron = check_cron(cron)
+    except ValueError as exc:
+        raise Invalid(str(exc), at="cron") from None
+    try:
+        zone = check_timezone(timezone_name)
+    except ValueError as exc:
+        raise Invalid(str(exc), at="timezone") from None
+    try:
+        return cron, next_runs(cron, zone, start, count)
+    except (OverflowError, ValueError) as exc:
+        raise Invalid(f"cannot count from this start: {exc}", at="start") from None
 
 
 def due_between(cron: str, zone: ZoneInfo, after: datetime, until: datetime) -> tuple[list[datetime], int]:
@@ -167,7 +185,7 @@ def update_schedule(storage: Storage, settings: Settings, now: datetime, schedul
     times before the change."""
     current = storage.get_schedule(schedule_id)
     if current is None:
-        raise KeyError(schedule_id)
+        raise NotFound(f"schedule {schedule_id} does not exist")
     fields: dict = {}
     if "name" in changes and changes["name"] != current["name"]:
         other = storage.schedule_named(changes["name"])
@@ -199,7 +217,7 @@ def delete_schedule(storage: Storage, now: datetime, schedule_id: int) -> None:
     """No more firings; the row stays (deleted_at) so its run history and sweeps still name it. A sweep
     it already queued stays queued: cancel it like any other."""
     if storage.get_schedule(schedule_id) is None:
-        raise KeyError(schedule_id)
+        raise NotFound(f"schedule {schedule_id} does not exist")
     storage.update_schedule(schedule_id, enabled=0, deleted_at=iso(now), updated_at=iso(now))
 
 

@@ -8,6 +8,8 @@ import threading
 from dataclasses import dataclass, field
 from enum import Enum
 
+from service.errors import Conflict
+
 
 class JobState(str, Enum):
     QUEUED = "queued"
@@ -48,7 +50,7 @@ UNFINISHED_SWEEP_STATES = frozenset({W.QUEUED, W.RUNNING, W.PAUSED})
 del J, W
 
 
-class TransitionError(RuntimeError):
+class TransitionError(Conflict, RuntimeError):
     """A request that the current state does not allow (e.g. resume a finished sweep)."""
 
 

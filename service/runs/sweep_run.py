@@ -1,7 +1,8 @@
-"""A sweep's run body, and a refinement's: the points measured in continuous bench runs, the second
-pass, the map; the refinement's rounds. The engine (service/runs/engine.py) owns the queue, the
-worker and the state tables; it hands each sweep job to `SweepRunner.run_sweep` (or `run_refinement`)
-with the sweep's controls, and the runner calls back only through `RunHost`.
+"""A sweep's run body: the points measured in continuous bench runs, the second pass, the map. The
+engine (service/runs/engine.py) owns the queue, the worker and the state tables; the kind `sweep`
+(service/runs/kinds/sweep.py) hands its job to `SweepRunner.run_sweep` with the sweep's controls, the
+kind `refinement` measures its rounds' cells through `measure_points`, and the runner calls back only
+through `RunHost`.
 
 Each point's result is committed in its own transaction before the next point starts; a failing
 point is stored as failed and the sweep goes on. An interlock trip discards the point in flight
@@ -13,23 +14,20 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Callable, Protocol
+from typing import Any, Callable, ContextManager, Mapping, Protocol
 
 from service.bench.bench import Bench
 from service.bench.interlocks import InterlockTripped
 from service.identification.common import LUT_MARGIN_DB
 from service.identification.session import MeasurementError
-from service.maps.build import build_map, build_map_from_sweep
+from service.maps.build import build_map_from_sweep
 from service.maps.neighbours import prior_from_neighbours
-from service.maps.view import map_view
 from service.model.limits import LimitError, outside_envelope
 from service.model.operating_point import OperatingPoint
 from service.runs.events import EventBroker
 from service.runs.identify import identify_in_run, parse_options, run_settings
 from service.runs.plans import Grid, SweepPlan
-from service.runs.refinement import MAX_ROUNDS, axes_with, plan_round
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
-from service.runs.validation import ValidationOptions, run_validation, store_validation
 from service.settings import Settings
 from service.store.recordings import RunRecorder
 from service.store.result_rows import result_row
@@ -56,6 +54,7 @@ class RunHost(Protocol):
     def publish_sweep(self, sweep_id: int) -> None: ...
     def insert_result(self, row: dict, recorder: RunRecorder | None) -> int: ...
     def new_recorder(self) -> RunRecorder | None: ...
+    def waiting_for_storage(self, sweep_id: int, reason: str) -> ContextManager[None]: ...
 
 
 class SweepRunner:
@@ -72,9 +71,9 @@ class SweepRunner:
         neighbours now know on every side (service/maps/neighbours.py); a cell that stays non-ok gets the fill
         rule's entry in the map (service/maps/fill.py)."""
         sweep = self.storage.get_sweep(sweep_id)
-        grid = Grid.model_validate(sweep["grid"])
+        grid = Grid.model_validate(sweep["grid"])  # the planned grid, stored at submit
         options = parse_options(sweep["method"], sweep["options"])
-        plan = SweepPlan.from_grid(grid)
+        plan = stored_plan(sweep)
         done = self.storage.committed_points(sweep_id)  # a resumed sweep measures only the rest
         if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
             raise Cancelled()  # cancelled as the worker took it: nothing was run
@@ -84,7 +83,7 @@ class SweepRunner:
             sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
         )
         first = [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) not in done]
-        in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
+        in_flight = self.measure_points(sweep_id, sweep, ctl, grid, options, first, sweep_pass=1)
         if in_flight is None and not ctl.cancel.is_set() and not self.host.shutting_down():
             again = [
                 op
@@ -97,7 +96,7 @@ class SweepRunner:
                     sweep_id,
                     len(again),
                 )
-                in_flight = self._measure_points(sweep_id, sweep, ctl, grid, options, again, sweep_pass=2)
+                in_flight = self.measure_points(sweep_id, sweep, ctl, grid, options, again, sweep_pass=2)
         if self.host.shutting_down():
             s = self.storage.get_sweep(sweep_id)
             where = f" during point {in_flight.label()} (measured again on resume)" if in_flight is not None else ""
@@ -112,7 +111,7 @@ class SweepRunner:
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
 
-    def _measure_points(
+    def measure_points(
         self,
         sweep_id: int,
         sweep: dict,
@@ -250,202 +249,9 @@ class SweepRunner:
             detail={"message": why, "details": {**tags, "not_run": "outside_envelope"}},
         )
 
-    def run_refinement(self, job_id: int, sweep_id: int, ctl: SweepControl) -> None:
-        """A refinement's rounds (service/runs/refinement.py): measure the pending cells, build the refined map,
-        validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
-        so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
-        sweep = self.storage.get_sweep(sweep_id)
-        state = sweep["refinement"]
-        options = parse_options(sweep["method"], sweep["options"])
-        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
-            raise Cancelled()
-        if ctl.pause.is_set():
-            raise Paused()
-        self.host.set_sweep(
-            sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
-        )
-        source = self.storage.get_map(sweep["source_map_id"])
-        while state["phase"] != "done":
-            if ctl.cancel.is_set():
-                break
-            if ctl.pause.is_set():
-                raise Paused()
-            if state["phase"] == "measure":
-                self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
-            else:
-                self._refinement_validate(job_id, sweep_id, ctl, state)
-            self._save_refinement(sweep_id, state)
-        if self.host.shutting_down():
-            self.host.set_sweep(
-                sweep_id,
-                SweepState.INTERRUPTED,
-                pause_reason=f"{self.host.shutdown_reason} during round {state['round']} ({state['phase']}); "
-                "resume to go on from there",
-            )
-            return
-        final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
-        self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=state["current_map_id"])
-
-    def _refinement_rows(self, sweep_id: int, source: dict) -> list[dict]:
-        """The source map's results, then the refinement's own (a later one for the same cell wins)."""
-        ids = [c["result_id"] for c in source["cells"] if c["result_id"] is not None]
-        return list(self.storage.results_by_id(ids).values()) + self.storage.sweep_results(sweep_id)
-
-    def _refinement_measure(
-        self, sweep_id: int, sweep: dict, ctl: SweepControl, options, state: dict, source: dict
-    ) -> None:
-        """Identify the round's pending cells (those not yet measured in this round), then build the
-        refined map from every result and move on to its validation."""
-        measured = {
-            (r["torque_nm"], r["speed_rpm"], r["udc_v"])
-            for r in self.storage.sweep_results(sweep_id)
-            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
-        }
-        points = [
-            OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
-            for t, n, u in state["pending"]
-            if (t, n, u) not in measured
-        ]
-        grid = Grid(**state["axes"])
-        self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
-        self._measure_points(
-            sweep_id,
-            sweep,
-            ctl,
-            grid,
-            options,
-            points,
-            sweep_pass=1,
-            neighbour_rows=lambda: self._refinement_rows(sweep_id, source),
-            tags={"refinement_round": state["round"]},
-        )
-        if ctl.cancel.is_set():
-            return
-        state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
-        provenance = {
-            "refinement_id": sweep_id,
-            "source_map_id": sweep["source_map_id"],
-            "round": state["round"],
-            "cells_added": state["cells_added"],
-        }
-        state["current_map_id"] = build_map(
-            self.storage,
-            state["axes"],
-            self._refinement_rows(sweep_id, source),
-            sweep_id,
-            sweep["harmonic_order"],
-            sweep["method"],
-            self.bench.identity,
-            refined_from=sweep["source_map_id"],
-            provenance=provenance,
-        )
-        state["phase"] = "validate"
-
-    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: dict) -> None:
-        """Validate the current map in the drive's LUT mode; plan the next round, or end."""
-        map_id = state["current_map_id"]
-        self._publish_refinement(sweep_id, state, f"validating map {map_id}")
-
-        def on_cell(cell: dict, total: int) -> None:
-            self.broker.publish(
-                "job.progress",
-                {"job_id": job_id, "kind": "refinement", "round": state["round"], "total": total, "cell": cell},
-            )
-
-        run = run_validation(
-            self.storage,
-            self.bench,
-            self.settings,
-            map_id,
-            True,
-            ValidationOptions.model_validate(state["validation"]),
-            ctl.cancel,
-            on_cell=on_cell,
-            on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
-        )
-        validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
-        if run.state == "cancelled":
-            return
-        if run.state == "failed":
-            # an interlock stopped it: pause like a sweep; on resume the map is validated again
-            with self.host.lock:
-                ctl.pause.set()
-                self.host.set_sweep(
-                    sweep_id,
-                    SweepState.PAUSED,
-                    pause_reason=f"{run.error} (validating refined map "
-                    f"{map_id}); acknowledge with POST /api/v1/bench/fault-reset, then resume",
-                )
-            return
-        m = map_view(self.storage, map_id)
-        plan = plan_round(
-            m.axes,
-            [c.model_dump() for c in m.cells],
-            run.cells,
-            state["target_db"],
-            state["max_cells"] - state["cells_added"],
-        )
-        summary = run.summary()
-        state["rounds"].append(
-            {
-                "round": state["round"],
-                "map_id": map_id,
-                "validation_id": validation_id,
-                "points": len(run.cells),
-                "below_target": plan.failing,
-                "grid_median_db": summary["grid"]["median_db"],
-                "midpoint_median_db": summary["midpoint"]["median_db"],
-                "min_db": min(
-                    (x for x in (summary["grid"]["min_db"], summary["midpoint"]["min_db"]) if x is not None),
-                    default=None,
-                ),
-                "inserted": plan.inserted,
-                "remeasured": len(plan.remeasure),
-                "new_cells": len(plan.new_cells),
-            }
-        )
-        if plan.failing == 0:
-            state["phase"], state["stopped"] = "done", None
-        elif not plan.cells:
-            state["phase"] = "done"
-            state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + (
-                "; ".join(plan.reasons) or "nothing left to insert"
-            )
-        elif state["round"] + 1 >= MAX_ROUNDS:
-            state["phase"] = "done"
-            state["stopped"] = (
-                f"{plan.failing} point(s) still below {state['target_db']:g} dB after {MAX_ROUNDS} rounds"
-            )
-        else:
-            state["axes"] = axes_with(m.axes, plan.inserted)
-            state["pending"] = [list(k) for k in plan.cells]
-            state["round"] += 1
-            state["phase"] = "measure"
-
-    def _save_refinement(self, sweep_id: int, state: dict) -> None:
-        # total: the cells planned so far (those measured, and the round's pending ones)
-        total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
-        self.storage.update_sweep(
-            sweep_id, refinement=state, grid=state["axes"], map_id=state["current_map_id"], total_points=total
-        )
-        self._publish_refinement(sweep_id, state, state["phase"])
-
-    def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
-        self.broker.publish(
-            "refinement.progress",
-            {
-                "sweep_id": sweep_id,
-                "round": state["round"],
-                "phase": state["phase"],
-                "what": what,
-                "map_id": state["current_map_id"],
-                "cells_added": state["cells_added"],
-            },
-        )
-
     def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict, recorder: RunRecorder | None) -> None:
         rid = self.host.insert_result(row, recorder)
-        # the result by its id: the API's event stream shows it as a result (service/api/routes/events.py)
+        # the result by its id: the API's event stream shows it as a result (service/api/event_stream.py)
         self.broker.publish(
             "sweep.point",
             {"sweep_id": sweep_id, "operating_point": op.model_dump(), "state": row["status"], "result_id": rid},
@@ -518,6 +324,12 @@ class SweepRunner:
             self.host.set_sweep(sweep_id, SweepState.PAUSED, pause_reason=reason)
         log.warning("sweep %s paused: %s", sweep_id, reason)
         self.host.publish_sweep(sweep_id)
+
+
+def stored_plan(sweep: Mapping[str, Any]) -> SweepPlan:
+    """The plan a sweep was queued with (service/runs/kinds/sweep.py plans it once, at submit): its stored
+    grid is the planned grid, and its points' order a function of that grid alone (SweepPlan.from_grid)."""
+    return SweepPlan.from_grid(Grid.model_validate(sweep["grid"]))
 
 
 def second_pass_points(plan: SweepPlan, current: list[dict]) -> list[OperatingPoint]:

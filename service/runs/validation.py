@@ -35,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service import __version__
 from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import RunCancelled
+from service.errors import BenchRefused, Invalid
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.identification.session import MeasurementError
 from service.maps.view import map_view
@@ -77,11 +78,11 @@ class ValidationOptions(BaseModel):
     )
 
 
-class ValidationRefused(ValueError):
+class ValidationRefused(Invalid, ValueError):
     """The map cannot be validated as asked (no valid cell; a partial map without force)."""
 
 
-class ValidationStopped(RuntimeError):
+class ValidationStopped(BenchRefused, RuntimeError):
     """An interlock trip stopped the validation (the cells measured before it are stored)."""
 
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from service.errors import Unavailable
+
 
 class StorageError(RuntimeError):
     pass
 
 
-class StorageUnavailable(StorageError):
+class StorageUnavailable(Unavailable, StorageError):
     """The database cannot be used now, for a reason that passes (another process holds its lock, its
     filesystem is read-only or full, an I/O error, its server cannot be reached): what needs it waits and
     tries again; the API answers 503 with Retry-After. str() names the cause and the database (for the

@@ -20,7 +20,7 @@ import socket
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence, cast
 
 import psycopg
 from psycopg.adapt import Dumper
@@ -108,7 +108,7 @@ class Row:
     def __len__(self) -> int:
         return len(self._values)
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Any]:
         return iter(self._values)
 
     def keys(self) -> list[str]:
@@ -118,7 +118,7 @@ class Row:
         return f"Row({dict(zip(self._names, self._values))!r})"
 
 
-def _row_factory(cursor: psycopg.Cursor):
+def _row_factory(cursor: psycopg.Cursor[Any]) -> Callable[[Sequence[Any]], Row]:
     names = {col.name: i for i, col in enumerate(cursor.description or ())}
     return lambda values: Row(names, values)
 
@@ -126,7 +126,7 @@ def _row_factory(cursor: psycopg.Cursor):
 class Cursor:
     """What Storage uses of sqlite3's cursor: fetchone, fetchall, iteration, rowcount, lastrowid."""
 
-    def __init__(self, cursor: psycopg.Cursor, lastrowid: int | None = None):
+    def __init__(self, cursor: psycopg.Cursor[Row], lastrowid: int | None = None):
         self._cursor = cursor
         self.lastrowid = lastrowid
         self.rowcount = cursor.rowcount
@@ -161,7 +161,7 @@ class Connection:
             lastrowid = row[0] if row is not None else None
         return Cursor(cur, lastrowid)
 
-    def executemany(self, sql: str, seq_of_params) -> Cursor:
+    def executemany(self, sql: str, seq_of_params: Iterable[Sequence[Any]]) -> Cursor:
         self._renew()
         cur = self.raw.cursor(row_factory=_row_factory)
         cur.executemany(format_placeholders(sql), [tuple(p) for p in seq_of_params])
@@ -219,7 +219,7 @@ class PostgresEngine:
             raise self._unavailable_or(self._why_not(url, exc)) from exc
         self._deadlines.start()
         try:
-            self._check_durability(conninfo_to_dict(url).get("dbname") or "the database")
+            self._check_durability(str(conninfo_to_dict(url).get("dbname") or "the database"))
         except BaseException:
             self.close()
             raise
@@ -231,7 +231,7 @@ class PostgresEngine:
         return Path(default_db_path()).parent
 
     @staticmethod
-    def claim(location: str, port: int | None):
+    def claim(location: str, port: int | None) -> _NoClaim:
         """Many services share one server: each claims its bench's jobs, not the database (no file claim)."""
         return _NoClaim()
 
@@ -253,6 +253,7 @@ class PostgresEngine:
         data then, and a server without it is an administrator's deliberate choice."""
         with self.connect() as conn:
             row = conn.execute("SELECT current_setting('synchronous_commit'), current_setting('fsync')").fetchone()
+        assert row is not None  # a SELECT without FROM: one row
         synchronous_commit, fsync = row[0], row[1]
         if synchronous_commit not in DURABLE_SYNCHRONOUS_COMMIT:
             raise StorageError(
@@ -300,7 +301,7 @@ class PostgresEngine:
                     yield Connection(conn, self._id_tables, renew=watch.renew)
         except psycopg.Error as exc:
             if watch is not None and watch.cut:
-                passing = StorageUnavailable(
+                passing: StorageUnavailable | None = StorageUnavailable(
                     "timeout",
                     f"database {self.location}: no answer within {bound_s:g} s (the server or its session "
                     "hangs); its connection was closed",
@@ -349,7 +350,7 @@ class PostgresEngine:
                         raise
                     raise StorageError(f"migration {migration.name} failed: {exc}") from exc
                 conn.execute("UPDATE schema_version SET version = ?", (migration.number,))
-            version = conn.execute("SELECT version FROM schema_version").fetchone()[0]
+            version: int = cast(Row, conn.execute("SELECT version FROM schema_version").fetchone())[0]
             tables = conn.execute(
                 "SELECT table_name FROM information_schema.columns WHERE table_schema = current_schema() "
                 "AND column_name = 'id'"

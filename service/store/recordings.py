@@ -45,7 +45,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Iterator, Mapping
 
 import numpy as np
 from asammdf import MDF, Signal
@@ -59,6 +59,7 @@ from drivers.daq_protocol import (
     DecodedSamples,
 )
 from service import __version__
+from service.errors import NotFound
 from service.model.secondary_path import gamma_delta
 from service.store.storage import Storage, now_iso
 
@@ -89,7 +90,7 @@ class RecordingWriteError(RuntimeError):
     """A recording could not be written; the message says why and names no server path."""
 
 
-class RecordingUnavailable(LookupError):
+class RecordingUnavailable(NotFound):
     """A result has no raw recording to hand out; the message says why (and names no server path)."""
 
 
@@ -179,19 +180,29 @@ class RunRecorder:
         block = np.concatenate(self._parts)
         self._parts, self._buffered = [], 0
         try:
+            assert self._spool is not None  # opened with the recorder unless `error` says why not
             self._spool.write(block.tobytes())
         except Exception as exc:  # noqa: BLE001 - disk full: the run goes on without its recording
             self._fail("spooling the DAQ samples failed", exc)
 
-    def _spooled_chunks(self):
+    def _spooled_chunks(self) -> Iterator[tuple[np.ndarray, ...]]:
         """The spooled samples back, CHUNK_SAMPLES at a time: (t, index, angle, alpha, flags, gap)."""
+        assert self._spool is not None  # write() read `error` first
         self._spool.seek(0)
         while data := self._spool.read(self.chunk_samples * _WIRE.itemsize):
             block = np.frombuffer(data, _WIRE)
             index = block["index"].copy()
             yield (index / self.sample_rate_hz, index, *(block[k].copy() for k in ("angle", "alpha", "flags", "gap")))
 
-    def _daq_signals(self, t, index, angle, alpha, flags, gap) -> list:
+    def _daq_signals(
+        self,
+        t: np.ndarray,
+        index: np.ndarray,
+        angle: np.ndarray,
+        alpha: np.ndarray,
+        flags: np.ndarray,
+        gap: np.ndarray,
+    ) -> list[Signal]:
         return [
             Signal(
                 index,
@@ -234,7 +245,7 @@ class RunRecorder:
             ),
         ]
 
-    def _setpoint_signals(self) -> list:
+    def _setpoint_signals(self) -> list[Signal]:
         effect = np.array([p.effect_index for p in self.setpoints], np.int64)
         t = effect / self.sample_rate_hz
         tc = np.array([p.theta_cos_rad for p in self.setpoints])
@@ -316,7 +327,7 @@ class RunRecorder:
         self.close()
 
 
-def _close_mdf(mdf) -> None:
+def _close_mdf(mdf: MDF) -> None:
     """asammdf's MDF closed (its temporary file deleted), whatever state a failed write left it in."""
     if mdf is None:
         return
@@ -377,7 +388,7 @@ class RecordingStore:
     def path(self, result_id: int) -> Path:
         return self.directory / f"result-{result_id}.mf4"
 
-    def keep(self, recorder: RunRecorder | None, result_id: int, row: dict) -> None:
+    def keep(self, recorder: RunRecorder | None, result_id: int, row: dict[str, Any]) -> None:
         """Write the recording of stored result `result_id` (its row as stored), note in the row
         whether it exists, then apply the retention. Never raises: the result is already stored."""
         if recorder is None:
@@ -419,7 +430,7 @@ class RecordingStore:
             "sample_rate_hz": self.sample_rate_hz,
         }
 
-    def _header(self, recorder: RunRecorder, result_id: int, row: dict) -> dict[str, Any]:
+    def _header(self, recorder: RunRecorder, result_id: int, row: dict[str, Any]) -> dict[str, Any]:
         return {
             "result_id": result_id,
             "status": row.get("status"),
@@ -510,11 +521,11 @@ class RecordingStore:
             ) from None
 
 
-def recording_record(row: dict) -> dict | None:
+def recording_record(row: Mapping[str, Any]) -> dict[str, Any] | None:
     """What a result row says about its recording (None: none was attempted)."""
     return row.get("recording") or None
 
 
-def unavailable_reason(record: dict) -> str | None:
+def unavailable_reason(record: dict[str, Any]) -> str | None:
     """Why a recording that was attempted cannot be had (None: it was written and is kept)."""
     return record.get("deleted") or record.get("error") or (None if record.get("path") else "not written")

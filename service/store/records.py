@@ -1,6 +1,7 @@
 """The records the store hands out: one TypedDict per table, the JSON columns decoded (`grid_json`
 is read as `grid`, service/store/storage.py JSON_COLUMNS). The layers above read these and never a
-JSON string; the API's public shapes are built from them at the edge (service/api/public.py)."""
+JSON string; the API's public shapes are built from them at the edge (service/api/public.py).
+tests/unit/test_records_schema.py holds each record to its table's columns on both engines."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any, TypedDict
 class JobRecord(TypedDict):
     id: int
     kind: str  # identification | sweep | validation | refinement
-    state: str  # queued | running | done | failed | cancelled (service/runs/engine.py JOB_TRANSITIONS)
+    state: str  # queued | running | done | failed | cancelled (service/runs/states.py JOB_TRANSITIONS)
     request: dict[str, Any]
     sweep_id: int | None
     result_id: int | None
@@ -18,11 +19,14 @@ class JobRecord(TypedDict):
     created_at: str
     started_at: str | None
     finished_at: str | None
+    bench: str | None  # the bench it is for (None: a row from before schema 9, migrations/0009_benches.sql)
+    claimed_by: str | None  # the service instance that runs it (None: whichever serves `bench` takes it)
+    updated_at: str | None  # the database's clock at the last write
 
 
 class SweepRecord(TypedDict):
     id: int
-    state: str  # service/runs/engine.py SWEEP_TRANSITIONS
+    state: str  # service/runs/states.py SWEEP_TRANSITIONS
     method: str
     harmonic_order: int
     grid: dict[str, list[float]]
@@ -42,6 +46,10 @@ class SweepRecord(TypedDict):
     kind: str  # sweep | refinement
     source_map_id: int | None
     refinement: dict[str, Any] | None  # a refinement's state (service/runs/refinement.py)
+    bench: str | None  # as JobRecord's
+    updated_at: str | None
+    control_request: str | None  # pause | resume | cancel asked at another bench's service
+    control_note: str | None  # what became of a control request it refused
 
 
 class ResultRecord(TypedDict):
@@ -77,9 +85,12 @@ class ResultRecord(TypedDict):
     noise_floor_db: float | None
     superseded_by: int | None
     recording: dict[str, Any] | None  # service/store/recordings.py
+    torque_actual_nm: float | None  # the drive's torque actual, mean over the measurement (schema 10)
 
 
 class MapCellRecord(TypedDict):
+    """A map_cells row joined with its result's columns (Storage.get_map)."""
+
     torque_nm: float
     speed_rpm: float
     udc_v: float
@@ -109,10 +120,12 @@ class MapRecord(TypedDict):
     created_at: str
     refined_from: int | None
     provenance: dict[str, Any] | None
-    cells: list[MapCellRecord]
+    cells: list[MapCellRecord]  # joined: the map_cells rows
 
 
 class MapSummaryRecord(TypedDict):
+    """Some of a maps row's columns (Storage.list_maps)."""
+
     id: int
     sweep_id: int | None
     harmonic_order: int
@@ -148,6 +161,7 @@ class ScheduleRecord(TypedDict):
     updated_at: str
     last_due_at: str
     deleted_at: str | None
+    bench: str | None  # the bench its sweeps are for
 
 
 class ScheduleRunRecord(TypedDict):
@@ -158,4 +172,4 @@ class ScheduleRunRecord(TypedDict):
     outcome: str  # started | queued | skipped | missed | failed
     sweep_id: int | None
     note: str | None
-    sweep_state: str | None
+    sweep_state: str | None  # joined: its sweep's state (Storage.list_schedule_runs)

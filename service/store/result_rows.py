@@ -17,7 +17,7 @@ from service.model.operating_point import OperatingPoint
 from service.store.storage import now_iso
 
 
-def complex_gain(c: complex | None) -> dict | None:
+def complex_gain(c: complex | None) -> dict[str, float] | None:
     """A complex gain (S, 1) as results keep it: re, im, gain and phase in degrees."""
     return (
         None
@@ -29,7 +29,7 @@ def complex_gain(c: complex | None) -> dict | None:
 def result_row(
     op: OperatingPoint,
     method: str,
-    options,
+    options: Any,
     bench_identity: str,
     started_at: str,
     result: IdentificationResult | None = None,
@@ -38,7 +38,7 @@ def result_row(
     sweep_id: int | None = None,
     harmonic_order: int = 6,
     detail: dict[str, Any] | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """A `results` row: the outcome (or the error, with `detail` saying more: e.g. the interlock that
     discarded the point, or the sweep pass it failed in) with everything that describes it."""
     row = {

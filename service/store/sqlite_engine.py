@@ -8,11 +8,14 @@ import os
 import sqlite3
 import threading
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 from service.store.dialect import SQLITE
 from service.store.errors import StorageError, StorageUnavailable
 from service.store.migrations import Migration, check_not_newer
+
+if TYPE_CHECKING:
+    from service.store.db_claim import DatabaseClaim
 
 # sqlite3's OperationalError texts of the causes that pass, and what to tell the operator
 _UNAVAILABLE = (
@@ -60,7 +63,7 @@ class SqliteEngine:
         return self.path.expanduser().absolute().parent
 
     @staticmethod
-    def claim(location: str, port: int | None):
+    def claim(location: str, port: int | None) -> DatabaseClaim:
         """One serve per SQLite file: a flock beside it (service/store/db_claim.py)."""
         from service.store.db_claim import DatabaseClaim
 
@@ -149,7 +152,8 @@ class SqliteEngine:
                         raise StorageError(f"migration {migration.name} failed: {exc}") from exc
             finally:
                 conn.execute("PRAGMA foreign_keys = ON")
-            return conn.execute("PRAGMA user_version").fetchone()[0]
+            version: int = conn.execute("PRAGMA user_version").fetchone()[0]
+            return version
 
     def close(self) -> None:
         """Nothing held between calls."""

@@ -13,7 +13,7 @@ import re
 import secrets
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, cast
 
 from service.store.engines import open_engine
 from service.store.errors import StorageError, StorageUnavailable
@@ -108,14 +108,14 @@ class Storage:
                 "INSERT INTO api_tokens (role, token_sha256, label, created_at) VALUES (?, ?, ?, ?)",
                 (role, _sha256(token), label, now_iso()),
             )
-            return cur.lastrowid, token
+            return _new_id(cur), token
 
     def revoke_token(self, token_id: int) -> bool:
         with self.transaction() as conn:
             cur = conn.execute(
                 "UPDATE api_tokens SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL", (now_iso(), token_id)
             )
-            return cur.rowcount == 1
+            return _one_row(cur)
 
     def token_role(self, token: str) -> str | None:
         """The token's role (None: unknown or revoked). While the database is unavailable, a token this
@@ -140,7 +140,7 @@ class Storage:
             self._known_tokens[digest] = role
         return role
 
-    def list_tokens(self) -> list[dict]:
+    def list_tokens(self) -> list[dict[str, Any]]:
         with self.connect() as conn:
             return [
                 _record(r)
@@ -151,7 +151,7 @@ class Storage:
     def create_job(
         self,
         kind: str,
-        request: dict,
+        request: dict[str, Any],
         sweep_id: int | None = None,
         bench: str | None = None,
         claimed_by: str | None = None,
@@ -160,11 +160,13 @@ class Storage:
         service serves `bench` takes it from the database, Storage.claim_job)."""
         now = now_iso()
         with self.transaction() as conn:
-            return conn.execute(
-                "INSERT INTO jobs (kind, state, request_json, sweep_id, created_at, bench, claimed_by, updated_at) "
-                f"VALUES (?, 'queued', ?, ?, ?, ?, ?, {self.dialect.now_text})",
-                (kind, json.dumps(request), sweep_id, now, bench, claimed_by),
-            ).lastrowid
+            return _new_id(
+                conn.execute(
+                    "INSERT INTO jobs (kind, state, request_json, sweep_id, created_at, bench, claimed_by, updated_at) "
+                    f"VALUES (?, 'queued', ?, ?, ?, ?, ?, {self.dialect.now_text})",
+                    (kind, json.dumps(request), sweep_id, now, bench, claimed_by),
+                )
+            )
 
     def update_job(self, job_id: int, **fields: Any) -> None:
         _update(self, "jobs", job_id, fields)
@@ -183,39 +185,41 @@ class Storage:
         self,
         method: str,
         harmonic_order: int,
-        grid: dict,
-        options: dict,
+        grid: dict[str, Any],
+        options: dict[str, Any],
         total: int,
         bench_identity: str,
         software_version: str,
         schedule_id: int | None = None,
         kind: str = "sweep",
         source_map_id: int | None = None,
-        refinement: dict | None = None,
+        refinement: dict[str, Any] | None = None,
         bench: str | None = None,
     ) -> int:
         """A sweep, or (kind `refinement`) a map's refinement: its state in `refinement` (service/runs/refinement.py)."""
         with self.transaction() as conn:
-            return conn.execute(
-                "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
-                "software_version, created_at, schedule_id, kind, source_map_id, refinement_json, bench, updated_at) "
-                f"VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, {self.dialect.now_text})",
-                (
-                    method,
-                    harmonic_order,
-                    json.dumps(grid),
-                    json.dumps(options),
-                    total,
-                    bench_identity,
-                    software_version,
-                    now_iso(),
-                    schedule_id,
-                    kind,
-                    source_map_id,
-                    json.dumps(refinement) if refinement is not None else None,
-                    bench,
-                ),
-            ).lastrowid
+            return _new_id(
+                conn.execute(
+                    "INSERT INTO sweeps (state, method, harmonic_order, grid_json, options_json, total_points, bench_identity, "
+                    "software_version, created_at, schedule_id, kind, source_map_id, refinement_json, bench, updated_at) "
+                    f"VALUES ('queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, {self.dialect.now_text})",
+                    (
+                        method,
+                        harmonic_order,
+                        json.dumps(grid),
+                        json.dumps(options),
+                        total,
+                        bench_identity,
+                        software_version,
+                        now_iso(),
+                        schedule_id,
+                        kind,
+                        source_map_id,
+                        json.dumps(refinement) if refinement is not None else None,
+                        bench,
+                    ),
+                )
+            )
 
     def update_sweep(self, sweep_id: int, **fields: Any) -> None:
         _update(self, "sweeps", sweep_id, fields)
@@ -230,7 +234,7 @@ class Storage:
             return [_record(r) for r in conn.execute("SELECT * FROM sweeps ORDER BY id DESC LIMIT ?", (limit,))]
 
     # --- results -----------------------------------------------------------------------------------
-    def insert_result(self, row: dict) -> int:
+    def insert_result(self, row: dict[str, Any]) -> int:
         """One result in its own transaction. A sweep's result supersedes the earlier attempts at the
         same operating point (kept as history, results.superseded_by) and the sweep's progress
         counters are recounted from its current results, in the same transaction, so a crash between
@@ -267,7 +271,7 @@ class Storage:
                 for r in conn.execute(f"SELECT * FROM results WHERE id IN ({', '.join('?' for _ in ids)})", ids)
             }
 
-    def set_result_recording(self, result_id: int, record: dict) -> None:
+    def set_result_recording(self, result_id: int, record: dict[str, Any]) -> None:
         """What became of the result's raw recording (service/store/recordings.py)."""
         _update(self, "results", result_id, {"recording": record})
 
@@ -290,7 +294,7 @@ class Storage:
                 )
             ]
 
-    def sweep_outcome(self, sweep_id: int) -> dict:
+    def sweep_outcome(self, sweep_id: int) -> dict[str, Any]:
         """Counts of the sweep's current results per status, and their total plant time (s)."""
         with self.connect() as conn:
             rows = conn.execute(
@@ -326,33 +330,35 @@ class Storage:
         sweep_id: int | None,
         harmonic_order: int,
         method: str,
-        axes: dict,
+        axes: dict[str, Any],
         cells: list[tuple[int | None, float, float, float]],
         bench_identity: str,
         software_version: str,
-        fills: dict | None = None,
+        fills: dict[tuple[float, float, float], Any] | None = None,
         refined_from: int | None = None,
-        provenance: dict | None = None,
+        provenance: dict[str, Any] | None = None,
     ) -> int:
         """A map of `cells` [(result_id, torque, speed, udc)]; `fills` {(torque, speed, udc): Fill} the
         fill rule's entries for cells that are not ok (service/maps/fill.py)."""
         fills = fills or {}
         with self.transaction() as conn:
-            map_id = conn.execute(
-                "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, "
-                "created_at, refined_from, provenance_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    sweep_id,
-                    harmonic_order,
-                    method,
-                    json.dumps(axes),
-                    bench_identity,
-                    software_version,
-                    now_iso(),
-                    refined_from,
-                    json.dumps(provenance) if provenance is not None else None,
-                ),
-            ).lastrowid
+            map_id = _new_id(
+                conn.execute(
+                    "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, "
+                    "created_at, refined_from, provenance_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        sweep_id,
+                        harmonic_order,
+                        method,
+                        json.dumps(axes),
+                        bench_identity,
+                        software_version,
+                        now_iso(),
+                        refined_from,
+                        json.dumps(provenance) if provenance is not None else None,
+                    ),
+                )
+            )
             rows = []
             for result_id, t, n, u in cells:
                 fill = fills.get((t, n, u))
@@ -389,7 +395,7 @@ class Storage:
                 "WHERE c.map_id = ? ORDER BY c.udc_v, c.speed_rpm, c.torque_nm",
                 (map_id,),
             ).fetchall()
-            return {**_record(row), "cells": [_record(c) for c in cells]}
+            return cast(MapRecord, {**_record(row), "cells": [_record(c) for c in cells]})
 
     def list_maps(self, limit: int = 100) -> list[MapSummaryRecord]:
         with self.connect() as conn:
@@ -402,7 +408,7 @@ class Storage:
             ]
 
     # --- map validations (the LUT measured in the drive's LUT mode) ---------------------------------
-    def insert_validation(self, row: dict) -> int:
+    def insert_validation(self, row: dict[str, Any]) -> int:
         with self.transaction() as conn:
             return _insert(conn, "map_validations", row)
 
@@ -427,17 +433,19 @@ class Storage:
         name: str,
         cron: str,
         timezone_name: str,
-        sweep: dict,
+        sweep: dict[str, Any],
         enabled: bool,
         now_utc: str,
         bench: str | None = None,
     ) -> int:
         with self.transaction() as conn:
-            return conn.execute(
-                "INSERT INTO schedules (name, cron, timezone, sweep_json, enabled, created_at, updated_at, last_due_at, "
-                "bench) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (name, cron, timezone_name, json.dumps(sweep), int(enabled), now_utc, now_utc, now_utc, bench),
-            ).lastrowid
+            return _new_id(
+                conn.execute(
+                    "INSERT INTO schedules (name, cron, timezone, sweep_json, enabled, created_at, updated_at, last_due_at, "
+                    "bench) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (name, cron, timezone_name, json.dumps(sweep), int(enabled), now_utc, now_utc, now_utc, bench),
+                )
+            )
 
     def update_schedule(self, schedule_id: int, **fields: Any) -> None:
         _update(self, "schedules", schedule_id, fields)
@@ -470,10 +478,12 @@ class Storage:
         note: str | None = None,
     ) -> int:
         with self.transaction() as conn:
-            return conn.execute(
-                "INSERT INTO schedule_runs (schedule_id, due_at, fired_at, outcome, sweep_id, note) VALUES (?, ?, ?, ?, ?, ?)",
-                (schedule_id, due_at, fired_at, outcome, sweep_id, note),
-            ).lastrowid
+            return _new_id(
+                conn.execute(
+                    "INSERT INTO schedule_runs (schedule_id, due_at, fired_at, outcome, sweep_id, note) VALUES (?, ?, ?, ?, ?, ?)",
+                    (schedule_id, due_at, fired_at, outcome, sweep_id, note),
+                )
+            )
 
     def schedule_runs(self, schedule_id: int, limit: int = 20) -> list[ScheduleRunRecord]:
         """The schedule's most recent runs, newest first, with the state of the sweep each submitted."""
@@ -501,7 +511,7 @@ class Storage:
     # Portable SQL only (SQLite and PostgreSQL): `?` placeholders, INSERT ... ON CONFLICT, RETURNING.
     # Liveness is on the database's clock (issue 25): a heartbeat is stamped, and its age judged, by the
     # database, never by a bench PC's clock, which may be off by any amount.
-    def claim_bench(self, bench: dict, stale_s: float) -> dict | None:
+    def claim_bench(self, bench: dict[str, Any], stale_s: float) -> dict[str, Any] | None:
         """Take the bench name for `bench["instance"]` in one statement: inserted, or taken over if the row
         is this instance's, stopped, or proven stale: its heartbeat older than `stale_s` by the database's
         clock. None: claimed; else the row of the instance that holds it (get_bench's, with `seen_s`)."""
@@ -531,7 +541,7 @@ class Storage:
                 "WHERE name = ? AND instance = ?",
                 (state, int(busy), running, name, instance),
             )
-            return cur.rowcount == 1
+            return _one_row(cur)
 
     def bench_stopped(self, name: str, instance: str) -> None:
         """An orderly stop: the row says stopped (the name is free at once)."""
@@ -543,12 +553,12 @@ class Storage:
                 (name, instance),
             )
 
-    def get_bench(self, name: str) -> dict | None:
+    def get_bench(self, name: str) -> dict[str, Any] | None:
         """The bench's row with `seen_s`: the age of its last heartbeat by the database's clock."""
         with self.connect() as conn:
             return self._bench_row(conn, name)
 
-    def list_benches(self) -> list[dict]:
+    def list_benches(self) -> list[dict[str, Any]]:
         """Every bench's row, each with `seen_s` as get_bench's."""
         with self.connect() as conn:
             return [
@@ -558,7 +568,7 @@ class Storage:
                 )
             ]
 
-    def _bench_row(self, conn: Any, name: str) -> dict | None:
+    def _bench_row(self, conn: Any, name: str) -> dict[str, Any] | None:
         row = conn.execute(
             f"SELECT *, {self.dialect.seconds_since('last_seen')} AS seen_s FROM benches WHERE name = ?", (name,)
         ).fetchone()
@@ -722,7 +732,8 @@ class Storage:
     def database_now(self) -> str:
         """The database's clock as UTC ISO text: the lab's one clock, that updated_at and heartbeats use."""
         with self.connect() as conn:
-            return conn.execute(f"SELECT {self.dialect.now_text}").fetchone()[0]
+            now: str = conn.execute(f"SELECT {self.dialect.now_text}").fetchone()[0]
+            return now
 
     def changed_since(self, since: str) -> tuple[list[JobRecord], list[SweepRecord]]:
         """Jobs and sweeps written at or after `since` (UTC ISO on the database's clock), oldest write first."""
@@ -762,8 +773,9 @@ JSON_COLUMNS = {
 }
 
 
-def _record(row: Any) -> dict[str, Any]:
-    """A row as the layers above read it (service/store/records.py): every `x_json` column decoded as `x`."""
+def _record(row: Any) -> Any:
+    """A row as the layers above read it (service/store/records.py): every `x_json` column decoded as `x`.
+    Typed by the caller's return, its table's record (tests/unit/test_records_schema.py holds them equal)."""
     record: dict[str, Any] = {}
     for key in row.keys():
         value = row[key]
@@ -783,12 +795,24 @@ def encode_columns(table: str, fields: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _new_id(cursor: Any) -> int:
+    """The id of the row an INSERT made (sqlite3's lastrowid; the PostgreSQL engine's RETURNING id)."""
+    new_id: int = cursor.lastrowid
+    return new_id
+
+
+def _one_row(cursor: Any) -> bool:
+    """An UPDATE or DELETE touched exactly one row."""
+    rowcount: int = cursor.rowcount
+    return rowcount == 1
+
+
 def _insert(conn: Any, table: str, row: dict[str, Any]) -> int:
     """One row from a {column: value} dict, in the caller's transaction; its id."""
     row = encode_columns(table, row)
     _check_columns(row)
     marks = ", ".join("?" for _ in row)
-    return conn.execute(f"INSERT INTO {table} ({', '.join(row)}) VALUES ({marks})", tuple(row.values())).lastrowid
+    return _new_id(conn.execute(f"INSERT INTO {table} ({', '.join(row)}) VALUES ({marks})", tuple(row.values())))
 
 
 # tables whose every write sets updated_at, on the database's clock (the one clock of a lab: a bench PC's

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException, status
+from fastapi import APIRouter
 
-from drivers.errors import FaultReactionActiveError
 from service.api.deps import OperatorDep, ServiceDep
 from service.api.errors import error_responses
 from service.api.public import BenchPublic, bench_public
-from service.bench.bench import BenchError
 
 router = APIRouter(prefix="/api/v1", tags=["bench"])
 
@@ -35,10 +33,5 @@ def fault_reset(service: ServiceDep, _: OperatorDep) -> dict:
     """Acknowledge a drive/load FAULT (CiA 402 fault reset) and clear the latched interlocks whose
     condition has gone. The service never does this by itself (unless `interlocks.auto_fault_reset`).
     Answers what was reset, what still forbids a run (`still_tripped`), and the bench status."""
-    try:
-        result = service.fault_reset()
-    except (BenchError, FaultReactionActiveError) as exc:  # busy, or a device still braking: try again
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    except Exception as exc:  # SDO timeout / the drive stayed in FAULT: say which
-        raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"fault reset failed: {type(exc).__name__}: {exc}") from None
+    result = service.fault_reset()  # 409 busy or a device still braking, 502 it failed (the service says which)
     return {**result, "status": service.bench_status()}

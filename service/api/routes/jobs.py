@@ -7,9 +7,8 @@ from fastapi import APIRouter, HTTPException, Query, status
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
 from service.api.public import JobPublic, job_public
-from service.api.refusals import refused_at
+from service.api.refusals import refusals_at
 from service.api.schemas import IdentificationCreate
-from service.runs.states import TransitionError
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
 
@@ -19,10 +18,10 @@ router = APIRouter(prefix="/api/v1", tags=["identifications"])
     status_code=status.HTTP_202_ACCEPTED,
     response_model=JobPublic,
     responses=error_responses(400, 401, 403, 409, 413),
+    dependencies=[refusals_at(["body", "operating_point"])],
 )
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
-    with refused_at(["body", "operating_point"]):
-        job_id = service.submit_identification(body.operating_point, body.method, body.options, bench=body.bench)
+    job_id = service.submit_identification(body.operating_point, body.method, body.options, bench=body.bench)
     return job_public(service, service.get_job(job_id))
 
 
@@ -41,10 +40,5 @@ def get_job(job_id: ResourceId, service: ServiceDep) -> JobPublic:
 
 @router.post("/jobs/{job_id}/cancel", response_model=JobPublic, responses=error_responses(401, 403, 404, 409))
 def cancel_job(job_id: ResourceId, service: ServiceDep, _: OperatorDep) -> JobPublic:
-    try:
-        service.cancel_job(job_id)
-    except KeyError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} does not exist") from None
-    except TransitionError as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    service.cancel_job(job_id)
     return job_public(service, service.get_job(job_id))

@@ -6,10 +6,9 @@ from typing import Literal
 
 from fastapi import APIRouter, HTTPException, Query, status
 from fastapi.responses import PlainTextResponse
-from pydantic import ValidationError
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
-from service.api.errors import error_responses, validation_error
+from service.api.errors import error_responses
 from service.api.public import (
     JobPublic,
     MapPublic,
@@ -20,10 +19,9 @@ from service.api.public import (
     map_summaries,
     validation_public,
 )
-from service.api.refusals import refused_at, unprocessable
+from service.api.refusals import refusals_at
 from service.api.schemas import ValidationCreate
-from service.bench.bench import BenchError
-from service.maps.compare import MapCompareError, MapComparison
+from service.maps.compare import MapComparison
 from service.maps.lut_export import EXPORT_FORMATS, export_map
 from service.runs import lut_download
 from service.runs.refinement import RefineRequest
@@ -81,23 +79,24 @@ def export(
     )
 
 
-@router.get("/maps/{map_id}/compare/{other_id}", response_model=MapComparison, responses=error_responses(404))
+@router.get(
+    "/maps/{map_id}/compare/{other_id}",
+    response_model=MapComparison,
+    responses=error_responses(404),
+    dependencies=[refusals_at(["path", "other_id"])],
+)
 def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> MapComparison:
     """Map `other_id` (b) against map `map_id` (a) at the operating points both hold: delta gamma, delta
     delta, delta theta, and the suppression b's theta would reach on a's bench (a's measured S).
     A map compared with itself is allowed (zero deltas; the prediction is its measured suppression)."""
-    try:
-        return service.compare_maps(map_id, other_id)
-    except KeyError as exc:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, exc.args[0]) from None
-    except MapCompareError as exc:
-        raise unprocessable(validation_error(["path", "other_id"], str(exc))) from None
+    return service.compare_maps(map_id, other_id)  # a map that does not exist: 404; other harmonics: 422
 
 
 @router.post(
     "/maps/{map_id}/download",
     response_model=lut_download.LutDownload,
     responses=error_responses(401, 403, 404, 409, 502),
+    dependencies=[refusals_at(["path", "map_id"])],
 )
 def download_map(
     map_id: ResourceId,
@@ -121,16 +120,7 @@ def download_map(
 ) -> lut_download.LutDownload:
     """The map's LUT image into the drive (0x2001, segmented SDO), its CRC-32 and map id read back.
     422: no ok cell (or not an image); 409: map with holes without force, or the bench is busy / not reached."""
-    try:
-        return service.download_map(map_id, force, fill=fill, interpolation=interpolation)
-    except lut_download.MapNotFound as exc:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
-    except lut_download.LutRefused as exc:
-        raise unprocessable(validation_error(["path", "map_id"], str(exc))) from None
-    except (lut_download.PartialMap, BenchError) as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    except Exception as exc:  # SDO abort / timeout: the drive refused or did not answer
-        raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"drive refused the LUT: {exc}") from None
+    return service.download_map(map_id, force, fill=fill, interpolation=interpolation)
 
 
 @router.post(
@@ -138,6 +128,7 @@ def download_map(
     status_code=status.HTTP_202_ACCEPTED,
     response_model=JobPublic,
     responses=error_responses(400, 401, 403, 404, 409, 413),
+    dependencies=[refusals_at(["path", "map_id"])],
 )
 def validate_map(
     map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: ValidationCreate | None = None
@@ -145,11 +136,7 @@ def validate_map(
     """A job: the map's LUT into the drive, the drive in LUT mode, the h-th harmonic measured at every
     grid point and at the midpoints between them (uncompensated and with the drive's own feedforward)."""
     body = body or ValidationCreate()
-    try:
-        with refused_at(["path", "map_id"]):
-            job_id = service.submit_validation(map_id, body.force, body.options, bench=body.bench)
-    except KeyError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
+    job_id = service.submit_validation(map_id, body.force, body.options, bench=body.bench)
     return job_public(service, service.get_job(job_id))
 
 
@@ -158,6 +145,7 @@ def validate_map(
     status_code=status.HTTP_202_ACCEPTED,
     response_model=JobPublic,
     responses=error_responses(400, 401, 403, 404, 409, 413),
+    dependencies=[refusals_at(["path", "map_id"], method_options=["body", "options"])],
 )
 def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: RefineRequest | None = None) -> JobPublic:
     """A job (kind refinement, run as a sweep of that kind: pause, resume and cancel it there): validate
@@ -165,16 +153,7 @@ def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: Re
     cells, validate again; until every validated point holds or max_cells are spent. A partial map is
     accepted (its non-ok cells are measured again first). The job's result names the refined map."""
     body = body or RefineRequest()
-    try:
-        with refused_at(["path", "map_id"]):
-            try:
-                job_id = service.submit_refinement(map_id, body, bench=body.bench)
-            except ValidationError as exc:  # the method's options
-                raise unprocessable(
-                    *(validation_error(["body", "options", *map(str, e["loc"])], e["msg"]) for e in exc.errors())
-                ) from None
-    except KeyError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist") from None
+    job_id = service.submit_refinement(map_id, body, bench=body.bench)
     return job_public(service, service.get_job(job_id))
 
 

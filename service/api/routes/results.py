@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from service.api.deps import ResourceId, ServiceDep
 from service.api.errors import error_responses
 from service.api.public import ResultPublic, result_public
-from service.store.recordings import RECORDING_FORMATS, RecordingUnavailable
+from service.store.recordings import RECORDING_FORMATS
 
 router = APIRouter(prefix="/api/v1", tags=["results"])
 
@@ -47,10 +47,7 @@ def get_recording(
     """The result's raw recording; 404 says why there is none (never written, write failed, deleted by
     retention, missing: its file deleted or moved behind the service's back), naming the result, never a
     path on the server."""
-    try:
-        handle = service.open_recording(result_id)
-    except RecordingUnavailable as exc:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    handle = service.open_recording(result_id)  # RecordingUnavailable: a 404 saying why
 
     def chunks():
         with handle:

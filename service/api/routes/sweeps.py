@@ -7,12 +7,11 @@ from typing import Literal
 from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
-from service.api.errors import error_responses, validation_error
+from service.api.errors import error_responses
 from service.api.public import SweepPublic, sweep_public
-from service.api.refusals import refused_at, unprocessable
+from service.api.refusals import refusals_at
 from service.api.schemas import SweepCreate
-from service.runs.plans import RegimeError, SweepPreview, SweepTooLarge, check_sweep_size, plan_grid, preview_sweep
-from service.runs.states import TransitionError
+from service.runs.plans import SweepPreview, check_sweep_size, plan_grid, preview_sweep
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 
@@ -22,24 +21,17 @@ router = APIRouter(prefix="/api/v1", tags=["sweeps"])
     status_code=status.HTTP_202_ACCEPTED,
     response_model=SweepPublic,
     responses=error_responses(400, 401, 403, 409, 413),
+    dependencies=[refusals_at(["body", "grid"], regime=["body", "regime"], confirm_large=["body", "confirm_large"])],
 )
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
-    try:
-        # the size that counts is the planned grid's (speeds placed around the onset included; another
-        # bench's grid as given: its placement needs that bench's machine)
-        own = service.is_own_bench(body.bench)
-        grid = plan_grid(body.grid, body.regime, service.settings).grid if own else body.grid
-        check_sweep_size(grid, body.confirm_large, service.settings.safety)
-    except RegimeError as exc:
-        raise unprocessable(validation_error(["body", "regime"], str(exc))) from None
-    except SweepTooLarge as exc:
-        raise unprocessable(
-            validation_error(["body", "confirm_large"], str(exc), "value_error.confirm_large")
-        ) from None
-    except ValueError as exc:
-        raise unprocessable(validation_error(["body", "grid"], str(exc))) from None
-    with refused_at(["body", "grid"]):
-        sweep_id = service.submit_sweep(body.grid, body.method, body.options, regime=body.regime, bench=body.bench)
+    # the size that counts is the planned grid's (speeds placed around the onset included; another
+    # bench's grid as given: its placement needs that bench's machine)
+    own = service.is_own_bench(body.bench)
+    planned = plan_grid(body.grid, body.regime, service.settings) if own else None  # the one plan: it travels
+    check_sweep_size(planned.grid if planned else body.grid, body.confirm_large, service.settings.safety)
+    sweep_id = service.submit_sweep(
+        body.grid, body.method, body.options, regime=body.regime, bench=body.bench, planned=planned
+    )
     return sweep_public(service, service.get_sweep(sweep_id))
 
 
@@ -69,10 +61,5 @@ def get_sweep(sweep_id: ResourceId, service: ServiceDep) -> SweepPublic:
 def control_sweep(
     sweep_id: ResourceId, action: Literal["pause", "resume", "cancel"], service: ServiceDep, _: OperatorDep
 ) -> SweepPublic:
-    try:
-        service.control_sweep(sweep_id, action)
-    except KeyError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id} does not exist in this service run") from None
-    except TransitionError as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    service.control_sweep(sweep_id, action)
     return sweep_public(service, service.get_sweep(sweep_id))

@@ -1,0 +1,291 @@
+"""Job kind `refinement`: a map refined in rounds (service/runs/refinement.py plans them), queued as a
+sweep of kind `refinement`: its cells, pause, resume, cancel and crash-resume are a sweep's. Its run
+body measures a round's cells through the sweep's (service/runs/sweep_run.py SweepRunner.measure_points)."""
+
+from __future__ import annotations
+
+from service import __version__
+from service.maps.build import build_map
+from service.maps.view import map_view
+from service.model.operating_point import OperatingPoint
+from service.runs.identify import check_plant_time, parse_options
+from service.runs.kinds.host import JobHost, JobKind
+from service.runs.kinds.sweep import check_first_take
+from service.runs.plans import Grid
+from service.runs.refinement import MAX_ROUNDS, RefineRequest, axes_with, check_request, plan_round
+from service.runs.states import Cancelled, Paused, SweepControl, SweepState
+from service.runs.sweep_run import SweepRunner
+from service.runs.validation import ValidationOptions, check_points, run_validation, store_validation
+from service.store.storage import now_iso
+
+
+def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None = None) -> int:
+    """Refused before anything is queued: KeyError (no such map), ValueError (method or options),
+    LimitError (a validation point outside the bench's limits). A partial map is accepted: its non-ok
+    cells are measured first. Returns the job's id."""
+    own = host.is_own(bench)
+    if own:
+        host.bench.check_reachable()
+    m = map_view(host.storage, map_id)
+    if m is None:
+        raise KeyError(map_id)
+    check_request(request)
+    options = parse_options(request.method, request.options)
+    if own:
+        # a refinement measures cells (its method options) and validates (its validation options)
+        check_points(
+            m.axes,
+            host.settings,
+            options.override_envelope_model and request.validation.override_envelope_model,
+        )
+        check_plant_time(m.axes["speed_rpm"], request.method, options, host.settings)
+    not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
+    state = {
+        "target_db": request.target_db,
+        "max_cells": request.max_cells,
+        "validation": request.validation.model_dump(),
+        "phase": "measure" if not_ok else "validate",
+        "round": 0,
+        "current_map_id": map_id,
+        "axes": m.axes,
+        "pending": not_ok,
+        "cells_added": 0,
+        "rounds": [],
+        "stopped": None,
+    }
+    sweep_id = host.storage.create_sweep(
+        request.method,
+        m.harmonic_order,
+        m.axes,
+        options.model_dump(),
+        len(not_ok),
+        host.bench.identity if own else f"bench {bench}",
+        __version__,
+        kind="refinement",
+        source_map_id=map_id,
+        refinement=state,
+        bench=host.bench_name if own else bench,
+    )
+    return host.queue_sweep(sweep_id)
+
+
+def check_here(host: JobHost, job: dict) -> None:
+    def check(sweep: dict, override: bool) -> None:
+        validation = (sweep.get("refinement") or {}).get("validation") or {}
+        override = override and bool(validation.get("override_envelope_model", False))
+        check_points(sweep["grid"], host.settings, override)
+
+    check_first_take(host, job, check)
+
+
+def run(host: JobHost, job_id: int, job: dict) -> None:
+    RefinementRun(host.sweeps).run_refinement(job_id, job["sweep_id"], host.control(job["sweep_id"]))
+
+
+class RefinementRun:
+    """A refinement's rounds, measured through a sweep's runner."""
+
+    def __init__(self, runner: SweepRunner):
+        self.runner, self.host = runner, runner.host
+        self.storage, self.bench, self.settings, self.broker = (
+            runner.storage,
+            runner.bench,
+            runner.settings,
+            runner.broker,
+        )
+
+    def run_refinement(self, job_id: int, sweep_id: int, ctl: SweepControl) -> None:
+        """A refinement's rounds (service/runs/refinement.py): measure the pending cells, build the refined map,
+        validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
+        so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
+        sweep = self.storage.get_sweep(sweep_id)
+        state = sweep["refinement"]
+        options = parse_options(sweep["method"], sweep["options"])
+        if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
+            raise Cancelled()
+        if ctl.pause.is_set():
+            raise Paused()
+        self.host.set_sweep(
+            sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
+        )
+        source = self.storage.get_map(sweep["source_map_id"])
+        while state["phase"] != "done":
+            if ctl.cancel.is_set():
+                break
+            if ctl.pause.is_set():
+                raise Paused()
+            if state["phase"] == "measure":
+                self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
+            else:
+                self._refinement_validate(job_id, sweep_id, ctl, state)
+            self._save_refinement(sweep_id, state)
+        if self.host.shutting_down():
+            self.host.set_sweep(
+                sweep_id,
+                SweepState.INTERRUPTED,
+                pause_reason=f"{self.host.shutdown_reason} during round {state['round']} ({state['phase']}); "
+                "resume to go on from there",
+            )
+            return
+        final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
+        self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=state["current_map_id"])
+
+    def _refinement_rows(self, sweep_id: int, source: dict) -> list[dict]:
+        """The source map's results, then the refinement's own (a later one for the same cell wins)."""
+        ids = [c["result_id"] for c in source["cells"] if c["result_id"] is not None]
+        return list(self.storage.results_by_id(ids).values()) + self.storage.sweep_results(sweep_id)
+
+    def _refinement_measure(
+        self, sweep_id: int, sweep: dict, ctl: SweepControl, options, state: dict, source: dict
+    ) -> None:
+        """Identify the round's pending cells (those not yet measured in this round), then build the
+        refined map from every result and move on to its validation."""
+        measured = {
+            (r["torque_nm"], r["speed_rpm"], r["udc_v"])
+            for r in self.storage.sweep_results(sweep_id)
+            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
+        }
+        points = [
+            OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
+            for t, n, u in state["pending"]
+            if (t, n, u) not in measured
+        ]
+        grid = Grid(**state["axes"])
+        self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
+        self.runner.measure_points(
+            sweep_id,
+            sweep,
+            ctl,
+            grid,
+            options,
+            points,
+            sweep_pass=1,
+            neighbour_rows=lambda: self._refinement_rows(sweep_id, source),
+            tags={"refinement_round": state["round"]},
+        )
+        if ctl.cancel.is_set():
+            return
+        state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
+        provenance = {
+            "refinement_id": sweep_id,
+            "source_map_id": sweep["source_map_id"],
+            "round": state["round"],
+            "cells_added": state["cells_added"],
+        }
+        state["current_map_id"] = build_map(
+            self.storage,
+            state["axes"],
+            self._refinement_rows(sweep_id, source),
+            sweep_id,
+            sweep["harmonic_order"],
+            sweep["method"],
+            self.bench.identity,
+            refined_from=sweep["source_map_id"],
+            provenance=provenance,
+        )
+        state["phase"] = "validate"
+
+    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: dict) -> None:
+        """Validate the current map in the drive's LUT mode; plan the next round, or end."""
+        map_id = state["current_map_id"]
+        self._publish_refinement(sweep_id, state, f"validating map {map_id}")
+
+        def on_cell(cell: dict, total: int) -> None:
+            self.broker.publish(
+                "job.progress",
+                {"job_id": job_id, "kind": "refinement", "round": state["round"], "total": total, "cell": cell},
+            )
+
+        run = run_validation(
+            self.storage,
+            self.bench,
+            self.settings,
+            map_id,
+            True,
+            ValidationOptions.model_validate(state["validation"]),
+            ctl.cancel,
+            on_cell=on_cell,
+            on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
+        )
+        validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
+        if run.state == "cancelled":
+            return
+        if run.state == "failed":
+            # an interlock stopped it: pause like a sweep; on resume the map is validated again
+            with self.host.lock:
+                ctl.pause.set()
+                self.host.set_sweep(
+                    sweep_id,
+                    SweepState.PAUSED,
+                    pause_reason=f"{run.error} (validating refined map "
+                    f"{map_id}); acknowledge with POST /api/v1/bench/fault-reset, then resume",
+                )
+            return
+        m = map_view(self.storage, map_id)
+        plan = plan_round(
+            m.axes,
+            [c.model_dump() for c in m.cells],
+            run.cells,
+            state["target_db"],
+            state["max_cells"] - state["cells_added"],
+        )
+        summary = run.summary()
+        state["rounds"].append(
+            {
+                "round": state["round"],
+                "map_id": map_id,
+                "validation_id": validation_id,
+                "points": len(run.cells),
+                "below_target": plan.failing,
+                "grid_median_db": summary["grid"]["median_db"],
+                "midpoint_median_db": summary["midpoint"]["median_db"],
+                "min_db": min(
+                    (x for x in (summary["grid"]["min_db"], summary["midpoint"]["min_db"]) if x is not None),
+                    default=None,
+                ),
+                "inserted": plan.inserted,
+                "remeasured": len(plan.remeasure),
+                "new_cells": len(plan.new_cells),
+            }
+        )
+        if plan.failing == 0:
+            state["phase"], state["stopped"] = "done", None
+        elif not plan.cells:
+            state["phase"] = "done"
+            state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + (
+                "; ".join(plan.reasons) or "nothing left to insert"
+            )
+        elif state["round"] + 1 >= MAX_ROUNDS:
+            state["phase"] = "done"
+            state["stopped"] = (
+                f"{plan.failing} point(s) still below {state['target_db']:g} dB after {MAX_ROUNDS} rounds"
+            )
+        else:
+            state["axes"] = axes_with(m.axes, plan.inserted)
+            state["pending"] = [list(k) for k in plan.cells]
+            state["round"] += 1
+            state["phase"] = "measure"
+
+    def _save_refinement(self, sweep_id: int, state: dict) -> None:
+        # total: the cells planned so far (those measured, and the round's pending ones)
+        total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
+        self.storage.update_sweep(
+            sweep_id, refinement=state, grid=state["axes"], map_id=state["current_map_id"], total_points=total
+        )
+        self._publish_refinement(sweep_id, state, state["phase"])
+
+    def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
+        self.broker.publish(
+            "refinement.progress",
+            {
+                "sweep_id": sweep_id,
+                "round": state["round"],
+                "phase": state["phase"],
+                "what": what,
+                "map_id": state["current_map_id"],
+                "cells_added": state["cells_added"],
+            },
+        )
+
+
+KIND = JobKind("refinement", submit=submit, check_here=check_here, run=run)
