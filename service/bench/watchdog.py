@@ -2,9 +2,12 @@
 
 A run's loop kicks the watchdog (every guard check, before each DAQ read, and while it waits for the
 supply). While a run is armed, a loop silent for `bound_s` of wall time (the worker stuck: a database
-that hangs, a lock, a bug) or a stop asked from outside (a cancel, a shutdown, a signal) makes the
-watchdog's own thread disable drive and load at once: the drivers' disable (torque 0, injection off,
-power stage off), then the load braked on its own speed loop and disabled. It takes none of the locks
+that hangs, a lock, a bug) makes the watchdog's own thread disable drive and load at once: the drivers'
+disable (torque 0, injection off, power stage off), then the load braked on its own speed loop and
+disabled. A stop asked from outside (a cancel, a shutdown, a signal) disables the drive at once and
+commands the load to standstill, leaving it enabled to brake: the run's own make_safe disables it at
+standstill (a load disabled at speed coasts, and a next run would meet a turning shaft); if that run then
+goes silent for `bound_s`, the load is braked and disabled here too. It takes none of the locks
 the worker may hold (the bench's run lock); the drivers serialise single SDO transfers only, each
 bounded by the SDO timeout. The run then ends at its next guard (`tripped`), and the stop is logged
 and reported (`on_stop`, the service's SSE) with why.
@@ -56,6 +59,7 @@ class BenchWatchdog:
         self._safe = threading.Event()  # set once a stop has disabled drive and load (or none was needed)
         self._safe.set()
         self.tripped: Trip | None = None  # the stop of the current run (None: none)
+        self._load_braking = False  # a stop asked left the load braking, for the run's make_safe to disable
         self.last_stop: Trip | None = None  # the latest stop, kept for the status until the next one
         # time.monotonic() (system-wide CLOCK_MONOTONIC) of the run's last kick before a stop for silence
         self.silent_since_monotonic: float | None = None
@@ -65,6 +69,7 @@ class BenchWatchdog:
     def arm(self) -> None:
         """A run starts: watched from now on."""
         self.tripped = None
+        self._load_braking = False
         self._asked = None
         self._last_kick = time.monotonic()
         self._armed = True
@@ -76,6 +81,7 @@ class BenchWatchdog:
     def disarm(self) -> Trip | None:
         """The run has ended (made safe by its own make_safe); the watchdog's stop of it, if any."""
         self._armed = False
+        self._load_braking = False
         return self.tripped
 
     # --- from outside (routes, shutdown, signal handlers) -------------------------------------------------
@@ -112,12 +118,24 @@ class BenchWatchdog:
                 log.exception("bench watchdog round failed")
 
     def _look(self) -> None:
-        if not self._armed or self.tripped is not None:
+        if not self._armed:
             self._safe.set()
             return
         silent_s = time.monotonic() - self._last_kick
+        if self.tripped is not None:
+            # a stop asked left the load braking for the run's own make_safe; a run that then goes silent
+            # (its worker stuck) has the load braked and disabled here
+            if self._load_braking and silent_s > self.bound_s:
+                self._load_braking = False
+                log.error(
+                    "the run did not end after its stop: the load is disabled by the bench watchdog (%s)",
+                    self._stop_load(),
+                )
+            self._safe.set()
+            return
         if self._asked is not None:
-            reason, kind = f"{self._asked}: drive and load disabled at once by the bench watchdog", "stop_asked"
+            reason = f"{self._asked}: torque off at once by the bench watchdog, the load braked to standstill"
+            kind = "stop_asked"
             self.silent_since_monotonic = None
         elif silent_s > self.bound_s:
             self.silent_since_monotonic = self._last_kick
@@ -136,7 +154,13 @@ class BenchWatchdog:
             monotonic=time.monotonic(),
         )
         self.tripped = self.last_stop = trip
-        outcome = self._disable_all()
+        if kind == "stop_asked":
+            # torque off now; the load brakes on its speed loop, and the run's make_safe (which reads the DAQ, so
+            # the plant's clock moves) disables it at standstill: a load disabled at speed coasts
+            outcome = self._disable_drive_brake_load()
+            self._load_braking = True
+        else:
+            outcome = self._disable_all()
         (log.warning if kind == "stop_asked" else log.error)("%s (%s)", reason, outcome)
         self._safe.set()
         if self.on_stop is not None:
@@ -148,23 +172,49 @@ class BenchWatchdog:
     def _disable_all(self) -> str:
         """Drive first (its torque is what hurts), then the load braked on its speed loop and disabled.
         Every step is tried; returns what happened, for the log."""
-        failed = []
-        drive, load = self._drive(), self._load()
-        if drive is not None:
-            try:
-                drive.disable()
-            except Exception as exc:  # noqa: BLE001 - the load is stopped whatever the drive says
-                failed.append(f"drive: {exc}")
+        failed = self._drive_off()
+        failed += self._load_off()
+        return "bench made safe" if not failed else "not every step succeeded: " + "; ".join(failed)
+
+    def _disable_drive_brake_load(self) -> str:
+        """Drive disabled, the load commanded to standstill on its speed loop (left enabled to brake)."""
+        failed = self._drive_off()
+        load = self._load()
         if load is not None:
             try:
                 load.set_speed_rpm(0.0)
-                deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
-                while time.monotonic() < deadline and abs(load.read_status().speed_rpm) >= STANDSTILL_RPM:
-                    time.sleep(0.05)
-            except Exception as exc:  # noqa: BLE001 - disabled below either way
+            except Exception as exc:  # noqa: BLE001 - the drive is off; the stall path disables the load
                 failed.append(f"load braking: {exc}")
-            try:
-                load.disable()
-            except Exception as exc:  # noqa: BLE001
-                failed.append(f"load: {exc}")
-        return "bench made safe" if not failed else "not every step succeeded: " + "; ".join(failed)
+        return "torque off, load braking" if not failed else "not every step succeeded: " + "; ".join(failed)
+
+    def _stop_load(self) -> str:
+        failed = self._load_off()
+        return "load stopped" if not failed else "not every step succeeded: " + "; ".join(failed)
+
+    def _drive_off(self) -> list[str]:
+        drive = self._drive()
+        if drive is None:
+            return []
+        try:
+            drive.disable()
+        except Exception as exc:  # noqa: BLE001 - the load is stopped whatever the drive says
+            return [f"drive: {exc}"]
+        return []
+
+    def _load_off(self) -> list[str]:
+        """The load braked on its speed loop (bounded, wall clock), then disabled either way."""
+        load, failed = self._load(), list[str]()
+        if load is None:
+            return failed
+        try:
+            load.set_speed_rpm(0.0)
+            deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
+            while time.monotonic() < deadline and abs(load.read_status().speed_rpm) >= STANDSTILL_RPM:
+                time.sleep(0.05)
+        except Exception as exc:  # noqa: BLE001 - disabled below either way
+            failed.append(f"load braking: {exc}")
+        try:
+            load.disable()
+        except Exception as exc:  # noqa: BLE001
+            failed.append(f"load: {exc}")
+        return failed

@@ -157,7 +157,9 @@ def test_a_result_records_its_torque_and_is_never_ok_away_from_its_command(rig):
     # a point within the envelope: ok, and it says the torque it ran at
     r = api.post("/identifications", {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "method": "probe"})
     good = api.job_finished(r.json()["id"], 180)["result"]
-    assert good["status"] == "ok" and abs(good["torque_actual_nm"] - 2.5) < 0.2, good
+    # its status is the identification's (ok, or below_target on a loaded PC at speedup 1): never a departure
+    assert good["status"] in ("ok", "below_target") and abs(good["torque_actual_nm"] - 2.5) < 0.2, good
+    assert "the motor ran at" not in (good.get("error") or "") + (good.get("reason") or ""), good
     # no result stored ok at a torque that left its command
     safety = load_settings(environ={}).safety
     for row in stored_results(db):
