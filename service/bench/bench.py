@@ -167,11 +167,6 @@ class Bench:
         self.refresh_status()
         return result
 
-    def guard(self, cancel: threading.Event | None = None) -> None:
-        """Checked before every DAQ read of a run: kicks the watchdog; raises to stop it (interlock trip,
-        the run's cancel token, the watchdog's stop)."""
-        self._runs.guard(cancel)
-
     def stop_now(self, reason: str) -> None:
         """A cancel or a shutdown: drive and load disabled at once by the watchdog's thread if a run holds
         the bench, whatever its worker is doing. Never blocks (no lock, no I/O: safe in a signal handler)."""
@@ -230,18 +225,6 @@ class Bench:
     def make_safe(self, standstill_timeout_plant_s: float = 5.0) -> None:
         """Torque off, injection off, drive disabled, load stopped (RunLifecycle.make_safe)."""
         self._runs.make_safe(standstill_timeout_plant_s)
-
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
-        """Theta to the drive; refuses (before anything is sent) a gamma above the run's gamma_max."""
-        self._runs.send_theta(theta_cos_rad, theta_sin_rad, cancel)
-
-    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None:
-        """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
-        self._runs.send_injection_mode(mode, cancel)
-
-    def set_dc_link(self, udc_v: float) -> None:
-        """The supply to udc_v and confirmed; the supply interlock watches the new band from then on."""
-        self._runs.set_dc_link(udc_v)
 
     def setpoints_written(self) -> int:
         """Setpoints the drive has accepted so far; each toggles the DAQ sync line once (docs/interfaces.md)."""

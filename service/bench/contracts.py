@@ -1,7 +1,8 @@
 """The contracts between the bench's parts: what a collaborator that is passed in must provide.
 
 - `DriveCommands`: what a measurement session (service/bench/measurement.py) may send to the drive
-  while it measures; a run (`BenchRun`) provides it, checking every value on the way.
+  while it measures; the run's commands (`RunCommands`, service/bench/run_commands.py: the one way down)
+  provide it, checking every value on the way.
 - `RunBench`: what a run (service/bench/run.py) needs from the bench that opened it; the `Bench`
   facade (service/bench/bench.py) provides it.
 - `Guard`: called before every DAQ read of a run; raises to stop it (cancel token, interlock trip).
@@ -9,12 +10,9 @@
 
 from __future__ import annotations
 
-import threading
 from typing import TYPE_CHECKING, Callable, Protocol
 
 if TYPE_CHECKING:
-    from drivers.drive import DriveClient
-    from drivers.load_machine import LoadClient
     from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange
     from service.bench.live_values import LiveValues
     from service.bench.setpoint_accounting import SetpointAccounting
@@ -33,18 +31,12 @@ class DriveCommands(Protocol):
 
 
 class RunBench(Protocol):
-    """What a run needs from the bench that opened it: the settings, the wires it moves (drive, load,
-    DC link), the setpoint accounting and the interlocks it is watched by, the shaft mode its sessions
-    learn, the live view its sessions publish to, and the checked commands."""
+    """What a run needs from the bench that opened it: the settings, the setpoint accounting and the
+    interlocks it is watched by, the shaft mode its sessions learn and the live view its sessions publish
+    to. Its commands to the hardware are not here: they go through the run's RunCommands only."""
 
     @property
     def settings(self) -> Settings: ...
-
-    @property
-    def drive(self) -> DriveClient: ...
-
-    @property
-    def load(self) -> LoadClient: ...
 
     @property
     def accounting(self) -> SetpointAccounting: ...
@@ -64,14 +56,3 @@ class RunBench(Protocol):
 
     @property
     def live(self) -> LiveValues: ...
-
-    def guard(self, cancel: threading.Event | None = None) -> None:
-        """Raises to stop the run (interlock trip, the run's cancel token)."""
-
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
-        """Theta to the drive; refuses a gamma above the run's gamma_max."""
-
-    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None: ...
-
-    def set_dc_link(self, udc_v: float) -> None:
-        """The supply to udc_v and confirmed."""

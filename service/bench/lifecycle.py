@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import threading
 import time
 from typing import Callable, Iterator
@@ -25,11 +24,11 @@ from service.bench.faults import BenchFaults
 from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import OperatingPointSession, RunCancelled
 from service.bench.run import BenchRun, gamma_max_for_run
+from service.bench.run_commands import RunCommands
 from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
 from service.bench.watchdog import BenchWatchdog
 from service.model import limits
 from service.model.harmonic import mechanical_speed_rpm
-from service.model.limits import LimitError
 from service.model.operating_point import OperatingPoint
 from service.settings import Settings
 
@@ -55,7 +54,6 @@ class RunLifecycle:
         self._after_run = after_run
         self.accounting: SetpointAccounting | None = None  # the drive's setpoints against the DAQ sync line
         self.busy = False
-        self._gamma_max_rad: float | None = None  # of the run in progress
         self._run: BenchRun | None = None
         # makes the bench safe from its own thread when the run's loop goes silent or a stop is asked
         # (service/bench/watchdog.py); it reports through the faults' reporter (the service's SSE)
@@ -65,15 +63,6 @@ class RunLifecycle:
             settings.interlocks.watchdog_s,
             on_stop=lambda trip: faults.on_trip(trip) if faults.on_trip is not None else None,
         )
-
-    def guard(self, cancel: threading.Event | None = None) -> None:
-        """Checked before every DAQ read of a run: the run's loop is alive (the watchdog kicked); raises
-        to stop it (interlock trip, the run's cancel token, the watchdog's stop)."""
-        self.watchdog.kick()
-        self.faults.guard(cancel)
-        stopped = self.watchdog.tripped
-        if stopped is not None and self.busy:
-            raise InterlockTripped(stopped)
 
     # --- the setpoint accounting -----------------------------------------------------------------------
     def attach_accounting(self) -> None:
@@ -98,42 +87,6 @@ class RunLifecycle:
             except (DaqError, AccountingError) as exc:
                 log.warning("setpoint accounting not established at connect (the first run does it): %s", exc)
 
-    # --- commands during a run -------------------------------------------------------------------------
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float, cancel: threading.Event | None = None) -> None:
-        """Theta to the drive; refuses (before anything is sent) a gamma above the run's gamma_max."""
-        gamma_max = self._gamma_max_rad or math.radians(self.settings.identification.gamma_max_deg)
-        if math.hypot(theta_cos_rad, theta_sin_rad) > gamma_max * (1 + 1e-9):
-            raise LimitError(
-                f"gamma {math.degrees(math.hypot(theta_cos_rad, theta_sin_rad)):.3f} deg exceeds gamma_max"
-            )
-        self.faults.guard(cancel)
-        self.links.drive.set_injection(theta_cos_rad, theta_sin_rad)
-
-    def send_injection_mode(self, mode: str, cancel: threading.Event | None = None) -> None:
-        """Injection mode to the drive (off / manual / lut) during a run; make_safe sets it off again."""
-        self.faults.guard(cancel)
-        self.links.drive.set_injection_mode(mode)
-
-    def set_dc_link(self, udc_v: float) -> None:
-        """The supply to udc_v and confirmed; the supply interlock watches the new band from then on."""
-        supply, supply_interlock = self.links.supply, self.faults.supply_interlock
-        supply_interlock.expected_v = None  # not out of range while it changes
-        supply.set_voltage(udc_v)
-        supply.output(True)
-        self._wait_supply(udc_v)
-        supply_interlock.expected_v = udc_v
-
-    def _wait_supply(self, udc_v: float, timeout_s: float = 5.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self.watchdog.kick()  # waiting on the supply is the run's loop at work
-            measured = self.links.supply.measure_voltage()
-            if abs(measured - udc_v) <= max(0.02 * udc_v, 0.05):
-                return
-            if time.monotonic() > deadline:
-                raise BenchError(f"DC supply did not reach {udc_v:g} V within {timeout_s} s (measures {measured:g} V)")
-            time.sleep(0.02)
-
     # --- a run -----------------------------------------------------------------------------------------
     @contextlib.contextmanager
     def run(
@@ -154,13 +107,22 @@ class RunLifecycle:
         with self._lock:
             self.faults.refuse_or_auto_reset()
             self.busy = True
-            self._gamma_max_rad = gamma_max_for_run(gamma_max_rad, limits.gamma_max_rad(None, self.settings))
+            links = self.links
+            commands = RunCommands(
+                self.settings,
+                links.drive,
+                links.load,
+                links.supply,
+                self.faults,
+                self.watchdog,
+                gamma_max_for_run(gamma_max_rad, limits.gamma_max_rad(None, self.settings)),
+                cancel,
+            )
             run = BenchRun(
                 bench,
+                commands,
                 harmonic_order,
-                self._gamma_max_rad,
                 self.settings.identification.decoupling if decoupling is None else decoupling,
-                cancel,
             )
             self._run = run
             self.faults.interlocks.arm()
@@ -213,7 +175,6 @@ class RunLifecycle:
             self.accounting.end_run()
         finally:
             self.busy = False
-            self._gamma_max_rad = None
             self._run = None
             self._after_run()
         outcome = "bench made safe" if safe_error is None else f"make_safe failed: {safe_error}"

@@ -34,7 +34,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import Callable, Iterator
@@ -43,6 +42,7 @@ from service.bench.contracts import RunBench
 from service.bench.interlocks import InterlockTripped, Trip
 from service.bench.measurement import OperatingPointSession, SessionSettings
 from service.bench.point_stream import PointStream
+from service.bench.run_commands import RunCommands
 from service.identification.session import MeasurementError
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
@@ -75,42 +75,22 @@ class PointTiming:
 
 
 class BenchRun:
-    """A run in progress (module doc). Created by Bench.run only, given the bench as a RunBench
-    (service/bench/contracts.py); it is also its sessions' DriveCommands."""
+    """A run in progress (module doc). Created by the run lifecycle only, given the bench as a RunBench
+    (service/bench/contracts.py) and the run's commands (service/bench/run_commands.py), the one way down to
+    the hardware, which its sessions send through too."""
 
-    def __init__(
-        self,
-        bench: RunBench,
-        harmonic_order: int,
-        gamma_max_rad: float,
-        decoupling: bool,
-        cancel: threading.Event | None,
-    ):
+    def __init__(self, bench: RunBench, commands: RunCommands, harmonic_order: int, decoupling: bool):
         self.bench = bench
+        self.commands = commands
         self.harmonic_order = harmonic_order
-        self.gamma_max_rad = gamma_max_rad
         self.decoupling = decoupling
-        self.cancel = cancel
         self.at: OperatingPoint | None = None  # where the run stands (None: not moved yet)
-        self.theta: tuple[float, float] | None = None  # what the drive applies in manual mode (None: unknown)
-        self.mode: str | None = None
         self.points = 0
         self.timing = PointTiming()  # of the last point
         self.accounting_reports: list[dict] = []
 
     def guard(self) -> None:
-        self.bench.guard(self.cancel)
-
-    # --- DriveCommands (what a session sends) -------------------------------------------------------
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        self.theta = None  # unknown until written: a refused or lost write leaves it so
-        self.bench.send_theta(theta_cos_rad, theta_sin_rad, self.cancel)
-        self.theta = (float(theta_cos_rad), float(theta_sin_rad))
-
-    def send_injection_mode(self, mode: str) -> None:
-        self.mode = None
-        self.bench.send_injection_mode(mode, self.cancel)
-        self.mode = mode
+        self.commands.guard()
 
     # --- points --------------------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -132,7 +112,7 @@ class BenchRun:
             no_sync_settle_s=s.daq.no_sync_settle_s,
         )
         session = OperatingPointSession(
-            stream, self, settings, bench.resonance, observe=bench.live.publisher("run"), on_window=on_window
+            stream, self.commands, settings, bench.resonance, observe=bench.live.publisher("run"), on_window=on_window
         )
         bench.live.publish(
             "run", operating_point=op.model_dump(), speed_rpm=None, harmonic_amplitude_fs=None, plant_time_s=None
@@ -140,10 +120,11 @@ class BenchRun:
         try:
             try:
                 self._move(op, timing)
-                session.theta_in_force = self.theta if self.mode == "manual" else None
+                commands = self.commands
+                session.theta_in_force = commands.theta if commands.mode == "manual" else None
                 t0 = time.perf_counter()
                 session.settle_operating_point(op.speed_rpm, target_db)
-                actual_nm = bench.drive.torque_actual_nm()
+                actual_nm = self.commands.torque_actual_nm()
                 if not torque_reached(op.torque_nm, actual_nm):
                     raise MeasurementError(
                         f"the drive does not reach {op.torque_nm:g} Nm here: its torque actual reads "
@@ -170,7 +151,7 @@ class BenchRun:
             if trip is not None:
                 raise InterlockTripped(trip)
         except BaseException as exc:
-            self.theta = self.mode = None
+            self.commands.forget()
             if bench.accounting.pending() != 0:
                 bench.accounting.doubt("a point ended with setpoints unconfirmed")
             if isinstance(exc, Exception) and not isinstance(exc, InterlockTripped):
@@ -188,7 +169,7 @@ class BenchRun:
         actuals = self.bench.actuals
         mean_nm, count = actuals.mean_torque() if actuals is not None else (None, 0)
         if count == 0:
-            mean_nm = self.bench.drive.torque_actual_nm()
+            mean_nm = self.commands.torque_actual_nm()
         return mean_nm, count
 
     def _first_trip(self) -> Trip | None:
@@ -204,40 +185,28 @@ class BenchRun:
             return interlocks.run_trip
 
     def _move(self, op: OperatingPoint, timing: PointTiming) -> None:
-        bench = self.bench
-        drive, load = bench.drive, bench.load
+        bench, commands = self.bench, self.commands
         t0 = time.perf_counter()
         at, self.at = self.at, None  # unknown until the move is through
         first = at is None
-        self.guard()
         if at is None or op.udc_v != at.udc_v:  # first
-            if self.points:
-                drive.set_torque_nm(0.0)  # no torque while the DC link changes
-            bench.set_dc_link(op.udc_v)
-        self.guard()
-        if first:
-            load.enable()
+            commands.set_dc_link(op.udc_v)  # torque off first once any was commanded
         if at is None or op.speed_rpm != at.speed_rpm:  # first
-            load.set_speed_rpm(op.speed_rpm)
-        self.guard()
+            commands.set_speed_rpm(op.speed_rpm)
         if first:
-            drive.enable()
-            drive.set_gamma_max_rad(self.gamma_max_rad)  # no toggle: it only clamps |theta|
+            commands.enable_drive()
         if bench.accounting.in_doubt:
             t1 = time.perf_counter()
             self.accounting_reports.append(bench.accounting.establish(self.guard))
             timing.accounting_s = time.perf_counter() - t1
-        self.guard()
         if first:
-            drive.set_harmonic_order(self.harmonic_order)
-            drive.set_decoupling(self.decoupling)
-        if self.mode != "manual":
-            self.send_injection_mode("manual")
-        if self.theta != (0.0, 0.0):
-            self.send_theta(0.0, 0.0)
-        self.guard()
+            commands.configure_injection(self.harmonic_order, self.decoupling)
+        if commands.mode != "manual":
+            commands.send_injection_mode("manual")
+        if commands.theta != (0.0, 0.0):
+            commands.send_theta(0.0, 0.0)
         # always written: its toggle marks the sample from which the whole move is in force
-        drive.set_torque_nm(op.torque_nm)
+        commands.set_torque_nm(op.torque_nm)
         self.at = op
         timing.move_s = time.perf_counter() - t0 - timing.accounting_s
 

@@ -49,34 +49,48 @@ class EnvelopeError(LimitError):
     )
 
 
+def setpoint_problem(field: str, value: float, safety: SafetySettings) -> str | None:
+    """What is wrong with one setpoint (`field`: torque_nm, speed_rpm or udc_v) against the hard limits (None: it
+    is within them): the one statement of each limit, used for a whole operating point (check_limits) and for
+    every single setpoint a run sends down (service/bench/run_commands.py)."""
+    if not math.isfinite(value):  # NaN compares False with every limit below
+        return f"{field} must be a finite number, got {value}"
+    lim = safety
+    if field == "torque_nm":
+        if abs(value) > lim.max_torque_nm:
+            return f"torque_nm {value:g} exceeds the limit of {lim.max_torque_nm:g} Nm"
+        if lim.torque_sign == "positive" and value < 0 or lim.torque_sign == "negative" and value > 0:
+            return f"torque_nm {value:g}: this bench allows {lim.torque_sign} torque only (safety.torque_sign)"
+    elif field == "speed_rpm":
+        if abs(value) > lim.max_speed_rpm:
+            return f"speed_rpm {value:g} exceeds the limit of {lim.max_speed_rpm:g} rpm"
+        if abs(value) < lim.min_speed_rpm:
+            return f"speed_rpm {value:g} is below the minimum of {lim.min_speed_rpm:g} rpm (safety.min_speed_rpm)"
+    elif field == "udc_v":
+        if not lim.min_udc_v <= value <= lim.max_udc_v:
+            return f"udc_v {value:g} outside {lim.min_udc_v:g}..{lim.max_udc_v:g} V"
+    else:
+        raise ValueError(f"no hard limit for {field!r}")
+    return None
+
+
+def check_setpoint(field: str, value: float, settings: Settings) -> None:
+    """LimitError naming `field` if one setpoint is outside the hard limits (setpoint_problem)."""
+    problem = setpoint_problem(field, value, settings.safety)
+    if problem is not None:
+        raise LimitError(problem, ((field, problem),))
+
+
 def check_limits(op: OperatingPoint, settings: Settings) -> None:
-    lim = settings.safety
-    problems = []
-    for field in ("torque_nm", "speed_rpm", "udc_v"):
-        if not math.isfinite(getattr(op, field)):  # NaN compares False with every limit below
-            problems.append((field, f"{field} must be a finite number, got {getattr(op, field)}"))
-    if problems:
-        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
-    if abs(op.torque_nm) > lim.max_torque_nm:
-        problems.append(("torque_nm", f"torque_nm {op.torque_nm:g} exceeds the limit of {lim.max_torque_nm:g} Nm"))
-    if lim.torque_sign == "positive" and op.torque_nm < 0 or lim.torque_sign == "negative" and op.torque_nm > 0:
-        problems.append(
-            (
-                "torque_nm",
-                f"torque_nm {op.torque_nm:g}: this bench allows {lim.torque_sign} torque only (safety.torque_sign)",
-            )
-        )
-    if abs(op.speed_rpm) > lim.max_speed_rpm:
-        problems.append(("speed_rpm", f"speed_rpm {op.speed_rpm:g} exceeds the limit of {lim.max_speed_rpm:g} rpm"))
-    if abs(op.speed_rpm) < lim.min_speed_rpm:
-        problems.append(
-            (
-                "speed_rpm",
-                f"speed_rpm {op.speed_rpm:g} is below the minimum of {lim.min_speed_rpm:g} rpm (safety.min_speed_rpm)",
-            )
-        )
-    if not lim.min_udc_v <= op.udc_v <= lim.max_udc_v:
-        problems.append(("udc_v", f"udc_v {op.udc_v:g} outside {lim.min_udc_v:g}..{lim.max_udc_v:g} V"))
+    """LimitError naming every field of `op` outside the hard limits (non-finite values first: nothing else is
+    judged on a NaN)."""
+    fields = ("torque_nm", "speed_rpm", "udc_v")
+    nonfinite = [
+        (f, f"{f} must be a finite number, got {getattr(op, f)}") for f in fields if not math.isfinite(getattr(op, f))
+    ]
+    problems = nonfinite or [
+        (f, problem) for f in fields if (problem := setpoint_problem(f, getattr(op, f), settings.safety)) is not None
+    ]
     if problems:
         raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
 

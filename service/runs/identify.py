@@ -88,7 +88,7 @@ def identify_in_run(
     (service.store.recordings.RunRecorder) receives the DAQ samples and setpoints from the method's first
     read to its last (the move to the operating point is not part of the identification)."""
     h = run.harmonic_order
-    gamma_max = run.gamma_max_rad
+    gamma_max = run.commands.gamma_max_rad
     decoupling = run.decoupling
     ident = settings.identification
     closed_loop = ident.s_model == "closed_loop" or (ident.s_model == "auto" and not decoupling)

@@ -242,3 +242,29 @@ def test_a_point_the_machine_cannot_reach_fails_with_the_drives_torque(tmp_path)
 )
 def test_torque_reached_is_half_the_command_with_its_sign(command_nm, actual_nm, reached):
     assert torque_reached(command_nm, actual_nm) is reached
+
+
+def test_every_setpoint_of_a_run_is_checked_on_its_one_way_down(paper):
+    """A run's commands (service/bench/run_commands.py) refuse, before anything is sent, a setpoint outside
+    the hard limits, a gamma above the run's gamma_max and a mode the drive does not have: the drive's
+    setpoint count does not move."""
+    from service.model.limits import LimitError
+
+    bench = paper.bench
+    with bench.run(6, gamma_max_rad=math.radians(2.0)) as run:
+        commands = run.commands
+        written = bench.setpoints_written()
+        refusals = [
+            (lambda: commands.send_theta(math.radians(3.0), 0.0), "gamma_max"),
+            (lambda: commands.send_theta(float("nan"), 0.0), "not finite"),
+            (lambda: commands.set_torque_nm(99.0), "torque_nm 99"),
+            (lambda: commands.set_speed_rpm(1e9), "speed_rpm"),
+            (lambda: commands.set_dc_link(1000.0), "udc_v"),
+            (lambda: commands.send_injection_mode("on"), "injection mode"),
+        ]
+        for command, what in refusals:
+            with pytest.raises(LimitError, match=what):
+                command()
+        assert bench.setpoints_written() == written
+        assert commands.theta is None and commands.torque_nm is None  # nothing was told
+    assert bench.status()["drive"]["state"] != "OPERATION_ENABLED"
