@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 
 ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded
 ABORT_VALUE_TOO_HIGH = 0x06090031
+ABORT_VALUE_TOO_LOW = 0x06090032
 ABORT_NOT_IN_STATE = 0x08000022  # data cannot be transferred because of the present device state
 NMT_RESET_COMMUNICATION = 0x82
 NMT_ENTER_PRE_OPERATIONAL = 0x80

@@ -132,6 +132,8 @@ from .mechanics import (
     P_LOAD_RAMP,
     P_LOAD_TMAX,
     P_NOISE,
+    S_LOAD_ACCEL,
+    S_LOAD_DECEL,
     S_LOAD_ON,
     S_LOAD_SPEED,
     X_H_S1,

@@ -97,6 +97,8 @@ from .mechanics import (
     P_LOAD_RAMP,
     P_LOAD_TMAX,
     P_NOISE,
+    S_LOAD_ACCEL,
+    S_LOAD_DECEL,
     S_LOAD_ON,
     S_LOAD_SPEED,
     X_H_S1,
@@ -111,7 +113,7 @@ SQRT3 = math.sqrt(3.0)
 TWO_PI = 2.0 * math.pi
 
 N_PARAMS = 50  # p: indices declared by the stages (25, 26 unused)
-N_SETPOINTS = 11  # sp
+N_SETPOINTS = 13  # sp
 X_SAMPLES = 16  # samples simulated so far
 N_STATE = 21  # x
 
@@ -208,7 +210,9 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
     a2 = p[P_H_A2]
     fs = p[P_ALPHA_FS]
     sigma = p[P_NOISE]
-    ramp = p[P_LOAD_RAMP] * ts
+    # the load's ramps per period: its setpoints (0x6083 / 0x6084), else the scenario's
+    ramp_up = (sp[S_LOAD_ACCEL] if sp[S_LOAD_ACCEL] > 0.0 else p[P_LOAD_RAMP]) * ts
+    ramp_down = (sp[S_LOAD_DECEL] if sp[S_LOAD_DECEL] > 0.0 else p[P_LOAD_RAMP]) * ts
     tmax = p[P_LOAD_TMAX]
     load_kp = p[P_LOAD_KP]
     load_ki = p[P_LOAD_KI]
@@ -367,7 +371,7 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
             dist = machine.disturbance(d_x, d_y, d2_ratio, cx, sx, cos_pd2, sin_pd2)
         t_em = machine.torque(i_d, i_q, psi, ld, lq, n_p) + dist
         t_lm, load_ref, load_int = mechanics.load_machine(
-            load_on, load_ref, load_int, load_target, w_m, ramp, load_kp, load_ki, j_shaft, ts, tmax
+            load_on, load_ref, load_int, load_target, w_m, ramp_up, ramp_down, load_kp, load_ki, j_shaft, ts, tmax
         )
         alpha = mechanics.shaft_acceleration(t_em, t_lm, b_fric, w_m, j_shaft)
         y, hs1, hs2 = mechanics.sensor_step(alpha, b0, b1, b2, a1, a2, hs1, hs2)

@@ -38,6 +38,8 @@ P_LOAD_TMAX = 34  # Nm
 # ---- setpoints (indices into sp) ----
 S_LOAD_ON = 7  # 1: load machine speed loop active
 S_LOAD_SPEED = 8  # rad/s, mechanical target speed of the load machine
+S_LOAD_ACCEL = 11  # rad/s^2, the load's ramp away from standstill (0x6083); 0: the scenario's P_LOAD_RAMP
+S_LOAD_DECEL = 12  # rad/s^2, its ramp towards standstill (0x6084); 0: the scenario's P_LOAD_RAMP
 
 # ---- state (indices into x) ----
 X_PHI_E = 6  # rad, electrical angle in [0, 2 pi)
@@ -49,13 +51,16 @@ X_H_S2 = 11
 
 
 @njit(cache=True, inline="always")
-def load_machine(load_on, load_ref, load_int, load_target, w_m, ramp, kp, ki, j, ts, tmax):
-    """One period of the load machine: reference ramped towards load_target by at most `ramp` (rad/s
-    per period), T_lm = K_p e_w + integral + J d(ref)/dt (the acceleration feed-forward lets the ramp
+def load_machine(load_on, load_ref, load_int, load_target, w_m, ramp_up, ramp_down, kp, ki, j, ts, tmax):
+    """One period of the load machine: reference ramped towards load_target by at most `ramp_up` (rad/s
+    per period) while it moves away from standstill, `ramp_down` while towards it (CiA 402 profile
+    acceleration / deceleration), T_lm = K_p e_w + integral + J d(ref)/dt (the acceleration feed-forward lets the ramp
     run without integrator wind-up), |T_lm| <= tmax with conditional integration. Off: torque-free,
     reference tracking the shaft (bumpless switch-on). Returns (T_lm, ref, integral)."""
     if load_on:
         ref_prev = load_ref
+        away = (load_target > load_ref >= 0.0) or (load_target < load_ref <= 0.0)
+        ramp = ramp_up if away else ramp_down
         if load_ref < load_target - ramp:
             load_ref += ramp
         elif load_ref > load_target + ramp:

@@ -198,14 +198,32 @@ def test_sensor_step_runs_the_biquad_difference_equation():
 def test_load_machine_ramps_clamps_and_switches_on_bumplessly():
     kp, ki, j, tmax, ramp = 0.05, 2.0, 1e-3, 3.0, 0.5
     # ramping up: reference one ramp step on, T = K_p e + integral + J ramp / T_s
-    t, ref, integ = mechanics.load_machine(True, 100.0, 0.2, 200.0, 99.0, ramp, kp, ki, j, TS, tmax * 100)
+    t, ref, integ = mechanics.load_machine(True, 100.0, 0.2, 200.0, 99.0, ramp, ramp, kp, ki, j, TS, tmax * 100)
     assert ref == 100.5 and t == pytest.approx(kp * 1.5 + 0.2 + j * ramp / TS)
     assert integ == pytest.approx(0.2 + ki * TS * 1.5)
     # near the target the reference lands on it; a saturated torque stops the integrator
-    t, ref, integ = mechanics.load_machine(True, 199.8, 0.2, 200.0, 150.0, ramp, kp, ki, j, TS, tmax)
+    t, ref, integ = mechanics.load_machine(True, 199.8, 0.2, 200.0, 150.0, ramp, ramp, kp, ki, j, TS, tmax)
     assert ref == 200.0 and t == tmax and integ == 0.2
     # off: no torque, the reference follows the shaft
-    assert mechanics.load_machine(False, 5.0, 1.0, 200.0, 150.0, ramp, kp, ki, j, TS, tmax) == (0.0, 150.0, 0.0)
+    assert mechanics.load_machine(False, 5.0, 1.0, 200.0, 150.0, ramp, ramp, kp, ki, j, TS, tmax) == (0.0, 150.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("ref", "target", "step"),
+    [
+        (100.0, 200.0, 0.5),
+        (100.0, 0.0, -2.0),
+        (-100.0, -200.0, -0.5),
+        (-100.0, 0.0, 2.0),
+        (0.0, 50.0, 0.5),
+        (1.0, -50.0, -2.0),
+    ],
+    ids=["up", "down", "up-reverse", "down-reverse", "from-standstill", "through-standstill"],
+)
+def test_load_machine_accelerates_away_from_standstill_and_decelerates_towards_it(ref, target, step):
+    """ramp_up (CiA 402 profile acceleration) while |speed| grows, ramp_down (deceleration) while it falls."""
+    _, new_ref, _ = mechanics.load_machine(True, ref, 0.0, target, ref, 0.5, 2.0, 0.05, 2.0, 1e-3, TS, 1e9)
+    assert new_ref == pytest.approx(ref + step)
 
 
 def test_shaft_acceleration_and_trapezoidal_angle():
