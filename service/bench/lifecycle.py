@@ -202,7 +202,7 @@ class RunLifecycle:
         if drive is not None:
             steps.append(drive.disable)  # target torque 0, injection off, disable voltage
         if load is not None:
-            steps.append(lambda: load.set_speed_rpm(0.0))
+            steps.append(load.brake_to_standstill)  # at the full ramp, whatever a run-up set
             if self.accounting is not None:
                 # brake with the load's speed loop before disabling it (a disabled load coasts)
                 steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))

@@ -125,6 +125,22 @@ class RunCommands:
         self._load.set_speed_rpm(speed_rpm)
         self.speed_rpm = speed_rpm
 
+    def set_ramp_rpm_per_s(self, rate_rpm_per_s: float) -> None:
+        """The load's ramp rate for the speed setpoints that follow (a run-up's; CiA 402 profile acceleration
+        and deceleration). A stop still brakes at the load's full rate (drivers/load_machine.py)."""
+        if not (math.isfinite(rate_rpm_per_s) and rate_rpm_per_s > 0):
+            raise LimitError(
+                f"ramp rate {rate_rpm_per_s!r} rpm/s is not a positive number",
+                (("rate_rpm_per_s", "not a positive number"),),
+            )
+        self.guard()
+        self._load.set_ramp_rpm_per_s(rate_rpm_per_s)
+
+    def restore_full_ramp(self) -> None:
+        """The load's ramp back to its full rate (after a run-up's ramps)."""
+        self.guard()
+        self._load.restore_full_ramp()
+
     # --- the drive ---------------------------------------------------------------------------------------
     def enable_drive(self) -> None:
         """The drive to OPERATION ENABLED with the run's gamma_max (no setpoint: it only clamps |theta|)."""

@@ -182,7 +182,7 @@ class BenchWatchdog:
         load = self._load()
         if load is not None:
             try:
-                load.set_speed_rpm(0.0)
+                load.brake_to_standstill()
             except Exception as exc:  # noqa: BLE001 - the drive is off; the stall path disables the load
                 failed.append(f"load braking: {exc}")
         return "torque off, load braking" if not failed else "not every step succeeded: " + "; ".join(failed)
@@ -207,7 +207,7 @@ class BenchWatchdog:
         if load is None:
             return failed
         try:
-            load.set_speed_rpm(0.0)
+            load.brake_to_standstill()
             deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
             while time.monotonic() < deadline and abs(load.read_status().speed_rpm) >= STANDSTILL_RPM:
                 time.sleep(0.05)

@@ -1,0 +1,211 @@
+"""A run-up (issue 27): a speed ramp at constant torque and U_dc, judged as NVH labs do it, by order analysis.
+
+The request (`RunupRequest`, POST /runups) names the torque, U_dc, the speed range [from, to], the ramp rate,
+the direction (up: from -> to; down: to -> from; both: up, then down again), what the drive injects
+(off; lut: the drive's own LUT in force; theta: one fixed theta in manual mode) and the orders to track
+(default: the harmonic order and a survey of orders 1..48).
+
+The run (one bench run: interlocks armed, made safe at the end however it ends): move to the ramp's first
+speed and settle there (BenchRun.operating_point), set the injection, ramp (service/bench/speed_ramp.py),
+then computed order tracking over the DAQ stream (service/model/order_tracking.py): angle-domain windows of
+whole electrical periods, each order's amplitude (sensor full scale) and phase per speed bin of at most
+`bin_rpm`, and the noise floor per bin. Both directions' windows are averaged per bin as phasors.
+
+Checks before anything is queued (`check_runup`): the hard limits at the torque, U_dc and both ends of the
+range; the envelope model of the motor settings along the whole range (every bin's speed, as a sweep's
+grid points are checked), unless overridden; the ramp no longer than `MAX_RAMP_S` per direction (its
+samples are held in memory for the analysis: 120 s at 16 kHz is about 50 MB).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from drivers.daq_protocol import DecodedSamples
+from service.bench.run import BenchRun
+from service.bench.speed_ramp import ramp_speed
+from service.errors import Invalid
+from service.model.limits import check_limits, check_point
+from service.model.operating_point import OperatingPoint
+from service.model.order_tracking import OrderTrack, track_orders
+from service.settings import Settings
+
+MAX_RAMP_S = 120.0  # per direction (module doc)
+MAX_ORDER = 48
+SURVEY_ORDERS = tuple(range(1, MAX_ORDER + 1))
+ENVELOPE_STEP_RPM = 50.0  # the envelope model is checked along the range at this step (and at both ends)
+
+
+class ThetaSetpoint(BaseModel):
+    """A fixed injection for the whole run-up (manual mode), rad."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    theta_cos: float = Field(..., ge=-1.0, le=1.0)
+    theta_sin: float = Field(..., ge=-1.0, le=1.0)
+
+
+class RunupRequest(BaseModel):
+    """POST /runups (module doc). Every field bounded; the bench's own limits are checked on submit."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    torque_nm: float = Field(..., description="constant torque command along the ramp, Nm")
+    udc_v: float = Field(..., gt=0, description="DC-link voltage, V")
+    speed_rpm: tuple[float, float] = Field(..., description="[from, to] of the ramp, rpm (from < to)")
+    rate_rpm_per_s: float = Field(100.0, gt=0, le=5000.0, description="ramp rate, rpm/s")
+    direction: Literal["up", "down", "both"] = Field("up", description="up: from -> to; down: to -> from; both")
+    injection: Literal["off", "lut", "theta"] = Field(
+        "off", description="off; lut: the LUT in the drive; theta: a fixed theta (field `theta`)"
+    )
+    theta: ThetaSetpoint | None = Field(None, description="with injection = theta: the theta applied throughout")
+    orders: list[int] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_ORDER,
+        description=f"electrical orders to track (1..{MAX_ORDER}); default the harmonic order and orders 1..48",
+    )
+    bin_rpm: float = Field(10.0, ge=1.0, le=10.0, description="speed bin width of the order analysis, rpm")
+    override_envelope_model: bool = Field(
+        False, description="run where the envelope model of the motor settings refuses (never the hard limits)"
+    )
+    bench: str | None = Field(None, description="the bench it runs on; default this service's")
+
+    @field_validator("orders")
+    @classmethod
+    def _orders_in_range(cls, orders: list[int] | None) -> list[int] | None:
+        if orders is None:
+            return None
+        bad = [h for h in orders if not 1 <= h <= MAX_ORDER]
+        if bad:
+            raise ValueError(f"orders {bad} outside 1..{MAX_ORDER}")
+        return sorted(set(orders))
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RunupRequest:
+        lo, hi = self.speed_rpm
+        if not lo < hi:
+            raise ValueError(f"speed_rpm [from, to] = [{lo:g}, {hi:g}]: from must be below to")
+        if self.injection == "theta" and self.theta is None:
+            raise ValueError("injection 'theta' needs the field theta {theta_cos, theta_sin}")
+        if self.injection != "theta" and self.theta is not None:
+            raise ValueError(f"theta is given but injection is {self.injection!r} (use injection 'theta')")
+        return self
+
+    def ramp_s(self) -> float:
+        """Plant seconds of one direction's ramp at the requested rate."""
+        return (self.speed_rpm[1] - self.speed_rpm[0]) / self.rate_rpm_per_s
+
+    def orders_tracked(self, harmonic_order: int) -> list[int]:
+        return self.orders if self.orders is not None else sorted({harmonic_order, *SURVEY_ORDERS})
+
+    def legs(self) -> list[tuple[float, float]]:
+        """The ramps run, in order: (from_rpm, to_rpm) each."""
+        lo, hi = self.speed_rpm
+        return {"up": [(lo, hi)], "down": [(hi, lo)], "both": [(lo, hi), (hi, lo)]}[self.direction]
+
+
+def check_runup(req: RunupRequest, settings: Settings) -> None:
+    """Refuse (Invalid / LimitError / EnvelopeError naming the field) a run-up this bench may not run (module doc)."""
+    lo, hi = req.speed_rpm
+    for speed_rpm in (lo, hi):
+        check_limits(OperatingPoint(torque_nm=req.torque_nm, speed_rpm=speed_rpm, udc_v=req.udc_v), settings)
+    if req.ramp_s() > MAX_RAMP_S:
+        why = (
+            f"the ramp takes {req.ramp_s():.0f} s per direction at {req.rate_rpm_per_s:g} rpm/s; at most "
+            f"{MAX_RAMP_S:g} s: raise rate_rpm_per_s or narrow speed_rpm"
+        )
+        raise Invalid(why, (("rate_rpm_per_s", why),))
+    steps = max(1, math.ceil((hi - lo) / ENVELOPE_STEP_RPM))
+    for speed_rpm in np.linspace(lo, hi, steps + 1):
+        op = OperatingPoint(torque_nm=req.torque_nm, speed_rpm=float(speed_rpm), udc_v=req.udc_v)
+        check_point(op, settings, req.override_envelope_model)
+
+
+def measure_runup(
+    run: BenchRun,
+    settings: Settings,
+    req: RunupRequest,
+    recorder: Any = None,
+) -> dict[str, Any]:
+    """The run-up inside an open run (module doc): its result as stored and answered."""
+    h = run.harmonic_order
+    legs = req.legs()
+    start = OperatingPoint(torque_nm=req.torque_nm, speed_rpm=legs[0][0], udc_v=req.udc_v)
+    commands = run.commands
+    pole_pairs = settings.motor.pole_pairs
+    with run.operating_point(start) as session:
+        if req.injection == "lut":
+            session.apply_injection_mode("lut")
+        elif req.injection == "theta" and req.theta is not None:
+            session.apply_theta(req.theta.theta_cos, req.theta.theta_sin)
+        else:
+            session.apply_injection_mode("off")
+        session.recorder = recorder
+        try:
+            ramps = [ramp_speed(session, commands, a, b, req.rate_rpm_per_s, pole_pairs) for a, b in legs]
+        finally:
+            session.recorder = None
+        commands.restore_full_ramp()
+        # the ramps' samples (the load setpoint is no drive setpoint: the session's clock does not count them)
+        # and the settling at the first speed
+        settle_s = session.op_settle_plant_s or 0.0
+        torque_actual_nm, _ = run.torque_actual()
+    # the legs follow each other in the stream without a break: one record, each bin averaging both directions
+    samples = DecodedSamples.concat(ramps)
+    ramp_plant_s = (int(samples.index[-1]) - int(samples.index[0]) + 1) / settings.daq.sample_rate_hz
+    track = track_orders(
+        samples.angle_rad,
+        samples.accel_fs,
+        settings.daq.sample_rate_hz,
+        pole_pairs,
+        req.orders_tracked(h),
+        bin_width_rpm=req.bin_rpm,
+        gap_before=samples.gap_before,
+        mode=run.bench.resonance.mode,
+    )
+    return {
+        **track_public(track, req.speed_rpm),
+        "harmonic_order": h,
+        "torque_nm": req.torque_nm,
+        "torque_actual_nm": torque_actual_nm,
+        "udc_v": req.udc_v,
+        "direction": req.direction,
+        "injection": req.injection,
+        "rate_rpm_per_s": req.rate_rpm_per_s,
+        "plant_time_s": settle_s + ramp_plant_s,
+        "ramp_plant_s": ramp_plant_s,
+        "samples": len(samples),
+    }
+
+
+def _finite_or_none(values: np.ndarray) -> list[float | None]:
+    return [float(v) if math.isfinite(v) else None for v in values]
+
+
+def track_public(track: OrderTrack, speed_range_rpm: tuple[float, float]) -> dict[str, Any]:
+    """The order analysis as a run-up's result holds it (DESIGN section 6): bins within the requested range (the
+    shaft holding its end speeds may add a bin just beyond either end), NaN (an order not fitted, an empty bin)
+    as null."""
+    lo, hi = speed_range_rpm
+    keep = (track.speed_rpm >= lo - track.bin_width_rpm) & (track.speed_rpm <= hi + track.bin_width_rpm)
+    return {
+        "speed_rpm": [float(v) for v in track.speed_rpm[keep]],
+        "orders": list(track.orders),
+        "amplitude": [_finite_or_none(row[keep]) for row in track.amplitude_fs],
+        "phase_deg": [_finite_or_none(row[keep]) for row in track.phase_deg],
+        "noise_floor": _finite_or_none(track.noise_floor_fs[keep]),
+        "windows": [int(v) for v in track.windows[keep]],
+        "bin_rpm": track.bin_width_rpm,
+    }
+
+
+def runup_in_run(
+    bench: Any, settings: Settings, req: RunupRequest, cancel: threading.Event | None, recorder: Any = None
+) -> dict[str, Any]:
+    """A run-up as a run of its own: the bench held, the interlocks armed, made safe at the end."""
+    with bench.run(settings.identification.harmonic_order, cancel=cancel) as run:
+        return measure_runup(run, settings, req, recorder)
