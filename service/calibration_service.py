@@ -307,22 +307,17 @@ class CalibrationService:
     def delete_schedule(self, schedule_id: int) -> None:
         schedules.delete_schedule(self.storage, self.now(), schedule_id)
 
-    # --- what only the running service knows about a stored row (the public shapes ask, service/api/) ----
-    def waiting_for(self, bench: str | None) -> str | None:
-        """What a job or sweep of `bench` waits for (None: this service runs it)."""
-        return self.lab.waiting_for(bench)
-
-    def as_seen(self, sweep: SweepRecord) -> SweepRecord:
-        """A sweep whose run waits for the database shows paused with why (the engine holds it)."""
-        return sweep if self.engine is None else self.engine.as_seen(sweep)
-
+    # --- a stored sweep as its run sees it (the engine's view over the storage's row) --------------------
     def seen_sweep(self, sweep_id: int) -> SweepRecord | None:
-        """The stored sweep as its run sees it (`as_seen`)."""
         sweep = self.storage.get_sweep(sweep_id)
-        return None if sweep is None else self.as_seen(sweep)
+        return None if sweep is None else self._as_seen(sweep)
 
     def seen_sweeps(self, limit: int) -> list[SweepRecord]:
-        return [self.as_seen(s) for s in self.storage.list_sweeps(limit)]
+        return [self._as_seen(s) for s in self.storage.list_sweeps(limit)]
+
+    def _as_seen(self, sweep: SweepRecord) -> SweepRecord:
+        """A sweep whose run waits for the database shows paused with why (the engine holds it)."""
+        return sweep if self.engine is None else self.engine.as_seen(sweep)
 
     def _poll_status(self, period_s: float) -> None:
         # fixed rate (not period + read time), so slow reads do not drop the rate below 1/period_s

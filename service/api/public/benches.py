@@ -37,4 +37,4 @@ def queued_waiting_for(service: CalibrationService | None, row: Mapping[str, Any
     None without one, as the CLI reads the database alone)."""
     if row["state"] != "queued" or service is None:
         return None
-    return service.waiting_for(row.get("bench"))
+    return service.lab.waiting_for(row.get("bench"))
