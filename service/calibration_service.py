@@ -1,6 +1,8 @@
 """The service layer: settings, storage, bench, engine and events wired together.
 
-API routes and the CLI call this; they hold no logic of their own. With `bench_mode = "emulate"`
+API routes and the CLI call this for what takes more than one part (a submission with its checks, a
+download, a schedule, a sweep as its run sees it) and read the rest from the part that owns it
+(`records`, `bench`, `engine`, `lab`); they hold no logic of their own. With `bench_mode = "emulate"`
 the emulator is started as a child process and its endpoints fill the bench settings, so the rest
 of the service sees only wires and settings strings.
 """
@@ -18,29 +20,23 @@ from service import __version__
 from service.bench.bench import Bench, BenchError, BenchUnreachable
 from service.bench.emulator_process import EmulatorProcess
 from service.errors import BenchFailed, Conflict, not_found
-from service.maps.compare import compare_maps
 from service.runs import lut_download, schedules
 from service.runs.engine import Engine
 from service.runs.events import EventBroker
-from service.runs.lab import Lab, LabWatch, bench_state, is_own_bench, new_instance_id
+from service.runs.lab import Lab, LabWatch, bench_state, new_instance_id
 from service.runs.schedules import Clock, Scheduler, utc_now
 from service.settings import Settings
 from service.store.db_claim import DatabaseClaim
 from service.store.engines import database_claim
 from service.store.recordings import RecordingStore, RecordingUnavailable, recordings_directory
-from service.store.records import (
-    JobRecord,
-    MapRecord,
-    MapSummaryRecord,
-    ResultRecord,
-    ScheduleRecord,
-    ScheduleRunRecord,
-    SweepRecord,
-    ValidationRecord,
-)
+from service.store.records import SweepRecord
 from service.store.storage import Storage
 
 log = logging.getLogger(__name__)
+
+# what the API and the CLI read stored rows through: the storage itself, whose reads return the records of
+# service/store/records.py (its writes are the engine's, the schedules' and the lab's)
+Records = Storage
 
 LAB_PERIOD_S = 1.0  # the bench's heartbeat and the look at other benches' progress
 # a shutdown's bounds (a database that hangs must not hold it: the bench is made safe before any of them)
@@ -257,24 +253,17 @@ class CalibrationService:
         self.broker.publish("bench.status", self.bench.status())
         return result
 
-    # --- what the API routes call: commands ----------------------------------------------------------
-    # (routes never reach into the parts: the engine, the bench, the storage are this layer's business)
-    def bench_status(self) -> dict[str, Any]:
-        return self.bench.status()
-
-    def bench_identity(self) -> str:
-        return self.bench.identity
-
-    def submit_identification(self, op, method: str, options, bench: str | None = None) -> int:
-        return self.engine.submit_identification(op, method, options, bench=bench)
+    # --- what the API routes and the CLI call: what takes more than one part of the service -------------
+    # (a plain read goes to the part that owns it: `records` for the stored rows, `bench`, `engine`, `lab`)
+    @property
+    def records(self) -> Records:
+        """The stored records as the layers above read them (jobs, sweeps, results, maps, validations,
+        schedules, tokens; service/store/records.py types each row)."""
+        return self.storage
 
     def cancel_job(self, job_id: int) -> None:
         with not_found(f"job {job_id} does not exist"):
             self.engine.cancel_job(job_id)
-
-    def submit_sweep(self, grid, method: str, options, regime=None, bench: str | None = None, planned=None) -> int:
-        """`planned`: the grid's plan (service.runs.plans.plan_grid) when the caller made it already."""
-        return self.engine.submit_sweep(grid, method, options, regime=regime, bench=bench, planned=planned)
 
     def control_sweep(self, sweep_id: int, action: str) -> None:
         """`action`: pause | resume | cancel."""
@@ -299,9 +288,6 @@ class CalibrationService:
         except Exception as exc:  # SDO abort / timeout: the drive refused or did not answer
             raise BenchFailed(f"drive refused the LUT: {exc}") from None
 
-    def compare_maps(self, map_a: int, map_b: int):
-        return compare_maps(self.storage, map_a, map_b)
-
     def open_recording(self, result_id: int):
         """The result's raw recording, open for reading (RecordingUnavailable says why there is none)."""
         if self.recordings is None:
@@ -321,71 +307,17 @@ class CalibrationService:
     def delete_schedule(self, schedule_id: int) -> None:
         schedules.delete_schedule(self.storage, self.now(), schedule_id)
 
-    # --- what the API routes call: reads (the public shapes are built from these, service/api/public.py) --
-    def token_role(self, token: str) -> str | None:
-        return self.storage.token_role(token)
-
-    def benches(self) -> list[dict[str, Any]]:
-        """Every bench of the lab (service/runs/lab.py Lab.overview)."""
-        return self.lab.overview()
-
-    def own_bench(self) -> str:
-        return self.settings.bench_name
-
-    def is_own_bench(self, bench: str | None) -> bool:
-        """Whether a request for `bench` runs on this service's bench (none named: it does)."""
-        return is_own_bench(bench, self.settings.bench_name)
-
-    def waiting_for(self, bench: str | None) -> str | None:
-        """What a job or sweep of `bench` waits for (None: this service runs it)."""
-        return self.lab.waiting_for(bench)
-
-    def get_job(self, job_id: int) -> JobRecord | None:
-        return self.storage.get_job(job_id)
-
-    def list_jobs(self, limit: int) -> list[JobRecord]:
-        return self.storage.list_jobs(limit)
-
-    def get_result(self, result_id: int) -> ResultRecord | None:
-        return self.storage.get_result(result_id)
-
-    def validation_of_job(self, job_id: int) -> ValidationRecord | None:
-        return self.storage.validation_of_job(job_id)
-
-    def get_sweep(self, sweep_id: int) -> SweepRecord | None:
+    # --- a stored sweep as its run sees it (the engine's view over the storage's row) --------------------
+    def seen_sweep(self, sweep_id: int) -> SweepRecord | None:
         sweep = self.storage.get_sweep(sweep_id)
         return None if sweep is None else self._as_seen(sweep)
 
-    def list_sweeps(self, limit: int) -> list[SweepRecord]:
+    def seen_sweeps(self, limit: int) -> list[SweepRecord]:
         return [self._as_seen(s) for s in self.storage.list_sweeps(limit)]
 
     def _as_seen(self, sweep: SweepRecord) -> SweepRecord:
         """A sweep whose run waits for the database shows paused with why (the engine holds it)."""
         return sweep if self.engine is None else self.engine.as_seen(sweep)
-
-    def sweep_results(self, sweep_id: int) -> list[ResultRecord]:
-        return self.storage.sweep_results(sweep_id)
-
-    def sweep_outcome(self, sweep_id: int) -> dict:
-        return self.storage.sweep_outcome(sweep_id)
-
-    def get_map(self, map_id: int) -> MapRecord | None:
-        return self.storage.get_map(map_id)
-
-    def list_maps(self, limit: int) -> list[MapSummaryRecord]:
-        return self.storage.list_maps(limit)
-
-    def latest_validation(self, map_id: int) -> ValidationRecord | None:
-        return self.storage.latest_validation(map_id)
-
-    def get_schedule(self, schedule_id: int) -> ScheduleRecord | None:
-        return self.storage.get_schedule(schedule_id)
-
-    def list_schedules(self, limit: int) -> list[ScheduleRecord]:
-        return self.storage.list_schedules(limit)
-
-    def schedule_runs(self, schedule_id: int, limit: int) -> list[ScheduleRunRecord]:
-        return self.storage.schedule_runs(schedule_id, limit)
 
     def _poll_status(self, period_s: float) -> None:
         # fixed rate (not period + read time), so slow reads do not drop the rate below 1/period_s

@@ -51,7 +51,7 @@ def require_role(minimum: str):
                 f"(at most {throttle.max_failures} wrong tokens per {throttle.window_s:g} s)",
                 headers={"Retry-After": str(retry_after_s)},
             )
-        role = service.token_role(credentials.credentials)
+        role = service.records.token_role(credentials.credentials)
         if role is None:
             throttle.failed(client)
             raise HTTPException(

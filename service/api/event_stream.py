@@ -9,7 +9,7 @@ from typing import AsyncIterator
 
 from fastapi import Request
 
-from service.api.public import result_public
+from service.api.public.results import result_public
 from service.runs.events import END, format_sse
 
 KEEP_ALIVE_S = 15.0  # a comment line this often keeps proxies and browsers from closing a quiet stream
@@ -19,7 +19,7 @@ async def event_stream(request: Request, service, token) -> AsyncIterator[str]:
     """The events of the subscription `token` (service.broker.subscribe()), which it ends when it ends."""
     _, queue = token
     try:
-        yield format_sse("bench.status", json.dumps(service.bench_status(), default=str))
+        yield format_sse("bench.status", json.dumps(service.bench.status(), default=str))
         while not service.broker.closed:
             if await request.is_disconnected():
                 break
@@ -42,6 +42,6 @@ def _with_result(service, data: str) -> str:
     shows a result in a list, without traces."""
     point = json.loads(data)
     rid = point.pop("result_id", None)
-    row = service.get_result(rid) if rid is not None else None
+    row = service.records.get_result(rid) if rid is not None else None
     point["result"] = result_public(row, with_traces=False).model_dump() if row is not None else None
     return json.dumps(point, default=str)

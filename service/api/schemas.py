@@ -1,4 +1,4 @@
-"""Request schemas (the Create family) and the error answer; the Public family lives in service.api.public.
+"""Request schemas (the Create family) and the error answer; the Public family lives in service/api/public/.
 
 A request names its method and carries that method's options: a discriminated union built from the
 method registry, so /docs lists every method's options with their bounds and units, and a new

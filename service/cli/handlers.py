@@ -109,7 +109,7 @@ def _path_without_query(record: logging.LogRecord) -> bool:
 
 def cmd_identify(args) -> int:
     """One operating point; its states and accepted windows on stderr as the engine publishes them."""
-    from service.api.public import result_public
+    from service.api.public.results import result_public
     from service.calibration_service import CalibrationService
     from service.model.operating_point import OperatingPoint
     from service.runs.identify import parse_options
@@ -123,14 +123,14 @@ def cmd_identify(args) -> int:
         progress = output.JobProgress()
 
         def finished(job_id: int) -> dict | None:
-            job = service.get_job(job_id)
+            job = service.records.get_job(job_id)
             return job if job["state"] in JOB_FINAL else None
 
         job_id = None
 
         def submit() -> int:
             nonlocal job_id
-            job_id = progress.queued(service.submit_identification(op, args.method, options))
+            job_id = progress.queued(service.engine.submit_identification(op, args.method, options))
             return job_id
 
         job = follow(
@@ -144,7 +144,7 @@ def cmd_identify(args) -> int:
                 f"identification job {j} did not finish within {args.timeout:g} s (--timeout); it was cancelled"
             ),
         )
-        result = result_public(service.get_result(job["result_id"])).model_dump() if job["result_id"] else None
+        result = result_public(service.records.get_result(job["result_id"])).model_dump() if job["result_id"] else None
     output.identification(op, job_id, job, result, display_location(settings.server.db_path), args.json)
     return 0 if job["state"] == "done" else 1
 
@@ -164,7 +164,7 @@ def cmd_sweep(args) -> int:
         progress = output.SweepProgress()
 
         def finished(sweep_id: int) -> dict | None:
-            s = service.get_sweep(sweep_id)
+            s = service.seen_sweep(sweep_id)
             progress.show(sweep_id, s)
             return s if s["state"] in JOB_FINAL else None
 
@@ -172,7 +172,7 @@ def cmd_sweep(args) -> int:
 
         def submit() -> int:
             nonlocal sweep_id
-            sweep_id = service.submit_sweep(grid, args.method, options)
+            sweep_id = service.engine.submit_sweep(grid, args.method, options)
             return sweep_id
 
         sweep = follow(
@@ -188,7 +188,7 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from service.api.public import map_public
+    from service.api.public.maps import map_public
     from service.maps.lut_export import export_map
 
     settings = settings_from(args)
@@ -225,7 +225,7 @@ def cmd_schedule(args) -> int:
     next pass (schedules.tick_s), as it reads tokens made by `token create`."""
     from pydantic import TypeAdapter, ValidationError
 
-    from service.api.public import schedule_public
+    from service.api.public.schedules import schedule_public
     from service.api.schemas import SweepCreate
     from service.runs.schedules import (
         check_cron,
@@ -288,7 +288,7 @@ def cmd_schedule(args) -> int:
 def cmd_maps(args) -> int:
     if args.maps_cmd == "download":
         return _download_map(args)
-    from service.api.public import map_public
+    from service.api.public.maps import map_public
 
     storage = storage_from(args)
     maps = [map_public(storage, row["id"]) for row in storage.list_maps(args.limit)]
@@ -338,7 +338,7 @@ def _download_map(args) -> int:
 
 
 def cmd_sweeps(args) -> int:
-    from service.api.public import sweep_public
+    from service.api.public.sweeps import sweep_public
 
     storage = storage_from(args)
     if args.sweeps_cmd == "show":

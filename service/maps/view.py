@@ -2,7 +2,7 @@
 a fill where the fill rule gave one, service/maps/fill.py), each ok cell's quality against its
 neighbours (service/maps/quality.py) and, on request, the smoothed view. The LUT, its exports, the
 download, the validation and the comparison all read a map through `map_view`; the API publishes it
-(service/api/public.py adds the latest validation)."""
+(service/api/public/maps.py adds the latest validation)."""
 
 from __future__ import annotations
 

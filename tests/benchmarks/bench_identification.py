@@ -13,7 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from service.api.public import result_public
+from service.api.public.results import result_public
 from service.calibration_service import CalibrationService
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import parse_options

@@ -32,7 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from service.api.public import validation_public
+from service.api.public.validations import validation_public
 from service.calibration_service import CalibrationService
 from service.runs.identify import parse_options
 from service.runs.plans import Grid

@@ -18,7 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from service.api.public import job_public, map_public
+from service.api.public.jobs import job_public
+from service.api.public.maps import map_public
 from service.calibration_service import CalibrationService
 from service.runs.identify import parse_options
 from service.runs.plans import Grid

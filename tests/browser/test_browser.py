@@ -787,7 +787,7 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
     service's message and no way around; a partial map goes with its fill, and without the fill it is
     refused until "download anyway" (force)."""
     from drivers.lut_image import crc_hex, image_crc
-    from service.api.public import map_public
+    from service.api.public.maps import map_public
     from service.maps.lut_export import lut_image
     from service.store.storage import Storage
     from tests.support.stored_maps import CELLS, stored_map

@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.api.public import map_public
+from service.api.public.maps import map_public
 from service.maps.lut_export import lut_image
 from service.store.storage import Storage
 from tests.support.service_process import REPO, free_port, make_run

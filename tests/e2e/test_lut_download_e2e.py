@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from drivers.lut_image import DEFAULT_INTERPOLATION, crc_hex, image_crc
-from service.api.public import map_public
+from service.api.public.maps import map_public
 from service.maps.lut_export import lut_image
 from service.store.storage import Storage
 from tests.support.service_process import ServiceProcess, create_token

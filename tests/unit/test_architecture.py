@@ -36,8 +36,8 @@ BELOW_API = (
     "service.model",
     "service.settings",
 )
-# what routes never reach into: the machinery behind CalibrationService (the page: routes talk to the
-# service layer only; from below they take declarations and pure functions)
+# what the API never imports: the machinery behind CalibrationService (the page: routes reach it only
+# through the running service and the parts it holds; from below they take declarations and pure functions)
 API_NEVER = (
     "service.runs.engine",
     "service.runs.sweep_run",

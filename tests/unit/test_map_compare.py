@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from service.api.public import map_public
+from service.api.public.maps import map_public
 from service.maps.compare import compare_maps, wrap_deg
 from tests.support.maps import RESIDUAL, S_MEASURED, UNCOMPENSATED, make_map, theta_of
 

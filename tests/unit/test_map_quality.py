@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from service.api.public import map_public
+from service.api.public.maps import map_public
 from service.maps import quality as map_quality
 from service.maps.lut_export import export_map
 from tests.support.maps import make_map, theta_of

@@ -7,7 +7,8 @@ import statistics
 
 import pytest
 
-from service.api.public import job_public, map_public
+from service.api.public.jobs import job_public
+from service.api.public.maps import map_public
 from service.identification.adaptive import AdaptiveOptions
 from service.maps.build import build_map_from_sweep
 from service.maps.lut_export import export_map

@@ -12,7 +12,7 @@ import pytest
 from asammdf import MDF
 
 from drivers.daq_protocol import ACCEL_FULL_SCALE_COUNTS, FrameDecoder, encode_frames
-from service.api.public import result_public
+from service.api.public.results import result_public
 from service.model.operating_point import OperatingPoint
 from service.settings import SettingsError, load_settings
 from service.store.recordings import RecordingStore, RecordingUnavailable, RunRecorder, header_properties

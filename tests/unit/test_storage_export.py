@@ -13,7 +13,7 @@ import subprocess
 import pytest
 
 from service import __version__
-from service.api.public import map_public
+from service.api.public.maps import map_public
 from service.maps.build import build_map_from_sweep
 from service.maps.lut_export import export_map
 from service.store.migrations import migration_files

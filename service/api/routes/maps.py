@@ -9,19 +9,12 @@ from fastapi.responses import PlainTextResponse
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
-from service.api.public import (
-    JobPublic,
-    MapPublic,
-    MapSummaryPublic,
-    ValidationPublic,
-    job_public,
-    map_public,
-    map_summaries,
-    validation_public,
-)
+from service.api.public.jobs import JobPublic, job_public
+from service.api.public.maps import MapPublic, MapSummaryPublic, map_public, map_summaries
+from service.api.public.validations import ValidationPublic, validation_public
 from service.api.refusals import refusals_at
 from service.api.schemas import ValidationCreate
-from service.maps.compare import MapComparison
+from service.maps.compare import MapComparison, compare_maps
 from service.maps.lut_export import EXPORT_FORMATS, export_map
 from service.runs import lut_download
 from service.runs.refinement import RefineRequest
@@ -39,12 +32,12 @@ Smooth = Literal["none", "outliers"]
 
 @router.get("/maps", response_model=list[MapSummaryPublic])
 def list_maps(service: ServiceDep, limit: int = Query(50, ge=1, le=1000)) -> list[MapSummaryPublic]:
-    return map_summaries(service, limit)
+    return map_summaries(service.records, limit)
 
 
 @router.get("/maps/{map_id}", response_model=MapPublic, responses=error_responses(404))
 def get_map(map_id: ResourceId, service: ServiceDep, smooth: Smooth = SmoothQuery) -> MapPublic:
-    m = map_public(service, map_id, smooth=smooth == "outliers")
+    m = map_public(service.records, map_id, smooth=smooth == "outliers")
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m
@@ -89,7 +82,7 @@ def compare(map_id: ResourceId, other_id: ResourceId, service: ServiceDep) -> Ma
     """Map `other_id` (b) against map `map_id` (a) at the operating points both hold: delta gamma, delta
     delta, delta theta, and the suppression b's theta would reach on a's bench (a's measured S).
     A map compared with itself is allowed (zero deltas; the prediction is its measured suppression)."""
-    return service.compare_maps(map_id, other_id)  # a map that does not exist: 404; other harmonics: 422
+    return compare_maps(service.records, map_id, other_id)  # a map that does not exist: 404; other harmonics: 422
 
 
 @router.post(
@@ -137,7 +130,7 @@ def validate_map(
     grid point and at the midpoints between them (uncompensated and with the drive's own feedforward)."""
     body = body or ValidationCreate()
     job_id = service.submit_validation(map_id, body.force, body.options, bench=body.bench)
-    return job_public(service, service.get_job(job_id))
+    return job_public(service.records, service.records.get_job(job_id), service)
 
 
 @router.post(
@@ -154,15 +147,15 @@ def refine_map(map_id: ResourceId, service: ServiceDep, _: OperatorDep, body: Re
     accepted (its non-ok cells are measured again first). The job's result names the refined map."""
     body = body or RefineRequest()
     job_id = service.submit_refinement(map_id, body, bench=body.bench)
-    return job_public(service, service.get_job(job_id))
+    return job_public(service.records, service.records.get_job(job_id), service)
 
 
 @router.get("/maps/{map_id}/validation", response_model=ValidationPublic, responses=error_responses(404))
 def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
     """The map's latest validation with every cell."""
-    if service.get_map(map_id) is None:
+    if service.records.get_map(map_id) is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
-    row = service.latest_validation(map_id)
+    row = service.records.latest_validation(map_id)
     if row is None:
         raise HTTPException(
             status.HTTP_404_NOT_FOUND, f"map {map_id} has not been validated: POST /maps/{map_id}/validate"
@@ -172,7 +165,7 @@ def get_validation(map_id: ResourceId, service: ServiceDep) -> ValidationPublic:
 
 def _map_dict(service, map_id: int, smooth: bool = False) -> dict:
     """The map as the exporters read it (its Public shape, as a dict)."""
-    m = map_public(service, map_id, smooth=smooth)
+    m = map_public(service.records, map_id, smooth=smooth)
     if m is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"map {map_id} does not exist")
     return m.model_dump()

@@ -10,7 +10,7 @@ from fastapi.responses import StreamingResponse
 
 from service.api.deps import ResourceId, ServiceDep
 from service.api.errors import error_responses
-from service.api.public import ResultPublic, result_public
+from service.api.public.results import ResultPublic, result_public
 from service.store.recordings import RECORDING_FORMATS
 
 router = APIRouter(prefix="/api/v1", tags=["results"])
@@ -20,7 +20,7 @@ RecordingFormatName = Literal[tuple(RECORDING_FORMATS)]
 
 @router.get("/results/{result_id}", response_model=ResultPublic, responses=error_responses(404))
 def get_result(result_id: ResourceId, service: ServiceDep) -> ResultPublic:
-    row = service.get_result(result_id)
+    row = service.records.get_result(result_id)
     if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"result {result_id} does not exist")
     return result_public(row)

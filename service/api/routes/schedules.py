@@ -9,7 +9,7 @@ from fastapi import APIRouter, HTTPException, Query, Response, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
-from service.api.public import SchedulePreviewPublic, SchedulePublic, schedule_public
+from service.api.public.schedules import SchedulePreviewPublic, SchedulePublic, schedule_public
 from service.api.refusals import refusals_at
 from service.api.schemas import ScheduleCreate, ScheduleUpdate
 from service.runs.schedules import MAX_PREVIEW_RUNS, iso, preview_runs
@@ -23,10 +23,10 @@ _REFUSED = refusals_at(
 
 
 def _public(service, schedule_id: int) -> SchedulePublic:
-    row = service.get_schedule(schedule_id)
+    row = service.records.get_schedule(schedule_id)
     if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"schedule {schedule_id} does not exist")
-    return schedule_public(service, row, service.now())
+    return schedule_public(service.records, row, service.now())
 
 
 # before /schedules/{schedule_id}, so "preview" is not read as an id
@@ -66,7 +66,7 @@ def create(body: ScheduleCreate, service: ServiceDep, _: OperatorDep) -> Schedul
 @router.get("/schedules", response_model=list[SchedulePublic])
 def list_schedules(service: ServiceDep, limit: int = Query(100, ge=1, le=1000)) -> list[SchedulePublic]:
     now = service.now()
-    return [schedule_public(service, row, now) for row in service.list_schedules(limit)]
+    return [schedule_public(service.records, row, now) for row in service.records.list_schedules(limit)]
 
 
 @router.get("/schedules/{schedule_id}", response_model=SchedulePublic, responses=error_responses(404))

@@ -1,0 +1,64 @@
+"""A map refined on the drive (a sweep of kind refinement): its rounds and its latest validation."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Mapping
+
+from pydantic import BaseModel, Field
+
+from service.api.public.validations import ValidationSummaryPublic, validation_summary_public
+
+if TYPE_CHECKING:
+    from service.calibration_service import Records
+
+
+class RefinementRoundPublic(BaseModel):
+    round: int = Field(description="0: the source map (its non-ok cells measured again first); k: after k insertions")
+    map_id: int = Field(description="the map validated in this round")
+    validation_id: int | None = None
+    points: int = Field(description="validation points (grid points and midpoints)")
+    below_target: int = Field(description="points below the target (or not measured)")
+    grid_median_db: float | None = None
+    midpoint_median_db: float | None = None
+    min_db: float | None = None
+    inserted: dict[str, list[float]] = Field(default_factory=dict, description="axis values inserted after it")
+    remeasured: int = Field(0, description="cells identified again after it (their LUT entry missed at the cell)")
+    new_cells: int = Field(0, description="cells the inserted values added")
+
+
+class RefinementPublic(BaseModel):
+    """A map refined on the drive until its LUT holds (service/runs/refinement.py)."""
+
+    refinement_id: int = Field(description="its sweep (kind refinement): pause, resume, cancel there")
+    source_map_id: int
+    map_id: int = Field(description="the refined map (the latest round's)")
+    state: str
+    phase: str = Field(description="measure | validate | done")
+    target_db: float
+    max_cells: int
+    cells_added: int = Field(description="cells identified by the refinement (new and re-measured)")
+    holds: bool = Field(description="every point of the latest validation reached target_db")
+    stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds)")
+    rounds: list[RefinementRoundPublic]
+    validation: ValidationSummaryPublic | None = Field(None, description="the latest validation of map_id")
+
+
+def refinement_public(records: Records, sweep: Mapping[str, Any]) -> RefinementPublic:
+    state = sweep["refinement"]
+    latest = records.latest_validation(state["current_map_id"])
+    rounds = [RefinementRoundPublic(**r) for r in state["rounds"]]
+    holds = bool(rounds) and rounds[-1].below_target == 0 and rounds[-1].map_id == state["current_map_id"]
+    return RefinementPublic(
+        refinement_id=sweep["id"],
+        source_map_id=sweep["source_map_id"],
+        map_id=state["current_map_id"],
+        state=sweep["state"],
+        phase=state["phase"],
+        target_db=state["target_db"],
+        max_cells=state["max_cells"],
+        cells_added=state["cells_added"],
+        holds=holds,
+        stopped=state.get("stopped"),
+        rounds=rounds,
+        validation=validation_summary_public(latest) if latest else None,
+    )

@@ -1,0 +1,91 @@
+"""A map's validation in the drive's LUT mode: every cell, and the figures a summary shows."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+from pydantic import BaseModel, Field
+
+from service.api.public.results import PhasorPublic
+from service.model.operating_point import OperatingPoint
+
+
+class ValidationCellPublic(BaseModel):
+    """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
+
+    operating_point: OperatingPoint
+    kind: str = Field(description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated)")
+    status: str = Field(description="measured | failed (error says why) | not_measured (the run stopped first)")
+    error: str | None = None
+    suppression_db: float | None = Field(None, description="20 log10(|uncompensated| / |residual|), only if measured")
+    uncompensated: PhasorPublic | None = Field(None, description="injection off")
+    residual: PhasorPublic | None = Field(None, description="the drive's own LUT feedforward (injection mode 2)")
+    noise_floor_db: float | None = Field(None, description="rms noise phasor of the LUT window against |uncompensated|")
+    at_noise_floor: bool | None = Field(
+        None, description="the residual is within 3 noise rms of zero: suppression_db is a lower bound"
+    )
+    plant_time_s: float | None = None
+    speed_rpm_measured: float | None = None
+    harmonic_frequency_hz: float | None = None
+    map_cell_status: str | None = Field(None, description="grid points: the map cell's status")
+    map_cell_filled: bool | None = Field(
+        None, description="grid points: the cell went into the LUT with its fill (not ok, service/maps/fill.py)"
+    )
+    bench_time_s: dict[str, float] | None = Field(
+        None, description="wall seconds of the point by what they were spent on: move, accounting, settle, measurement"
+    )
+
+
+class ValidationSummaryPublic(BaseModel):
+    """A validation's figures: per kind (grid, midpoint) the cells, how many were measured, failed or
+    not measured, and the median / minimum suppression of the measured ones (dB); the worst cell."""
+
+    id: int
+    job_id: int
+    map_id: int
+    state: str = Field(
+        description="running (stored as it measures) | done | failed (interlock, error or the "
+        "service stopped: see error) | cancelled"
+    )
+    error: str | None = None
+    finished_at: str | None = None
+    download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
+    grid: dict[str, Any]
+    midpoint: dict[str, Any]
+    worst: dict[str, Any] | None = None
+    plant_time_s: float
+
+
+class ValidationPublic(ValidationSummaryPublic):
+    harmonic_order: int
+    options: dict[str, Any]
+    bench_identity: str
+    software_version: str
+    started_at: str
+    cells: list[ValidationCellPublic]
+
+
+def validation_summary_public(row: Mapping[str, Any]) -> ValidationSummaryPublic:
+    summary = row["summary"]
+    return ValidationSummaryPublic(
+        id=row["id"],
+        job_id=row["job_id"],
+        map_id=row["map_id"],
+        state=row["state"],
+        error=row["error"],
+        finished_at=row["finished_at"],
+        download=row["download"],
+        **summary,
+    )
+
+
+def validation_public(row: Mapping[str, Any]) -> ValidationPublic:
+    return ValidationPublic(
+        **validation_summary_public(row).model_dump(),
+        harmonic_order=row["harmonic_order"],
+        options=row["options"],
+        bench_identity=row["bench_identity"],
+        software_version=row["software_version"],
+        started_at=row["started_at"],
+        cells=row["cells"],
+    )
