@@ -7,7 +7,7 @@ before the database is asked; another bench's sweep is asked through the databas
 from __future__ import annotations
 
 import threading
-from typing import Protocol
+from typing import Any, Protocol
 
 from service.bench.bench import Bench
 from service.maps.build import build_map_from_sweep
@@ -21,6 +21,7 @@ from service.runs.states import (
     TransitionError,
     check_transition,
 )
+from service.runs.sweep_run import stored_sweep
 from service.store.storage import Storage, StorageUnavailable, now_iso
 
 
@@ -34,8 +35,8 @@ class ControlHost(Protocol):
     @property
     def lock(self) -> threading.RLock: ...
     def is_own(self, bench: str | None) -> bool: ...
-    def set_job(self, job_id: int, target: JobState, **fields) -> None: ...
-    def set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None: ...
+    def set_job(self, job_id: int, target: JobState, **fields: Any) -> None: ...
+    def set_sweep(self, sweep_id: int, target: SweepState, **fields: Any) -> None: ...
     def publish_job(self, job_id: int) -> None: ...
     def publish_sweep(self, sweep_id: int) -> None: ...
     def queue_sweep(self, sweep_id: int) -> int: ...
@@ -128,7 +129,7 @@ class Controls:
             else:
                 ctl = self.control(sweep_id)
                 ctl.cancel.set()
-                sweep = self.host.storage.get_sweep(sweep_id)
+                sweep = stored_sweep(self.host.storage, sweep_id)
                 if ctl.parked_job is not None:
                     # paused with its job parked: nothing runs it, so it ends here with what it measured
                     job_id, ctl.parked_job = ctl.parked_job, None

@@ -15,10 +15,12 @@ import collections
 import logging
 import threading
 import traceback
-from typing import Callable, ContextManager
+from typing import Any, Callable, ContextManager, Mapping
 
 from drivers.errors import DriverError
-from service.errors import ServiceError
+from service.bench.bench import Bench
+from service.errors import NotFound, ServiceError
+from service.identification.common import MethodOptions
 from service.model.operating_point import OperatingPoint
 from service.runs import recovery
 from service.runs.control import Controls
@@ -27,21 +29,25 @@ from service.runs.events import EventBroker
 from service.runs.kinds import KINDS, kind_of
 from service.runs.lab import is_own_bench, job_event, new_instance_id, sweep_event
 from service.runs.other_benches import act_on_control_requests
+from service.runs.plans import Grid, PlannedGrid, RegimePlacement
+from service.runs.refinement import RefineRequest
 from service.runs.states import (
     JOB_TRANSITIONS,
     SWEEP_TRANSITIONS,
     Cancelled,
     JobState,
     Paused,
+    State,
     SweepControl,
     SweepState,
     TransitionError,
     check_transition,
 )
-from service.runs.sweep_run import SweepRunner, error_text
+from service.runs.sweep_run import SweepRunner, error_text, job_sweep_id, stored_sweep
+from service.runs.validation import ValidationOptions
 from service.settings import Settings
 from service.store.recordings import RecordingStore, RunRecorder
-from service.store.records import SweepRecord
+from service.store.records import JobRecord, SweepRecord
 from service.store.storage import Storage, StorageUnavailable, now_iso
 
 log = logging.getLogger(__name__)
@@ -60,7 +66,7 @@ class Engine:
     def __init__(
         self,
         storage: Storage,
-        bench,
+        bench: Bench,
         settings: Settings,
         broker: EventBroker,
         recordings: RecordingStore | None = None,
@@ -145,7 +151,7 @@ class Engine:
             log.warning("shutdown: unfinished jobs and sweeps not marked (%s): the next start does it", exc)
 
     # --- state writes (every one through the tables) ----------------------------------------------------------
-    def set_job(self, job_id: int, target: JobState, **fields) -> None:
+    def set_job(self, job_id: int, target: JobState, **fields: Any) -> None:
         """Check the transition, write it, tell the subscribers (SSE)."""
         self._set_state(
             f"job {job_id}",
@@ -158,7 +164,7 @@ class Engine:
         )
         self.publish_job(job_id)
 
-    def set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None:
+    def set_sweep(self, sweep_id: int, target: SweepState, **fields: Any) -> None:
         """Check the transition, write it, tell the subscribers (SSE). A same-state write only updates
         fields (e.g. a new pause_reason)."""
         self._set_state(
@@ -172,13 +178,25 @@ class Engine:
         )
         self.publish_sweep(sweep_id)
 
-    def _set_state(self, what: str, table, states, read, update, target, fields: dict) -> None:
+    def _set_state(
+        self,
+        what: str,
+        table: Mapping[State, frozenset[State]],
+        states: Callable[[str], State],
+        read: Callable[[], JobRecord | SweepRecord | None],
+        update: Callable[..., None],
+        target: State,
+        fields: dict[str, Any],
+    ) -> None:
         """One state write through its table. Waits for a database that is unavailable (lock, read-only or
         full filesystem) until it takes the write or the service stops."""
 
         def write() -> None:
             with self._lock:
-                current = states(read()["state"])
+                row = read()
+                if row is None:
+                    raise NotFound(f"{what} does not exist")
+                current = states(row["state"])
                 if current != target:
                     check_transition(table, current, target)
                 update(state=target.value, **fields)
@@ -187,28 +205,39 @@ class Engine:
             raise StorageUnavailable("shutdown", f"{what}: state {target.value} not written (service stopping)")
 
     # --- submitting --------------------------------------------------------------------------------------
-    def submit(self, kind: str, *args, **kwargs) -> int:
+    def submit(self, kind: str, *args: Any, **kwargs: Any) -> int:
         """Check, store and queue a job of `kind` (service/runs/kinds: its module's `submit`); `bench` (a
         keyword of every kind): the bench it is for (default this one), see service/runs/other_benches.py."""
         return KINDS[kind].submit(self, *args, **kwargs)
 
     # the kinds by name, as the service, the CLI and the schedules call them
-    def submit_identification(self, op: OperatingPoint, method: str, options, bench: str | None = None) -> int:
+    def submit_identification(
+        self, op: OperatingPoint, method: str, options: MethodOptions, bench: str | None = None
+    ) -> int:
         return self.submit("identification", op, method, options, bench=bench)
 
-    def submit_sweep(self, grid, method: str, options, schedule_id=None, regime=None, bench=None, planned=None) -> int:
+    def submit_sweep(
+        self,
+        grid: Grid,
+        method: str,
+        options: MethodOptions,
+        schedule_id: int | None = None,
+        regime: RegimePlacement | None = None,
+        bench: str | None = None,
+        planned: PlannedGrid | None = None,
+    ) -> int:
         return self.submit("sweep", grid, method, options, schedule_id, regime, bench=bench, planned=planned)
 
-    def submit_validation(self, map_id: int, force: bool, options, bench: str | None = None) -> int:
+    def submit_validation(self, map_id: int, force: bool, options: ValidationOptions, bench: str | None = None) -> int:
         return self.submit("validation", map_id, force, options, bench=bench)
 
-    def submit_refinement(self, map_id: int, request, bench: str | None = None) -> int:
+    def submit_refinement(self, map_id: int, request: RefineRequest, bench: str | None = None) -> int:
         return self.submit("refinement", map_id, request, bench=bench)
 
     def is_own(self, bench: str | None) -> bool:
         return is_own_bench(bench, self.bench_name)
 
-    def create_job(self, kind: str, request: dict, bench: str | None, sweep_id: int | None = None) -> int:
+    def create_job(self, kind: str, request: dict[str, Any], bench: str | None, sweep_id: int | None = None) -> int:
         """A job for this bench is this instance's from the start (claimed_by: no other service takes it; a
         crash leaves it to recovery); one for another bench waits for whichever service serves that bench."""
         own = self.is_own(bench)
@@ -231,7 +260,7 @@ class Engine:
         self._wake.set()
 
     def queue_sweep(self, sweep_id: int) -> int:
-        sweep = self.storage.get_sweep(sweep_id)
+        sweep = stored_sweep(self.storage, sweep_id)
         kind = sweep.get("kind") or "sweep"  # a refinement runs as a sweep of its kind
         if self.is_own(sweep.get("bench")):
             self.controls.sweeps[sweep_id] = SweepControl()
@@ -343,8 +372,8 @@ class Engine:
             self.set_job(
                 job_id, final, finished_at=now_iso(), error=self._shutdown_reason if self._shutdown.is_set() else None
             )
-        except Paused:
-            self._park(job_id, job["sweep_id"])
+        except Paused:  # only a sweep's job pauses
+            self._park(job_id, job_sweep_id(job))
         except Cancelled:
             self.set_job(
                 job_id,
@@ -365,7 +394,7 @@ class Engine:
                 SweepState.DONE,
                 SweepState.FAILED,
             ):
-                self.set_sweep(job["sweep_id"], SweepState.FAILED, error=error, finished_at=now_iso())
+                self.set_sweep(sweep["id"], SweepState.FAILED, error=error, finished_at=now_iso())
         self.publish_job(job_id)
 
     def _park(self, job_id: int, sweep_id: int) -> None:
@@ -373,7 +402,7 @@ class Engine:
         resume puts it back (or cancel ends it); the worker goes on with the next job."""
         with self._lock:
             ctl = self.controls.sweeps[sweep_id]
-            if SweepState(self.storage.get_sweep(sweep_id)["state"]) != SweepState.PAUSED:
+            if SweepState(stored_sweep(self.storage, sweep_id)["state"]) != SweepState.PAUSED:
                 self.set_sweep(sweep_id, SweepState.PAUSED, pause_reason="paused by the operator")
             self.set_job(job_id, JobState.QUEUED)
             if ctl.pause.is_set():
@@ -386,7 +415,7 @@ class Engine:
     def new_recorder(self) -> RunRecorder | None:
         return self.recordings.recorder() if self.recordings is not None else None
 
-    def insert_result(self, row: dict, recorder: RunRecorder | None) -> int:
+    def insert_result(self, row: dict[str, Any], recorder: RunRecorder | None) -> int:
         """Store the result, then write its raw recording: a recording that fails is noted in the
         stored row and never loses the result."""
         rid = self.storage.insert_result(row)
@@ -404,14 +433,16 @@ class Engine:
             job = self.storage.get_job(job_id)
         except StorageUnavailable:
             return  # the dashboard hears of it when the database answers again
-        self.broker.publish("job.state", job_event(job))
+        if job is not None:
+            self.broker.publish("job.state", job_event(job))
 
     def publish_sweep(self, sweep_id: int) -> None:
         try:
             s = self.storage.get_sweep(sweep_id)
         except StorageUnavailable:
             return
-        self.broker.publish("sweep.progress", sweep_event(self.as_seen(s)))
+        if s is not None:
+            self.broker.publish("sweep.progress", sweep_event(self.as_seen(s)))
 
     # --- the database away (service/runs/database_away.py) ----------------------------------------------------
     def durably(self, write: Callable[[], object], what: str, cancel: threading.Event | None = None) -> bool:

@@ -7,7 +7,10 @@ import json
 import threading
 from typing import Any
 
-END = ("", "")  # the message that ends a stream
+Message = tuple[str, str]  # (event type, its data as JSON)
+Subscriber = tuple[asyncio.AbstractEventLoop, asyncio.Queue[Message]]  # a stream's loop and its queue
+
+END: Message = ("", "")  # the message that ends a stream
 
 
 class EventBroker:
@@ -16,7 +19,7 @@ class EventBroker:
 
     def __init__(self, max_queue: int = 1000):
         self._lock = threading.Lock()  # serialises subscribe and unsubscribe only
-        self._subscribers: frozenset[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = frozenset()
+        self._subscribers: frozenset[Subscriber] = frozenset()
         self.max_queue = max_queue
         self.closed = False
 
@@ -41,18 +44,18 @@ class EventBroker:
             except RuntimeError:  # loop closed: the subscriber is gone
                 self.unsubscribe((loop, queue))
 
-    def subscribe(self) -> tuple[asyncio.AbstractEventLoop, asyncio.Queue]:
-        token = (asyncio.get_running_loop(), asyncio.Queue(self.max_queue))
+    def subscribe(self) -> Subscriber:
+        token: Subscriber = (asyncio.get_running_loop(), asyncio.Queue(self.max_queue))
         with self._lock:
             self._subscribers = self._subscribers | {token}
         return token
 
-    def unsubscribe(self, token) -> None:
+    def unsubscribe(self, token: Subscriber) -> None:
         with self._lock:
             self._subscribers = self._subscribers - {token}
 
 
-def _offer(queue: asyncio.Queue, message) -> None:
+def _offer(queue: asyncio.Queue[Message], message: Message) -> None:
     if queue.full():  # a slow browser loses old progress, never blocks the bench
         queue.get_nowait()
     queue.put_nowait(message)

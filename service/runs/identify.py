@@ -3,23 +3,37 @@
 from __future__ import annotations
 
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Protocol, Sequence, TypedDict, cast
 
+from service.bench.bench import Bench
+from service.bench.run import BenchRun
 from service.errors import Invalid
 from service.identification import METHODS, IdentificationResult
-from service.identification.common import Conditions, Prior
+from service.identification.common import Conditions, MethodOptions, Prior
 from service.identification.session import MeasurementError, Window
 from service.model.limits import gamma_max_rad, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.model.secondary_path import model_secondary_path
 from service.settings import Settings
+from service.store.recordings import RunRecorder
 
 
-def parse_options(method: str, options: dict[str, Any] | None):
+def parse_options(method: str, options: dict[str, Any] | None) -> MethodOptions:
     """Validated options model for `method` (raises ValueError / pydantic ValidationError)."""
     if method not in METHODS:
         raise ValueError(f"method {method!r} is not available; choose one of {sorted(METHODS)}")
-    return METHODS[method].options_model.model_validate(options or {})
+    # every method's options model is a MethodOptions (the registry types it as type[BaseModel])
+    return cast(MethodOptions, METHODS[method].options_model.model_validate(options or {}))
+
+
+class _PlantTimeBounded(Protocol):
+    def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float: ...
+
+
+def plant_time_bound_s(options: MethodOptions, harmonic_frequency_hz: float) -> float:
+    """The worst-case plant time of one point under these options, s. Every method's options define the
+    bound (service/identification/<method>.py); their base MethodOptions does not declare it."""
+    return cast(_PlantTimeBounded, options).plant_time_bound_s(harmonic_frequency_hz)
 
 
 class PlantTimeError(Invalid, ValueError):
@@ -29,12 +43,12 @@ class PlantTimeError(Invalid, ValueError):
     error_type = "value_error.plant_time"
 
 
-def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Settings) -> None:
+def check_plant_time(speeds_rpm: Sequence[float], method: str, options: MethodOptions, settings: Settings) -> None:
     """Refuse (before queueing) options whose worst case exceeds safety.max_plant_s_per_point at the
     slowest speed asked for (a harmonic period is longest there)."""
     h, pole_pairs = settings.identification.harmonic_order, settings.motor.pole_pairs
     slowest_hz = min(abs(n) for n in speeds_rpm) / 60.0 * pole_pairs * h
-    bound_s = options.plant_time_bound_s(slowest_hz)
+    bound_s = plant_time_bound_s(options, slowest_hz)
     limit_s = settings.safety.max_plant_s_per_point
     if bound_s > limit_s:
         raise PlantTimeError(
@@ -44,7 +58,15 @@ def check_plant_time(speeds_rpm: list[float], method: str, options, settings: Se
         )
 
 
-def run_settings(settings: Settings, options) -> dict[str, Any]:
+class RunSettings(TypedDict):
+    """The keywords of Bench.run a method's options decide."""
+
+    harmonic_order: int
+    gamma_max_rad: float
+    decoupling: bool
+
+
+def run_settings(settings: Settings, options: MethodOptions) -> RunSettings:
     """What a bench run needs from a method's options: harmonic order, gamma_max, drive decoupling."""
     ident = settings.identification
     return {
@@ -55,15 +77,15 @@ def run_settings(settings: Settings, options) -> dict[str, Any]:
 
 
 def identify_at(
-    bench,
+    bench: Bench,
     settings: Settings,
     op: OperatingPoint,
     method: str,
-    options,
+    options: MethodOptions,
     prior: Prior | None = None,
     cancel: threading.Event | None = None,
     progress: Callable[[Window], None] | None = None,
-    recorder=None,
+    recorder: RunRecorder | None = None,
 ) -> IdentificationResult:
     """One identification as a run of its own: go to `op`, run `method`, leave the bench safe (see
     identify_in_run). `cancel` is the run's cancel token: set, the run stops at its next DAQ read."""
@@ -73,14 +95,14 @@ def identify_at(
 
 
 def identify_in_run(
-    run,
+    run: BenchRun,
     settings: Settings,
     op: OperatingPoint,
     method: str,
-    options,
+    options: MethodOptions,
     prior: Prior | None = None,
     progress: Callable[[Window], None] | None = None,
-    recorder=None,
+    recorder: RunRecorder | None = None,
 ) -> IdentificationResult:
     """Move the run (service.bench.run.BenchRun) to `op`, settle to the precision the method's target
     needs, run `method` (starting from `prior` where the method uses one). `progress` is called with
@@ -106,7 +128,9 @@ def identify_in_run(
         )
         session.recorder = recorder
         try:
-            result = METHODS[method].run(session, s_hat, options, gamma_max, prior=prior, conditions=conditions)
+            result: IdentificationResult = METHODS[method].run(
+                session, s_hat, options, gamma_max, prior=prior, conditions=conditions
+            )
         except MeasurementError as exc:
             if not exc.over_range:
                 raise
@@ -133,7 +157,7 @@ def identify_in_run(
     return result
 
 
-def hold_to_command(result: IdentificationResult, op: OperatingPoint, run, settings: Settings) -> None:
+def hold_to_command(result: IdentificationResult, op: OperatingPoint, run: BenchRun, settings: Settings) -> None:
     """Record the torque the point ran at (the run's mean torque actual over the measurement) and fail a result
     whose torque left its command beyond the tolerance (service.model.limits.torque_departure): never ok."""
     result.torque_actual_nm, result.details["torque_actual_tpdos"] = run.torque_actual()

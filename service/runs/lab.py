@@ -29,6 +29,7 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from service.runs.events import EventBroker
+from service.store.records import JobRecord, SweepRecord
 from service.store.storage import Storage, StorageError
 
 log = logging.getLogger(__name__)
@@ -60,7 +61,7 @@ def bench_state(status: dict[str, Any], running: str | None = None) -> str:
     return "busy" if status.get("busy") or running else "idle"
 
 
-def holder_text(row: dict) -> str:
+def holder_text(row: dict[str, Any]) -> str:
     return f"host {row['host']}, port {row['port']}, pid {row['pid']}, since {row['started_at']}"
 
 
@@ -111,7 +112,7 @@ class Lab:
             f"{row['last_seen']}{ahead}): stop it first, or give this one another --bench-name"
         )
 
-    def _try_claim(self) -> dict | None:
+    def _try_claim(self) -> dict[str, Any] | None:
         row = self.storage.claim_bench(
             {
                 "name": self.bench_name,
@@ -179,18 +180,18 @@ class Lab:
 
     def waiting_for(self, bench: str | None) -> str | None:
         """What a job for `bench` waits for (None: this service's own bench runs it)."""
-        if is_own_bench(bench, self.bench_name):
+        if bench is None or is_own_bench(bench, self.bench_name):
             return None
         row = self.storage.get_bench(bench)
         return f"bench {bench} ({self._seen_text(bench, row)})"
 
-    def _online(self, row: dict | None) -> bool:
+    def _online(self, row: dict[str, Any] | None) -> bool:
         """Renewed within stale_s, by the database's clock (the row's `seen_s`, Storage.get_bench)."""
         if row is None or row["stopped_at"]:
             return False
         return row["seen_s"] is not None and row["seen_s"] <= self.stale_s
 
-    def _seen_text(self, name: str, row: dict | None) -> str:
+    def _seen_text(self, name: str, row: dict[str, Any] | None) -> str:
         if row is None:
             return "never seen: no service has served it"
         if row["stopped_at"]:
@@ -233,18 +234,19 @@ class LabWatch:
         cutoff = look_from
         self._published = {k: v for k, v in self._published.items() if v >= cutoff}
 
-    def _fresh(self, kind: str, row: dict) -> bool:
-        if is_own_bench(row.get("bench"), self.own_bench) or not row.get("updated_at"):
+    def _fresh(self, kind: str, row: JobRecord | SweepRecord) -> bool:
+        updated_at = row.get("updated_at")
+        if is_own_bench(row.get("bench"), self.own_bench) or not updated_at:
             return False  # this service's own engine publishes those as they happen
         key = (kind, row["id"])
-        if self._published.get(key) == row["updated_at"]:
+        if self._published.get(key) == updated_at:
             return False
-        self._published[key] = row["updated_at"]
+        self._published[key] = updated_at
         return True
 
 
 # the event payloads, one definition for the local engine and the lab watch
-def job_event(job: dict) -> dict[str, Any]:
+def job_event(job: JobRecord) -> dict[str, Any]:
     return {
         "job_id": job["id"],
         "state": job["state"],
@@ -254,7 +256,7 @@ def job_event(job: dict) -> dict[str, Any]:
     }
 
 
-def sweep_event(s: dict) -> dict[str, Any]:
+def sweep_event(s: SweepRecord) -> dict[str, Any]:
     return {
         "sweep_id": s["id"],
         "kind": s.get("kind") or "sweep",

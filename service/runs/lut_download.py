@@ -14,6 +14,7 @@ POST /maps/{id}/download, the CLI's `maps download` and the validation job (whic
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from pydantic import BaseModel, Field
 
@@ -97,7 +98,7 @@ class PreparedLut:
         """Cells without an entry: the drive injects nothing there."""
         return self.cells - self.valid_cells - self.filled_cells
 
-    def receipt_fields(self) -> dict:
+    def receipt_fields(self) -> dict[str, Any]:
         """What the receipt says went in beyond LutDownload's first fields."""
         return {
             "filled_cells": self.filled_cells,

@@ -23,6 +23,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
 from service.errors import Invalid
+from service.identification.common import MethodOptions
 from service.model.limits import (
     LimitError,
     check_any_inside,
@@ -30,7 +31,7 @@ from service.model.limits import (
     outside_envelope,
 )
 from service.model.operating_point import OperatingPoint, field_weakening_onset
-from service.runs.identify import PlantTimeError, check_plant_time
+from service.runs.identify import PlantTimeError, check_plant_time, plant_time_bound_s
 from service.settings import SafetySettings, Settings
 
 MAX_GRID_POINTS = 10_000
@@ -105,22 +106,21 @@ class SweepPlan:
 
     def check_limits(self, settings: Settings) -> None:
         """LimitError naming every point outside the bench limits (never overridden)."""
-        self._check_each(check_limits, settings, "outside the bench limits", LimitError)
-
-    def _check_each(self, check, settings: Settings, what: str, error: type[LimitError]) -> None:
-        problems, fields = [], {}
+        problems: list[str] = []
+        fields: dict[str, list[str]] = {}
         for op in self.points:
             try:
-                check(op, settings)
+                check_limits(op, settings)
             except LimitError as exc:
                 problems.append(_named(op, str(exc)))
                 for field, msg in exc.problems:
-                    fields.setdefault(field, []).append(_named(op, msg.removesuffix(f"; {error.hint}")))
+                    fields.setdefault(field, []).append(_named(op, msg))
         if problems:
             # one entry per grid field, the first few points named (a 400-point grid would flood the answer)
-            fix = f"; {error.hint}" if error.hint else ""
-            per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5]) + fix) for f, m in fields.items())
-            raise error(f"{len(problems)} point(s) {what}: " + " | ".join(problems[:10]), per_field)
+            per_field = tuple((f, f"{len(m)} point(s): " + " | ".join(m[:5])) for f, m in fields.items())
+            raise LimitError(
+                f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]), per_field
+            )
 
 
 def _named(op: OperatingPoint, msg: str) -> str:
@@ -211,7 +211,7 @@ def plan_grid(grid: Grid, regime: RegimePlacement | None, settings: Settings) ->
     count as none. Raises RegimeError when the merged axis would exceed MAX_SPEED_VALUES."""
     motor, margin = settings.motor, settings.control.voltage_margin
     lo, hi = grid.speed_rpm[0], grid.speed_rpm[-1]
-    place = regime is not None and regime.speeds_around_onset
+    placement = regime if regime is not None and regime.speeds_around_onset else None
     reasons: dict[float, list[str]] = {}
     onsets = []
     for udc in grid.udc_v:
@@ -230,13 +230,14 @@ def plan_grid(grid: Grid, regime: RegimePlacement | None, settings: Settings) ->
             placed = None
             if speed is not None and not in_range:
                 note = f"outside the grid's speeds ({lo:g}..{hi:g} rpm): the map does not cross it"
-            elif in_range and place:
-                placed = _multiple(speed, regime.round_rpm)
+            elif speed is not None and in_range and placement is not None:
+                placed = _multiple(speed, placement.round_rpm)
                 where = f"the field-weakening onset of {torque:g} Nm at {udc:g} V (predicted {speed:.0f} rpm)"
+                spacing_rpm = placement.spacing_rpm
                 for value, why in (
-                    (placed - regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm below {where}"),
+                    (placed - spacing_rpm, f"{spacing_rpm:g} rpm below {where}"),
                     (placed, where),
-                    (placed + regime.spacing_rpm, f"{regime.spacing_rpm:g} rpm above {where}"),
+                    (placed + spacing_rpm, f"{spacing_rpm:g} rpm above {where}"),
                 ):
                     value = round(value, 6)
                     if lo <= value <= hi:
@@ -339,12 +340,21 @@ def _problem(loc: list[str], msg: str, type_: str = "value_error") -> dict[str, 
     return {"loc": loc, "msg": msg, "type": type_}
 
 
-def _estimate(points: tuple[OperatingPoint, ...], method: str, options, settings: Settings) -> BenchTimeEstimate:
+def _limit_problems(exc: LimitError) -> list[dict[str, Any]]:
+    """A refusal of the grid as 422 items: one per grid field it names, else one for the grid."""
+    return [_problem(["body", "grid", field], msg, exc.kind) for field, msg in exc.problems] or [
+        _problem(["body", "grid"], str(exc), exc.kind)
+    ]
+
+
+def _estimate(
+    points: tuple[OperatingPoint, ...], method: str, options: MethodOptions, settings: Settings
+) -> BenchTimeEstimate:
     h, pole_pairs = settings.identification.harmonic_order, settings.motor.pole_pairs
 
     def bound_s(op: OperatingPoint) -> float:
         try:
-            return float(options.plant_time_bound_s(op.speed_rpm / 60.0 * pole_pairs * h))
+            return float(plant_time_bound_s(options, op.speed_rpm / 60.0 * pole_pairs * h))
         except (ArithmeticError, ValueError):
             return math.inf
 
@@ -375,7 +385,12 @@ def _estimate(points: tuple[OperatingPoint, ...], method: str, options, settings
 
 
 def preview_sweep(
-    grid: Grid, regime: RegimePlacement | None, method: str, options, confirm_large: bool, settings: Settings
+    grid: Grid,
+    regime: RegimePlacement | None,
+    method: str,
+    options: MethodOptions,
+    confirm_large: bool,
+    settings: Settings,
 ) -> SweepPreview:
     """The plan POST /sweeps would queue for this request (plan_grid, then SweepPlan.from_grid, the same
     steps Engine.submit_sweep takes) and every check it would make, answered as a list: the grid's size
@@ -394,29 +409,39 @@ def preview_sweep(
     except ValueError as exc:
         problems.append(_problem(["body", "grid"], str(exc)))
     points: tuple[OperatingPoint, ...] = ()
-    override = bool(getattr(options, "override_envelope_model", False))
+    override = options.override_envelope_model
     if planned.grid.size() <= MAX_GRID_POINTS:
         try:
             points = SweepPlan.from_grid(planned.grid).points
         except ValueError as exc:  # a value no operating point can take (e.g. speed 0)
             problems.append(_problem(["body", "grid"], str(exc)))
+    # the envelope model (unless the request overrides it) judges each point once: the points outside it are
+    # listed apart (not run), the rest are what the sweep runs
+    inside: list[OperatingPoint] = []
+    not_run: list[tuple[OperatingPoint, str]] = []
+    for op in points:
+        why = outside_envelope(op, settings, override)
+        if why is None:
+            inside.append(op)
+        else:
+            not_run.append((op, why))
     if points:
         try:
             check_plant_time(planned.grid.speed_rpm, method, options, settings)
         except PlantTimeError as exc:
             problems.append(_problem(["body", "options"], str(exc), "value_error.plant_time"))
-        plan = SweepPlan(points)
-        # the hard limits, then the envelope model unless the request overrides it (service.model.limits):
-        # refused only when no point is inside it; the points outside are listed apart (not run)
-        for check in (plan.check_limits, lambda s: check_any_inside(list(points), s, override)):
+        # the hard limits, then the envelope model: refused only when no point is inside it (check_any_inside
+        # words that refusal, judging the points again, only then)
+        try:
+            SweepPlan(points).check_limits(settings)
+        except LimitError as exc:
+            problems += _limit_problems(exc)
+        if not inside:
             try:
-                check(settings)
+                check_any_inside(list(points), settings, override)
             except LimitError as exc:
-                problems += [_problem(["body", "grid", field], msg, exc.kind) for field, msg in exc.problems] or [
-                    _problem(["body", "grid"], str(exc), exc.kind)
-                ]
-    not_run = [(op, why) for op in points if (why := outside_envelope(op, settings, override)) is not None]
-    runs = tuple(op for op in points if all(op is not other for other, _ in not_run)) or points
+                problems += _limit_problems(exc)
+    runs = tuple(inside) or points
     return SweepPreview(
         accepted=not problems,
         problems=problems,

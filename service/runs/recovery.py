@@ -6,7 +6,7 @@ wait untouched (service/runs/other_benches.py)."""
 from __future__ import annotations
 
 import logging
-from typing import Protocol
+from typing import Any, Protocol
 
 from service.runs.other_benches import waiting_sweeps, waits_for_bench
 from service.runs.states import UNFINISHED_SWEEP_STATES, JobState, SweepState, TransitionError
@@ -24,8 +24,8 @@ class RecoveryHost(Protocol):
 
     @property
     def shutdown_reason(self) -> str: ...
-    def set_job(self, job_id: int, target: JobState, **fields) -> None: ...
-    def set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None: ...
+    def set_job(self, job_id: int, target: JobState, **fields: Any) -> None: ...
+    def set_sweep(self, sweep_id: int, target: SweepState, **fields: Any) -> None: ...
     def resume_sweep(self, sweep_id: int) -> None: ...
 
 

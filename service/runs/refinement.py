@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Annotated
+from typing import Annotated, Any, Mapping, TypedDict
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
@@ -40,6 +40,8 @@ AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_ROUNDS = 8  # a refinement that has not converged in this many rounds stops and says so
 MAX_SHORT_DB = 30.0  # a point's claim on the budget: how far it is below the target, at most this
 ROUND_SCORE_FRACTION = 0.25
+
+Cell = tuple[float, float, float]  # a cell's (torque_nm, speed_rpm, udc_v), the order of AXES
 
 
 class RefineRequest(BaseModel):
@@ -67,10 +69,27 @@ class RefineRequest(BaseModel):
         description="most cells the refinement identifies in all (re-measured and new cells): its bench-time budget",
     )
     method: str = Field("probe", description="identification method of the new cells (GET /methods)")
-    options: dict = Field(default_factory=dict, description="the method's options (as for a sweep)")
+    options: dict[str, Any] = Field(default_factory=dict, description="the method's options (as for a sweep)")
     validation: ValidationOptions = Field(
         default_factory=ValidationOptions, description="how finely each validation point is measured"
     )
+
+
+class RefinementState(TypedDict):
+    """Where a refinement stands, saved after every step in its sweep's `refinement` column (so a resume goes
+    on from there): service/runs/kinds/refinement.py runs the rounds."""
+
+    target_db: float
+    max_cells: int
+    validation: dict[str, Any]  # the ValidationOptions of its validations, dumped
+    phase: str  # measure | validate | done
+    round: int
+    current_map_id: int  # the map the rounds have built so far (the source map before the first)
+    axes: dict[str, list[float]]  # the current map's axes, with the values inserted so far
+    pending: list[list[float]]  # the round's cells to identify, [torque_nm, speed_rpm, udc_v] each
+    cells_added: int  # cells identified in the rounds so far (the budget spent)
+    rounds: list[dict[str, Any]]  # each round's validation figures
+    stopped: str | None  # why it stopped short of the target (None: it holds, or it goes on)
 
 
 @dataclass
@@ -78,24 +97,47 @@ class RoundPlan:
     """What one round adds: values per axis, and the cells to identify (new ones and re-measured ones)."""
 
     inserted: dict[str, list[float]] = field(default_factory=dict)
-    remeasure: list[tuple[float, float, float]] = field(default_factory=list)
-    new_cells: list[tuple[float, float, float]] = field(default_factory=list)
+    remeasure: list[Cell] = field(default_factory=list)
+    new_cells: list[Cell] = field(default_factory=list)
     failing: int = 0
     reasons: list[str] = field(default_factory=list)
 
     @property
-    def cells(self) -> list[tuple[float, float, float]]:
+    def cells(self) -> list[Cell]:
         return self.remeasure + self.new_cells
 
 
-def failing_points(cells: list[dict], target_db: float) -> list[dict]:
+@dataclass(frozen=True)
+class _Remeasure:
+    """A candidate of a round: a grid cell identified again."""
+
+    shorts: list[float]  # dB short of the target, of each failing point it serves
+    cell: Cell
+    cost: int = 1
+
+
+@dataclass(frozen=True)
+class _Insert:
+    """A candidate of a round: a value inserted into an axis (a whole line of cells)."""
+
+    shorts: list[float]  # dB short of the target, of each failing point it serves
+    axis: str
+    value: float
+    cost: int  # cells of the line, with the axes as they are
+
+
+def _cell_of(values: Mapping[str, Any]) -> Cell:
+    return (float(values["torque_nm"]), float(values["speed_rpm"]), float(values["udc_v"]))
+
+
+def failing_points(cells: list[dict[str, Any]], target_db: float) -> list[dict[str, Any]]:
     """Validation cells that miss the target: measured below it, or not measured at all (failed)."""
     return [
         c for c in cells if c["status"] != "measured" or c["suppression_db"] is None or c["suppression_db"] < target_db
     ]
 
 
-def _theta_at(map_cells: dict, key: tuple[float, float, float]) -> tuple[float, float] | None:
+def _theta_at(map_cells: dict[Cell, dict[str, Any]], key: Cell) -> tuple[float, float] | None:
     c = map_cells.get(key)
     if c is None or c.get("theta_cos") is None:
         return None
@@ -110,8 +152,8 @@ def _neighbours(values: list[float], x: float) -> tuple[float, float] | None:
 
 def plan_round(
     axes: dict[str, list[float]],
-    map_cells: list[dict],
-    validation_cells: list[dict],
+    map_cells: list[dict[str, Any]],
+    validation_cells: list[dict[str, Any]],
     target_db: float,
     budget_cells: int,
 ) -> RoundPlan:
@@ -119,23 +161,23 @@ def plan_round(
     validation_cells: its validation's cells. Raises nothing: an empty plan means nothing is left to
     do, or nothing fits the budget (`reasons` says which)."""
     plan = RoundPlan()
-    by_key = {tuple(float(c[a]) for a in AXES): c for c in map_cells}
+    by_key = {_cell_of(c): c for c in map_cells}
     failing = failing_points(validation_cells, target_db)
     plan.failing = len(failing)
     if not failing:
         return plan
     grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
-    remeasure: dict[tuple, list[float]] = {}
+    remeasure: dict[Cell, list[float]] = {}
     insertions: dict[tuple[str, float], list[float]] = {}  # (axis, value) -> dB short of each point served
     for c in failing:
         op = c["operating_point"]
-        key = tuple(float(op[a]) for a in AXES)
+        key = _cell_of(op)
         measured_db = c["suppression_db"] if c.get("suppression_db") is not None else -math.inf
         short_db = min(MAX_SHORT_DB, target_db - measured_db)
         if c["kind"] == "grid":
             remeasure.setdefault(key, []).append(short_db)
             continue
-        best = None
+        best: tuple[float, str, float] | None = None  # (theta step, axis, value)
         for i, axis in enumerate(AXES):
             if key[i] in grid_values[axis]:
                 continue
@@ -153,23 +195,22 @@ def plan_round(
             insertions.setdefault((axis, value), []).append(short_db)
     # candidates by failing points served per cell they cost, then by the dB they are short
     sizes = {a: len(grid_values[a]) for a in AXES}
-    candidates = [(shorts, ("remeasure", key), 1) for key, shorts in remeasure.items()]
+    candidates: list[_Remeasure | _Insert] = [_Remeasure(shorts, key) for key, shorts in remeasure.items()]
     for (axis, value), shorts in insertions.items():
-        cost = math.prod(n for a, n in sizes.items() if a != axis)
-        candidates.append((shorts, ("insert", axis, value), cost))
-    candidates.sort(key=lambda c: (-len(c[0]) / c[2], -sum(c[0]) / c[2], c[2]))
+        candidates.append(_Insert(shorts, axis, value, math.prod(n for a, n in sizes.items() if a != axis)))
+    candidates.sort(key=lambda c: (-len(c.shorts) / c.cost, -sum(c.shorts) / c.cost, c.cost))
     left = budget_cells
     chosen_axes = {a: list(grid_values[a]) for a in AXES}
-    best_score = len(candidates[0][0]) / candidates[0][2] if candidates else 0.0
-    for shorts, what, cost in candidates:
-        if len(shorts) / cost < ROUND_SCORE_FRACTION * best_score:
+    best_score = len(candidates[0].shorts) / candidates[0].cost if candidates else 0.0
+    for candidate in candidates:
+        if len(candidate.shorts) / candidate.cost < ROUND_SCORE_FRACTION * best_score:
             break  # the rest waits for the next validation
-        if what[0] == "remeasure":
+        if isinstance(candidate, _Remeasure):
             if left >= 1:
-                plan.remeasure.append(what[1])
+                plan.remeasure.append(candidate.cell)
                 left -= 1
             continue
-        _, axis, value = what
+        axis, value = candidate.axis, candidate.value
         # cost with the values inserted so far on the other axes
         cost = math.prod(len(chosen_axes[a]) for a in AXES if a != axis)
         if cost > left:
@@ -193,18 +234,24 @@ def plan_round(
     return plan
 
 
-def _theta_step(by_key: dict, grid_values: dict, lo: list[float], hi: list[float], axis_index: int) -> float:
+def _theta_step(
+    by_key: dict[Cell, dict[str, Any]],
+    grid_values: dict[str, list[float]],
+    lo: list[float],
+    hi: list[float],
+    axis_index: int,
+) -> float:
     """|delta theta| between the two cells on either side along one axis, their other coordinates taken
     at the nearest grid values (a midpoint's other coordinates may be midpoints too); 0 if unknown."""
 
-    def snap(key: list[float]) -> tuple[float, float, float]:
+    def snap(key: list[float]) -> Cell:
         out = []
         for i, a in enumerate(AXES):
             if i == axis_index or key[i] in grid_values[a]:
                 out.append(key[i])
             else:
                 out.append(min(grid_values[a], key=lambda v: abs(v - key[i])))
-        return tuple(out)
+        return out[0], out[1], out[2]
 
     a, b = _theta_at(by_key, snap(lo)), _theta_at(by_key, snap(hi))
     if a is None or b is None:

@@ -19,17 +19,20 @@ import functools
 import logging
 import threading
 from datetime import datetime, timedelta, timezone
-from typing import Callable
+from typing import Any, Callable, Protocol
 from zoneinfo import ZoneInfo, available_timezones
 
 from cronsim import CronSim, CronSimError
 
 from service.errors import Conflict, Invalid, NotFound
+from service.identification.common import MethodOptions
 from service.names import check_name
+from service.runs.events import EventBroker
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.lab import is_own_bench
 from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
 from service.settings import Settings
+from service.store.records import ScheduleRecord
 from service.store.storage import Storage, StorageUnavailable
 
 log = logging.getLogger(__name__)
@@ -144,10 +147,40 @@ def _walk(cron: str, zone: ZoneInfo, after: datetime, until: datetime, limit: in
 
 
 # --- the sweep a schedule submits -------------------------------------------------------------------
-def check_sweep(settings: Settings, sweep) -> None:
+class SweepRequest(Protocol):
+    """The sweep a schedule submits, as the API and the CLI give it (service/api/schemas.py SweepCreate: a
+    model per method, built from the registry)."""
+
+    @property
+    def grid(self) -> Grid: ...
+    @property
+    def regime(self) -> RegimePlacement | None: ...
+    @property
+    def confirm_large(self) -> bool: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def options(self) -> MethodOptions: ...
+    def model_dump(self, *, mode: str = "python") -> dict[str, Any]: ...
+
+
+class SweepSubmitter(Protocol):
+    """The engine, as the scheduler sees it (service/runs/engine.py Engine.submit_sweep)."""
+
+    def submit_sweep(
+        self,
+        grid: Grid,
+        method: str,
+        options: MethodOptions,
+        schedule_id: int | None = None,
+        regime: RegimePlacement | None = None,
+    ) -> int: ...
+
+
+def check_sweep(settings: Settings, sweep: SweepRequest) -> None:
     """The checks POST /sweeps makes before queueing (size, bench limits of every setpoint, plant time),
     made when the schedule is created, so a schedule cannot fail at 3 am on a request refused at 5 pm."""
-    grid = plan_grid(sweep.grid, getattr(sweep, "regime", None), settings).grid  # the grid the sweep will measure
+    grid = plan_grid(sweep.grid, sweep.regime, settings).grid  # the grid the sweep will measure
     check_sweep_size(grid, sweep.confirm_large, settings.safety)
     SweepPlan.from_grid(grid).dry_run(settings, sweep.options.override_envelope_model)
     check_plant_time(grid.speed_rpm, sweep.method, sweep.options, settings)
@@ -161,7 +194,7 @@ def create_schedule(
     name: str,
     cron: str,
     timezone_name: str,
-    sweep,
+    sweep: SweepRequest,
     enabled: bool = True,
     bench: str | None = None,
 ) -> int:
@@ -180,13 +213,15 @@ def create_schedule(
     )
 
 
-def update_schedule(storage: Storage, settings: Settings, now: datetime, schedule_id: int, changes: dict) -> None:
+def update_schedule(
+    storage: Storage, settings: Settings, now: datetime, schedule_id: int, changes: dict[str, Any]
+) -> None:
     """Apply the fields given. A new cron or zone, or enabling, counts from now: no burst of firings for
     times before the change."""
     current = storage.get_schedule(schedule_id)
     if current is None:
         raise NotFound(f"schedule {schedule_id} does not exist")
-    fields: dict = {}
+    fields: dict[str, Any] = {}
     if "name" in changes and changes["name"] != current["name"]:
         other = storage.schedule_named(changes["name"])
         if other is not None and other["id"] != schedule_id:
@@ -227,7 +262,14 @@ class Scheduler:
     `schedules.tick_s` (and once at start, before the thread, so missed firings are handled by the
     time the service is up)."""
 
-    def __init__(self, storage: Storage, engine, settings: Settings, broker, clock: Clock = utc_now):
+    def __init__(
+        self,
+        storage: Storage,
+        engine: SweepSubmitter,
+        settings: Settings,
+        broker: EventBroker,
+        clock: Clock = utc_now,
+    ):
         self.storage, self.engine, self.settings, self.broker, self.clock = storage, engine, settings, broker, clock
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -262,7 +304,7 @@ class Scheduler:
                     self._handle(schedule, now)
             self.ticks += 1
 
-    def _handle(self, schedule: dict, now: datetime) -> None:
+    def _handle(self, schedule: ScheduleRecord, now: datetime) -> None:
         zone = ZoneInfo(schedule["timezone"])
         due, older = due_between(schedule["cron"], zone, parse_utc(schedule["last_due_at"]), now)
         if not due:
@@ -294,7 +336,7 @@ class Scheduler:
             self._fire(schedule, latest, now)
         self.storage.update_schedule(sid, last_due_at=iso(latest.astimezone(UTC)))
 
-    def _fire(self, schedule: dict, due: datetime, now: datetime) -> None:
+    def _fire(self, schedule: ScheduleRecord, due: datetime, now: datetime) -> None:
         sid = schedule["id"]
         pending = self.storage.pending_schedule_sweep(sid)
         if pending is not None:

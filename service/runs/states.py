@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Mapping, TypeVar
 
 from service.errors import Conflict
 
@@ -64,7 +65,10 @@ class Paused(Exception):
     sweep is resumed (service/runs/engine.py module doc)."""
 
 
-def check_transition(table, current, target) -> None:
+State = TypeVar("State", JobState, SweepState)
+
+
+def check_transition(table: Mapping[State, frozenset[State]], current: State, target: State) -> None:
     if target not in table[current]:
         raise TransitionError(f"cannot go from {current.value} to {target.value}")
 

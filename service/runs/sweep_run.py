@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any, Callable, ContextManager, Mapping, Protocol
+from dataclasses import dataclass, field
+from typing import Any, Callable, ContextManager, Protocol, cast
 
 from service.bench.bench import Bench
 from service.bench.interlocks import InterlockTripped
-from service.identification.common import LUT_MARGIN_DB
+from service.errors import NotFound
+from service.identification.common import LUT_MARGIN_DB, MethodOptions
 from service.identification.session import MeasurementError
 from service.maps.build import build_map_from_sweep
 from service.maps.neighbours import prior_from_neighbours
@@ -30,6 +32,7 @@ from service.runs.plans import Grid, SweepPlan
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
 from service.settings import Settings
 from service.store.recordings import RunRecorder
+from service.store.records import JobRecord, ResultRecord, SweepRecord
 from service.store.result_rows import result_row
 from service.store.storage import Storage, StorageUnavailable, now_iso
 
@@ -49,10 +52,10 @@ class RunHost(Protocol):
     @property
     def shutdown_reason(self) -> str: ...
     def shutting_down(self) -> bool: ...
-    def set_sweep(self, sweep_id: int, target: SweepState, **fields) -> None: ...
+    def set_sweep(self, sweep_id: int, target: SweepState, **fields: Any) -> None: ...
     def durably(self, write: Callable[[], object], what: str, cancel: threading.Event | None = None) -> bool: ...
     def publish_sweep(self, sweep_id: int) -> None: ...
-    def insert_result(self, row: dict, recorder: RunRecorder | None) -> int: ...
+    def insert_result(self, row: dict[str, Any], recorder: RunRecorder | None) -> int: ...
     def new_recorder(self) -> RunRecorder | None: ...
     def waiting_for_storage(self, sweep_id: int, reason: str) -> ContextManager[None]: ...
 
@@ -70,7 +73,7 @@ class SweepRunner:
         Two passes: every point, then once more each point whose result is not ok, with what its
         neighbours now know on every side (service/maps/neighbours.py); a cell that stays non-ok gets the fill
         rule's entry in the map (service/maps/fill.py)."""
-        sweep = self.storage.get_sweep(sweep_id)
+        sweep = stored_sweep(self.storage, sweep_id)
         grid = Grid.model_validate(sweep["grid"])  # the planned grid, stored at submit
         options = parse_options(sweep["method"], sweep["options"])
         plan = stored_plan(sweep)
@@ -98,7 +101,7 @@ class SweepRunner:
                 )
                 in_flight = self.measure_points(sweep_id, sweep, ctl, grid, options, again, sweep_pass=2)
         if self.host.shutting_down():
-            s = self.storage.get_sweep(sweep_id)
+            s = stored_sweep(self.storage, sweep_id)
             where = f" during point {in_flight.label()} (measured again on resume)" if in_flight is not None else ""
             self.host.set_sweep(
                 sweep_id,
@@ -114,20 +117,20 @@ class SweepRunner:
     def measure_points(
         self,
         sweep_id: int,
-        sweep: dict,
+        sweep: SweepRecord,
         ctl: SweepControl,
         grid: Grid,
-        options,
+        options: MethodOptions,
         points: list[OperatingPoint],
         sweep_pass: int,
-        neighbour_rows: Callable[[], list[dict]] | None = None,
-        tags: dict | None = None,
+        neighbour_rows: Callable[[], list[ResultRecord]] | None = None,
+        tags: dict[str, Any] | None = None,
     ) -> OperatingPoint | None:
         """Measure `points` in continuous runs (see run_sweep), holding while paused. Returns the point
         in flight when a cancel or a shutdown stopped it (None when every point was measured or the
         stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
         results); `tags` go into every result's details."""
-        neighbour_rows = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
+        rows_for_priors = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
         tags = {"sweep_pass": sweep_pass, **(tags or {})}
         if options.stop_margin_db is None:  # a cell meant for a LUT: identified to a margin below its target
             options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
@@ -139,9 +142,9 @@ class SweepRunner:
             if why is None:
                 inside.append(op)
             elif not ctl.cancel.is_set():
-                self._store_point(sweep_id, op, self._not_run_row(op, sweep, options, why, sweep_id, tags), None)
+                self._store_not_run(sweep_id, ctl, op, self._not_run_row(op, sweep, options, why, sweep_id, tags))
         points = inside
-        point = _PointInFlight()
+        point: _PointInFlight | None = None
         i = 0
         while i < len(points):
             if ctl.cancel.is_set():
@@ -151,9 +154,11 @@ class SweepRunner:
             try:
                 with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
                     while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
-                        point.start(points[i], self.host.new_recorder())
+                        point = _PointInFlight(points[i], self.host.new_recorder())
                         try:
-                            prior = prior_from_neighbours(point.op, neighbour_rows(), grid.model_dump())
+                            # the result rows are what maps.neighbours reads as dicts
+                            rows = cast(list[dict[str, Any]], rows_for_priors())
+                            prior = prior_from_neighbours(point.op, rows, grid.model_dump())
                             result = identify_in_run(
                                 run,
                                 self.settings,
@@ -180,20 +185,19 @@ class SweepRunner:
                             row = self._failed_row(point, sweep, options, exc, sweep_id, tags)
                         point.row = row  # measured: kept if the database cannot take it now
                         self._store_point(sweep_id, point.op, row, point.recorder)
-                        point.clear()
+                        point = None
                         i += 1
             except StorageUnavailable as exc:
                 # the run has ended (bench made safe); the point measured is kept and written when the
                 # database answers again, or measured again if it was not measured yet
-                self._storage_pause(sweep_id, ctl, exc, point)
-                if point.row is not None:  # stored now
+                if self._storage_pause(sweep_id, ctl, exc, point):  # stored now
                     i += 1
-                point.clear()
+                point = None
                 continue
             except InterlockTripped as exc:
                 # the point is measured again after the operator resumes; its attempt (if any
                 # torque was commanded) is kept as a failed, discarded attempt, never ok
-                if point.op is not None and not exc.refused:
+                if point is not None and not exc.refused:
                     self._store_point(
                         sweep_id,
                         point.op,
@@ -201,28 +205,37 @@ class SweepRunner:
                         point.recorder,
                     )
                 else:
-                    discard_recorder(point.recorder)
-                self._pause_for_interlock(sweep_id, ctl, point.op or points[min(i, len(points) - 1)], exc)
-                point.clear()
+                    discard_recorder(point.recorder if point is not None else None)
+                at = point.op if point is not None else points[min(i, len(points) - 1)]
+                self._pause_for_interlock(sweep_id, ctl, at, exc)
+                point = None
                 continue
             except Exception as exc:
                 if ctl.cancel.is_set():
+                    if point is None:
+                        return None
                     discard_recorder(point.recorder)
                     return point.op
-                if point.op is None:
+                if point is None:
                     raise  # the run itself could not start or end (bench not safe): the sweep fails
                 # the bench failed during this point (the run ended, bench made safe): stored failed, next point
                 log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
                 self._store_point(
                     sweep_id, point.op, self._failed_row(point, sweep, options, exc, sweep_id, tags), point.recorder
                 )
-                point.clear()
+                point = None
                 i += 1
         return None
 
     def _failed_row(
-        self, point: "_PointInFlight", sweep, options, exc: BaseException, sweep_id: int, tags: dict
-    ) -> dict:
+        self,
+        point: _PointInFlight,
+        sweep: SweepRecord,
+        options: MethodOptions,
+        exc: BaseException,
+        sweep_id: int,
+        tags: dict[str, Any],
+    ) -> dict[str, Any]:
         return result_row(
             point.op,
             sweep["method"],
@@ -235,7 +248,15 @@ class SweepRunner:
             detail={"message": error_text(exc), "details": dict(tags)},
         )
 
-    def _not_run_row(self, op: OperatingPoint, sweep, options, why: str, sweep_id: int, tags: dict) -> dict:
+    def _not_run_row(
+        self,
+        op: OperatingPoint,
+        sweep: SweepRecord,
+        options: MethodOptions,
+        why: str,
+        sweep_id: int,
+        tags: dict[str, Any],
+    ) -> dict[str, Any]:
         """A point the envelope model refuses (service.model.limits.outside_envelope): failed, never run."""
         return result_row(
             op,
@@ -249,7 +270,18 @@ class SweepRunner:
             detail={"message": why, "details": {**tags, "not_run": "outside_envelope"}},
         )
 
-    def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict, recorder: RunRecorder | None) -> None:
+    def _store_not_run(self, sweep_id: int, ctl: SweepControl, op: OperatingPoint, row: dict[str, Any]) -> None:
+        """A point never run, stored failed with its reason; a database that cannot take it is waited for
+        as for a measured point (_storage_pause: the sweep shown paused with the reason, the row written
+        when the database answers again)."""
+        try:
+            self._store_point(sweep_id, op, row, None)
+        except StorageUnavailable as exc:
+            self._storage_pause(sweep_id, ctl, exc, _PointInFlight(op, None, row["started_at"], row))
+
+    def _store_point(
+        self, sweep_id: int, op: OperatingPoint, row: dict[str, Any], recorder: RunRecorder | None
+    ) -> None:
         rid = self.host.insert_result(row, recorder)
         # the result by its id: the API's event stream shows it as a result (service/api/event_stream.py)
         self.broker.publish(
@@ -258,7 +290,15 @@ class SweepRunner:
         )
         self.host.publish_sweep(sweep_id)
 
-    def _discarded_row(self, op, sweep, options, started, exc: InterlockTripped, sweep_id: int) -> dict:
+    def _discarded_row(
+        self,
+        op: OperatingPoint,
+        sweep: SweepRecord,
+        options: MethodOptions,
+        started: str,
+        exc: InterlockTripped,
+        sweep_id: int,
+    ) -> dict[str, Any]:
         return result_row(
             op,
             sweep["method"],
@@ -272,14 +312,16 @@ class SweepRunner:
         )
 
     def _storage_pause(
-        self, sweep_id: int, ctl: SweepControl, exc: StorageUnavailable, point: "_PointInFlight"
-    ) -> None:
+        self, sweep_id: int, ctl: SweepControl, exc: StorageUnavailable, point: _PointInFlight | None
+    ) -> bool:
         """The database cannot be used: the bench is already safe (the run ended). Tell the dashboard the
         sweep waits (in memory: the database cannot take it), keep the point measured and write it when the
-        database answers again, then go on by itself. A cancel or a shutdown ends the wait."""
+        database answers again, then go on by itself. A cancel or a shutdown ends the wait. True: the
+        point's row is stored now (False: there was none, or the wait ended before the database took it)."""
+        measured = point if point is not None and point.row is not None else None
         reason = f"{exc.public} at {now_iso()}; " + (
-            f"the point {point.op.label()} is kept and written when it answers again"
-            if point.row is not None
+            f"the point {measured.op.label()} is kept and written when it answers again"
+            if measured is not None
             else "the sweep goes on when it answers again"
         )
         log.warning("sweep %s waits for the database: %s", sweep_id, reason)
@@ -292,22 +334,24 @@ class SweepRunner:
                 "storage": {"cause": exc.cause, "retry_after_s": exc.retry_after_s},
             },
         )
+        stored = False
         with self.host.waiting_for_storage(sweep_id, reason):
-            if point.row is not None:
+            if measured is not None and measured.row is not None:
                 # kept even through a cancel: a point measured is never thrown away while the service runs
+                op, row, recorder = measured.op, measured.row, measured.recorder
                 stored = self.host.durably(
-                    lambda: self._store_point(sweep_id, point.op, point.row, point.recorder),
-                    f"sweep {sweep_id}: storing point {point.op.label()}",
+                    lambda: self._store_point(sweep_id, op, row, recorder),
+                    f"sweep {sweep_id}: storing point {op.label()}",
                 )
                 if not stored:
-                    discard_recorder(point.recorder)
-                    point.row = None
+                    discard_recorder(recorder)
             else:
-                discard_recorder(point.recorder)
+                discard_recorder(point.recorder if point is not None else None)
                 self.host.durably(
                     lambda: self.storage.get_sweep(sweep_id), f"sweep {sweep_id}: the database", ctl.cancel
                 )
         self.host.publish_sweep(sweep_id)
+        return stored
 
     def _pause_for_interlock(self, sweep_id: int, ctl: SweepControl, op: OperatingPoint, exc: InterlockTripped) -> None:
         reason = (
@@ -326,13 +370,29 @@ class SweepRunner:
         self.host.publish_sweep(sweep_id)
 
 
-def stored_plan(sweep: Mapping[str, Any]) -> SweepPlan:
+def stored_sweep(storage: Storage, sweep_id: int) -> SweepRecord:
+    """The sweep a job or an action names, as stored (NotFound: the database holds no such sweep)."""
+    sweep = storage.get_sweep(sweep_id)
+    if sweep is None:
+        raise NotFound(f"sweep {sweep_id} does not exist")
+    return sweep
+
+
+def job_sweep_id(job: JobRecord) -> int:
+    """The sweep a sweep's job (of any kind) runs: its row names it from its creation (Engine.queue_sweep)."""
+    sweep_id = job["sweep_id"]
+    if sweep_id is None:
+        raise ValueError(f"job {job['id']} of kind {job['kind']} names no sweep")
+    return sweep_id
+
+
+def stored_plan(sweep: SweepRecord) -> SweepPlan:
     """The plan a sweep was queued with (service/runs/kinds/sweep.py plans it once, at submit): its stored
     grid is the planned grid, and its points' order a function of that grid alone (SweepPlan.from_grid)."""
     return SweepPlan.from_grid(Grid.model_validate(sweep["grid"]))
 
 
-def second_pass_points(plan: SweepPlan, current: list[dict]) -> list[OperatingPoint]:
+def second_pass_points(plan: SweepPlan, current: list[ResultRecord]) -> list[OperatingPoint]:
     """The plan's points, in its order, whose current result is not ok and was not itself measured in
     the second pass (a resumed sweep does not measure a point a third time)."""
     again = set()
@@ -343,20 +403,14 @@ def second_pass_points(plan: SweepPlan, current: list[dict]) -> list[OperatingPo
     return [op for op in plan.points if (op.torque_nm, op.speed_rpm, op.udc_v) in again]
 
 
+@dataclass
 class _PointInFlight:
-    """The sweep point being measured: its operating point, start time and raw recorder."""
+    """The sweep point being measured: its operating point, raw recorder and start time."""
 
-    def __init__(self) -> None:
-        self.clear()
-
-    def start(self, op: OperatingPoint, recorder: RunRecorder | None) -> None:
-        self.op, self.recorder, self.started, self.row = op, recorder, now_iso(), None
-
-    def clear(self) -> None:
-        self.op: OperatingPoint | None = None
-        self.recorder: RunRecorder | None = None
-        self.started: str | None = None
-        self.row: dict | None = None  # its result, once measured (until stored)
+    op: OperatingPoint
+    recorder: RunRecorder | None
+    started: str = field(default_factory=now_iso)
+    row: dict[str, Any] | None = None  # its result, once measured (until stored)
 
 
 def discard_recorder(recorder: RunRecorder | None) -> None:

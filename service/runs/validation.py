@@ -28,17 +28,19 @@ import statistics
 import threading
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, cast
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from service import __version__
+from service.bench.bench import Bench
 from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import RunCancelled
+from service.bench.run import BenchRun
 from service.errors import BenchRefused, Invalid
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
-from service.identification.session import MeasurementError
-from service.maps.view import map_view
+from service.identification.session import MeasurementError, MeasurementSession
+from service.maps.view import MapView, map_view
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
@@ -117,8 +119,8 @@ def check_validatable(storage: Storage, map_id: int, force: bool, fill: bool = T
 
 
 def download_into_drive(
-    storage: Storage, bench, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None
-) -> dict:
+    storage: Storage, bench: Bench, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None
+) -> dict[str, Any]:
     """The map's LUT into the drive, CRC-32 and map id read back (service.runs.lut_download.download_map,
     the one way a map goes into the drive): the receipt."""
     return lut_download.download_map(storage, bench, map_id, force, fill=fill, interpolation=interpolation).model_dump()
@@ -131,19 +133,19 @@ class ValidationRun:
 
     map_id: int
     harmonic_order: int
-    options: dict
-    cells: list[dict] = field(default_factory=list)
-    download: dict | None = None
+    options: dict[str, Any]
+    cells: list[dict[str, Any]] = field(default_factory=list)
+    download: dict[str, Any] | None = None
     state: str = "done"  # done | failed | cancelled (running while stored before its end)
     error: str | None = None
     started_at: str = field(default_factory=now_iso)
     row_id: int | None = None  # its map_validations row, once stored
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         return summarize(self.cells)
 
 
-def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
+def measured_decoupling(storage: Storage, m: MapView, settings: Settings) -> bool:
     """The drive decoupling (0x2000:6) the map's ok cells were measured with: the LUT holds only with
     it. Cells stored before results recorded it count as the settings' default. A map mixing both
     cannot be validated as one LUT."""
@@ -158,14 +160,17 @@ def measured_decoupling(storage: Storage, m, settings: Settings) -> bool:
     return used.pop() if used else settings.identification.decoupling
 
 
-def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
+def measure_point(run: BenchRun, op: OperatingPoint, options: ValidationOptions) -> dict[str, Any]:
     """One point of a validation run (service.bench.run.BenchRun): uncompensated (injection off),
     then the drive's own LUT feedforward (module doc)."""
     with run.operating_point(op) as session:
         session.settle_after_theta_s = options.settle_s
-        max_periods = periods_for(session, options.max_window_s)  # >= MIN_PERIODS
+        # the bench's session is a MeasurementSession; the protocol declares harmonic_frequency_hz a settable
+        # attribute where the session has a read-only property (service/identification/session.py)
+        measurement = cast(MeasurementSession, session)
+        max_periods = periods_for(measurement, options.max_window_s)  # >= MIN_PERIODS
         session.apply_injection_mode("off")
-        reference = measure_reference(session, MIN_PERIODS, max_periods)
+        reference = measure_reference(measurement, MIN_PERIODS, max_periods)
         a0 = reference.phasor.amplitude
         session.apply_injection_mode("lut")
         # noise floor sqrt(2) sigma at floor_db below |A_0|
@@ -197,15 +202,15 @@ def measure_point(run, op: OperatingPoint, options: ValidationOptions) -> dict:
 
 def run_validation(
     storage: Storage,
-    bench,
+    bench: Bench,
     settings: Settings,
     map_id: int,
     force: bool,
     options: ValidationOptions,
     cancel: threading.Event,
-    on_cell: Callable[[dict, int], None] | None = None,
-    download: Callable[..., dict] = download_into_drive,
-    on_progress: Callable[[ValidationRun], None] | None = None,
+    on_cell: Callable[[dict[str, Any], int], None] | None = None,
+    download: Callable[..., dict[str, Any]] = download_into_drive,
+    on_progress: Callable[[ValidationRun], object] | None = None,
 ) -> ValidationRun:
     """The whole job: download, then every point in one continuous bench run (service/bench/run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
@@ -235,7 +240,7 @@ def run_validation(
             cell["map_cell_filled"] = bool(c is not None and c.filled and options.fill)
         return cell
 
-    def finish(cell: dict) -> None:
+    def finish(cell: dict[str, Any]) -> None:
         run.cells.append(cell)
         if on_progress is not None:
             on_progress(run)
@@ -292,7 +297,7 @@ def run_validation(
     return run
 
 
-def summarize(cells: list[dict]) -> dict:
+def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
     """Median and minimum suppression of the grid and of the midpoint cells measured, the worst cell,
     and the counts (failed and not measured cells count apart, never as a number)."""
     out: dict[str, Any] = {}

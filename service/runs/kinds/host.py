@@ -14,6 +14,7 @@ from typing import Any, Callable, Protocol
 from service.runs.states import SweepControl
 from service.runs.sweep_run import RunHost, SweepRunner
 from service.store.recordings import RecordingStore
+from service.store.records import JobRecord
 
 
 class JobHost(RunHost, Protocol):
@@ -24,7 +25,7 @@ class JobHost(RunHost, Protocol):
     sweeps: SweepRunner
 
     def is_own(self, bench: str | None) -> bool: ...
-    def create_job(self, kind: str, request: dict, bench: str | None, sweep_id: int | None = None) -> int: ...
+    def create_job(self, kind: str, request: dict[str, Any], bench: str | None, sweep_id: int | None = None) -> int: ...
     def queue_sweep(self, sweep_id: int) -> int: ...
     def publish_job(self, job_id: int) -> None: ...
     def cancel_token(self, job_id: int) -> threading.Event: ...
@@ -38,6 +39,6 @@ class JobKind:
     `run(host, job_id, job)`: the body, which raises Cancelled / Paused to end early."""
 
     name: str
-    submit: Callable[..., int]
-    check_here: Callable[[Any, dict], None]
-    run: Callable[[Any, int, dict], None]
+    submit: Callable[..., int]  # (host, the kind's own arguments...): each kind's signature is its own
+    check_here: Callable[[JobHost, JobRecord], None]
+    run: Callable[[JobHost, int, JobRecord], None]

@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from service.bench.interlocks import InterlockTripped
+from service.identification.common import MethodOptions
+from service.identification.session import Window
 from service.model.limits import check_point
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, identify_at, parse_options
 from service.runs.kinds.host import JobHost, JobKind
 from service.runs.states import Cancelled
 from service.runs.sweep_run import discard_recorder, error_text
+from service.store.records import JobRecord
 from service.store.result_rows import result_row
 from service.store.storage import now_iso
 
 
-def submit(host: JobHost, op: OperatingPoint, method: str, options, bench: str | None = None) -> int:
+def submit(host: JobHost, op: OperatingPoint, method: str, options: MethodOptions, bench: str | None = None) -> int:
     """`bench`: the bench it is for (default this one). Another bench's job is stored, and checked
     against that bench's settings by its own service when it takes it."""
     if host.is_own(bench):
@@ -29,7 +34,7 @@ def submit(host: JobHost, op: OperatingPoint, method: str, options, bench: str |
     return job_id
 
 
-def check_here(host: JobHost, job: dict) -> None:
+def check_here(host: JobHost, job: JobRecord) -> None:
     req = job["request"]
     op = OperatingPoint.model_validate(req["operating_point"])
     options = parse_options(req["method"], req["options"])
@@ -37,13 +42,13 @@ def check_here(host: JobHost, job: dict) -> None:
     check_plant_time([op.speed_rpm], req["method"], options, host.settings)
 
 
-def run(host: JobHost, job_id: int, job: dict) -> None:
+def run(host: JobHost, job_id: int, job: JobRecord) -> None:
     req = job["request"]
     op = OperatingPoint.model_validate(req["operating_point"])
     options = parse_options(req["method"], req["options"])
     started = now_iso()
 
-    def job_row(**outcome) -> dict:
+    def job_row(**outcome: Any) -> dict[str, Any]:
         """This job's `results` row with its outcome (a result, or an error)."""
         return result_row(op, req["method"], options, host.bench.identity, started, job_id=job_id, **outcome)
 
@@ -69,14 +74,14 @@ def run(host: JobHost, job_id: int, job: dict) -> None:
         host.storage.update_job(job_id, result_id=rid)
         raise
     row = job_row(result=result, harmonic_order=result.harmonic_order)
-    stored: dict = {}
+    stored: dict[str, int] = {}
     # the bench is safe (the run has ended): a database that cannot take the result now is waited for
     host.durably(lambda: stored.setdefault("id", host.insert_result(row, recorder)), f"job {job_id}: its result")
     if "id" in stored:
         host.durably(lambda: host.storage.update_job(job_id, result_id=stored["id"]), f"job {job_id}: its result")
 
 
-def publish_window(host: JobHost, job_id: int, window) -> None:
+def publish_window(host: JobHost, job_id: int, window: Window) -> None:
     """A run's accepted window as it comes (plant time on the DAQ clock, residual in full scale)."""
     host.broker.publish(
         "job.progress",

@@ -4,7 +4,11 @@ body measures a round's cells through the sweep's (service/runs/sweep_run.py Swe
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 from service import __version__
+from service.errors import NotFound
+from service.identification.common import MethodOptions
 from service.maps.build import build_map
 from service.maps.view import map_view
 from service.model.operating_point import OperatingPoint
@@ -12,10 +16,18 @@ from service.runs.identify import check_plant_time, parse_options
 from service.runs.kinds.host import JobHost, JobKind
 from service.runs.kinds.sweep import check_first_take
 from service.runs.plans import Grid
-from service.runs.refinement import MAX_ROUNDS, RefineRequest, axes_with, check_request, plan_round
+from service.runs.refinement import (
+    MAX_ROUNDS,
+    RefinementState,
+    RefineRequest,
+    axes_with,
+    check_request,
+    plan_round,
+)
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
-from service.runs.sweep_run import SweepRunner
+from service.runs.sweep_run import SweepRunner, job_sweep_id, stored_sweep
 from service.runs.validation import ValidationOptions, check_points, run_validation, store_validation
+from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord
 from service.store.storage import now_iso
 
 
@@ -40,7 +52,7 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         )
         check_plant_time(m.axes["speed_rpm"], request.method, options, host.settings)
     not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
-    state = {
+    state: RefinementState = {
         "target_db": request.target_db,
         "max_cells": request.max_cells,
         "validation": request.validation.model_dump(),
@@ -63,14 +75,14 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         __version__,
         kind="refinement",
         source_map_id=map_id,
-        refinement=state,
+        refinement=dict(state),  # the column takes a plain dict
         bench=host.bench_name if own else bench,
     )
     return host.queue_sweep(sweep_id)
 
 
-def check_here(host: JobHost, job: dict) -> None:
-    def check(sweep: dict, override: bool) -> None:
+def check_here(host: JobHost, job: JobRecord) -> None:
+    def check(sweep: SweepRecord, override: bool) -> None:
         validation = (sweep.get("refinement") or {}).get("validation") or {}
         override = override and bool(validation.get("override_envelope_model", False))
         check_points(sweep["grid"], host.settings, override)
@@ -78,8 +90,17 @@ def check_here(host: JobHost, job: dict) -> None:
     check_first_take(host, job, check)
 
 
-def run(host: JobHost, job_id: int, job: dict) -> None:
-    RefinementRun(host.sweeps).run_refinement(job_id, job["sweep_id"], host.control(job["sweep_id"]))
+def run(host: JobHost, job_id: int, job: JobRecord) -> None:
+    sweep_id = job_sweep_id(job)
+    RefinementRun(host.sweeps).run_refinement(job_id, sweep_id, host.control(sweep_id))
+
+
+def saved_state(sweep: SweepRecord) -> RefinementState:
+    """Where the refinement stood at its last saved step (its sweep's `refinement` column)."""
+    state = sweep["refinement"]
+    if state is None:
+        raise ValueError(f"sweep {sweep['id']} of kind {sweep['kind']} holds no refinement state")
+    return cast(RefinementState, state)  # the JSON column as submit and _save_refinement wrote it
 
 
 class RefinementRun:
@@ -98,8 +119,8 @@ class RefinementRun:
         """A refinement's rounds (service/runs/refinement.py): measure the pending cells, build the refined map,
         validate it in the drive's LUT mode, plan the next cells; its state is saved after every step,
         so a resume (after a pause, an interlock or a crash) goes on from where it stood."""
-        sweep = self.storage.get_sweep(sweep_id)
-        state = sweep["refinement"]
+        sweep = stored_sweep(self.storage, sweep_id)
+        state = saved_state(sweep)
         options = parse_options(sweep["method"], sweep["options"])
         if ctl.cancel.is_set() or SweepState(sweep["state"]) == SweepState.CANCELLED:
             raise Cancelled()
@@ -108,7 +129,10 @@ class RefinementRun:
         self.host.set_sweep(
             sweep_id, SweepState.RUNNING, started_at=sweep["started_at"] or now_iso(), pause_reason=None
         )
-        source = self.storage.get_map(sweep["source_map_id"])
+        source_map_id = sweep["source_map_id"]
+        source = self.storage.get_map(source_map_id) if source_map_id is not None else None
+        if source is None:
+            raise NotFound(f"refinement {sweep_id}: its source map {source_map_id} does not exist")
         while state["phase"] != "done":
             if ctl.cancel.is_set():
                 break
@@ -130,13 +154,19 @@ class RefinementRun:
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=state["current_map_id"])
 
-    def _refinement_rows(self, sweep_id: int, source: dict) -> list[dict]:
+    def _refinement_rows(self, sweep_id: int, source: MapRecord) -> list[ResultRecord]:
         """The source map's results, then the refinement's own (a later one for the same cell wins)."""
         ids = [c["result_id"] for c in source["cells"] if c["result_id"] is not None]
         return list(self.storage.results_by_id(ids).values()) + self.storage.sweep_results(sweep_id)
 
     def _refinement_measure(
-        self, sweep_id: int, sweep: dict, ctl: SweepControl, options, state: dict, source: dict
+        self,
+        sweep_id: int,
+        sweep: SweepRecord,
+        ctl: SweepControl,
+        options: MethodOptions,
+        state: RefinementState,
+        source: MapRecord,
     ) -> None:
         """Identify the round's pending cells (those not yet measured in this round), then build the
         refined map from every result and move on to its validation."""
@@ -185,12 +215,12 @@ class RefinementRun:
         )
         state["phase"] = "validate"
 
-    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: dict) -> None:
+    def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: RefinementState) -> None:
         """Validate the current map in the drive's LUT mode; plan the next round, or end."""
         map_id = state["current_map_id"]
         self._publish_refinement(sweep_id, state, f"validating map {map_id}")
 
-        def on_cell(cell: dict, total: int) -> None:
+        def on_cell(cell: dict[str, Any], total: int) -> None:
             self.broker.publish(
                 "job.progress",
                 {"job_id": job_id, "kind": "refinement", "round": state["round"], "total": total, "cell": cell},
@@ -222,6 +252,8 @@ class RefinementRun:
                 )
             return
         m = map_view(self.storage, map_id)
+        if m is None:
+            raise NotFound(f"refinement {sweep_id}: its map {map_id} does not exist")
         plan = plan_round(
             m.axes,
             [c.model_dump() for c in m.cells],
@@ -266,7 +298,7 @@ class RefinementRun:
             state["round"] += 1
             state["phase"] = "measure"
 
-    def _save_refinement(self, sweep_id: int, state: dict) -> None:
+    def _save_refinement(self, sweep_id: int, state: RefinementState) -> None:
         # total: the cells planned so far (those measured, and the round's pending ones)
         total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
         self.storage.update_sweep(
@@ -274,7 +306,7 @@ class RefinementRun:
         )
         self._publish_refinement(sweep_id, state, state["phase"])
 
-    def _publish_refinement(self, sweep_id: int, state: dict, what: str) -> None:
+    def _publish_refinement(self, sweep_id: int, state: RefinementState, what: str) -> None:
         self.broker.publish(
             "refinement.progress",
             {

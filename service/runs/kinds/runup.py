@@ -10,6 +10,7 @@ from service.runs.kinds.host import JobHost, JobKind
 from service.runs.runup import RunupRequest, check_runup, runup_in_run
 from service.runs.states import Cancelled
 from service.runs.sweep_run import discard_recorder, error_text
+from service.store.records import JobRecord
 from service.store.storage import now_iso
 
 
@@ -24,11 +25,11 @@ def submit(host: JobHost, req: RunupRequest) -> int:
     return job_id
 
 
-def check_here(host: JobHost, job: dict[str, Any]) -> None:
+def check_here(host: JobHost, job: JobRecord) -> None:
     check_runup(RunupRequest.model_validate(job["request"]), host.settings)
 
 
-def run(host: JobHost, job_id: int, job: dict[str, Any]) -> None:
+def run(host: JobHost, job_id: int, job: JobRecord) -> None:
     """The run-up, stored however it ends (done with its analysis, failed with the reason); a cancel
     cancels the job and stores nothing measured."""
     req = RunupRequest.model_validate(job["request"])

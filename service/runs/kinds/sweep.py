@@ -8,19 +8,21 @@ from __future__ import annotations
 from typing import Callable
 
 from service import __version__
+from service.identification.common import MethodOptions
 from service.runs.identify import check_plant_time
 from service.runs.kinds.host import JobHost, JobKind
-from service.runs.plans import Grid, PlannedGrid, SweepPlan, plan_grid
-from service.runs.sweep_run import stored_plan
+from service.runs.plans import Grid, PlannedGrid, RegimePlacement, SweepPlan, plan_grid
+from service.runs.sweep_run import job_sweep_id, stored_plan, stored_sweep
+from service.store.records import JobRecord, SweepRecord
 
 
 def submit(
     host: JobHost,
     grid: Grid,
     method: str,
-    options,
+    options: MethodOptions,
     schedule_id: int | None = None,
-    regime=None,
+    regime: RegimePlacement | None = None,
     bench: str | None = None,
     planned: PlannedGrid | None = None,
 ) -> int:
@@ -57,21 +59,23 @@ def submit(
     return sweep_id
 
 
-def check_first_take(host: JobHost, job: dict, check: Callable[[dict, bool], None]) -> None:
+def check_first_take(host: JobHost, job: JobRecord, check: Callable[[SweepRecord, bool], None]) -> None:
     """A sweep (of any kind) queued by another bench's service and not yet started here: `check(sweep,
     override)` against this bench's settings, then the sweep takes this bench's identity."""
-    sweep = host.storage.get_sweep(job["sweep_id"])
+    sweep_id = job_sweep_id(job)
+    sweep = stored_sweep(host.storage, sweep_id)
     if sweep["started_at"] is None and sweep["bench_identity"] != host.bench.identity:
         check(sweep, bool(sweep["options"].get("override_envelope_model", False)))
-        host.storage.update_sweep(job["sweep_id"], bench_identity=host.bench.identity)
+        host.storage.update_sweep(sweep_id, bench_identity=host.bench.identity)
 
 
-def check_here(host: JobHost, job: dict) -> None:
+def check_here(host: JobHost, job: JobRecord) -> None:
     check_first_take(host, job, lambda sweep, override: stored_plan(sweep).dry_run(host.settings, override))
 
 
-def run(host: JobHost, job_id: int, job: dict) -> None:
-    host.sweeps.run_sweep(job_id, job["sweep_id"], host.control(job["sweep_id"]))
+def run(host: JobHost, job_id: int, job: JobRecord) -> None:
+    sweep_id = job_sweep_id(job)
+    host.sweeps.run_sweep(job_id, sweep_id, host.control(sweep_id))
 
 
 KIND = JobKind("sweep", submit=submit, check_here=check_here, run=run)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+from service.errors import NotFound
 from service.runs.kinds.host import JobHost, JobKind
 from service.runs.states import Cancelled
 from service.runs.validation import (
@@ -12,6 +15,7 @@ from service.runs.validation import (
     run_validation,
     store_validation,
 )
+from service.store.records import JobRecord
 
 
 def submit(host: JobHost, map_id: int, force: bool, options: ValidationOptions, bench: str | None = None) -> int:
@@ -33,20 +37,23 @@ def submit(host: JobHost, map_id: int, force: bool, options: ValidationOptions, 
     return job_id
 
 
-def check_here(host: JobHost, job: dict) -> None:
+def check_here(host: JobHost, job: JobRecord) -> None:
     req = job["request"]
     override = bool(req["options"].get("override_envelope_model", False))
-    check_points(host.storage.get_map(req["map_id"])["axes"], host.settings, override)
+    row = host.storage.get_map(req["map_id"])
+    if row is None:
+        raise NotFound(f"map {req['map_id']} does not exist")
+    check_points(row["axes"], host.settings, override)
 
 
-def run(host: JobHost, job_id: int, job: dict) -> None:
+def run(host: JobHost, job_id: int, job: JobRecord) -> None:
     """Download, then every point; the validation is stored however it ends (the map keeps its
     latest). An interlock trip or a point's stop fails the job with the reason; a cancel cancels it.
     The bench is made safe after every point (bench.operating_point)."""
     req = job["request"]
     options = ValidationOptions.model_validate(req["options"])
 
-    def on_cell(cell: dict, total: int) -> None:
+    def on_cell(cell: dict[str, Any], total: int) -> None:
         host.broker.publish("job.progress", {"job_id": job_id, "kind": "validation", "total": total, "cell": cell})
 
     run = run_validation(
