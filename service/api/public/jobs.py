@@ -9,6 +9,7 @@ from pydantic import BaseModel, Field
 from service.api.public.benches import queued_waiting_for
 from service.api.public.refinements import RefinementPublic, refinement_public
 from service.api.public.results import ResultPublic, result_public
+from service.api.public.runups import RunupPublic, runup_public
 from service.api.public.validations import ValidationPublic, validation_public
 
 if TYPE_CHECKING:
@@ -29,11 +30,11 @@ class JobPublic(BaseModel):
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None
-    result: ResultPublic | RefinementPublic | None = Field(
+    result: ResultPublic | RefinementPublic | RunupPublic | None = Field(
         None,
         description="kind identification: the result; kind "
         "refinement: the refined map, its rounds, the cells added "
-        "and the final validation",
+        "and the final validation; kind runup: its order analysis",
     )
     validation: ValidationPublic | None = Field(
         None, description="kind validation: the map's LUT measured in the drive's LUT mode, every cell"
@@ -45,7 +46,10 @@ def job_public(records: Records, job: Mapping[str, Any], service: CalibrationSer
     sees it (None: the database alone, as the CLI reads it)."""
     row = records.get_result(job["result_id"]) if job.get("result_id") else None
     validation = records.validation_of_job(job["id"]) if job["kind"] == "validation" else None
-    result: ResultPublic | RefinementPublic | None = result_public(row) if row else None
+    result: ResultPublic | RefinementPublic | RunupPublic | None = result_public(row) if row else None
+    if job["kind"] == "runup":
+        runup = records.runup_of_job(job["id"])
+        result = runup_public(runup) if runup is not None else None
     if job["kind"] == "refinement" and job["sweep_id"] is not None:
         sweep = service.seen_sweep(job["sweep_id"]) if service is not None else records.get_sweep(job["sweep_id"])
         if sweep is None:  # the job's row names it (a foreign key): a store that lost it is broken

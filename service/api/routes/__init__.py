@@ -1,6 +1,6 @@
 """One router per resource (thin: validate, call the service layer, return its Public model)."""
 
-from service.api.routes import bench, catalog, events, jobs, maps, results, schedules, sweeps
+from service.api.routes import bench, catalog, events, jobs, maps, results, runups, schedules, sweeps
 
 ROUTERS = [
     bench.router,
@@ -9,6 +9,7 @@ ROUTERS = [
     sweeps.router,
     schedules.router,
     maps.router,
+    runups.router,
     events.router,
     catalog.router,
 ]
