@@ -26,13 +26,15 @@ from drivers.load_machine import LoadClient
 from service.bench.connections import BenchLinks
 from service.bench.errors import BenchError, BenchUnreachable, RunError
 from service.bench.faults import BenchFaults
-from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange, Trip
+from service.bench.interlock_monitor import InterlockMonitor
+from service.bench.interlocks import ActualsOutsideLimits, SupplyOutOfRange
 from service.bench.lifecycle import RunLifecycle
 from service.bench.live_values import LiveValues
 from service.bench.measurement import OperatingPointSession
 from service.bench.run import BenchRun
 from service.bench.setpoint_accounting import SetpointAccounting
 from service.bench.status import BenchStatus
+from service.bench.trips import Trip
 from service.model.demodulation import ResonanceMode, ResonanceTracker
 from service.model.operating_point import OperatingPoint
 from service.settings import Settings

@@ -41,7 +41,7 @@ from drivers.errors import (
 )
 from drivers.load_machine import LoadClient
 from service.bench.errors import BenchError, BenchUnreachable
-from service.bench.interlocks import Trip
+from service.bench.trips import Trip
 from service.settings import Settings
 
 log = logging.getLogger(__name__)

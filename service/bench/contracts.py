@@ -13,7 +13,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Callable, Protocol
 
 if TYPE_CHECKING:
-    from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange
+    from service.bench.interlock_monitor import InterlockMonitor
+    from service.bench.interlocks import ActualsOutsideLimits, SupplyOutOfRange
     from service.bench.live_values import LiveValues
     from service.bench.setpoint_accounting import SetpointAccounting
     from service.model.demodulation import ResonanceTracker

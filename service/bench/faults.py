@@ -18,19 +18,18 @@ from typing import Any, Callable
 from drivers.cia402 import Command402
 from service.bench.connections import BenchLinks
 from service.bench.errors import BenchError
+from service.bench.interlock_monitor import InterlockMonitor
 from service.bench.interlocks import (
     ActualsOutsideLimits,
     DaqLost,
     DeviceFault,
     ForeignMaster,
     HeartbeatLost,
-    InterlockMonitor,
-    InterlockTripped,
     ServiceHeartbeatStopped,
     SupplyOutOfRange,
-    Trip,
 )
 from service.bench.measurement import RunCancelled
+from service.bench.trips import InterlockTripped, Trip
 from service.settings import Settings
 
 log = logging.getLogger(__name__)

@@ -21,11 +21,11 @@ from service.bench.connections import BenchLinks
 from service.bench.contracts import RunBench
 from service.bench.errors import BenchError, RunError
 from service.bench.faults import BenchFaults
-from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import OperatingPointSession, RunCancelled
 from service.bench.run import BenchRun, gamma_max_for_run
 from service.bench.run_commands import RunCommands
 from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
+from service.bench.trips import InterlockTripped
 from service.bench.watchdog import BenchWatchdog
 from service.model import limits
 from service.model.harmonic import mechanical_speed_rpm

@@ -39,10 +39,10 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Iterator
 
 from service.bench.contracts import RunBench
-from service.bench.interlocks import InterlockTripped, Trip
 from service.bench.measurement import OperatingPointSession, SessionSettings
 from service.bench.point_stream import PointStream
 from service.bench.run_commands import RunCommands
+from service.bench.trips import InterlockTripped, Trip
 from service.identification.session import MeasurementError
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint

@@ -17,7 +17,7 @@ import threading
 from typing import Any, Callable, ContextManager, Mapping, Protocol
 
 from service.bench.bench import Bench
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.identification.common import LUT_MARGIN_DB
 from service.identification.session import MeasurementError
 from service.maps.build import build_map_from_sweep

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.model.limits import check_point
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, identify_at, parse_options
