@@ -20,8 +20,14 @@ import time
 from abc import ABC, abstractmethod
 from typing import Any
 
+from drivers.canopen_bus import CanBus
 from drivers.cia402 import State402
+from drivers.cia402_master import Cia402Master
+from drivers.daq_reader import DaqReader
+from drivers.dc_supply import ScpiSupply
+from drivers.drive import DriveActuals, DriveClient
 from drivers.emcy_codes import describe_emcy
+from service.settings import SafetySettings
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +98,7 @@ class DeviceFault(Interlock):
     latched = True
     period_s = 0.25
 
-    def __init__(self, device):
+    def __init__(self, device: Cia402Master):
         super().__init__()
         self.device = device
         self.name = f"{device.device_kind}_fault"
@@ -119,7 +125,7 @@ class DeviceFault(Interlock):
 class HeartbeatLost(Interlock):
     """The device's heartbeat has not been seen for 3 of its periods (the device or the bus is gone)."""
 
-    def __init__(self, device):
+    def __init__(self, device: Cia402Master):
         super().__init__()
         self.device = device
         self.name = f"{device.device_kind}_heartbeat"
@@ -127,10 +133,10 @@ class HeartbeatLost(Interlock):
     def read(self) -> tuple[bool, float | None]:
         return self.device.heartbeat_alive(), self.device.heartbeat_age_s()
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[bool, float | None]) -> bool:
         return not value[0]
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[bool, float | None]) -> str:
         age = value[1]
         seen = "never seen" if age is None else f"last seen {age:.1f} s ago"
         return f"heartbeat lost: {self.device.device_kind} node {self.device.node_id} ({seen})"
@@ -141,7 +147,7 @@ class ServiceHeartbeatStopped(Interlock):
 
     name = "service_heartbeat"
 
-    def __init__(self, bus):
+    def __init__(self, bus: CanBus):
         super().__init__()
         self.bus = bus
 
@@ -151,7 +157,7 @@ class ServiceHeartbeatStopped(Interlock):
     def should_trip(self, value: bool) -> bool:
         return not value
 
-    def justification(self, value) -> str:
+    def justification(self, value: bool) -> str:
         return f"heartbeat lost: the service's own heartbeat (node {self.bus.service_node_id}) is not being produced"
 
 
@@ -160,7 +166,7 @@ class DaqLost(Interlock):
 
     name = "daq"
 
-    def __init__(self, reader):
+    def __init__(self, reader: DaqReader):
         super().__init__()
         self.reader = reader
         self._faults_seen: int | None = None
@@ -169,14 +175,14 @@ class DaqLost(Interlock):
         h = self.reader.health()
         return h["connected"], h.get("sensor_fault_samples", 0), h["last_error"]
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[bool, int, str | None]) -> bool:
         connected, faults, _ = value
         new_faults = self._faults_seen is not None and faults > self._faults_seen
         self._faults_seen = faults
         self._new_faults = new_faults
         return not connected or new_faults
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[bool, int, str | None]) -> str:
         connected, _, error = value
         if not connected:
             return daq_disconnected_reason(self.reader.url, error)
@@ -194,7 +200,7 @@ class ForeignMaster(Interlock):
     name = "foreign_master"
     period_s = 0.5
 
-    def __init__(self, bus):
+    def __init__(self, bus: CanBus):
         super().__init__()
         self.bus = bus
 
@@ -215,7 +221,7 @@ class SupplyOutOfRange(Interlock):
     period_s = 0.5
     armed_only = True
 
-    def __init__(self, supply, tolerance_fraction: float = 0.1, tolerance_v: float = 0.5):
+    def __init__(self, supply: ScpiSupply, tolerance_fraction: float = 0.1, tolerance_v: float = 0.5):
         super().__init__()
         self.supply = supply
         self.tolerance_fraction = tolerance_fraction
@@ -233,13 +239,13 @@ class SupplyOutOfRange(Interlock):
             return None
         return self.supply.measure_voltage(), expected_v
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[float, float] | None) -> bool:
         return value is not None and abs(value[0] - value[1]) > self.band(value[1])
 
-    def should_clear(self, value) -> bool:
+    def should_clear(self, value: tuple[float, float] | None) -> bool:
         return value is None or abs(value[0] - value[1]) <= 0.5 * self.band(value[1])  # hysteresis
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[float, float]) -> str:
         measured_v, expected_v = value
         return (
             f"DC supply out of range: measures {measured_v:.2f} V, set {expected_v:.2f} V "
@@ -264,7 +270,7 @@ class ActualsOutsideLimits(Interlock):
     latched = True
     period_s = 0.1  # the poll decides on staleness only: the values are decided as they arrive
 
-    def __init__(self, drive, safety, i_max_a: float, stale_s: float = 1.0):
+    def __init__(self, drive: DriveClient, safety: SafetySettings, i_max_a: float, stale_s: float = 1.0):
         super().__init__()
         self.drive = drive
         self.safety = safety
@@ -279,10 +285,10 @@ class ActualsOutsideLimits(Interlock):
         self._watching = armed
         self._since = time.monotonic()
 
-    def read(self):
+    def read(self) -> DriveActuals | None:
         return self.drive.actuals
 
-    def push(self, actuals) -> None:
+    def push(self, actuals: DriveActuals) -> None:
         """A new TPDO of the actuals (CAN receive thread): counted into the mean (the decision is the monitor's)."""
         with self._mean_lock:
             self._sum_nm += actuals.torque_nm
@@ -297,13 +303,13 @@ class ActualsOutsideLimits(Interlock):
         with self._mean_lock:
             return (self._sum_nm / self._count if self._count else None), self._count
 
-    def _stale_s(self, actuals) -> float | None:
+    def _stale_s(self, actuals: DriveActuals | None) -> float | None:
         if not self._watching:
             return None
         age = time.monotonic() - (self._since if actuals is None else max(actuals.received_at, self._since))
         return age if age > self.stale_s else None
 
-    def _violation(self, actuals) -> str | None:
+    def _violation(self, actuals: DriveActuals | None) -> str | None:
         s, m = self.safety, self.safety.actuals_margin_fraction
         if actuals is None:
             return None
@@ -321,12 +327,12 @@ class ActualsOutsideLimits(Interlock):
             return f"speed actual {actuals.speed_rpm:.0f} rpm beyond the limit of {s.max_speed_rpm:g} rpm (safety.max_speed_rpm)"
         return None
 
-    def should_trip(self, actuals) -> bool:
+    def should_trip(self, actuals: DriveActuals | None) -> bool:
         return self._violation(actuals) is not None or self._stale_s(actuals) is not None
 
-    def justification(self, actuals) -> str:
+    def justification(self, actuals: DriveActuals | None) -> str:
         violation = self._violation(actuals)
-        if violation is not None:
+        if violation is not None and actuals is not None:  # a violation is always of actuals read
             return (
                 f"the motor left the envelope: {violation} (drive node {self.drive.node_id}: torque "
                 f"{actuals.torque_nm:.2f} Nm, current {actuals.current_a:.0f} A, speed {actuals.speed_rpm:.0f} rpm)"
