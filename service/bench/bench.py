@@ -26,13 +26,16 @@ from drivers.load_machine import LoadClient
 from service.bench.connections import BenchLinks
 from service.bench.errors import BenchError, BenchUnreachable, RunError
 from service.bench.faults import BenchFaults
-from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange, Trip
+from service.bench.interlock_monitor import InterlockMonitor
+from service.bench.interlocks import ActualsOutsideLimits, SupplyOutOfRange
 from service.bench.lifecycle import RunLifecycle
 from service.bench.live_values import LiveValues
 from service.bench.measurement import OperatingPointSession
 from service.bench.run import BenchRun
 from service.bench.setpoint_accounting import SetpointAccounting
 from service.bench.status import BenchStatus
+from service.bench.trips import Trip
+from service.identification.session import Window
 from service.model.demodulation import ResonanceMode, ResonanceTracker
 from service.model.operating_point import OperatingPoint
 from service.settings import Settings
@@ -99,21 +102,22 @@ class Bench:
     def on_trip(self, on_trip: Callable[[Trip], None] | None) -> None:
         self._faults.on_trip = on_trip
 
+    # the parts a run reads (its RunBench): BenchError while the bench is not connected
     @property
-    def interlocks(self) -> InterlockMonitor | None:
-        return self._faults.interlocks
+    def interlocks(self) -> InterlockMonitor:
+        return self._faults.started().monitor
 
     @property
     def supply_interlock(self) -> SupplyOutOfRange:
-        return self._faults.supply_interlock
+        return self._faults.started().supply
 
     @property
-    def actuals(self) -> ActualsOutsideLimits | None:
+    def actuals(self) -> ActualsOutsideLimits:
         """The drive's actuals held against the limits; also a point's mean torque actual."""
-        return self._faults.actuals
+        return self._faults.started().actuals
 
     @property
-    def accounting(self) -> SetpointAccounting | None:
+    def accounting(self) -> SetpointAccounting:
         """The drive's setpoints against the DAQ sync line."""
         return self._runs.accounting
 
@@ -213,7 +217,7 @@ class Bench:
         harmonic_order: int,
         gamma_max_rad: float | None = None,
         cancel: threading.Event | None = None,
-        on_window: Callable | None = None,
+        on_window: Callable[[Window], None] | None = None,
         decoupling: bool | None = None,
         target_db: float = 40.0,
     ) -> AbstractContextManager[OperatingPointSession]:
@@ -228,18 +232,18 @@ class Bench:
 
     def setpoints_written(self) -> int:
         """Setpoints the drive has accepted so far; each toggles the DAQ sync line once (docs/interfaces.md)."""
-        return self._links.drive.setpoints_written
+        return self._links.opened().drive.setpoints_written
 
     def download_lut(self, image: bytes) -> LutInForce:
         """LUT image to the drive (segmented SDO), CRC-32 read back and compared; returns what the
         drive now holds (map id, CRC, status), which /bench/status shows from then on. Refused while
         a run holds the bench."""
         if not self.connected:
-            raise BenchError(self.interlock_refusal().reason)
+            raise BenchError(self._links.unreachable_trip().reason)  # what interlock_refusal() says of it
         if not self._lock.acquire(timeout=1.0):
             raise BenchError("the bench is busy with a run; download the LUT when it is idle")
         try:
-            held = self._links.drive.download_lut(image)
+            held = self._links.opened().drive.download_lut(image)
             self._view.read_lut(lambda: held)  # the drive's own read-back
             return held
         finally:

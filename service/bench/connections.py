@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from dataclasses import dataclass
 from datetime import datetime, timezone
 
 from drivers.canopen_bus import CanBus
@@ -41,7 +42,7 @@ from drivers.errors import (
 )
 from drivers.load_machine import LoadClient
 from service.bench.errors import BenchError, BenchUnreachable
-from service.bench.interlocks import Trip
+from service.bench.trips import Trip
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -59,8 +60,19 @@ POWER_OFF_STATES = frozenset(
 )
 
 
+@dataclass(frozen=True)
+class OpenLinks:
+    """The links of a bench that open() reached whole (BenchLinks.opened): none of them missing."""
+
+    bus: CanBus
+    drive: DriveClient
+    load: LoadClient
+    daq: DaqReader
+    supply: ScpiSupply
+
+
 class BenchLinks:
-    """The links to the bench's devices (module doc); None until opened."""
+    """The links to the bench's devices (module doc); None until opened (`opened()`: all of them)."""
 
     def __init__(self, settings: Settings):
         self.settings = settings
@@ -80,7 +92,8 @@ class BenchLinks:
         BenchUnreachable naming the device, its address, what to check and how the devices were left
         (nothing half-open is left behind)."""
         s = self.settings
-        if not s.daq.url or not s.supply.url:
+        daq_url, supply_url = s.daq.url, s.supply.url
+        if not daq_url or not supply_url:
             raise BenchError("bench settings name no DAQ port (daq.url) or supply port (supply.url)")
         can_at = f"{s.can.interface} {s.can.channel}" + (f" at {s.can.host}:{s.can.port}" if s.can.host else "")
         steps = [
@@ -102,8 +115,13 @@ class BenchLinks:
                 "the load machine is powered, on the bus, and can.load_node is its node id",
                 self._connect_load,
             ),
-            ("DC supply", s.supply.url, "the supply is on and supply.url names its port", self._connect_supply),
-            ("DAQ", s.daq.url, "the DAQ is plugged in and daq.url names its port", self._connect_daq),
+            (
+                "DC supply",
+                supply_url,
+                "the supply is on and supply.url names its port",
+                lambda: self._connect_supply(supply_url),
+            ),
+            ("DAQ", daq_url, "the DAQ is plugged in and daq.url names its port", lambda: self._connect_daq(daq_url)),
             (
                 "drive and load heartbeat consumers",
                 can_at,
@@ -194,21 +212,31 @@ class BenchLinks:
         finally:
             can_log.setLevel(level)
 
+    def _opened_bus(self) -> CanBus:
+        """The bus, for the steps of open() after its first (which opened it)."""
+        if self.bus is None:
+            raise BenchError("the CAN bus is not open")
+        return self.bus
+
     def _connect_drive(self) -> None:
-        self.drive = DriveClient(self.bus, self.settings.can.drive_node, sdo_timeout_s=self.settings.can.sdo_timeout_s)
+        self.drive = DriveClient(
+            self._opened_bus(), self.settings.can.drive_node, sdo_timeout_s=self.settings.can.sdo_timeout_s
+        )
         self.drive.connect(arm_consumer=False)
 
     def _connect_load(self) -> None:
-        self.load = LoadClient(self.bus, self.settings.can.load_node, sdo_timeout_s=self.settings.can.sdo_timeout_s)
+        self.load = LoadClient(
+            self._opened_bus(), self.settings.can.load_node, sdo_timeout_s=self.settings.can.sdo_timeout_s
+        )
         self.load.connect(arm_consumer=False)
 
-    def _connect_supply(self) -> None:
-        self.supply = ScpiSupply(self.settings.supply.url, timeout_s=self.settings.supply.timeout_s)
+    def _connect_supply(self, url: str) -> None:
+        self.supply = ScpiSupply(url, timeout_s=self.settings.supply.timeout_s)
         self.supply.identify()  # answering, not just a port that opens
 
-    def _connect_daq(self) -> None:
+    def _connect_daq(self, url: str) -> None:
         daq = self.settings.daq
-        self.daq = DaqReader(daq.url, max_buffered_samples=4096)  # little stale data before each setpoint
+        self.daq = DaqReader(url, max_buffered_samples=4096)  # little stale data before each setpoint
         self.daq.start()
         if self.settings.bench_mode == "emulate":
             # our own emulator, whose rate the settings took from it; paced or not, as --speedup says
@@ -226,7 +254,8 @@ class BenchLinks:
 
     def _arm_heartbeat_consumers(self) -> None:
         """The bench is whole: drive and load consume the service's heartbeat, which starts now."""
-        for device in (self.drive, self.load):
+        links = self.opened()
+        for device in (links.drive, links.load):
             found = device.heartbeat_consumer()
             self._armed[device] = found  # before the write: a write whose answer was lost may have armed it
             try:
@@ -235,7 +264,7 @@ class BenchLinks:
                 del self._armed[device]  # refused: nothing was written
                 raise
         self._disarm_tried = False
-        self.bus.start_heartbeat()  # last: nothing watches it before the bench is whole
+        links.bus.start_heartbeat()  # last: nothing watches it before the bench is whole
 
     def disarm_heartbeat_consumers(self) -> None:
         """Drive and load no longer watch the service's heartbeat (0x1016): they do not fault when it
@@ -248,7 +277,7 @@ class BenchLinks:
     def _disarm(self, restore: bool = False) -> list[str]:
         """Disarm every consumer we armed that can be (the power stage off): 0x1016:1 = 0, or as found
         (restore, only while the service's heartbeat has never been sent); what could not be, said."""
-        failures = []
+        failures: list[str] = []
         for device, found in list(self._armed.items()):
             where = f"{device.device_kind} node {device.node_id}"
             try:
@@ -289,6 +318,16 @@ class BenchLinks:
             if self.bus is not None:
                 self.bus.disconnect()
 
+    def opened(self) -> OpenLinks:
+        """Every link, for what needs the bench connected (its interlocks, a run, the status); BenchError
+        naming what is missing while open() has not reached the bench whole."""
+        bus, drive, load, daq, supply = self.bus, self.drive, self.load, self.daq, self.supply
+        if bus is None or drive is None or load is None or daq is None or supply is None:
+            links = (("CAN bus", bus), ("drive", drive), ("load machine", load), ("DAQ", daq), ("DC supply", supply))
+            missing = ", ".join(name for name, link in links if link is None)
+            raise BenchError(f"the bench is not connected: {missing} not open")
+        return OpenLinks(bus, drive, load, daq, supply)
+
     # --- reachability ------------------------------------------------------------------------------
     def check_reachable(self) -> None:
         """Before a run is accepted: BenchUnreachable naming the device and what to check while the bench
@@ -297,12 +336,18 @@ class BenchLinks:
             raise BenchUnreachable(self.unreachable_trip().reason)
 
     def unreachable_trip(self) -> Trip:
-        """The bench not reached at start as a trip that forbids runs (for refusals and the status)."""
+        """The bench not reached at start as a trip that forbids runs (for refusals and the status); a
+        bench never opened (no connect() yet) says so."""
         u = self.unreachable
+        reason = (
+            "the bench is not connected: its links were never opened"
+            if u is None
+            else f"{u['device']} at {u['address']} {self._verdict} at start ({u['error']}); "
+            f"{u['hint']}, then restart the service; {u['left']}"
+        )
         return Trip(
             "bench_unreachable",
-            f"{u['device']} at {u['address']} {self._verdict} at start ({u['error']}); "
-            f"{u['hint']}, then restart the service; {u['left']}",
+            reason,
             latched=False,
             at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
             monotonic=time.monotonic(),

@@ -6,6 +6,8 @@
 - `RunBench`: what a run (service/bench/run.py) needs from the bench that opened it; the `Bench`
   facade (service/bench/bench.py) provides it.
 - `Guard`: called before every DAQ read of a run; raises to stop it (cancel token, interlock trip).
+- `Recorder`: a raw recording a point's stream and session feed while one is set (the store's
+  `RunRecorder`, service/store/recordings.py, set by the run layer: the bench never imports the store).
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Callable, Protocol
 
 if TYPE_CHECKING:
-    from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor, SupplyOutOfRange
+    from drivers.daq_protocol import DecodedSamples
+    from service.bench.interlock_monitor import InterlockMonitor
+    from service.bench.interlocks import ActualsOutsideLimits, SupplyOutOfRange
     from service.bench.live_values import LiveValues
     from service.bench.setpoint_accounting import SetpointAccounting
     from service.model.demodulation import ResonanceTracker
@@ -28,6 +32,14 @@ class DriveCommands(Protocol):
     def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None: ...
 
     def send_injection_mode(self, mode: str) -> None: ...
+
+
+class Recorder(Protocol):
+    """A raw recording: every sample a point's stream consumes, and each theta setpoint with its effect."""
+
+    def samples(self, s: DecodedSamples, counted: bool) -> None: ...
+
+    def setpoint(self, effect_index: int, theta_cos_rad: float, theta_sin_rad: float) -> None: ...
 
 
 class RunBench(Protocol):

@@ -28,7 +28,7 @@ class EmulatorProcess:
     seed: int | None = None
     speedup: float = 0.0
     start_timeout_s: float = 60.0
-    process: subprocess.Popen | None = None
+    process: subprocess.Popen[str] | None = None  # text=True
     endpoints: dict[str, Any] | None = None
 
     def start(self) -> dict[str, Any]:

@@ -8,9 +8,8 @@ Unlike a suspender, a trip never resumes a run by itself: the measurement in fli
 sweep pauses; a *latched* interlock (drive FAULT/EMCY) also stays tripped until a person acknowledges
 it (POST /bench/fault-reset), the others clear when their condition does.
 
-`InterlockMonitor` polls the interlocks from its own thread (EMCY and the drive's actuals arrive pushed,
-from the CAN receive thread, and are decided there at once), keeps the first trip of the run in flight (`run_trip`, read by the bench's guard before every
-DAQ read) and calls `on_trip` at once, so the bench goes safe without waiting for the run to notice.
+The monitor that watches them, from its own thread, is service/bench/interlock_monitor.py; what a trip
+records and the error a run stops with are service/bench/trips.py.
 """
 
 from __future__ import annotations
@@ -19,46 +18,18 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
-from typing import Any, Callable
+from typing import Any
 
+from drivers.canopen_bus import CanBus
 from drivers.cia402 import State402
+from drivers.cia402_master import Cia402Master
+from drivers.daq_reader import DaqReader
+from drivers.dc_supply import ScpiSupply
+from drivers.drive import DriveActuals, DriveClient
 from drivers.emcy_codes import describe_emcy
-from service.errors import BenchRefused
+from service.settings import SafetySettings
 
 log = logging.getLogger(__name__)
-
-_NO_READING = object()
-
-
-@dataclass(frozen=True)
-class Trip:
-    """One interlock trip: which interlock, why (the first cause), whether a person must acknowledge it."""
-
-    interlock: str
-    reason: str
-    latched: bool
-    at: str  # ISO 8601 UTC
-    monotonic: float
-
-    def public(self) -> dict[str, Any]:
-        d = asdict(self)
-        d.pop("monotonic")
-        return d
-
-
-class InterlockTripped(BenchRefused, RuntimeError):
-    """A run stopped (or was refused) because an interlock tripped; str() is the first cause."""
-
-    def __init__(self, trip: Trip, refused: bool = False, outcome: str | None = None):
-        self.trip = trip
-        self.refused = refused
-        self.outcome = outcome  # make_safe's outcome, added to (never substituted for) the cause
-        prefix = "refused: interlock tripped: " if refused else "interlock tripped: "
-        # only a person clears a latched trip: a refusal says how
-        hint = "; a person acknowledges it: POST /api/v1/bench/fault-reset" if refused and trip.latched else ""
-        super().__init__(prefix + trip.reason + hint + (f"; {outcome}" if outcome else ""))
 
 
 class Interlock(ABC):
@@ -127,7 +98,7 @@ class DeviceFault(Interlock):
     latched = True
     period_s = 0.25
 
-    def __init__(self, device):
+    def __init__(self, device: Cia402Master):
         super().__init__()
         self.device = device
         self.name = f"{device.device_kind}_fault"
@@ -154,7 +125,7 @@ class DeviceFault(Interlock):
 class HeartbeatLost(Interlock):
     """The device's heartbeat has not been seen for 3 of its periods (the device or the bus is gone)."""
 
-    def __init__(self, device):
+    def __init__(self, device: Cia402Master):
         super().__init__()
         self.device = device
         self.name = f"{device.device_kind}_heartbeat"
@@ -162,10 +133,10 @@ class HeartbeatLost(Interlock):
     def read(self) -> tuple[bool, float | None]:
         return self.device.heartbeat_alive(), self.device.heartbeat_age_s()
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[bool, float | None]) -> bool:
         return not value[0]
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[bool, float | None]) -> str:
         age = value[1]
         seen = "never seen" if age is None else f"last seen {age:.1f} s ago"
         return f"heartbeat lost: {self.device.device_kind} node {self.device.node_id} ({seen})"
@@ -176,7 +147,7 @@ class ServiceHeartbeatStopped(Interlock):
 
     name = "service_heartbeat"
 
-    def __init__(self, bus):
+    def __init__(self, bus: CanBus):
         super().__init__()
         self.bus = bus
 
@@ -186,7 +157,7 @@ class ServiceHeartbeatStopped(Interlock):
     def should_trip(self, value: bool) -> bool:
         return not value
 
-    def justification(self, value) -> str:
+    def justification(self, value: bool) -> str:
         return f"heartbeat lost: the service's own heartbeat (node {self.bus.service_node_id}) is not being produced"
 
 
@@ -195,7 +166,7 @@ class DaqLost(Interlock):
 
     name = "daq"
 
-    def __init__(self, reader):
+    def __init__(self, reader: DaqReader):
         super().__init__()
         self.reader = reader
         self._faults_seen: int | None = None
@@ -204,14 +175,14 @@ class DaqLost(Interlock):
         h = self.reader.health()
         return h["connected"], h.get("sensor_fault_samples", 0), h["last_error"]
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[bool, int, str | None]) -> bool:
         connected, faults, _ = value
         new_faults = self._faults_seen is not None and faults > self._faults_seen
         self._faults_seen = faults
         self._new_faults = new_faults
         return not connected or new_faults
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[bool, int, str | None]) -> str:
         connected, _, error = value
         if not connected:
             return daq_disconnected_reason(self.reader.url, error)
@@ -229,7 +200,7 @@ class ForeignMaster(Interlock):
     name = "foreign_master"
     period_s = 0.5
 
-    def __init__(self, bus):
+    def __init__(self, bus: CanBus):
         super().__init__()
         self.bus = bus
 
@@ -250,7 +221,7 @@ class SupplyOutOfRange(Interlock):
     period_s = 0.5
     armed_only = True
 
-    def __init__(self, supply, tolerance_fraction: float = 0.1, tolerance_v: float = 0.5):
+    def __init__(self, supply: ScpiSupply, tolerance_fraction: float = 0.1, tolerance_v: float = 0.5):
         super().__init__()
         self.supply = supply
         self.tolerance_fraction = tolerance_fraction
@@ -268,13 +239,13 @@ class SupplyOutOfRange(Interlock):
             return None
         return self.supply.measure_voltage(), expected_v
 
-    def should_trip(self, value) -> bool:
+    def should_trip(self, value: tuple[float, float] | None) -> bool:
         return value is not None and abs(value[0] - value[1]) > self.band(value[1])
 
-    def should_clear(self, value) -> bool:
+    def should_clear(self, value: tuple[float, float] | None) -> bool:
         return value is None or abs(value[0] - value[1]) <= 0.5 * self.band(value[1])  # hysteresis
 
-    def justification(self, value) -> str:
+    def justification(self, value: tuple[float, float]) -> str:
         measured_v, expected_v = value
         return (
             f"DC supply out of range: measures {measured_v:.2f} V, set {expected_v:.2f} V "
@@ -299,7 +270,7 @@ class ActualsOutsideLimits(Interlock):
     latched = True
     period_s = 0.1  # the poll decides on staleness only: the values are decided as they arrive
 
-    def __init__(self, drive, safety, i_max_a: float, stale_s: float = 1.0):
+    def __init__(self, drive: DriveClient, safety: SafetySettings, i_max_a: float, stale_s: float = 1.0):
         super().__init__()
         self.drive = drive
         self.safety = safety
@@ -314,10 +285,10 @@ class ActualsOutsideLimits(Interlock):
         self._watching = armed
         self._since = time.monotonic()
 
-    def read(self):
+    def read(self) -> DriveActuals | None:
         return self.drive.actuals
 
-    def push(self, actuals) -> None:
+    def push(self, actuals: DriveActuals) -> None:
         """A new TPDO of the actuals (CAN receive thread): counted into the mean (the decision is the monitor's)."""
         with self._mean_lock:
             self._sum_nm += actuals.torque_nm
@@ -332,13 +303,13 @@ class ActualsOutsideLimits(Interlock):
         with self._mean_lock:
             return (self._sum_nm / self._count if self._count else None), self._count
 
-    def _stale_s(self, actuals) -> float | None:
+    def _stale_s(self, actuals: DriveActuals | None) -> float | None:
         if not self._watching:
             return None
         age = time.monotonic() - (self._since if actuals is None else max(actuals.received_at, self._since))
         return age if age > self.stale_s else None
 
-    def _violation(self, actuals) -> str | None:
+    def _violation(self, actuals: DriveActuals | None) -> str | None:
         s, m = self.safety, self.safety.actuals_margin_fraction
         if actuals is None:
             return None
@@ -356,12 +327,12 @@ class ActualsOutsideLimits(Interlock):
             return f"speed actual {actuals.speed_rpm:.0f} rpm beyond the limit of {s.max_speed_rpm:g} rpm (safety.max_speed_rpm)"
         return None
 
-    def should_trip(self, actuals) -> bool:
+    def should_trip(self, actuals: DriveActuals | None) -> bool:
         return self._violation(actuals) is not None or self._stale_s(actuals) is not None
 
-    def justification(self, actuals) -> str:
+    def justification(self, actuals: DriveActuals | None) -> str:
         violation = self._violation(actuals)
-        if violation is not None:
+        if violation is not None and actuals is not None:  # a violation is always of actuals read
             return (
                 f"the motor left the envelope: {violation} (drive node {self.drive.node_id}: torque "
                 f"{actuals.torque_nm:.2f} Nm, current {actuals.current_a:.0f} A, speed {actuals.speed_rpm:.0f} rpm)"
@@ -370,191 +341,3 @@ class ActualsOutsideLimits(Interlock):
             f"no actuals (TPDO1: torque, current, speed) from drive node {self.drive.node_id} for "
             f"{self._stale_s(actuals):.1f} s: nothing watches what the motor does"
         )
-
-
-class InterlockMonitor:
-    """Watches the interlocks from a thread of its own; keeps the first trip of the run in flight.
-
-    on_trip(trip) is called (from the monitor or CAN thread) for every new trip while a run is armed,
-    and for latched trips at any time; it must be quick and must not take the bench's run lock.
-    stall_s: a gap this long between two monitor rounds means the process stalled: the drive has then
-    missed our heartbeat for about that long, which trips the run in flight.
-    """
-
-    def __init__(
-        self, interlocks: list[Interlock], on_trip: Callable[[Trip], None], period_s: float = 0.05, stall_s: float = 0.5
-    ):
-        self.interlocks = interlocks
-        self.on_trip = on_trip
-        self.period_s = period_s
-        self.stall_s = stall_s
-        self._lock = threading.Lock()
-        self._armed = False
-        self._run_trip: Trip | None = None
-        self._last_trip: Trip | None = None
-        self._reported: dict[str, str] = {}  # interlock -> reason already reported (no repeats while it holds)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    # --- lifecycle --------------------------------------------------------------------------------
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._loop, name="ripplecal-interlocks", daemon=True)
-        self._thread.start()
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-
-    def _loop(self) -> None:
-        while True:
-            slept_from = time.monotonic()
-            if self._stop.wait(self.period_s):
-                return
-            # only the sleep is timed: a round's own slow reads (an SDO timeout) are not a stall
-            overslept = time.monotonic() - slept_from - self.period_s
-            with self._lock:
-                armed = self._armed
-            if armed and overslept > self.stall_s:
-                self._tripped(
-                    "service_stall",
-                    f"heartbeat lost: the service stalled for {overslept:.1f} s (its heartbeat to the drive lapsed)",
-                    latched=False,
-                )
-            try:
-                self.check_now()
-            except Exception:  # noqa: BLE001 - the watchdog must outlive any one bad reading
-                log.exception("interlock monitor round failed")
-
-    # --- runs ---------------------------------------------------------------------------------------
-    def arm(self) -> None:
-        with self._lock:
-            self._armed = True
-            self._run_trip = None
-            for lock in self.interlocks:
-                lock.armed_changed(True)
-            # an armed-only interlock is not read between runs: a reason from the last run is stale
-            for lock in self.interlocks:
-                if lock.armed_only and not lock.latched:
-                    lock.reason = None
-                    self._reported.pop(lock.name, None)
-
-    def check(self, interlock: "Interlock") -> Trip | None:
-        """Read one interlock now (e.g. the supply before a point is committed: its monitor period may
-        be longer than a point); returns the run's first trip."""
-        reason = interlock.evaluate()
-        if reason is not None:
-            self._tripped(interlock.name, reason, interlock.latched)
-        return self.run_trip
-
-    def disarm(self) -> Trip | None:
-        """End of a run: returns its first trip (None if it ran clean)."""
-        with self._lock:
-            self._armed = False
-            for lock in self.interlocks:
-                lock.armed_changed(False)
-            trip, self._run_trip = self._run_trip, None
-            return trip
-
-    @property
-    def run_trip(self) -> Trip | None:
-        with self._lock:
-            return self._run_trip
-
-    # --- evaluation -----------------------------------------------------------------------------------
-    def check_now(self, force: bool = False) -> Trip | None:
-        """One round over every interlock that is due (all of them with force; callable from any
-        thread, e.g. on a run's error path to learn whether an interlock is the first cause). Returns
-        the run's first trip."""
-        now = time.monotonic()
-        with self._lock:
-            armed = self._armed
-        for lock in self.interlocks:
-            if lock.armed_only and not armed:
-                continue
-            if not lock.due(now) and not force:
-                if lock.reason is not None:
-                    self._tripped(lock.name, lock.reason, lock.latched)
-                continue
-            reason = lock.evaluate()
-            if reason is not None:
-                self._tripped(lock.name, reason, lock.latched)
-            else:
-                with self._lock:
-                    self._reported.pop(lock.name, None)
-        return self.run_trip
-
-    def pushed(self, interlock: Interlock, value: Any) -> None:
-        """A value pushed to `interlock` (the drive's actuals, CAN receive thread): decided now, not at the
-        next monitor round, so a trip takes the torque off within the push's period."""
-        with self._lock:
-            armed = self._armed
-        if interlock.armed_only and not armed:
-            return
-        reason = interlock.decide(value)
-        if reason is not None:
-            self._tripped(interlock.name, reason, interlock.latched)
-
-    def emcy(self, interlock: DeviceFault, code: int) -> None:
-        """EMCY callback path (CAN receive thread)."""
-        reason = interlock.on_emcy(code)
-        if reason is not None:
-            self._tripped(interlock.name, interlock.reason or reason, latched=True)
-
-    def _tripped(self, name: str, reason: str, latched: bool) -> None:
-        trip = Trip(
-            name, reason, latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"), time.monotonic()
-        )
-        with self._lock:
-            new_for_run = self._armed and self._run_trip is None
-            if new_for_run:
-                self._run_trip = trip
-            same = self._reported.get(name) == reason
-            if not same:
-                self._reported[name] = reason
-                self._last_trip = trip
-        if new_for_run or not same:
-            log.warning("interlock %s tripped: %s", name, reason)
-            try:
-                self.on_trip(trip)
-            except Exception:  # noqa: BLE001 - reporting must not stop the watch
-                log.exception("on_trip failed")
-
-    # --- refusal and acknowledgement --------------------------------------------------------------------
-    def refusal(self) -> Trip | None:
-        """The interlock that forbids starting a run or commanding torque now (None: clear to go).
-        Decided from a fresh reading of every interlock that is not armed-only."""
-        now = time.monotonic()
-        for lock in self.interlocks:
-            if lock.armed_only:
-                continue
-            reason = lock.evaluate()
-            if reason is not None:
-                return Trip(
-                    lock.name, reason, lock.latched, datetime.now(timezone.utc).isoformat(timespec="milliseconds"), now
-                )
-        return None
-
-    def reset_latched(self) -> Trip | None:
-        """After a person's fault reset: clear latched trips whose condition has gone; returns what
-        still forbids a run (None: clear)."""
-        for lock in self.interlocks:
-            if lock.latched:
-                lock.reset()
-        with self._lock:
-            self._last_trip = None
-            self._reported.clear()
-        return self.refusal()
-
-    def snapshot(self) -> dict[str, Any]:
-        with self._lock:
-            run_trip, last = self._run_trip, self._last_trip
-        return {
-            "tripped": [
-                {"interlock": lock.name, "reason": lock.reason, "latched": lock.latched}
-                for lock in self.interlocks
-                if lock.reason is not None
-            ],
-            "run_trip": run_trip.public() if run_trip else None,
-            "last_trip": last.public() if last else None,
-        }

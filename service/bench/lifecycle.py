@@ -17,16 +17,18 @@ import time
 from typing import Callable, Iterator
 
 from drivers.errors import DaqError
+from drivers.load_machine import LoadClient
 from service.bench.connections import BenchLinks
 from service.bench.contracts import RunBench
 from service.bench.errors import BenchError, RunError
-from service.bench.faults import BenchFaults
-from service.bench.interlocks import InterlockTripped
+from service.bench.faults import BenchFaults, BenchInterlocks
 from service.bench.measurement import OperatingPointSession, RunCancelled
 from service.bench.run import BenchRun, gamma_max_for_run
 from service.bench.run_commands import RunCommands
 from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
+from service.bench.trips import InterlockTripped
 from service.bench.watchdog import BenchWatchdog
+from service.identification.session import Window
 from service.model import limits
 from service.model.harmonic import mechanical_speed_rpm
 from service.model.operating_point import OperatingPoint
@@ -52,7 +54,7 @@ class RunLifecycle:
         self.faults = faults
         self._lock = lock
         self._after_run = after_run
-        self.accounting: SetpointAccounting | None = None  # the drive's setpoints against the DAQ sync line
+        self._accounting: SetpointAccounting | None = None  # the drive's setpoints against the DAQ sync line
         self.busy = False
         self._run: BenchRun | None = None
         # makes the bench safe from its own thread when the run's loop goes silent or a stop is asked
@@ -65,16 +67,24 @@ class RunLifecycle:
         )
 
     # --- the setpoint accounting -----------------------------------------------------------------------
+    @property
+    def accounting(self) -> SetpointAccounting:
+        """The drive's setpoints against the DAQ sync line; BenchError before connect attached it."""
+        if self._accounting is None:
+            raise BenchError("the bench is not connected: its setpoints are not counted")
+        return self._accounting
+
     def attach_accounting(self) -> None:
         """At connect: count the drive's setpoints against the DAQ's sync toggles from now on."""
-        links = self.links
-        self.accounting = SetpointAccounting(
+        links = self.links.opened()
+        drive = links.drive
+        self._accounting = SetpointAccounting(
             links.daq,
             self.settings.daq.read_timeout_s,
-            lambda: links.drive.setpoints_written,
-            links.drive.resync_setpoint_count,
+            lambda: drive.setpoints_written,
+            drive.resync_setpoint_count,
         )
-        links.drive.on_setpoint = self.accounting.note_write
+        drive.on_setpoint = self._accounting.note_write
 
     def establish_accounting(self) -> None:
         """Learn the DAQ sync line at connect, so the first run does not wait for it; a DAQ that does
@@ -106,8 +116,9 @@ class RunLifecycle:
             raise InterlockTripped(self.links.unreachable_trip(), refused=True)
         with self._lock:
             self.faults.refuse_or_auto_reset()
+            # connected (checked above): every link, the interlocks and the accounting are there
+            links, interlocks, accounting = self.links.opened(), self.faults.started(), self.accounting
             self.busy = True
-            links = self.links
             commands = RunCommands(
                 self.settings,
                 links.drive,
@@ -125,15 +136,15 @@ class RunLifecycle:
                 self.settings.identification.decoupling if decoupling is None else decoupling,
             )
             self._run = run
-            self.faults.interlocks.arm()
+            interlocks.monitor.arm()
             self.watchdog.arm()
             first: BaseException | None = None
             try:
-                self.accounting.start_run(run.guard)
+                accounting.start_run(run.guard)
                 yield run
             except BaseException as exc:
                 first = exc
-            self._end_run(first)
+            self._end_run(first, interlocks, accounting)
 
     @contextlib.contextmanager
     def operating_point(
@@ -143,7 +154,7 @@ class RunLifecycle:
         harmonic_order: int,
         gamma_max_rad: float | None = None,
         cancel: threading.Event | None = None,
-        on_window: Callable | None = None,
+        on_window: Callable[[Window], None] | None = None,
         decoupling: bool | None = None,
         target_db: float = 40.0,
     ) -> Iterator[OperatingPointSession]:
@@ -152,27 +163,28 @@ class RunLifecycle:
             with run.operating_point(op, target_db=target_db, on_window=on_window) as session:
                 yield session
 
-    def _end_run(self, first: BaseException | None) -> None:
+    def _end_run(
+        self, first: BaseException | None, interlocks: BenchInterlocks, accounting: SetpointAccounting
+    ) -> None:
         """After a run (clean or not): learn whether an interlock is the first cause, make safe, and
         raise what happened: the trip (with make_safe's outcome), else the run's own error (with
         make_safe's error added if it failed too), else make_safe's error."""
-        interlocks = self.faults.interlocks
+        monitor = interlocks.monitor
         # before make_safe: its braking reads the DAQ without kicking, and the run's own stop follows
         self.watchdog.disarm()
         try:
             if first is not None and not isinstance(first, (RunCancelled, GeneratorExit)):
-                interlocks.check_now(force=True)  # an EMCY/FAULT may be why the run failed
-            trip = interlocks.disarm()
+                monitor.check_now(force=True)  # an EMCY/FAULT may be why the run failed
+            trip = monitor.disarm()
             if trip is not None:
-                self.accounting.doubt("an interlock tripped during the run")  # a faulted drive drops what it queued
-            if self.faults.supply_interlock is not None:
-                self.faults.supply_interlock.expected_v = None
+                accounting.doubt("an interlock tripped during the run")  # a faulted drive drops what it queued
+            interlocks.supply.expected_v = None
             safe_error: Exception | None = None
             try:
                 self.make_safe()
             except Exception as exc:
                 safe_error = exc
-            self.accounting.end_run()
+            accounting.end_run()
         finally:
             self.busy = False
             self._run = None
@@ -196,16 +208,16 @@ class RunLifecycle:
         the load's own speed reading if the DAQ is gone; bounded) for standstill. Tries every step,
         raises the first error. `lock_timeout_s`: wait no longer for the bench's run lock (a shutdown
         whose worker is stuck inside a run: the watchdog has made the bench safe without it)."""
-        drive, load = self.links.drive, self.links.load
-        errors = []
-        steps = []
+        drive, load, accounting = self.links.drive, self.links.load, self._accounting
+        errors: list[Exception] = []
+        steps: list[Callable[[], object]] = []
         if drive is not None:
             steps.append(drive.disable)  # target torque 0, injection off, disable voltage
         if load is not None:
             steps.append(load.brake_to_standstill)  # at the full ramp, whatever a run-up set
-            if self.accounting is not None:
+            if accounting is not None:
                 # brake with the load's speed loop before disabling it (a disabled load coasts)
-                steps.append(lambda: self._wait_standstill(standstill_timeout_plant_s))
+                steps.append(lambda: self._wait_standstill(accounting, load, standstill_timeout_plant_s))
             steps.append(load.disable)
         if not self._lock.acquire(timeout=-1 if lock_timeout_s is None else lock_timeout_s):
             raise BenchError(
@@ -224,12 +236,14 @@ class RunLifecycle:
         if errors:
             raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
 
-    def _wait_standstill(self, timeout_plant_s: float, below_rpm: float = 20.0) -> None:
+    def _wait_standstill(
+        self, accounting: SetpointAccounting, load: LoadClient, timeout_plant_s: float, below_rpm: float = 20.0
+    ) -> None:
         """Consume the DAQ until the encoder shows the shaft below `below_rpm` (bounded on the DAQ
         clock); without a DAQ, poll the load machine's velocity actual instead (wall clock, same bound)."""
         rate = self.settings.daq.sample_rate_hz
         block = int(0.02 * rate)
-        cursor = self.accounting.cursor
+        cursor = accounting.cursor
         try:
             start = None
             while start is None or cursor.last_index - start < timeout_plant_s * rate:
@@ -245,10 +259,10 @@ class RunLifecycle:
                     return
         except DaqError as exc:
             log.warning("standstill judged on the load's speed: DAQ unavailable (%s)", exc)
-            self.accounting.doubt("the DAQ was unavailable at the end of a run")
+            accounting.doubt("the DAQ was unavailable at the end of a run")
             deadline = time.monotonic() + timeout_plant_s
             while time.monotonic() < deadline:
-                speed_rpm = self.links.load.read_status().speed_rpm
+                speed_rpm = load.read_status().speed_rpm
                 if abs(speed_rpm) < below_rpm:
                     return
                 time.sleep(0.02)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Literal, overload
 
 import numpy as np
 
@@ -26,9 +26,10 @@ from drivers.daq_protocol import (
     FLAG_SYNC_INPUT,
     DecodedSamples,
 )
-from service.bench.contracts import DriveCommands
+from service.bench.contracts import DriveCommands, Recorder
 from service.bench.plant_clock import PlantClock
 from service.bench.point_stream import PointStream
+from service.bench.setpoint_accounting import DaqCursor
 from service.identification.session import MeasurementError, Window
 from service.model.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
 from service.model.harmonic import mechanical_speed_rpm, whole_period_samples
@@ -60,7 +61,7 @@ SETTLE_BLOCK_MAX_FACTOR = 16
 def settle_precision(target_db: float) -> float:
     """Relative phasor drift a method can live with: half its target residual (at 40 dB, 0.5 % of
     |a|): the plant moving by that during the measurement costs at most a few dB of the target."""
-    return max(MIN_SETTLE_PRECISION, 0.5 * 10.0 ** (-target_db / 20.0))
+    return max(MIN_SETTLE_PRECISION, 0.5 * float(10.0 ** (-target_db / 20.0)))
 
 
 class RunCancelled(RuntimeError):
@@ -127,7 +128,7 @@ class OperatingPointSession:
 
     # --- the stream's bookkeeping, as the methods and the run read it ---------------------------
     @property
-    def cursor(self):
+    def cursor(self) -> DaqCursor:
         return self.stream.cursor
 
     @property
@@ -135,11 +136,11 @@ class OperatingPointSession:
         return self.stream.clock
 
     @property
-    def recorder(self):
+    def recorder(self) -> Recorder | None:
         return self.stream.recorder
 
     @recorder.setter
-    def recorder(self, recorder) -> None:
+    def recorder(self, recorder: Recorder | None) -> None:
         self.stream.recorder = recorder
 
     @property
@@ -223,7 +224,7 @@ class OperatingPointSession:
             self.on_window(window)
         return window
 
-    def _publish(self, **values) -> None:
+    def _publish(self, **values: object) -> None:
         """Tell the observer what the run sees; the live view must never stop a measurement."""
         if self._observe is None:
             return
@@ -254,6 +255,12 @@ class OperatingPointSession:
         )
         self.noise_rms_fs = fit.residual_rms_fs
         return fit
+
+    @overload
+    def _valid_window(self, periods: int, contiguous: Literal[False] = False) -> DecodedSamples: ...
+
+    @overload
+    def _valid_window(self, periods: int, contiguous: Literal[True]) -> DecodedSamples | None: ...
 
     def _valid_window(self, periods: int, contiguous: bool = False) -> DecodedSamples | None:
         """Samples spanning `periods` harmonic periods (a little more, cut by the fit) with no gap, bad
@@ -372,6 +379,12 @@ class OperatingPointSession:
         speeds: list[float] = []
         phasors: list[complex | None] = []  # None: the block was over range (judged on its speed only)
         noises: list[float] = []
+
+        def forget_blocks() -> None:
+            speeds.clear()
+            phasors.clear()
+            noises.clear()
+
         gapped = 0
         blocks = 0
         change = math.inf
@@ -394,12 +407,15 @@ class OperatingPointSession:
                 or (self.settings.sync_input and (sync[1:] != sync[:-1]).any())
             ):
                 gapped += 1  # a block with a hole or a fault judges nothing: start again
-                speeds.clear(), phasors.clear(), noises.clear()
+                forget_blocks()
             else:
                 speed = self._block_speed_rpm(s)
                 if self.speed_rpm_measured is None:
                     if speed is not None and abs(speed - target_speed_rpm) <= SPEED_TOLERANCE * abs(target_speed_rpm):
                         self.speed_rpm_measured = speed
+                elif speed is None:
+                    # nothing contiguous to judge (neither steady nor not): the speed is found again from raw blocks
+                    self.speed_rpm_measured = None
                 else:
                     self.speed_rpm_measured = speed
                     speeds.append(speed)
@@ -411,18 +427,19 @@ class OperatingPointSession:
                         try:
                             fit = self._fit(s, turns * self.harmonic_order)
                         except ValueError:  # the speed moved more than the block's margin: judge again
-                            speeds.clear(), phasors.clear(), noises.clear()
+                            forget_blocks()
                             continue
                         phasors.append(fit.phasor.complex)
                         noises.append(fit.noise_std_fs)
                     steady, change = self._steady(target_speed_rpm, speeds, phasors, noises, precision)
                     if steady:
+                        settled_speed_rpm = speed
                         break
                     judged_at_factor += 1
                     if judged_at_factor >= SETTLE_BLOCKS_BEFORE_LONGER and block_factor < SETTLE_BLOCK_MAX_FACTOR:
                         block_factor *= 2  # the phasor keeps moving: judge on longer blocks (a beat averages out)
                         judged_at_factor = 0
-                        speeds.clear(), phasors.clear(), noises.clear()
+                        forget_blocks()
             if self.cursor.last_index > deadline:
                 last = f"{self.speed_rpm_measured:.1f} rpm" if self.speed_rpm_measured else "speed unknown"
                 drift = "" if not math.isfinite(change) else f", h-th phasor still moving {100 * change:.1f} %"
@@ -433,7 +450,7 @@ class OperatingPointSession:
                 )
         self.settled = Settled(
             plant_s=(self.cursor.last_index - effect + 1) / self.sample_rate_hz,
-            speed_rpm=self.speed_rpm_measured,
+            speed_rpm=settled_speed_rpm,
             blocks=blocks,
             phasor_change=change,
         )
@@ -456,11 +473,12 @@ class OperatingPointSession:
             return False, math.inf
         tolerance = SPEED_TOLERANCE * abs(target_speed_rpm)
         at_speed = all(abs(v - target_speed_rpm) <= tolerance for v in speeds[-2:])
-        if any(p is None for p in phasors[-4:]):
+        judged = [p for p in phasors[-4:] if p is not None]
+        if len(judged) < 4:  # a block over range among them
             change = abs((speeds[-1] + speeds[-2]) - (speeds[-3] + speeds[-4])) / 2.0
             return at_speed and change <= 0.1 * tolerance, math.inf
-        recent = (phasors[-1] + phasors[-2]) / 2.0
-        before = (phasors[-3] + phasors[-4]) / 2.0
+        recent = (judged[-1] + judged[-2]) / 2.0
+        before = (judged[-3] + judged[-4]) / 2.0
         change = abs(recent - before) / max(abs(recent), 1e-12)
         # noise of the difference of two two-block means: per component sigma, in magnitude sqrt(2) sigma
         sigma = math.sqrt(sum(n * n for n in noises[-4:]) / 4.0)

@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from drivers.daq_protocol import DecodedSamples
+from service.bench.contracts import Recorder
 from service.bench.plant_clock import PlantClock
 from service.bench.setpoint_accounting import Chunk, SetpointAccounting
 from service.identification.session import MeasurementError
@@ -37,7 +38,7 @@ class PointStream:
         self.guard = guard  # called before every DAQ read; raises to stop the run (cancel, interlock)
         self._pending: DecodedSamples | None = None  # samples read past the point we needed
         self._hidden_before = self.cursor.toggles_hidden
-        self.recorder = None  # set for the method's duration by identify_at (raw recording)
+        self.recorder: Recorder | None = None  # set for the method's duration by identify_at (raw recording)
 
     @property
     def sample_rate_hz(self) -> float:

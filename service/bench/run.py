@@ -36,14 +36,14 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 from service.bench.contracts import RunBench
-from service.bench.interlocks import InterlockTripped, Trip
 from service.bench.measurement import OperatingPointSession, SessionSettings
 from service.bench.point_stream import PointStream
 from service.bench.run_commands import RunCommands
-from service.identification.session import MeasurementError
+from service.bench.trips import InterlockTripped, Trip
+from service.identification.session import MeasurementError, Window
 from service.model.limits import LimitError, check_limits
 from service.model.operating_point import OperatingPoint
 
@@ -87,7 +87,7 @@ class BenchRun:
         self.at: OperatingPoint | None = None  # where the run stands (None: not moved yet)
         self.points = 0
         self.timing = PointTiming()  # of the last point
-        self.accounting_reports: list[dict] = []
+        self.accounting_reports: list[dict[str, Any]] = []
 
     def guard(self) -> None:
         self.commands.guard()
@@ -95,7 +95,7 @@ class BenchRun:
     # --- points --------------------------------------------------------------------------------------
     @contextlib.contextmanager
     def operating_point(
-        self, op: OperatingPoint, target_db: float = 40.0, on_window: Callable | None = None
+        self, op: OperatingPoint, target_db: float = 40.0, on_window: Callable[[Window], None] | None = None
     ) -> Iterator[OperatingPointSession]:
         """Move to `op` and settle (module doc), then yield a session whose plant time starts at zero.
         An interlock that tripped during the point ends it in InterlockTripped even if the caller

@@ -25,7 +25,7 @@ from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
 from service.bench.errors import BenchError
 from service.bench.faults import BenchFaults
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.bench.watchdog import BenchWatchdog
 from service.model.limits import LimitError, check_setpoint
 from service.settings import Settings

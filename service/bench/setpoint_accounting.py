@@ -24,11 +24,12 @@ from __future__ import annotations
 import collections
 import logging
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from drivers.daq_protocol import FLAG_SYNC_INPUT, DecodedSamples
+from drivers.daq_reader import DaqReader
 from service.errors import BenchFailed
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,9 @@ class DaqCursor:
     them once the caller has shown they happened (OperatingPointSession.wait_for_effect).
     `on_toggles(first_number, indices)` hears every toggle counted, with its running number."""
 
-    def __init__(self, reader, read_timeout_s: float, on_toggles: Callable[[int, np.ndarray], None] | None = None):
+    def __init__(
+        self, reader: DaqReader, read_timeout_s: float, on_toggles: Callable[[int, np.ndarray], None] | None = None
+    ):
         self.reader = reader
         self.read_timeout_s = read_timeout_s
         self.on_toggles = on_toggles
@@ -117,14 +120,20 @@ class SetpointAccounting:
     client's listener), so that its toggle's latency can be measured."""
 
     def __init__(
-        self, reader, read_timeout_s: float, setpoints_written: Callable[[], int], resync_drive: Callable[[int], dict]
+        self,
+        reader: DaqReader,
+        read_timeout_s: float,
+        setpoints_written: Callable[[], int],
+        resync_drive: Callable[[int], dict[str, Any]],
     ):
         self.cursor = DaqCursor(reader, read_timeout_s, on_toggles=self._on_toggles)
         self._setpoints_written = setpoints_written
         self._resync_drive = resync_drive
         self.doubt_reason: str | None = "not established since the bench was connected"
         self._write_marks: dict[int, int] = {}  # setpoint number -> newest sample read at its write
-        self.latencies = collections.deque(maxlen=LATENCIES_KEPT)  # samples from write to its toggle
+        self.latencies: collections.deque[int] = collections.deque(
+            maxlen=LATENCIES_KEPT
+        )  # samples from write to its toggle
         self.establishments = 0
 
     # --- the count -------------------------------------------------------------------------------
@@ -193,14 +202,14 @@ class SetpointAccounting:
         if self.pending() != 0:
             self.doubt(f"{self.pending()} setpoint(s) unconfirmed when the run ended")
 
-    def establish(self, guard: Callable[[], None]) -> dict:
+    def establish(self, guard: Callable[[], None]) -> dict[str, Any]:
         """Re-establish the count with nothing being written (module doc). Returns what it took:
         {quiet_samples, waited_samples, reason}; raises AccountingError if the line never goes quiet."""
         reason = self.doubt_reason
         quiet_needed = self.quiet_samples()
         self.cursor.discard_buffered()
-        start = None
-        last_event = None  # index of the last toggle or gap
+        start: int | None = None
+        last_event = 0  # index of the last toggle or gap (set with start, at the first chunk)
         while True:
             guard()
             chunk = self.cursor.read_available(4096)

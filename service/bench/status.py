@@ -9,7 +9,7 @@ the view shows each value's age and marks it stale past STALE_AFTER_S.
 from __future__ import annotations
 
 from datetime import datetime, timezone
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from drivers.drive import LutInForce
 from drivers.lut_image import crc_hex
@@ -18,6 +18,8 @@ from service.bench.faults import BenchFaults
 from service.bench.interlocks import daq_disconnected_reason
 from service.bench.live_values import STALE_AFTER_S, LiveValues
 from service.settings import Settings
+
+Reading = TypeVar("Reading")
 
 
 class BenchStatus:
@@ -56,12 +58,12 @@ class BenchStatus:
         if self.faults.connected:
             self.read_devices()
             if not self._busy() and self._devices["drive"].get("last_error") is None:
-                self.read_lut(self.links.drive.lut_in_force)
+                self.read_lut(self.links.opened().drive.lut_in_force)
         self._status["updated_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         return self.status()
 
     def read_devices(self) -> None:
-        links = self.links
+        links = self.links.opened()
         self._read_device(
             "drive",
             lambda: links.drive.read_status(),
@@ -76,7 +78,7 @@ class BenchStatus:
         """The LUT the drive holds, as `read()` returns it (its objects, or a download's read-back)."""
         self._read_device("lut", read, _lut_shape)
 
-    def _read_device(self, name: str, read, shape) -> None:
+    def _read_device(self, name: str, read: Callable[[], Reading], shape: Callable[[Reading], dict[str, Any]]) -> None:
         entry = self._devices[name]
         try:
             self.live.publish(name, **shape(read()))
@@ -107,7 +109,8 @@ class BenchStatus:
                 "unreachable": u,
                 "error": links.unreachable_trip().reason if u else self._status.get("error"),
             }
-        out = {**self._status, **common, "connected": bool(links.bus and links.bus.connected), "unreachable": None}
+        opened = links.opened()
+        out = {**self._status, **common, "connected": opened.bus.connected, "unreachable": None}
 
         def device(name: str, live: dict[str, Any]) -> dict[str, Any]:
             values, ages = self.live.group(name)
@@ -121,7 +124,7 @@ class BenchStatus:
                 "stale": oldest is None or oldest > STALE_AFTER_S,
             }
 
-        for name, dev in (("drive", links.drive), ("load", links.load)):
+        for name, dev in (("drive", opened.drive), ("load", opened.load)):
             age = dev.heartbeat_age_s()
             out[name] = device(
                 name,
@@ -134,9 +137,9 @@ class BenchStatus:
         out["supply"] = device("supply", {"url": s.supply.url})
         out["supply"]["connected"] = out["supply"].get("last_error") is None and out["supply"]["age_s"] is not None
         out["lut"] = device("lut", {})  # read when idle and at each download: its age says when
-        c = links.daq.counters
+        c = opened.daq.counters
         out["daq"] = {
-            **links.daq.health(),
+            **opened.daq.health(),
             "frames": c.frames,
             "crc_failures": c.crc_failures,
             "sequence_gaps": c.sequence_gaps,
@@ -146,8 +149,8 @@ class BenchStatus:
             run["harmonic_amplitude_rad_s2"] = run["harmonic_amplitude_fs"] * s.daq.accel_full_scale_rad_s2
             run_ages["harmonic_amplitude_rad_s2"] = run_ages["harmonic_amplitude_fs"]
         out["run"] = {**run, "active": busy, "ages": run_ages}
-        out["service_heartbeat_ok"] = links.bus.heartbeat_producing()
-        out["interlocks"] = self.faults.interlocks.snapshot()
+        out["service_heartbeat_ok"] = opened.bus.heartbeat_producing()
+        out["interlocks"] = self.faults.started().monitor.snapshot()
         problems = [t["reason"] for t in out["interlocks"]["tripped"]]
         if not out["daq"]["connected"] and not any(p.startswith("DAQ") for p in problems):
             # the link is known lost before the interlock's next round names it

@@ -26,7 +26,7 @@ from typing import Callable
 
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
-from service.bench.interlocks import Trip
+from service.bench.trips import Trip
 
 log = logging.getLogger(__name__)
 

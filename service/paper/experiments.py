@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from service.api.public.results import ResultPublic, result_public
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.calibration_service import CalibrationService
 from service.identification.common import periods_for
 from service.model.harmonic import amplitude_spectrum

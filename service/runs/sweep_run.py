@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ContextManager, Protocol, cast
 
 from service.bench.bench import Bench
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.errors import NotFound
 from service.identification.common import LUT_MARGIN_DB, MethodOptions
 from service.identification.session import MeasurementError

@@ -34,9 +34,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from service import __version__
 from service.bench.bench import Bench
-from service.bench.interlocks import InterlockTripped
 from service.bench.measurement import RunCancelled
 from service.bench.run import BenchRun
+from service.bench.trips import InterlockTripped
 from service.errors import BenchRefused, Invalid
 from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
 from service.identification.session import MeasurementError, MeasurementSession

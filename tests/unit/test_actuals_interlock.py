@@ -9,7 +9,8 @@ import time
 import pytest
 
 from drivers.drive import DriveActuals
-from service.bench.interlocks import ActualsOutsideLimits, InterlockMonitor
+from service.bench.interlock_monitor import InterlockMonitor
+from service.bench.interlocks import ActualsOutsideLimits
 from service.settings import load_settings
 
 

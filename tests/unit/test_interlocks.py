@@ -1,7 +1,8 @@
-"""The interlocks (service/bench/interlocks.py) on their own: each check against fake devices whose
-readings the test sets, the monitor's bookkeeping (the run's first trip, reports without repeats,
-latching, refusal and reset) called directly, and its thread on a clock the test steps. No bench, no
-emulator: the expectations are the rules the module states (bands, hysteresis, latching)."""
+"""The interlocks (service/bench/interlocks.py) and their monitor (service/bench/interlock_monitor.py)
+on their own: each check against fake devices whose readings the test sets, the monitor's bookkeeping
+(the run's first trip, reports without repeats, latching, refusal and reset) called directly, and its
+thread on a clock the test steps. No bench, no emulator: the expectations are the rules the modules
+state (bands, hysteresis, latching)."""
 
 from __future__ import annotations
 
@@ -11,20 +12,19 @@ from dataclasses import dataclass, field
 import pytest
 
 from drivers.cia402 import State402
-from service.bench import interlocks
+from service.bench import interlock_monitor
+from service.bench.interlock_monitor import InterlockMonitor
 from service.bench.interlocks import (
     DaqLost,
     DeviceFault,
     ForeignMaster,
     HeartbeatLost,
     Interlock,
-    InterlockMonitor,
-    InterlockTripped,
     ServiceHeartbeatStopped,
     SupplyOutOfRange,
-    Trip,
     daq_disconnected_reason,
 )
+from service.bench.trips import InterlockTripped, Trip
 from tests.support.waiting import wait_until
 
 
@@ -358,7 +358,7 @@ def test_armed_only_interlocks_are_read_during_runs_only_and_their_old_reasons_g
 
 
 def test_a_read_waits_for_its_period_unless_forced_and_a_held_reason_is_still_reported(monkeypatch):
-    monkeypatch.setattr(interlocks, "time", SteppedClock(0.01))  # 10 ms per reading of the clock
+    monkeypatch.setattr(interlock_monitor, "time", SteppedClock(0.01))  # 10 ms per reading of the clock
     slow = Flag("slow", period_s=10.0)
     monitor = InterlockMonitor([slow], Reports())
     monitor.check_now()
@@ -473,7 +473,7 @@ def test_the_thread_reports_a_trip_without_being_asked():
 def test_a_stall_between_rounds_trips_an_armed_run(monkeypatch, armed):
     """Each clock reading 1 s after the last: every sleep of 10 ms looks overslept by about 1 s, more than
     stall_s, which is what a stopped process sees when it runs again."""
-    monkeypatch.setattr(interlocks, "time", SteppedClock(1.0))
+    monkeypatch.setattr(interlock_monitor, "time", SteppedClock(1.0))
     reports = Reports()
     probe = Flag("probe")  # read once a round: rounds are known to have run
     monitor = InterlockMonitor([probe], reports, period_s=0.01, stall_s=0.5)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.identification.common import MethodOptions
 from service.identification.session import Window
 from service.model.limits import check_point

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from service import __version__
-from service.bench.interlocks import InterlockTripped
+from service.bench.trips import InterlockTripped
 from service.runs.kinds.host import JobHost, JobKind
 from service.runs.runup import RunupRequest, check_runup, runup_in_run
 from service.runs.states import Cancelled
