@@ -1,5 +1,5 @@
 """The records the store hands out: one TypedDict per table, the JSON columns decoded (`grid_json`
-is read as `grid`, service/store/storage.py JSON_COLUMNS). The layers above read these and never a
+is read as `grid`, service/store/storage/rows.py JSON_COLUMNS). The layers above read these and never a
 JSON string; the API's public shapes are built from them at the edge (service/api/public.py).
 tests/unit/test_records_schema.py holds each record to its table's columns on both engines."""
 
