@@ -84,7 +84,7 @@ class ResultRecord(TypedDict):
     target_db: float | None
     noise_floor_db: float | None
     superseded_by: int | None
-    recording: dict[str, Any] | None  # service/store/recordings.py
+    recording: dict[str, Any] | None  # service/store/recordings/store.py
     torque_actual_nm: float | None  # the drive's torque actual, mean over the measurement (schema 10)
 
 

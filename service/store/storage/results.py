@@ -58,7 +58,7 @@ class ResultStore(Database):
             }
 
     def set_result_recording(self, result_id: int, record: dict[str, Any]) -> None:
-        """What became of the result's raw recording (service/store/recordings.py)."""
+        """What became of the result's raw recording (service/store/recordings/store.py)."""
         self._update_row("results", result_id, {"recording": record})
 
     def mark_recordings_deleted(self, result_ids: list[int], reason: str) -> None:
