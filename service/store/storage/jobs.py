@@ -1,6 +1,6 @@
-"""Jobs (table jobs): each one run of a job kind on one bench; the queue every bench's service takes its
-next job from (claim_job: queued -> running in one statement, on either engine), and what a bench left
-unfinished."""
+"""Jobs (table jobs), each one run of a job kind on one bench: their rows, the queue every bench's
+service takes its next job from (claim_job: queued -> running in one statement, on either engine), and
+what a bench left unfinished."""
 
 from __future__ import annotations
 
