@@ -212,7 +212,7 @@ class SchedulesSettings(_Section):
 
 
 class RecordingsSettings(_Section):
-    """Raw recordings of every identification (MF4, service/store/recordings.py) and their retention."""
+    """Raw recordings of every identification (MF4, service/store/recordings/) and their retention."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     enabled: bool = Field(True, description="keep the raw DAQ samples and theta setpoints of every identification")

@@ -1,5 +1,5 @@
 """The records the store hands out: one TypedDict per table, the JSON columns decoded (`grid_json`
-is read as `grid`, service/store/storage.py JSON_COLUMNS). The layers above read these and never a
+is read as `grid`, service/store/storage/rows.py JSON_COLUMNS). The layers above read these and never a
 JSON string; the API's public shapes are built from them at the edge (service/api/public.py).
 tests/unit/test_records_schema.py holds each record to its table's columns on both engines."""
 
@@ -84,7 +84,7 @@ class ResultRecord(TypedDict):
     target_db: float | None
     noise_floor_db: float | None
     superseded_by: int | None
-    recording: dict[str, Any] | None  # service/store/recordings.py
+    recording: dict[str, Any] | None  # service/store/recordings/store.py
     torque_actual_nm: float | None  # the drive's torque actual, mean over the measurement (schema 10)
 
 

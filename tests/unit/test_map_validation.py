@@ -24,7 +24,8 @@ from service.runs.validation import (
 )
 from service.store.migrations import migration_files
 from service.store.result_rows import result_row
-from service.store.storage import MIGRATIONS_DIR, Storage, encode_columns
+from service.store.storage import MIGRATIONS_DIR, Storage
+from service.store.storage.rows import encode_columns
 from tests.support.operating_points import OP1_POINT
 from tests.support.stored_maps import sweep_with_results
 

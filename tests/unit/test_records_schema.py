@@ -38,7 +38,7 @@ NO_RECORD = {"api_tokens", "benches", "map_cells", "schema_version"}
 
 
 def _decoded_columns(db_location: str) -> dict[str, set[str]]:
-    """Each table's columns as Storage reads them (service/store/storage.py _record: `x_json` as `x`)."""
+    """Each table's columns as Storage reads them (service/store/storage/rows.py as_record: `x_json` as `x`)."""
     Storage(db_location).close()  # migrated to the newest schema
     if db_location.startswith("postgresql://"):
         columns = _postgres_columns(db_location)
