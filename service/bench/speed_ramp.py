@@ -66,3 +66,17 @@ def ramp_speed(
             continue
         held = held + 1 if abs(last_rpm - to_rpm) <= reached_rpm(to_rpm) else 0
     return DecodedSamples.concat(blocks)
+
+
+def ramp_through(
+    session: OperatingPointSession,
+    commands: RunCommands,
+    legs: list[tuple[float, float]],
+    rate_rpm_per_s: float,
+    pole_pairs: int,
+) -> DecodedSamples:
+    """Ramp every leg (from_rpm, to_rpm) in turn and return their samples as one record (the legs follow each
+    other in the stream without a break); the load's full ramp is put back after the last."""
+    ramps = [ramp_speed(session, commands, a, b, rate_rpm_per_s, pole_pairs) for a, b in legs]
+    commands.restore_full_ramp()
+    return DecodedSamples.concat(ramps)

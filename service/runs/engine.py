@@ -423,6 +423,13 @@ class Engine:
             self.recordings.keep(recorder, rid, row)
         return rid
 
+    def insert_runup(self, row: dict[str, Any], recorder: RunRecorder | None) -> int:
+        """Store the run-up, then write its raw recording (as insert_result)."""
+        runup_id = self.storage.insert_runup(row)
+        if self.recordings is not None:
+            self.recordings.keep_runup(recorder, runup_id, row)
+        return runup_id
+
     def cancel_token(self, job_id: int) -> threading.Event:
         """The cancel of the job the worker runs (set by cancel_job / cancel_sweep / stop)."""
         return self.controls.jobs[job_id]

@@ -26,9 +26,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from drivers.daq_protocol import DecodedSamples
 from service.bench.run import BenchRun
-from service.bench.speed_ramp import ramp_speed
+from service.bench.speed_ramp import ramp_through
 from service.errors import Invalid
 from service.model.limits import check_limits, check_point
 from service.model.operating_point import OperatingPoint
@@ -146,16 +145,14 @@ def measure_runup(
             session.apply_injection_mode("off")
         session.recorder = recorder
         try:
-            ramps = [ramp_speed(session, commands, a, b, req.rate_rpm_per_s, pole_pairs) for a, b in legs]
+            samples = ramp_through(session, commands, legs, req.rate_rpm_per_s, pole_pairs)
         finally:
             session.recorder = None
-        commands.restore_full_ramp()
         # the ramps' samples (the load setpoint is no drive setpoint: the session's clock does not count them)
         # and the settling at the first speed
         settle_s = session.op_settle_plant_s or 0.0
         torque_actual_nm, _ = run.torque_actual()
-    # the legs follow each other in the stream without a break: one record, each bin averaging both directions
-    samples = DecodedSamples.concat(ramps)
+    # one record of every leg: each bin averages both directions
     ramp_plant_s = (int(samples.index[-1]) - int(samples.index[0]) + 1) / settings.daq.sample_rate_hz
     track = track_orders(
         samples.angle_rad,

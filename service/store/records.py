@@ -150,6 +150,22 @@ class ValidationRecord(TypedDict):
     finished_at: str | None
 
 
+class RunupRecord(TypedDict):
+    """A run-up (service/runs/runup.py): its request, and its order analysis when done."""
+
+    id: int
+    job_id: int
+    state: str  # done | failed | cancelled
+    error: str | None
+    request: dict[str, Any]
+    result: dict[str, Any] | None  # the order analysis (service/runs/runup.py measure_runup)
+    recording: dict[str, Any] | None  # its raw recording, as a result's (service/store/recordings/store.py)
+    bench_identity: str
+    software_version: str
+    started_at: str
+    finished_at: str
+
+
 class ScheduleRecord(TypedDict):
     id: int
     name: str

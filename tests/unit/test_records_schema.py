@@ -15,6 +15,7 @@ from service.store.records import (
     MapRecord,
     MapSummaryRecord,
     ResultRecord,
+    RunupRecord,
     ScheduleRecord,
     ScheduleRunRecord,
     SweepRecord,
@@ -30,6 +31,7 @@ WHOLE_ROWS = {
     ResultRecord: ("results", set()),
     MapRecord: ("maps", {"cells"}),  # map_cells joined with results (MapCellRecord)
     ValidationRecord: ("map_validations", set()),
+    RunupRecord: ("runups", set()),
     ScheduleRecord: ("schedules", set()),
     ScheduleRunRecord: ("schedule_runs", {"sweep_state"}),  # its sweep's state
 }

@@ -4,10 +4,12 @@ is one module (see service/runs/kinds/host.py: JobKind) and its line below."""
 
 from __future__ import annotations
 
-from service.runs.kinds import identification, refinement, sweep, validation
+from service.runs.kinds import identification, refinement, runup, sweep, validation
 from service.runs.kinds.host import JobHost, JobKind
 
-KINDS: dict[str, JobKind] = {k.name: k for k in (identification.KIND, sweep.KIND, validation.KIND, refinement.KIND)}
+KINDS: dict[str, JobKind] = {
+    k.name: k for k in (identification.KIND, sweep.KIND, validation.KIND, refinement.KIND, runup.KIND)
+}
 
 
 def kind_of(name: str) -> JobKind:

@@ -13,7 +13,7 @@ from typing import Any, Callable, Protocol
 
 from service.runs.states import SweepControl
 from service.runs.sweep_run import RunHost, SweepRunner
-from service.store.recordings import RecordingStore
+from service.store.recordings import RecordingStore, RunRecorder
 from service.store.records import JobRecord
 
 
@@ -29,6 +29,7 @@ class JobHost(RunHost, Protocol):
     def queue_sweep(self, sweep_id: int) -> int: ...
     def publish_job(self, job_id: int) -> None: ...
     def cancel_token(self, job_id: int) -> threading.Event: ...
+    def insert_runup(self, row: dict[str, Any], recorder: RunRecorder | None) -> int: ...
     def control(self, sweep_id: int) -> SweepControl: ...
 
 

@@ -17,7 +17,7 @@ import logging
 import os
 import re
 from pathlib import Path
-from typing import Any, BinaryIO, Mapping
+from typing import Any, BinaryIO, Callable, Mapping
 
 from service import __version__
 from service.errors import NotFound
@@ -27,7 +27,8 @@ from service.store.storage import Storage, now_iso
 log = logging.getLogger(__name__)
 
 BYTES_PER_GB = 1e9
-_FILE_NAME = re.compile(r"^result-(\d+)\.mf4$")
+_FILE_NAME = re.compile(r"^(result|runup)-(\d+)\.mf4$")
+_TABLE_OF = {"result": "results", "runup": "runups"}  # a file's prefix -> the table whose row records it
 
 
 def recordings_directory(directory: str | None, database_files: Path) -> Path:
@@ -67,27 +68,76 @@ class RecordingStore:
             return None
         return RunRecorder(self.directory, self.sample_rate_hz, self.accel_full_scale_rad_s2)
 
-    def path(self, result_id: int) -> Path:
-        return self.directory / f"result-{result_id}.mf4"
+    def path(self, result_id: int, prefix: str = "result") -> Path:
+        """The file of a result's recording (prefix `runup`: a run-up's, by its row's id)."""
+        return self.directory / f"{prefix}-{result_id}.mf4"
 
     def keep(self, recorder: RunRecorder | None, result_id: int, row: dict[str, Any]) -> None:
         """Write the recording of stored result `result_id` (its row as stored), note in the row
         whether it exists, then apply the retention. Never raises: the result is already stored."""
+        description = (
+            f"ripplecal raw recording of result {result_id}: {row['method']} at "
+            f"{row['torque_nm']:g} Nm, {row['speed_rpm']:g} rpm, {row['udc_v']:g} V"
+        )
+        self._keep(
+            recorder,
+            self.path(result_id),
+            lambda: self._header(recorder, result_id, row) if recorder is not None else {},
+            description,
+            lambda record: self.storage.set_result_recording(result_id, record),
+            f"result {result_id}",
+        )
+
+    def keep_runup(self, recorder: RunRecorder | None, runup_id: int, row: dict[str, Any]) -> None:
+        """As keep, for stored run-up `runup_id` (its row: request, result)."""
+        req = row["request"]
+        lo, hi = req["speed_rpm"]
+        description = (
+            f"ripplecal raw recording of run-up {runup_id}: {lo:g} -> {hi:g} rpm ({req['direction']}) at "
+            f"{req['rate_rpm_per_s']:g} rpm/s, {req['torque_nm']:g} Nm, {req['udc_v']:g} V, injection {req['injection']}"
+        )
+
+        def header() -> dict[str, Any]:
+            assert recorder is not None
+            return {
+                "runup_id": runup_id,
+                "job_id": row.get("job_id"),
+                "request": json.dumps(req),
+                **self._counts(recorder),
+                "accel_full_scale_rad_s2": self.accel_full_scale_rad_s2,
+                "bench_identity": row.get("bench_identity"),
+                "software_version": row.get("software_version", __version__),
+                "started_at": row.get("started_at"),
+                "finished_at": row.get("finished_at"),
+            }
+
+        self._keep(
+            recorder,
+            self.path(runup_id, "runup"),
+            header,
+            description,
+            lambda record: self.storage.set_runup_recording(runup_id, record),
+            f"run-up {runup_id}",
+        )
+
+    def _keep(
+        self,
+        recorder: RunRecorder | None,
+        path: Path,
+        header: Callable[[], dict[str, Any]],
+        description: str,
+        set_record: Callable[[dict[str, Any]], None],
+        what: str,
+    ) -> None:
         if recorder is None:
             return
         record: dict[str, Any] = {"format": "mf4", **self._counts(recorder)}
         try:
             if recorder.error is None and not recorder.samples_recorded:
                 recorder.close()
-                record["error"] = "no DAQ samples: the run ended before the identification read any"
+                record["error"] = "no DAQ samples: the run ended before the measurement read any"
             else:
-                path = self.path(result_id)
-                record["bytes"] = recorder.write(
-                    path,
-                    self._header(recorder, result_id, row),
-                    f"ripplecal raw recording of result {result_id}: {row['method']} at "
-                    f"{row['torque_nm']:g} Nm, {row['speed_rpm']:g} rpm, {row['udc_v']:g} V",
-                )
+                record["bytes"] = recorder.write(path, header(), description)
                 record["path"] = str(path)
                 record["written_at"] = now_iso()
         except Exception as exc:  # noqa: BLE001 - the recording failed, the result stands
@@ -95,11 +145,11 @@ class RecordingStore:
             record["error"] = recorder.error or (
                 str(exc) if isinstance(exc, RecordingWriteError) else f"writing its file failed: {pathless_reason(exc)}"
             )
-            log.warning("result %s: raw recording %s failed: %s", result_id, self.path(result_id), record["error"])
+            log.warning("%s: raw recording %s failed: %s", what, path, record["error"])
         try:
-            self.storage.set_result_recording(result_id, record)
+            set_record(record)
         except Exception:  # noqa: BLE001
-            log.exception("result %s: could not store its recording's record", result_id)
+            log.exception("%s: could not store its recording's record", what)
         if "path" in record:
             self.apply_retention(keep=Path(record["path"]))
 
@@ -141,12 +191,12 @@ class RecordingStore:
             m = _FILE_NAME.match(entry.name)
             if m and entry.is_file():
                 st = entry.stat()
-                files.append((st.st_mtime_ns, int(m.group(1)), Path(entry.path), st.st_size))
-        files.sort()  # oldest first (ties: lower result id first)
-        total = sum(f[3] for f in files)
+                files.append((st.st_mtime_ns, m.group(1), int(m.group(2)), Path(entry.path), st.st_size))
+        files.sort()  # oldest first (ties: results first, lower id first)
+        total = sum(f[4] for f in files)
         limit = self.keep_gb * BYTES_PER_GB
-        deleted: list[int] = []
-        for _, result_id, path, size in files:
+        deleted: dict[str, list[int]] = {}
+        for _, prefix, row_id, path, size in files:
             if total <= limit:
                 break
             if keep is not None and path == keep:
@@ -159,17 +209,17 @@ class RecordingStore:
                 log.warning("retention could not delete %s: %s", path, exc)
                 continue
             total -= size
-            deleted.append(result_id)
-        if deleted:
-            reason = (
-                f"deleted by retention at {now_iso()}: the newest recordings are kept up to "
-                f"recordings.keep_gb = {self.keep_gb:g} GB"
-            )
+            deleted.setdefault(prefix, []).append(row_id)
+        reason = (
+            f"deleted by retention at {now_iso()}: the newest recordings are kept up to "
+            f"recordings.keep_gb = {self.keep_gb:g} GB"
+        )
+        for prefix, row_ids in deleted.items():
             try:
-                self.storage.mark_recordings_deleted(deleted, reason)
+                self.storage.mark_recordings_deleted(row_ids, reason, _TABLE_OF[prefix])
             except Exception:  # noqa: BLE001
-                log.exception("could not mark recordings %s as deleted", deleted)
-        return deleted
+                log.exception("could not mark %s recordings %s as deleted", prefix, row_ids)
+        return deleted.get("result", [])
 
     def open(self, result_id: int) -> BinaryIO:
         """The recording of a stored result, open for reading (retention may delete it while it is sent:

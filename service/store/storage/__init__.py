@@ -6,7 +6,7 @@ transaction, so a failure in one operating point never touches the results of ot
 
 One module per aggregate, each a store on the shared `Database` (database.py: the engine, connections,
 transactions, the one UPDATE): tokens, jobs, sweeps, results, maps (and their validations), schedules,
-benches; rows.py reads and writes a row the same way for every table. `Storage` is all of them on one
+benches, run-ups; rows.py reads and writes a row the same way for every table. `Storage` is all of them on one
 engine: its callers keep one object and the methods' plain names (`storage.get_job`)."""
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from service.store.storage.jobs import JobStore
 from service.store.storage.maps import MapStore
 from service.store.storage.results import ResultStore
 from service.store.storage.rows import now_iso
+from service.store.storage.runups import RunupStore
 from service.store.storage.schedules import ScheduleStore
 from service.store.storage.sweeps import SweepStore
 from service.store.storage.tokens import TokenStore
@@ -25,5 +26,5 @@ from service.store.storage.tokens import TokenStore
 __all__ = ["Storage", "StorageError", "StorageUnavailable", "now_iso", "MIGRATIONS_DIR"]
 
 
-class Storage(TokenStore, JobStore, SweepStore, ResultStore, MapStore, ScheduleStore, BenchStore):
+class Storage(TokenStore, JobStore, SweepStore, ResultStore, MapStore, ScheduleStore, BenchStore, RunupStore):
     """Every store on one database (Database.__init__ opens and migrates it); no method of its own."""

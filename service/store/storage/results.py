@@ -10,6 +10,8 @@ from service.store.records import ResultRecord
 from service.store.storage.database import Database
 from service.store.storage.rows import as_record, insert_row
 
+RECORDING_TABLES = ("results", "runups")  # the tables whose rows carry a raw recording (recording_json)
+
 
 class ResultStore(Database):
     @property
@@ -61,13 +63,15 @@ class ResultStore(Database):
         """What became of the result's raw recording (service/store/recordings/store.py)."""
         self._update_row("results", result_id, {"recording": record})
 
-    def mark_recordings_deleted(self, result_ids: list[int], reason: str) -> None:
-        """Their recordings were deleted (retention): the results say so, and when."""
+    def mark_recordings_deleted(self, row_ids: list[int], reason: str, table: str = "results") -> None:
+        """Their recordings were deleted (retention): the rows (results, or run-ups) say so, and when."""
+        if table not in RECORDING_TABLES:
+            raise ValueError(f"{table!r} rows hold no recording")
         with self.transaction() as conn:
             conn.executemany(
-                f"UPDATE results SET recording_json = {self.dialect.json_set_text('recording_json', 'deleted')} "
+                f"UPDATE {table} SET recording_json = {self.dialect.json_set_text('recording_json', 'deleted')} "
                 "WHERE id = ? AND recording_json IS NOT NULL",
-                [(reason, rid) for rid in result_ids],
+                [(reason, rid) for rid in row_ids],
             )
 
     def sweep_results(self, sweep_id: int) -> list[ResultRecord]:

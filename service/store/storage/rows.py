@@ -25,6 +25,7 @@ JSON_COLUMNS = {
     "maps": ("axes", "provenance"),
     "map_validations": ("options", "summary", "cells", "download"),
     "schedules": ("sweep",),
+    "runups": ("request", "result", "recording"),
 }
 
 _IDENT = re.compile(r"^[a-z_]+$")
