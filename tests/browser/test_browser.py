@@ -1228,3 +1228,55 @@ def test_lab_overview_lists_every_bench_and_the_picker_sends_a_sweep_to_another_
         _api(service, "POST", f"/jobs/{job['id']}/cancel")
         if sweep_id is not None:
             assert _api(service, "POST", f"/sweeps/{sweep_id}/cancel")["state"] == "cancelled"
+
+
+def test_runup_panel_draws_the_campbell_diagram_and_the_order_cut_before_and_after(service, browser, tmp_path):
+    """A run-up started from the panel (injection off: before) is drawn as its Campbell diagram (order x speed,
+    colour = dB FS); a second one at the same torque and U_dc with a fixed theta (after, through the API) is
+    paired with it on the order cut: both curves of the calibrated order with their noise floors."""
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="live-mode"]').dataset.mode === 'live'""", timeout=15_000
+        )
+        page.fill('[data-testid="token"]', service["token"])
+        for field, value in (("from", "1200"), ("to", "1500"), ("rate", "100"), ("orders", "6, 12")):
+            page.fill(f'[data-testid="runup-{field}"]', value)
+        page.click('[data-testid="runup-submit"]')
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="runups"]').dataset.drawn === '1'""",
+            timeout=SWEEP_TIMEOUT_MS,
+        )
+        campbell = page.evaluate("""() => {
+            const d = document.getElementById('plot-campbell').data[0];
+            return {type: d.type, y: d.y, bins: d.x.length, rows: d.z.length, cols: d.z[0].length};
+        }""")
+        assert campbell["type"] == "heatmap" and campbell["y"] == [6, 12] and campbell["rows"] == 2
+        assert campbell["bins"] == campbell["cols"] and campbell["bins"] >= 30  # 300 rpm in bins of 10 rpm
+        before = _api(service, "GET", "/runups?limit=1")[0]
+        assert before["request"]["injection"] == "off" and before["state"] == "done", before
+        after = _api(
+            service,
+            "POST",
+            "/runups",
+            {
+                "torque_nm": 2.5,
+                "udc_v": 12,
+                "speed_rpm": [1200, 1500],
+                "injection": "theta",
+                "theta": {"theta_cos": 0.02, "theta_sin": -0.03},
+                "orders": [6, 12],
+            },
+        )
+        _wait_api(service, f"/runups/{after['id']}", lambda j: j["state"] not in ("queued", "running"))
+        page.select_option('[data-testid="runup-select"]', str(after["id"]))
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="runups"]').dataset.drawn === '2'""", timeout=30_000
+        )
+        names = page.evaluate("() => document.getElementById('plot-order-cut').data.map((t) => t.name)")
+        assert names[0].startswith("before (injection off") and names[2].startswith("after (injection theta"), names
+        assert len(names) == 4 and "noise floor" in names[1] and "noise floor" in names[3], names
+        assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
+        page.screenshot(path=str(tmp_path / "runups.png"), full_page=True)
+    finally:
+        context.close()

@@ -434,3 +434,35 @@ export function validationHeatmap(cells, udc, opts) {
   };
   return { data: [heat, marks], layout, config: CONFIG };
 }
+
+// ------------------------------------------------------------------ run-ups (order analysis)
+const dbOf = (fs) => (fs === null || fs === undefined || !(Number(fs) > 0) ? null : 20 * Math.log10(Number(fs)));
+
+// The Campbell diagram of a run-up's result: order (y) against speed (x), colour = level in dB of full scale.
+export function campbell(result, title) {
+  const z = result.amplitude.map((row) => row.map(dbOf));
+  return {
+    data: [{ type: "heatmap", x: result.speed_rpm, y: result.orders, z, colorscale: "Viridis", zmin: -100, zmax: 0,
+      colorbar: { title: { text: "dB FS" } },
+      hovertemplate: "order %{y}<br>%{x:.0f} rpm<br>%{z:.1f} dB FS<extra></extra>" }],
+    layout: baseLayout(title, "speed n (rpm)", "electrical order", { yaxis: { title: { text: "electrical order" } } }),
+    config: CONFIG,
+  };
+}
+
+// One order along the ramp for each run-up given ({label, result, colour}), with its bin noise floor dotted.
+export function orderCut(order, runs, title) {
+  const data = [];
+  for (const run of runs) {
+    const k = run.result.orders.indexOf(order);
+    if (k < 0) continue;
+    data.push({ x: run.result.speed_rpm, y: run.result.amplitude[k].map(dbOf), name: run.label, mode: "lines",
+      line: { color: run.colour, width: 2 }, connectgaps: false,
+      hovertemplate: `${escapeHtml(run.label)}<br>%{x:.0f} rpm<br>%{y:.1f} dB FS<extra></extra>` });
+    data.push({ x: run.result.speed_rpm, y: run.result.noise_floor.map(dbOf), name: `${run.label}: noise floor`,
+      mode: "lines", line: { color: run.colour, width: 1, dash: "dot" }, hoverinfo: "skip" });
+  }
+  return { data, layout: baseLayout(title, "speed n (rpm)", `order ${order} (dB FS)`), config: CONFIG };
+}
+
+export const ORDER_CUT_COLOURS = { before: C_BEFORE, after: C_AFTER };

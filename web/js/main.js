@@ -13,6 +13,7 @@ import * as mapDownload from "./panels/map-download.js";
 import * as mapCompare from "./panels/map-compare.js";
 import * as mapValidation from "./panels/map-validation.js";
 import * as identify from "./panels/identify.js";
+import * as runupsPanel from "./panels/runups.js";
 import * as resultView from "./panels/result-view.js";
 import * as schedules from "./panels/schedules.js";
 import * as lab from "./panels/lab.js";
@@ -53,6 +54,8 @@ async function init() {
   mapDownload.init();
   events.on("job.state", mapValidation.onJobState);
   identify.init({ isLiveNow: events.isLive, showResultOf: resultView.showResult });
+  runupsPanel.init();
+  events.on("job.state", runupsPanel.onJobState);
   schedules.init({});
   events.on("sweep.progress", schedules.onSweepProgress);
   setInterval(schedules.reload, SCHEDULE_POLL_MS);
@@ -86,6 +89,7 @@ async function init() {
   sweeps.reload();
   maps.reload(true);
   schedules.reload();
+  runupsPanel.reload();
   lab.reload();
   identify.resume();
 }

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Query, status
 
 from service.api.deps import OperatorDep, ResourceId, ServiceDep
 from service.api.errors import error_responses
@@ -24,6 +24,12 @@ router = APIRouter(prefix="/api/v1", tags=["runups"])
 def create_runup(body: RunupRequest, service: ServiceDep, _: OperatorDep) -> JobPublic:
     job_id = service.engine.submit("runup", body)
     return job_public(service.records, service.records.get_job(job_id), service)
+
+
+@router.get("/runups", response_model=list[JobPublic])
+def list_runups(service: ServiceDep, limit: int = Query(20, ge=1, le=200)) -> list[JobPublic]:
+    """The newest run-up jobs first, each with its order analysis."""
+    return [job_public(service.records, j, service) for j in service.records.list_jobs(limit, kind="runup")]
 
 
 @router.get("/runups/{job_id}", response_model=JobPublic, responses=error_responses(404))

@@ -44,9 +44,11 @@ class JobStore(Database):
             row = conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
             return as_record(row) if row else None
 
-    def list_jobs(self, limit: int = 100) -> list[JobRecord]:
+    def list_jobs(self, limit: int = 100, kind: str | None = None) -> list[JobRecord]:
+        """The newest jobs first (`kind`: of that kind only)."""
+        where, args = ("WHERE kind = ? ", (kind, limit)) if kind is not None else ("", (limit,))
         with self.connect() as conn:
-            return [as_record(r) for r in conn.execute("SELECT * FROM jobs ORDER BY id DESC LIMIT ?", (limit,))]
+            return [as_record(r) for r in conn.execute(f"SELECT * FROM jobs {where}ORDER BY id DESC LIMIT ?", args)]
 
     def queued_per_bench(self) -> dict[str, int]:
         """Jobs waiting for each bench (a paused sweep's parked job does not count)."""
