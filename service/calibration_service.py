@@ -272,11 +272,11 @@ class CalibrationService:
 
     def submit_validation(self, map_id: int, force: bool, options, bench: str | None = None) -> int:
         with not_found(f"map {map_id} does not exist"):
-            return self.engine.submit_validation(map_id, force, options, bench=bench)
+            return self.engine.submit("validation", map_id, force, options, bench=bench)
 
     def submit_refinement(self, map_id: int, request, bench: str | None = None) -> int:
         with not_found(f"map {map_id} does not exist"):
-            return self.engine.submit_refinement(map_id, request, bench=bench)
+            return self.engine.submit("refinement", map_id, request, bench=bench)
 
     def download_map(self, map_id: int, force: bool, fill: bool = True, interpolation: str | None = None):
         try:

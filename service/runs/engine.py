@@ -30,7 +30,6 @@ from service.runs.kinds import KINDS, kind_of
 from service.runs.lab import is_own_bench, job_event, new_instance_id, sweep_event
 from service.runs.other_benches import act_on_control_requests
 from service.runs.plans import Grid, PlannedGrid, RegimePlacement
-from service.runs.refinement import RefineRequest
 from service.runs.states import (
     JOB_TRANSITIONS,
     SWEEP_TRANSITIONS,
@@ -44,7 +43,6 @@ from service.runs.states import (
     check_transition,
 )
 from service.runs.sweep_run import SweepRunner, error_text, job_sweep_id, stored_sweep
-from service.runs.validation import ValidationOptions
 from service.settings import Settings
 from service.store.recordings import RecordingStore, RunRecorder
 from service.store.records import JobRecord, SweepRecord
@@ -228,12 +226,6 @@ class Engine:
     ) -> int:
         return self.submit("sweep", grid, method, options, schedule_id, regime, bench=bench, planned=planned)
 
-    def submit_validation(self, map_id: int, force: bool, options: ValidationOptions, bench: str | None = None) -> int:
-        return self.submit("validation", map_id, force, options, bench=bench)
-
-    def submit_refinement(self, map_id: int, request: RefineRequest, bench: str | None = None) -> int:
-        return self.submit("refinement", map_id, request, bench=bench)
-
     def is_own(self, bench: str | None) -> bool:
         return is_own_bench(bench, self.bench_name)
 
@@ -275,14 +267,8 @@ class Engine:
         """`action`: pause | resume | cancel (another bench's sweep: asked through the database)."""
         self.controls.control_sweep(sweep_id, action)
 
-    def pause_sweep(self, sweep_id: int) -> None:
-        self.controls.pause_sweep(sweep_id)
-
     def resume_sweep(self, sweep_id: int) -> None:
         self.controls.resume_sweep(sweep_id)
-
-    def cancel_sweep(self, sweep_id: int) -> None:
-        self.controls.cancel_sweep(sweep_id)
 
     def cancel_job(self, job_id: int) -> None:
         self.controls.cancel_job(job_id)
@@ -294,8 +280,7 @@ class Engine:
         return self.controls.control(sweep_id)
 
     def act_on_control_requests(self) -> None:
-        """Pause, resume or cancel asked at another bench's service for this bench's sweeps (the lab thread
-        calls this every second): service/runs/other_benches.py."""
+        """Control asked at another bench's service for this bench's sweeps (service/runs/other_benches.py)."""
         act_on_control_requests(self)
 
     # --- the worker ------------------------------------------------------------------------------------------

@@ -102,7 +102,7 @@ def main() -> None:
             ok = svc.storage.sweep_outcome(sweep_id)["counts"]["ok"]
             for attempt in range(3):
                 # an interlock (a loaded machine can stall the heartbeat) fails a validation: acknowledge, count, again
-                job_id = svc.engine.submit_validation(sweep["map_id"], force=True, options=ValidationOptions())
+                job_id = svc.engine.submit("validation", sweep["map_id"], True, ValidationOptions())
                 job = wait(svc, lambda: svc.storage.get_job(job_id), f"validation job {job_id}")
                 if job["state"] != "failed" or "interlock" not in (job["error"] or ""):
                     break

@@ -47,7 +47,7 @@ def sweep(svc, grid: Grid) -> tuple[int, float]:
 
 def validate(svc, map_id: int) -> tuple[list[dict], float]:
     t0 = time.perf_counter()
-    job = wait_job(svc, svc.engine.submit_validation(map_id, True, ValidationOptions()))
+    job = wait_job(svc, svc.engine.submit("validation", map_id, True, ValidationOptions()))
     return svc.storage.validation_of_job(job["id"])["cells"], time.perf_counter() - t0
 
 
@@ -81,7 +81,7 @@ def one_truth(seed: int | None, speedup: float, map10: bool) -> None:
         cells, wall = validate(svc, map_id)
         print(f"[{name}] validation of map {map_id}: {wall:.1f} s, {figures(cells)}", flush=True)
         t0 = time.perf_counter()
-        job = wait_job(svc, svc.engine.submit_refinement(map_id, RefineRequest(target_db=30, max_cells=37)))
+        job = wait_job(svc, svc.engine.submit("refinement", map_id, RefineRequest(target_db=30, max_cells=37)))
         wall = time.perf_counter() - t0
         r = job_public(svc.storage, job).result
         final = map_public(svc.storage, r.map_id)
