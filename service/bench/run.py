@@ -188,10 +188,15 @@ class BenchRun:
         bench, commands = self.bench, self.commands
         t0 = time.perf_counter()
         at, self.at = self.at, None  # unknown until the move is through
-        first = at is None
-        if at is None or op.udc_v != at.udc_v:  # first
+        first = at is None  # the run's first move, or the first after an error: everything is written again
+        if first:
+            commands.forget()
+        # what the hardware was last told decides (a run-up leaves the shaft at its ramp's end, not at its point)
+        if commands.udc_v != op.udc_v:
             commands.set_dc_link(op.udc_v)  # torque off first once any was commanded
-        if at is None or op.speed_rpm != at.speed_rpm:  # first
+        if first:
+            commands.enable_load()
+        if commands.speed_rpm != op.speed_rpm:
             commands.set_speed_rpm(op.speed_rpm)
         if first:
             commands.enable_drive()

@@ -62,8 +62,7 @@ class RunCommands:
         self.torque_nm: float | None = None
         self.speed_rpm: float | None = None
         self.udc_v: float | None = None
-        self.drive_enabled = False
-        self.load_enabled = False
+        self.drive_enabled = False  # enabled at least once in this run (its torque may be on)
 
     # --- the run's stop ----------------------------------------------------------------------------------
     def guard(self) -> None:
@@ -76,9 +75,10 @@ class RunCommands:
             raise InterlockTripped(stopped)
 
     def forget(self) -> None:
-        """After an error: what the drive applies is unknown (the next move writes it again)."""
+        """At a run's first move and after an error: nothing the hardware applies is known (the move writes it
+        all again)."""
         self.theta = self.mode = None
-        self.torque_nm = None
+        self.torque_nm = self.speed_rpm = self.udc_v = None
 
     # --- the DC link -------------------------------------------------------------------------------------
     def set_dc_link(self, udc_v: float) -> None:
@@ -113,14 +113,15 @@ class RunCommands:
             time.sleep(0.02)
 
     # --- the load machine --------------------------------------------------------------------------------
+    def enable_load(self) -> None:
+        """The load machine to OPERATION ENABLED (its speed loop holds the shaft from the next speed setpoint)."""
+        self.guard()
+        self._load.enable()
+
     def set_speed_rpm(self, speed_rpm: float) -> None:
-        """The load machine's speed setpoint (it ramps and holds it on its own speed loop); the load is enabled at
-        the run's first speed."""
+        """The load machine's speed setpoint (it ramps and holds it on its own speed loop)."""
         check_setpoint("speed_rpm", speed_rpm, self.settings)
         self.guard()
-        if not self.load_enabled:
-            self._load.enable()
-            self.load_enabled = True
         self.speed_rpm = None
         self._load.set_speed_rpm(speed_rpm)
         self.speed_rpm = speed_rpm

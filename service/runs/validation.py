@@ -44,6 +44,7 @@ from service.maps.view import MapView, map_view
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
+from service.runs.runup_validation import measure_runup_pair, runup_range, runup_torques
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
@@ -78,6 +79,16 @@ class ValidationOptions(BaseModel):
         description="validate at points the envelope model of the motor settings refuses (a machine known "
         "to exceed its nominal settings); never the hard limits, held on the actuals by the interlock",
     )
+    target_db: float = Field(
+        30.0, ge=0, le=80, description="a judged point holds at this suppression (or below the floor rule), dB"
+    )
+    runups: bool = Field(
+        False,
+        description="also judge the LUT along run-ups: at every torque row and midpoint between rows, a run-up "
+        "without and one with the LUT over the map's speed range, every speed bin a judged point "
+        "(service/runs/runup_validation.py)",
+    )
+    runup_rate_rpm_per_s: float = Field(100.0, ge=10, le=1000, description="the run-ups' ramp rate, rpm/s")
 
 
 class ValidationRefused(Invalid, ValueError):
@@ -140,9 +151,13 @@ class ValidationRun:
     error: str | None = None
     started_at: str = field(default_factory=now_iso)
     row_id: int | None = None  # its map_validations row, once stored
+    runup_plant_time_s: float = 0.0  # the run-up pairs' (their bins carry none each)
 
     def summary(self) -> dict[str, Any]:
-        return summarize(self.cells)
+        out = summarize(self.cells)
+        out["plant_time_s"] += self.runup_plant_time_s
+        out["runup_plant_time_s"] = self.runup_plant_time_s
+        return out
 
 
 def measured_decoupling(storage: Storage, m: MapView, settings: Settings) -> bool:
@@ -186,11 +201,15 @@ def measure_point(run: BenchRun, op: OperatingPoint, options: ValidationOptions)
     a = residual.phasor.amplitude
     if a0 <= 0 or a <= 0:
         raise ValueError(f"a phasor of zero amplitude (uncompensated {a0:g}, LUT {a:g} fs): nothing to compare")
+    suppression_db = 20.0 * math.log10(a0 / a)
+    floor_db = noise_floor_db(residual, a0)
     return {
-        "suppression_db": 20.0 * math.log10(a0 / a),
+        "suppression_db": suppression_db,
+        "above_floor_db": -floor_db if floor_db is not None else None,
+        "holds": suppression_db >= options.target_db,
         "uncompensated": reference.phasor.as_dict(),
         "residual": residual.phasor.as_dict(),
-        "noise_floor_db": noise_floor_db(residual, a0),
+        "noise_floor_db": floor_db,
         "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
         "plant_time_s": plant_time_s,
         "speed_rpm_measured": speed_rpm,
@@ -228,7 +247,7 @@ def run_validation(
     run.download = download(storage, bench, map_id, force, fill=options.fill, interpolation=options.interpolation)
     if on_progress is not None:
         on_progress(run)  # stored now: the drive holds this LUT from here on
-    points = validation_points(m.axes)
+    items = validation_items(m.axes, settings, options)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
     map_cells = {(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
 
@@ -240,42 +259,68 @@ def run_validation(
             cell["map_cell_filled"] = bool(c is not None and c.filled and options.fill)
         return cell
 
-    def finish(cell: dict[str, Any]) -> None:
-        run.cells.append(cell)
+    def finish(*cells: dict[str, Any]) -> None:
+        run.cells.extend(cells)
         if on_progress is not None:
-            on_progress(run)
+            on_progress(run)  # once per item: a run-up pair's bins are stored together
         if on_cell is not None:
-            on_cell(cell, len(points))
+            for cell in cells:
+                on_cell(cell, len(items))
+
+    def measured(item: ValidationItem, brun: BenchRun) -> list[dict[str, Any]]:
+        if item.kind != "runup":
+            return [
+                {
+                    **new_cell(item.op, item.kind),
+                    "status": "measured",
+                    "error": None,
+                    **measure_point(brun, item.op, options),
+                }
+            ]
+        assert item.speed_range is not None
+        bins, plant_s = measure_runup_pair(
+            brun,
+            settings,
+            item.op.torque_nm,
+            item.op.udc_v,
+            item.speed_range,
+            options.runup_rate_rpm_per_s,
+            options.target_db,
+        )
+        run.runup_plant_time_s += plant_s
+        if not bins:
+            raise MeasurementError("no speed bin of the run-up pair could be judged (the order was not fitted)")
+        return bins
 
     i = 0
-    while i < len(points) and run.state == "done":
+    while i < len(items) and run.state == "done":
         if cancel.is_set():
             run.state, run.error = "cancelled", "cancelled by the operator"
             break
         cell = None
         try:
             with bench.run(h, decoupling=decoupling, cancel=cancel) as brun:
-                while i < len(points) and not cancel.is_set():
-                    cell = new_cell(*points[i])
-                    why = outside_envelope(points[i][0], settings, options.override_envelope_model)
-                    if why is not None:  # never run where the envelope model says the drive cannot hold it
-                        cell.update(status="not_measured", error=why)
+                while i < len(items) and not cancel.is_set():
+                    item = items[i]
+                    cell = new_cell(item.op, item.kind)
+                    if item.not_run is not None:  # never run where the envelope model says the drive cannot hold it
+                        cell.update(status="not_measured", error=item.not_run)
                         finish(cell)
                         cell = None
                         i += 1
                         continue
                     try:
-                        cell.update(status="measured", error=None, **measure_point(brun, points[i][0], options))
+                        finish(*measured(item, brun))
                     except (MeasurementError, ValueError) as exc:
                         # this point could not be measured; the bench is fine: the run goes on
                         cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
-                    finish(cell)
+                        finish(cell)
                     cell = None
                     i += 1
         except RunCancelled:
             run.state, run.error = "cancelled", "cancelled by the operator"
         except InterlockTripped as exc:
-            run.state, run.error = "failed", f"interlock tripped at {points[min(i, len(points) - 1)][0].label()}: {exc}"
+            run.state, run.error = "failed", f"interlock tripped at {items[min(i, len(items) - 1)].op.label()}: {exc}"
             if cell is not None:
                 cell.update(status="failed", error=f"InterlockTripped: {exc}")
                 finish(cell)
@@ -289,19 +334,57 @@ def run_validation(
                 cell.update(status="failed", error=f"{type(exc).__name__}: {exc}")
                 finish(cell)
                 i += 1
-    for op, kind in points[i:]:
-        cell = new_cell(op, kind)
+    for item in items[i:]:
+        cell = new_cell(item.op, item.kind)
         why = "the validation was cancelled" if run.state == "cancelled" else f"the validation stopped ({run.error})"
         cell.update(status="not_measured", error=f"not measured: {why}")
         finish(cell)
     return run
 
 
+@dataclass(frozen=True)
+class ValidationItem:
+    """One thing a validation measures: a point of the finer grid (kind grid | midpoint) or the pair of run-ups
+    at one torque (kind runup: `op` at the range's first speed); `not_run`: why it is not run (envelope)."""
+
+    op: OperatingPoint
+    kind: str
+    not_run: str | None = None
+    speed_range: tuple[float, float] | None = None
+
+
+def validation_items(
+    axes: dict[str, list[float]], settings: Settings, options: ValidationOptions
+) -> list[ValidationItem]:
+    """The points of the finer grid, then (options.runups) a run-up pair per torque of the finer torque axis and
+    U_dc (service/runs/runup_validation.py)."""
+    items = [
+        ValidationItem(op, kind, outside_envelope(op, settings, options.override_envelope_model))
+        for op, kind in validation_points(axes)
+    ]
+    if not options.runups:
+        return items
+    for udc_v in axes["udc_v"]:
+        for torque_nm, _row in runup_torques(axes["torque_nm"]):
+            speed_range = runup_range(torque_nm, udc_v, axes["speed_rpm"], settings, options.override_envelope_model)
+            start = OperatingPoint(torque_nm=torque_nm, speed_rpm=min(axes["speed_rpm"]), udc_v=udc_v)
+            not_run = (
+                None
+                if speed_range is not None
+                else (
+                    f"not run: the envelope model of the motor settings holds {torque_nm:g} Nm nowhere in the map's "
+                    "speed range"
+                )
+            )
+            items.append(ValidationItem(start, "runup", not_run, speed_range))
+    return items
+
+
 def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
     """Median and minimum suppression of the grid and of the midpoint cells measured, the worst cell,
     and the counts (failed and not measured cells count apart, never as a number)."""
     out: dict[str, Any] = {}
-    for kind in ("grid", "midpoint"):
+    for kind in ("grid", "midpoint", "runup"):
         mine = [c for c in cells if c["kind"] == kind]
         values = [c["suppression_db"] for c in mine if c["status"] == "measured"]
         out[kind] = {
@@ -325,6 +408,14 @@ def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
         }
     )
     out["plant_time_s"] = sum(c.get("plant_time_s") or 0.0 for c in measured)
+    # every judged point (grid, midpoints, run-up bins) against the validation's target (DESIGN section 6)
+    judged = [c for c in measured if c.get("holds") is not None]
+    values = [c["suppression_db"] for c in judged]
+    out["points"] = len(judged)
+    out["held"] = sum(1 for c in judged if c["holds"])
+    out["median_db"] = statistics.median(values) if values else None
+    out["min_db"] = min(values) if values else None
+    out["torques_run_up"] = sorted({c["operating_point"]["torque_nm"] for c in measured if c["kind"] == "runup"})
     return out
 
 

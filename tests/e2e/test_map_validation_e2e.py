@@ -143,3 +143,31 @@ def test_cancel_stops_the_validation_and_leaves_the_drive_safe(rig, map_id):
     assert all(c["suppression_db"] is None for c in v["cells"] if c["status"] != "measured")
     api.wait(lambda: not api.get("/bench/status")["busy"], 30, "bench idle")
     drive_is_safe(emu)
+
+
+def test_validation_along_runups_judges_every_speed_bin_at_each_torque_row_and_midpoint(rig, map_id):
+    """options.runups: at 2, 2.5 and 3 Nm a run-up without and one with the LUT over 1200..1600 rpm; every
+    bin a judged point of kind runup (<= 10 rpm apart), with its figures; the summary counts them all."""
+    emu, api = rig
+    m = api.get(f"/maps/{map_id}")
+    r = api.post(f"/maps/{map_id}/validate", {"force": holes(m) > 0, "options": {"runups": True, "target_db": 30}})
+    assert r.status_code == 202, r.text
+    job = api.job_finished(r.json()["id"], 300)
+    assert job["state"] == "done", job
+    v = job["validation"]
+    bins = [c for c in v["cells"] if c["kind"] == "runup"]
+    assert v["torques_run_up"] == [2.0, 2.5, 3.0]
+    for torque in (2.0, 2.5, 3.0):
+        speeds = sorted(c["operating_point"]["speed_rpm"] for c in bins if c["operating_point"]["torque_nm"] == torque)
+        assert speeds[0] <= 1210 and speeds[-1] >= 1590, (torque, speeds[:3], speeds[-3:])
+        assert all(0 < b - a <= 10.0 for a, b in zip(speeds, speeds[1:]))
+    for c in bins:
+        assert c["status"] == "measured" and isinstance(c["holds"], bool)
+        # the figure is the ratio of the two run-ups' levels in that bin (an independent recomputation)
+        assert c["suppression_db"] == pytest.approx(20 * math.log10(c["uncompensated_fs"] / c["residual_fs"]))
+        assert c["holds"] == (c["suppression_db"] >= 30 or c["reason"] is not None and "floor rule" in c["reason"])
+        assert c["above_floor_db"] > 20  # the 6th stands far above the noise here
+    judged = [c for c in v["cells"] if c["status"] == "measured"]
+    assert v["points"] == len(judged) and v["held"] == sum(c["holds"] for c in judged)
+    assert v["runup_plant_time_s"] >= 3 * 2 * 4.0  # 3 torques, 2 run-ups of 4 s of ramp each
+    drive_is_safe(emu)

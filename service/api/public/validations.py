@@ -14,13 +14,23 @@ class ValidationCellPublic(BaseModel):
     """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
 
     operating_point: OperatingPoint
-    kind: str = Field(description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated)")
+    kind: str = Field(
+        description="grid (a trained cell) | midpoint (between neighbouring grid values: interpolated) | runup (a "
+        "speed bin of the run-ups without and with the LUT at one torque: service/runs/runup_validation.py)"
+    )
     status: str = Field(description="measured | failed (error says why) | not_measured (the run stopped first)")
     error: str | None = None
     suppression_db: float | None = Field(None, description="20 log10(|uncompensated| / |residual|), only if measured")
     uncompensated: PhasorPublic | None = Field(None, description="injection off")
     residual: PhasorPublic | None = Field(None, description="the drive's own LUT feedforward (injection mode 2)")
     noise_floor_db: float | None = Field(None, description="rms noise phasor of the LUT window against |uncompensated|")
+    above_floor_db: float | None = Field(None, description="the uncompensated order over the noise floor, dB")
+    holds: bool | None = Field(
+        None, description="suppression_db >= the validation's target_db (run-up bins: or below the range's floor rule)"
+    )
+    reason: str | None = Field(None, description="why a judged point does not hold (run-up bins: or how it holds)")
+    uncompensated_fs: float | None = Field(None, description="run-up bins: |order| without the LUT, full scale")
+    residual_fs: float | None = Field(None, description="run-up bins: |order| with the LUT, full scale")
     at_noise_floor: bool | None = Field(
         None, description="the residual is within 3 noise rms of zero: suppression_db is a lower bound"
     )
@@ -52,8 +62,15 @@ class ValidationSummaryPublic(BaseModel):
     download: dict[str, Any] | None = Field(None, description="the LUT download's receipt (bytes, CRC-32 read back)")
     grid: dict[str, Any]
     midpoint: dict[str, Any]
+    runup: dict[str, Any] | None = Field(None, description="the run-up bins, as grid and midpoint")
     worst: dict[str, Any] | None = None
     plant_time_s: float
+    points: int | None = Field(None, description="judged points: grid, midpoints and run-up bins measured")
+    held: int | None = Field(None, description="of them, how many hold (holds)")
+    median_db: float | None = None
+    min_db: float | None = None
+    torques_run_up: list[float] | None = Field(None, description="the torques the LUT was judged along run-ups at")
+    runup_plant_time_s: float | None = Field(None, description="plant seconds of the run-up pairs (in plant_time_s)")
 
 
 class ValidationPublic(ValidationSummaryPublic):
