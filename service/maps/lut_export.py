@@ -366,6 +366,13 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
     return "\n".join(out)
 
 
+def image_bytes(axes: dict[str, list[float]]) -> int:
+    """Bytes of the LUT image (firmware memory) of a map with these axes: header, each axis' breakpoints (f32),
+    theta_cos and theta_sin (f32) and the flag (u8) per cell, CRC (drivers/lut_image.py layout)."""
+    lengths = [len(axes[a]) for a in lut_codec.AXES]
+    return lut_codec.HEADER.size + 4 * sum(lengths) + 9 * math.prod(lengths) + lut_codec.TRAILER.size
+
+
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:

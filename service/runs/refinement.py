@@ -28,11 +28,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Annotated, Any, Mapping, TypedDict
+from typing import Annotated, Any, Mapping, NotRequired, TypedDict
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from service.identification.registry import METHODS
+from service.maps.lut_export import image_bytes
 from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.validation import ValidationOptions
 
@@ -40,6 +41,8 @@ AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_ROUNDS = 8  # a refinement that has not converged in this many rounds stops and says so
 MAX_SHORT_DB = 30.0  # a point's claim on the budget: how far it is below the target, at most this
 ROUND_SCORE_FRACTION = 0.25
+RUNUP_STRETCH_GAP_RPM = 25.0  # failing run-up bins this close (2 bins missing at 10 rpm) are one stretch
+MERGE_INSERT_RPM = 20.0  # a speed inserted this close to another candidate of the round joins it
 
 Cell = tuple[float, float, float]  # a cell's (torque_nm, speed_rpm, udc_v), the order of AXES
 
@@ -68,6 +71,19 @@ class RefineRequest(BaseModel):
         le=2000,
         description="most cells the refinement identifies in all (re-measured and new cells): its bench-time budget",
     )
+    max_bytes: int = Field(
+        2048,
+        ge=64,
+        le=1 << 20,
+        description="largest LUT image the refinement may build, bytes of firmware memory (header, axes, 9 bytes a cell)",
+    )
+    max_bench_s: float | None = Field(
+        None,
+        gt=0,
+        le=7 * 24 * 3600,
+        description="bench time the refinement may spend (plant seconds of its measurements and validations); "
+        "it stops after the round that spends it. None: no limit beyond max_cells",
+    )
     method: str = Field("probe", description="identification method of the new cells (GET /methods)")
     options: dict[str, Any] = Field(default_factory=dict, description="the method's options (as for a sweep)")
     validation: ValidationOptions = Field(
@@ -90,6 +106,10 @@ class RefinementState(TypedDict):
     cells_added: int  # cells identified in the rounds so far (the budget spent)
     rounds: list[dict[str, Any]]  # each round's validation figures
     stopped: str | None  # why it stopped short of the target (None: it holds, or it goes on)
+    max_bytes: NotRequired[int]  # (a state saved before budgets in bytes and bench time has neither)
+    max_bench_s: NotRequired[float | None]
+    plant_time_s: NotRequired[float]  # plant seconds spent in all rounds so far
+    round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
 
 
 @dataclass
@@ -131,10 +151,38 @@ def _cell_of(values: Mapping[str, Any]) -> Cell:
 
 
 def failing_points(cells: list[dict[str, Any]], target_db: float) -> list[dict[str, Any]]:
-    """Validation cells that miss the target: measured below it, or not measured at all (failed)."""
+    """Validation cells that miss the target: judged as not holding (a run-up bin: by the target or the floor
+    rule, service/runs/runup_validation.py), measured below it, or not measured at all (failed)."""
     return [
-        c for c in cells if c["status"] != "measured" or c["suppression_db"] is None or c["suppression_db"] < target_db
+        c
+        for c in cells
+        if c["status"] != "measured"
+        or c["suppression_db"] is None
+        or (not c["holds"] if c.get("holds") is not None else c["suppression_db"] < target_db)
     ]
+
+
+def _runup_claims(failing: list[dict[str, Any]]) -> list[tuple[dict[str, Any], int]]:
+    """Failing run-up bins as claims: per torque and U_dc, each stretch of adjacent failing bins is one claim at
+    its worst bin, serving every bin of the stretch (an inserted breakpoint fixes a stretch, not a bin)."""
+    by_row: dict[tuple[float, float], list[dict[str, Any]]] = {}
+    for c in failing:
+        op = c["operating_point"]
+        by_row.setdefault((float(op["torque_nm"]), float(op["udc_v"])), []).append(c)
+    claims = []
+    for bins in by_row.values():
+        bins.sort(key=lambda c: c["operating_point"]["speed_rpm"])
+        stretches = [[bins[0]]]
+        for c in bins[1:]:
+            gap = c["operating_point"]["speed_rpm"] - stretches[-1][-1]["operating_point"]["speed_rpm"]
+            if gap <= RUNUP_STRETCH_GAP_RPM:
+                stretches[-1].append(c)
+            else:
+                stretches.append([c])
+        for stretch in stretches:
+            worst = min(stretch, key=lambda b: b["suppression_db"] if b["suppression_db"] is not None else -math.inf)
+            claims.append((worst, len(stretch)))
+    return claims
 
 
 def _theta_at(map_cells: dict[Cell, dict[str, Any]], key: Cell) -> tuple[float, float] | None:
@@ -156,6 +204,7 @@ def plan_round(
     validation_cells: list[dict[str, Any]],
     target_db: float,
     budget_cells: int,
+    max_bytes: int | None = None,
 ) -> RoundPlan:
     """The next round's cells (module doc). map_cells: the current map's cells (MapCellPublic dumps);
     validation_cells: its validation's cells. Raises nothing: an empty plan means nothing is left to
@@ -169,7 +218,9 @@ def plan_round(
     grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
     remeasure: dict[Cell, list[float]] = {}
     insertions: dict[tuple[str, float], list[float]] = {}  # (axis, value) -> dB short of each point served
-    for c in failing:
+    claims = [(c, 1) for c in failing if c["kind"] != "runup"]
+    claims += _runup_claims([c for c in failing if c["kind"] == "runup"])
+    for c, serves in claims:
         op = c["operating_point"]
         key = _cell_of(op)
         measured_db = c["suppression_db"] if c.get("suppression_db") is not None else -math.inf
@@ -192,7 +243,10 @@ def plan_round(
                 best = (step, axis, key[i])
         if best is not None:
             _, axis, value = best
-            insertions.setdefault((axis, value), []).append(short_db)
+            near = [
+                v for a, v in insertions if a == axis and abs(v - value) <= MERGE_INSERT_RPM and axis == "speed_rpm"
+            ]
+            insertions.setdefault((axis, near[0] if near else value), []).extend([short_db] * serves)
     # candidates by failing points served per cell they cost, then by the dB they are short
     sizes = {a: len(grid_values[a]) for a in AXES}
     candidates: list[_Remeasure | _Insert] = [_Remeasure(shorts, key) for key, shorts in remeasure.items()]
@@ -215,6 +269,12 @@ def plan_round(
         cost = math.prod(len(chosen_axes[a]) for a in AXES if a != axis)
         if cost > left:
             plan.reasons.append(f"inserting {axis} = {value:g} needs {cost} cells, {left} left in the budget")
+            continue
+        size = image_bytes({**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})})
+        if max_bytes is not None and size > max_bytes:
+            plan.reasons.append(
+                f"inserting {axis} = {value:g} makes the LUT {size} bytes, over max_bytes = {max_bytes}"
+            )
             continue
         chosen_axes[axis] = sorted(set(chosen_axes[axis]) | {value})
         plan.inserted.setdefault(axis, []).append(value)

@@ -24,6 +24,14 @@ class RefinementRoundPublic(BaseModel):
     inserted: dict[str, list[float]] = Field(default_factory=dict, description="axis values inserted after it")
     remeasured: int = Field(0, description="cells identified again after it (their LUT entry missed at the cell)")
     new_cells: int = Field(0, description="cells the inserted values added")
+    bytes: int | None = Field(None, description="the LUT image of this round's map, bytes of firmware memory")
+    cells: int | None = Field(None, description="cells of this round's map")
+    plant_time_s: float | None = Field(
+        None, description="bench time of the round: its cells' measurements and this validation, plant seconds"
+    )
+    points_judged: int | None = Field(None, description="points judged (grid, midpoints, run-up bins)")
+    held: int | None = Field(None, description="of them, how many hold")
+    median_db: float | None = None
 
 
 class RefinementPublic(BaseModel):
@@ -36,6 +44,10 @@ class RefinementPublic(BaseModel):
     phase: str = Field(description="measure | validate | done")
     target_db: float
     max_cells: int
+    max_bytes: int | None = Field(None, description="the LUT image budget, bytes")
+    max_bench_s: float | None = Field(None, description="the bench time budget, plant seconds")
+    bytes: int | None = Field(None, description="the LUT image of map_id, bytes")
+    plant_time_s: float | None = Field(None, description="bench time spent in all rounds, plant seconds")
     cells_added: int = Field(description="cells identified by the refinement (new and re-measured)")
     holds: bool = Field(description="every point of the latest validation reached target_db")
     stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds)")
@@ -56,6 +68,10 @@ def refinement_public(records: Records, sweep: Mapping[str, Any]) -> RefinementP
         phase=state["phase"],
         target_db=state["target_db"],
         max_cells=state["max_cells"],
+        max_bytes=state.get("max_bytes"),
+        max_bench_s=state.get("max_bench_s"),
+        bytes=rounds[-1].bytes if rounds else None,
+        plant_time_s=state.get("plant_time_s"),
         cells_added=state["cells_added"],
         holds=holds,
         stopped=state.get("stopped"),

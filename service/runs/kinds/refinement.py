@@ -4,12 +4,14 @@ body measures a round's cells through the sweep's (service/runs/sweep_run.py Swe
 
 from __future__ import annotations
 
+import math
 from typing import Any, cast
 
 from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
+from service.maps.lut_export import image_bytes
 from service.maps.view import map_view
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, parse_options
@@ -64,6 +66,10 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         "cells_added": 0,
         "rounds": [],
         "stopped": None,
+        "max_bytes": request.max_bytes,
+        "max_bench_s": request.max_bench_s,
+        "plant_time_s": 0.0,
+        "round_plant_s": 0.0,
     }
     sweep_id = host.storage.create_sweep(
         request.method,
@@ -195,6 +201,11 @@ class RefinementRun:
         )
         if ctl.cancel.is_set():
             return
+        state["round_plant_s"] = sum(
+            float(r.get("plant_time_s") or 0.0)
+            for r in self.storage.sweep_results(sweep_id)
+            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
+        )
         state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
         provenance = {
             "refinement_id": sweep_id,
@@ -260,8 +271,12 @@ class RefinementRun:
             run.cells,
             state["target_db"],
             state["max_cells"] - state["cells_added"],
+            state.get("max_bytes"),
         )
         summary = run.summary()
+        round_plant_s = state.get("round_plant_s", 0.0) + float(summary["plant_time_s"] or 0.0)
+        state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
+        state["round_plant_s"] = 0.0
         state["rounds"].append(
             {
                 "round": state["round"],
@@ -278,14 +293,28 @@ class RefinementRun:
                 "inserted": plan.inserted,
                 "remeasured": len(plan.remeasure),
                 "new_cells": len(plan.new_cells),
+                # what the user pays: firmware memory of this round's map and bench time (plant seconds)
+                "bytes": image_bytes(m.axes),
+                "cells": math.prod(len(m.axes[a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
+                "plant_time_s": round_plant_s,
+                "points_judged": summary.get("points"),
+                "held": summary.get("held"),
+                "median_db": summary.get("median_db"),
             }
         )
+        max_bench_s = state.get("max_bench_s")
         if plan.failing == 0:
             state["phase"], state["stopped"] = "done", None
         elif not plan.cells:
             state["phase"] = "done"
             state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + (
                 "; ".join(plan.reasons) or "nothing left to insert"
+            )
+        elif max_bench_s is not None and state["plant_time_s"] >= max_bench_s:
+            state["phase"] = "done"
+            state["stopped"] = (
+                f"{plan.failing} point(s) still below {state['target_db']:g} dB: the bench time budget "
+                f"(max_bench_s = {max_bench_s:g} s) is spent ({state['plant_time_s']:.0f} s)"
             )
         elif state["round"] + 1 >= MAX_ROUNDS:
             state["phase"] = "done"
