@@ -242,9 +242,7 @@ def encode(
     tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape)).astype("<f4")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
-    body = HEADER.pack(
-        MAGIC, version, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id)
-    )
+    body = HEADER.pack(MAGIC, version, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id))
     for axis in axes:
         body += np.asarray(axis, dtype="<f4").tobytes()
     body += tc.tobytes() + tsn.tobytes() + f.tobytes()

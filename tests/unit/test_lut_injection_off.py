@@ -110,7 +110,9 @@ def test_a_version_4_image_round_trips_and_keeps_the_off_cells_theta_for_the_rec
 def test_without_off_cells_encode_writes_the_version_3_image_of_before_byte_for_byte():
     tc = [[[0.01, 0.02, 0.03], [0.015, 0.025, 0.035]]]
     ts = [[[-0.01, -0.02, -0.03], [-0.005, -0.015, -0.025]]]
-    blob = lut_image.encode(6, TORQUE_NM, SPEED_RPM, UDC_V, tc, ts, [[[1, 2, 0], [1, 1, 2]]], map_id=9, interpolation="polar")
+    blob = lut_image.encode(
+        6, TORQUE_NM, SPEED_RPM, UDC_V, tc, ts, [[[1, 2, 0], [1, 1, 2]]], map_id=9, interpolation="polar"
+    )
     assert (hashlib.sha256(blob).hexdigest(), lut_image.image_crc(blob), len(blob)) == (V3_SHA256, V3_CRC, V3_BYTES)
     lut = lut_image.decode(blob)
     assert lut.format_version == 3 and not lut.injection_off.any()
