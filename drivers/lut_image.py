@@ -153,7 +153,9 @@ class Lut:
 
     def _polar(self, corners) -> tuple[float, float]:
         gamma_c, delta_c = self._gamma_delta
-        with_phase = [(c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0]  # off: theta returned 0
+        with_phase = [
+            (c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0
+        ]  # off: theta returned 0
         if not with_phase:
             return 0.0, 0.0
         gamma = sum(w * float(gamma_c[c]) for c, w in with_phase)  # no entry: gamma 0
