@@ -4,17 +4,21 @@ One definition for both ends of the wire: the service builds the image from a ma
 (service/maps/lut_export.py) and the emulated drive firmware decodes it and interpolates with `Lut.theta`
 (plant_emulator/drive_firmware.py).
 
-Layout, format_version 3 (little-endian, 20-byte header):
-    magic "RCL1" | u16 format_version = 3 | u8 harmonic_order | u8 interpolation (0 cartesian, 1 polar) |
+Layout, format_version 3 and 4 (little-endian, 20-byte header):
+    magic "RCL1" | u16 format_version = 3 or 4 | u8 harmonic_order | u8 interpolation (0 cartesian, 1 polar) |
     u16 n_torque, n_speed, n_udc | u16 reserved = 0 | u32 map_id (>= 1) |
     f32 torque_nm[n_torque], speed_rpm[n_speed], udc_v[n_udc]  (each axis its own strictly increasing
         breakpoints: non-uniform spacing is interpolated by position) |
     f32 theta_cos_rad[n_udc][n_speed][n_torque] | f32 theta_sin_rad[...] |
     u8 flag[...]  (0 no entry: theta 0, no injection; 1 ok: a result at its target; 2 filled: a fill,
-                   service/maps/fill.py) |
+                   service/maps/fill.py; 3 injection off, version 4 only: the drive injects nothing in
+                   any interval that has this cell as a corner of non-zero weight, theta kept for the
+                   record) |
     u32 crc32 (zlib) of every byte before it.
-Version 2 is the same layout with byte 7 reserved (0) and u8 valid[...] (0/1) for the flags; the drive
-decodes both: a version 2 image is flags = valid and cartesian interpolation. `encode` writes version 3.
+Version 4 is version 3 plus flag 3 (FLAG_OFF); version 2 is the same layout with byte 7 reserved (0) and
+u8 valid[...] (0/1) for the flags. The drive decodes all three: a version 2 image is flags = valid and
+cartesian interpolation. `encode` writes version 4 only when a cell carries FLAG_OFF, else version 3
+(so an image without off cells is byte for byte what it was before version 4, CRC included).
 The image's CRC is that trailer: CRC-32 of the image WITHOUT its CRC field (`image_crc`). It is what
 the drive reports on 0x2001:2 and what the service compares; a CRC-32 over the whole image,
 trailer included, would be the constant residue 0x2144DF1C for every image. The map id (version 2 on)
@@ -26,6 +30,10 @@ theta_sin = -gamma sin delta). The drive injects at flag 1 and 2 cells; a flag 0
 Per axis, x clamped to [x_0, x_last] (the axis ends); in the interval x_j <= x < x_j+1 the weights by
 position are f = (x - x_j) / (x_j+1 - x_j): w_j = 1 - f, w_j+1 = f (a one-value axis: weight 1).
 The corners c of the enclosing cell carry w_c = w_torque w_speed w_udc (sum 1; corners of weight 0 drop).
+- injection off (both modes, first): any corner of weight > 0 at flag 3 gives theta = (0, 0) exactly: no
+  compensation there, never worse than none (near the field-weakening turn theta* passes near zero and
+  turns fast, and an interpolated theta can miss it by more than |theta*|). On a grid line or point
+  where the off corner's weight is 0 the other corners interpolate as usual.
 - cartesian (mode 0): theta_cos = sum_c w_c theta_cos_c, theta_sin = sum_c w_c theta_sin_c, with
   theta_c = 0 at corners without an entry (multilinear in theta, as version 2 did).
 - polar (mode 1): gamma = sum_c w_c gamma_c, with gamma_c = 0 at corners without an entry. The phase
@@ -51,8 +59,9 @@ from functools import cached_property
 import numpy as np
 
 MAGIC = b"RCL1"
-FORMAT_VERSION = 3  # what encode writes
-SUPPORTED_VERSIONS = (2, 3)  # what the drive decodes
+FORMAT_VERSION = 3  # what encode writes for a map without injection-off cells
+FORMAT_VERSION_OFF = 4  # what encode writes when a cell carries FLAG_OFF
+SUPPORTED_VERSIONS = (2, 3, 4)  # what the drive decodes
 HEADER = struct.Struct("<4sHBBHHHHI")
 TRAILER = struct.Struct("<I")  # CRC-32 (zlib) of every byte before it
 MAX_CELLS = 4096
@@ -60,8 +69,14 @@ AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_MAP_ID = 0xFFFFFFFF  # u32; 0 is what the drive reports when it holds no LUT
 
 # per-cell flag byte
-FLAG_NONE, FLAG_OK, FLAG_FILLED = 0, 1, 2
-FLAGS = (FLAG_NONE, FLAG_OK, FLAG_FILLED)
+FLAG_NONE, FLAG_OK, FLAG_FILLED, FLAG_OFF = 0, 1, 2, 3
+FLAGS = (FLAG_NONE, FLAG_OK, FLAG_FILLED, FLAG_OFF)
+# the flags each format version knows
+VERSION_FLAGS = {
+    2: (FLAG_NONE, FLAG_OK),
+    3: (FLAG_NONE, FLAG_OK, FLAG_FILLED),
+    4: FLAGS,
+}
 # the header's interpolation byte: the code is the index
 INTERPOLATIONS = ("cartesian", "polar")
 # what a download uses unless it names one: polar, measured to hold better where theta* turns (the
@@ -77,8 +92,9 @@ class LutImageError(ValueError):
 
 @dataclass(frozen=True)
 class Lut:
-    """A decoded image: map id, axes, theta per cell [udc][speed][torque] (0 where flag 0), the flag per
-    cell, the interpolation mode, the image's format version and CRC."""
+    """A decoded image: map id, axes, theta per cell [udc][speed][torque] (0 where flag 0; an off cell's
+    theta is kept for the record, never injected), the flag per cell, the interpolation mode, the
+    image's format version and CRC."""
 
     map_id: int
     harmonic_order: int
@@ -87,7 +103,7 @@ class Lut:
     udc_v: np.ndarray  # (n_u,)
     theta_cos: np.ndarray  # (n_u, n_n, n_t), rad, 0 where flag 0
     theta_sin: np.ndarray
-    flags: np.ndarray  # uint8 (n_u, n_n, n_t): FLAG_NONE | FLAG_OK | FLAG_FILLED
+    flags: np.ndarray  # uint8 (n_u, n_n, n_t): FLAG_NONE | FLAG_OK | FLAG_FILLED | FLAG_OFF
     crc: int  # image_crc: CRC-32 of the image without its CRC field
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = FORMAT_VERSION
@@ -103,9 +119,14 @@ class Lut:
         return self.flags == FLAG_FILLED
 
     @property
+    def injection_off(self) -> np.ndarray:
+        """bool per cell: injection off around it (flag 3)."""
+        return self.flags == FLAG_OFF
+
+    @property
     def entry(self) -> np.ndarray:
         """bool per cell: the drive injects there (flag 1 or 2)."""
-        return self.flags != FLAG_NONE
+        return (self.flags == FLAG_OK) | (self.flags == FLAG_FILLED)
 
     @cached_property
     def _gamma_delta(self) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +143,8 @@ class Lut:
             for (it, wt) in _weights(self.torque_nm, torque_nm)
             if wu * wn * wt != 0.0
         ]
+        if any(self.flags[c] == FLAG_OFF for c, _ in corners):
+            return 0.0, 0.0  # injection off: exactly no compensation (module doc)
         if self.interpolation == "polar":
             return self._polar(corners)
         tc = sum(w * float(self.theta_cos[c]) for c, w in corners)  # 0 where flag 0 (decode)
@@ -130,7 +153,9 @@ class Lut:
 
     def _polar(self, corners) -> tuple[float, float]:
         gamma_c, delta_c = self._gamma_delta
-        with_phase = [(c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0]
+        with_phase = [
+            (c, w) for c, w in corners if self.flags[c] != FLAG_NONE and gamma_c[c] > 0.0
+        ]  # off: theta returned 0
         if not with_phase:
             return 0.0, 0.0
         gamma = sum(w * float(gamma_c[c]) for c, w in with_phase)  # no entry: gamma 0
@@ -190,9 +215,10 @@ def encode(
     map_id: int,
     interpolation: str | None = None,
 ) -> bytes:
-    """A format_version 3 image of map `map_id` from the axes and [udc][speed][torque] arrays (nested
-    lists or arrays of that shape, or flat in that order). flags: FLAG_NONE / FLAG_OK / FLAG_FILLED per
-    cell (default all FLAG_OK); cells with flag 0 go in with theta 0. interpolation: "cartesian" or
+    """A format_version 3 image of map `map_id` (4 when a cell carries FLAG_OFF) from the axes and
+    [udc][speed][torque] arrays (nested lists or arrays of that shape, or flat in that order). flags:
+    FLAG_NONE / FLAG_OK / FLAG_FILLED / FLAG_OFF per cell (default all FLAG_OK); cells with flag 0 go in
+    with theta 0, off cells with their theta (for the record). interpolation: "cartesian" or
     "polar" (None: DEFAULT_INTERPOLATION). Raises LutImageError if the map has more than MAX_CELLS
     cells, an axis is not strictly increasing, a flag or theta is not allowed, or map_id is not in
     1 .. MAX_MAP_ID."""
@@ -209,23 +235,30 @@ def encode(
     shape = (nu, nn, nt)
     f = np.full(shape, FLAG_OK, dtype=np.uint8) if flags is None else np.asarray(flags).reshape(shape)
     if not np.all(np.isin(f, FLAGS)):
-        raise LutImageError(f"flags must be {FLAG_NONE} (no entry), {FLAG_OK} (ok) or {FLAG_FILLED} (filled)")
+        raise LutImageError(
+            f"flags must be {FLAG_NONE} (no entry), {FLAG_OK} (ok), {FLAG_FILLED} (filled) or {FLAG_OFF} (injection off)"
+        )
     f = f.astype(np.uint8)
+    version = format_version_of(f)
     tc = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_cos, dtype=np.float64).reshape(shape)).astype("<f4")
     tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape)).astype("<f4")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
-    body = HEADER.pack(
-        MAGIC, FORMAT_VERSION, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id)
-    )
+    body = HEADER.pack(MAGIC, version, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id))
     for axis in axes:
         body += np.asarray(axis, dtype="<f4").tobytes()
     body += tc.tobytes() + tsn.tobytes() + f.tobytes()
     return body + TRAILER.pack(_crc32(body))
 
 
+def format_version_of(flags) -> int:
+    """The format version `encode` writes for these flags: FORMAT_VERSION_OFF when any is FLAG_OFF, else
+    FORMAT_VERSION (an image without off cells stays what it was before version 4)."""
+    return FORMAT_VERSION_OFF if np.any(np.asarray(flags) == FLAG_OFF) else FORMAT_VERSION
+
+
 def decode(blob: bytes) -> Lut:
-    """Check and decode an image of format_version 2 or 3; LutImageError says what is wrong."""
+    """Check and decode an image of format_version 2, 3 or 4; LutImageError says what is wrong."""
     blob = bytes(blob)
     if len(blob) < 6:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
@@ -235,7 +268,8 @@ def decode(blob: bytes) -> Lut:
     if version not in SUPPORTED_VERSIONS:  # before the length: another version has another header
         raise LutImageError(
             f"unsupported format_version {version}: this drive takes versions "
-            f"{' and '.join(str(v) for v in SUPPORTED_VERSIONS)} (their header carries the map id)"
+            f"{', '.join(str(v) for v in SUPPORTED_VERSIONS[:-1])} and {SUPPORTED_VERSIONS[-1]} "
+            "(their header carries the map id)"
         )
     if len(blob) < HEADER.size + TRAILER.size:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
@@ -244,15 +278,15 @@ def decode(blob: bytes) -> Lut:
         raise LutImageError("map_id 0 is reserved (the drive reports 0 when it holds no LUT)")
     if h < 1:
         raise LutImageError("harmonic_order must be >= 1")
-    allowed: tuple[int, ...]  # the flags this version knows
+    allowed = VERSION_FLAGS[version]
     if version >= 3:
         if mode_code >= len(INTERPOLATIONS):
             raise LutImageError(f"interpolation {mode_code} unknown (0 cartesian, 1 polar)")
         if reserved != 0:
             raise LutImageError(f"reserved header field is {reserved}, not 0")
-        interpolation, allowed = INTERPOLATIONS[mode_code], FLAGS
+        interpolation = INTERPOLATIONS[mode_code]
     else:  # version 2: byte 7 was reserved, the flags were valid 0/1; it interpolated cartesian
-        interpolation, allowed = "cartesian", (FLAG_NONE, FLAG_OK)
+        interpolation = "cartesian"
     if min(nt, nn, nu) < 1 or nt * nn * nu > MAX_CELLS:
         raise LutImageError(f"bad axis lengths {nt} x {nn} x {nu}")
     cells = nt * nn * nu
@@ -280,7 +314,7 @@ def decode(blob: bytes) -> Lut:
         raise LutImageError(f"flags must be one of {allowed} in a format_version {version} image")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
-    entry = flags != FLAG_NONE
+    entry = flags != FLAG_NONE  # an off cell keeps its theta (the record); Lut.theta never injects it
     return Lut(
         int(map_id),
         int(h),

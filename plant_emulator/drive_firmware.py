@@ -16,12 +16,13 @@ without a toggle: it only clamps |theta|.
 LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
 download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
-force (0 without one). The drive takes format_version 3 and 2 images (a version 2 image: its valid
-cells as flag 1, cartesian interpolation). In injection mode 2 the control loop asks `effective_theta`
+force (0 without one). The drive takes format_version 4, 3 and 2 images (a version 2 image: its valid
+cells as flag 1, cartesian interpolation; version 4 adds flag 3, injection off). In injection mode 2 the control loop asks `effective_theta`
 at every chunk (or block) start: theta interpolated by the image's own mode (`Lut.theta`: cartesian
 theta or polar gamma/delta along the shortest arc, by position on the non-uniform axes) in (torque
 command, measured speed, measured U_dc), clamped at the axis ends; entries at flag 1 (ok) and 2
-(filled) cells, nothing at flag 0; then |theta| clamped to gamma_max; the injection runs at the LUT's
+(filled) cells, nothing at flag 0, and exactly nothing (theta 0) wherever a corner of non-zero weight
+is at flag 3 (injection off: never worse than no compensation); then |theta| clamped to gamma_max; the injection runs at the LUT's
 harmonic order.
 
 Actuals (TPDO1, 0x1800/0x1A00 of the EDS): torque actual 0x6077, velocity actual 0x606C and current actual
@@ -143,12 +144,13 @@ class DriveFirmware(Cia402Device):
             self.lut_status = 1
             log.info(
                 "drive: LUT of map %d in force (format_version %d, %s interpolation, %d ok and %d filled "
-                "entries of %d cells)",
+                "entries, %d off of %d cells)",
                 lut.map_id,
                 lut.format_version,
                 lut.interpolation,
                 int(lut.valid.sum()),
                 int(lut.filled.sum()),
+                int(lut.injection_off.sum()),
                 lut.flags.size,
             )
 

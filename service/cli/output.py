@@ -189,6 +189,8 @@ def maps(rows: list) -> None:
 
 def lut_downloaded(receipt, lut, identity: str) -> None:
     filled = f", {lut.filled_cells} filled" if lut.fill else ", fill left out"
+    if lut.injection_off_cells:
+        filled += f", {lut.injection_off_cells} injection off"
     print(
         f"map {receipt.map_id}: {receipt.bytes} bytes ({receipt.valid_cells} of {receipt.cells} cells ok{filled}, "
         f"{lut.interpolation} interpolation, h = {receipt.harmonic_order}{', forced' if receipt.forced else ''}) "

@@ -8,7 +8,11 @@ spacing allowed: the drive interpolates by position).
 Cells: `ok` cells carry their result's theta (VALID = 1). A filled cell (status not ok, `filled`: the
 fill rule of service/maps/fill.py) carries its fill, flagged FILLED = 1 and VALID = 0 in every export:
 exports always show the fill, only a LUT download chooses whether it goes into the drive (`fill`).
-Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0."""
+A cell with injection off (`injection_off`, set on the stored map: Storage.set_injection_off) is flagged
+INJECTION_OFF = 1 (VALID = 0, FILLED = 0) and carries its theta for the record where it has one; the
+drive injects nothing in any interval that has it as a corner of non-zero weight (LUT flag 3, image
+format_version 4: drivers/lut_image.py), so there it gives exactly no compensation, never worse.
+Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0, INJECTION_OFF = 0."""
 
 from __future__ import annotations
 
@@ -24,14 +28,18 @@ from drivers import lut_image as lut_codec
 from service import __version__
 from service.maps import quality as map_quality
 
-JSON_FORMAT_VERSION = 2  # 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`
+# 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`; 3: `injection_off` grid and cell field
+JSON_FORMAT_VERSION = 3
 
 
 def cell_flag(c: dict[str, Any] | None, fill: bool = True) -> int:
-    """The LUT flag of a map cell: FLAG_OK for ok, FLAG_FILLED for a filled cell that carries theta
-    (only with `fill`), FLAG_NONE otherwise (no entry: the drive injects nothing there)."""
+    """The LUT flag of a map cell: FLAG_OFF where injection is off (before anything else), FLAG_OK for
+    ok, FLAG_FILLED for a filled cell that carries theta (only with `fill`), FLAG_NONE otherwise (no
+    entry: the drive injects nothing there)."""
     if c is None:
         return lut_codec.FLAG_NONE
+    if c.get("injection_off"):
+        return lut_codec.FLAG_OFF
     if c["status"] == "ok":
         return lut_codec.FLAG_OK
     if fill and c.get("filled") and c.get("theta_cos") is not None and c.get("theta_sin") is not None:
@@ -40,8 +48,9 @@ def cell_flag(c: dict[str, Any] | None, fill: bool = True) -> int:
 
 
 def _grid_values(m: dict[str, Any], key: str, fill: bool = True) -> list[list[list[float]]]:
-    """[udc][speed][torque] array of a cell field, or of its flag: key "flag" (0/1/2), "valid" (1 only
-    for ok), "filled" (1 only where a fill is carried); theta is 0 where the cell has no entry."""
+    """[udc][speed][torque] array of a cell field, or of its flag: key "flag" (0..3), "valid" (1 only
+    for ok), "filled" (1 only where a fill is carried), "injection_off" (1 only where injection is off);
+    theta is 0 where the cell has no entry (an off cell carries its theta where it has one)."""
     axes = m["axes"]
     by_op = {(c["torque_nm"], c["speed_rpm"], c["udc_v"]): c for c in m["cells"]}
     out: list[list[list[float]]] = []
@@ -58,11 +67,25 @@ def _grid_values(m: dict[str, Any], key: str, fill: bool = True) -> list[list[li
                     row.append(1 if flag == lut_codec.FLAG_OK else 0)
                 elif key == "filled":
                     row.append(1 if flag == lut_codec.FLAG_FILLED else 0)
+                elif key == "injection_off":
+                    row.append(1 if flag == lut_codec.FLAG_OFF else 0)
                 else:
-                    row.append(float(c[key]) if flag != lut_codec.FLAG_NONE and c is not None else 0.0)  # no cell: NONE
+                    row.append(_carried(c, flag, key))
             plane.append(row)
         out.append(plane)
     return out
+
+
+def _carried(c: dict[str, Any] | None, flag: int, key: str) -> float:
+    """A theta field as the LUT carries it: the cell's at an entry or an off cell that has one, else 0."""
+    if c is None or flag == lut_codec.FLAG_NONE or c.get(key) is None:
+        return 0.0
+    return float(c[key])
+
+
+def _has_theta(c: dict[str, Any], flag: int) -> bool:
+    """The cell carries a theta in the exports (an entry, or an off cell with one for the record)."""
+    return flag != lut_codec.FLAG_NONE and c.get("theta_cos") is not None and c.get("theta_sin") is not None
 
 
 def _gamma_delta_deg(c: dict[str, Any]) -> tuple[float, float]:
@@ -83,6 +106,25 @@ def _interpolation_text(interpolation: str) -> str:
 def _filled_text(m: dict[str, Any]) -> str:
     n = sum(1 for c in m["cells"] if cell_flag(c) == lut_codec.FLAG_FILLED)
     return f"{n} filled cell(s) (a LUT download takes them only with fill)" if n else "no filled cell"
+
+
+def _off_cells(m: dict[str, Any]) -> int:
+    return sum(1 for c in m["cells"] if cell_flag(c) == lut_codec.FLAG_OFF)
+
+
+def _off_text(m: dict[str, Any]) -> str:
+    n = _off_cells(m)
+    if not n:
+        return "no cell with injection off"
+    return (
+        f"{n} cell(s) with injection off (the drive injects nothing in any interval with one as a corner; "
+        "their theta is kept for the record)"
+    )
+
+
+def lut_format_version(m: dict[str, Any]) -> int:
+    """The format_version of the map's LUT image: 4 with a cell whose injection is off, else 3."""
+    return lut_codec.format_version_of([cell_flag(c) for c in m["cells"]])
 
 
 def _counts_text(m: dict[str, Any]) -> str:
@@ -162,15 +204,13 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
     buf.write("# v_inj = theta_cos*cos(h*phi_e) + theta_sin*sin(h*phi_e) = gamma*cos(h*phi_e + delta); theta in rad\n")
     buf.write(
         f"# cells: {_counts_text(m)}; ok cells carry their theta (valid), filled cells their fill "
-        f"(filled = 1, not valid), the others 0; {_filled_text(m)}\n"
+        f"(filled = 1, not valid), the others 0; {_filled_text(m)}; {_off_text(m)}\n"
     )
-    buf.write(
-        f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_codec.FORMAT_VERSION})\n"
-    )
+    buf.write(f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_format_version(m)})\n")
     buf.write(f"# {_quality_text(m)}\n")
     buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
-    # filled and fill_source last: readers of the columns before them by position keep working
+    # filled, fill_source and injection_off last: readers of the columns before them by position keep working
     w.writerow(
         [
             "torque_nm",
@@ -184,11 +224,12 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
             "status",
             "filled",
             "fill_source",
+            "injection_off",
         ]
     )
     for c in m["cells"]:
         flag = cell_flag(c)
-        entry = flag != lut_codec.FLAG_NONE
+        entry = _has_theta(c, flag)
         gamma, delta = _gamma_delta_deg(c) if entry else ("", "")
         w.writerow(
             [
@@ -203,6 +244,7 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
                 c["status"],
                 1 if flag == lut_codec.FLAG_FILLED else 0,
                 (c.get("fill_source") or "") if flag == lut_codec.FLAG_FILLED else "",
+                1 if flag == lut_codec.FLAG_OFF else 0,
             ]
         )
     return buf.getvalue()
@@ -224,17 +266,19 @@ def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
             "axes": m["axes"],
             "index_order": ["udc_v", "speed_rpm", "torque_nm"],
             "interpolation": mode,
-            "lut_format_version": lut_codec.FORMAT_VERSION,
+            "lut_format_version": lut_format_version(m),
             "theta_cos_rad": _grid_values(m, "theta_cos"),
             "theta_sin_rad": _grid_values(m, "theta_sin"),
             "valid": _grid_values(m, "valid"),
             "filled": _grid_values(m, "filled"),
+            "injection_off": _grid_values(m, "injection_off"),
             "status_counts": m.get("status_counts"),
             "cells": [
                 {
                     **{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
                     "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
                     "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None,
+                    "injection_off": cell_flag(c) == lut_codec.FLAG_OFF,
                 }
                 for c in m["cells"]
             ],
@@ -278,9 +322,12 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         " * rotation (|u_dq*| = |u_dq|); gamma = |theta|, delta = -atan2(theta_sin, theta_cos).",
         " * Index order [udc][speed][torque]; each axis its own strictly increasing breakpoints (interpolate",
         " * by position, clamp at the ends). valid == 1: an ok result; filled == 1: a fill (not a result at",
-        " * its target: inject there only if the fill is wanted); both 0: theta 0, no injection.",
+        " * its target: inject there only if the fill is wanted); injection_off == 1: inject NOTHING (theta 0)",
+        " * wherever a corner of non-zero weight has it (its theta is kept for the record; LUT image flag 3);",
+        " * all three 0: theta 0, no injection.",
         f" * Interpolation ({macro}_INTERPOLATION): {_interpolation_text(mode)}.",
-        f" * Cells: {_counts_text(m)}; {_filled_text(m)}. Names carry the map id ({macro}_*, {array}_*).",
+        f" * Cells: {_counts_text(m)}; {_filled_text(m)}; {_off_text(m)}.",
+        f" * Names carry the map id ({macro}_*, {array}_*).",
         f" * {_quality_text(m)}.",
         f" * {_validation_text(m)}.",
         " */",
@@ -300,19 +347,23 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"#define {macro}_INTERPOLATION_POLAR {lut_codec.INTERPOLATIONS.index('polar')}u",
         f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_{mode.upper()}",
         f"#define {macro}_FILLED_CELLS {sum(1 for c in m['cells'] if cell_flag(c) == lut_codec.FLAG_FILLED)}u",
+        f"#define {macro}_INJECTION_OFF_CELLS {_off_cells(m)}u",
         "",
         f"/* torque axis, Nm */\nstatic const float {array}_torque_nm[{nt}] = {_c_array(m['axes']['torque_nm'])};",
         f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
         f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};",
         "",
-        f"/* theta_cos, rad (ok and filled cells; 0 elsewhere) */\n"
+        f"/* theta_cos, rad (ok, filled and injection-off cells; 0 elsewhere) */\n"
         f"static const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
-        f"/* theta_sin, rad (ok and filled cells; 0 elsewhere) */\n"
+        f"/* theta_sin, rad (ok, filled and injection-off cells; 0 elsewhere) */\n"
         f"static const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
         f"/* 1 where the cell holds an identified value (ok) */\n"
         f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
         f"/* 1 where the cell holds a fill (not ok; service/maps/fill.py) */\n"
         f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'filled'))};",
+        f"/* 1 where injection is off: theta 0 in every interval with this cell as a corner of non-zero weight */\n"
+        f"static const uint8_t {array}_injection_off[{nu}][{nn}][{nt}] = "
+        f"{_c_u8_array(_grid_values(m, 'injection_off'))};",
         "",
         f"#endif /* {guard} */",
         "",
@@ -328,7 +379,7 @@ def _dcm_number(x: float) -> str:
 
 def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
     """DCM 2.0 (calibration data exchange format read by INCA / CANape): one KENNFELD per U_dc and
-    theta component, VALID and FILLED, x = torque (Nm), y = speed (rpm), each with its axis points
+    theta component, VALID, FILLED and INJECTION_OFF, x = torque (Nm), y = speed (rpm), each with its axis points
     (ST/X, ST/Y: the map's own breakpoints, non-uniform as they are)."""
     mode = lut_codec.check_interpolation(interpolation)
     axes = m["axes"]
@@ -338,14 +389,22 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"* software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}",
         f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok); "
         f"FILLED = 1 where a cell not ok carries a fill (THETA holds it); {_filled_text(m)}",
+        f"* INJECTION_OFF = 1: no injection in any interval with this cell as a corner of non-zero weight; {_off_text(m)}",
         f"* LUT interpolation: {_interpolation_text(mode)}",
         f"* {_quality_text(m)}",
         f"* {_validation_text(m)}",
         "KONSERVIERUNG_FORMAT 2.0",
         "",
     ]
-    planes = {key: _grid_values(m, key) for key in ("theta_cos", "theta_sin", "valid", "filled")}
-    for name, key in (("THETA_COS", "theta_cos"), ("THETA_SIN", "theta_sin"), ("VALID", "valid"), ("FILLED", "filled")):
+    kennfelder = (
+        ("THETA_COS", "theta_cos"),
+        ("THETA_SIN", "theta_sin"),
+        ("VALID", "valid"),
+        ("FILLED", "filled"),
+        ("INJECTION_OFF", "injection_off"),
+    )
+    planes = {key: _grid_values(m, key) for _, key in kennfelder}
+    for name, key in kennfelder:
         for k, udc in enumerate(axes["udc_v"]):
             plane = planes[key][k]
             out += [
@@ -376,7 +435,8 @@ def image_bytes(axes: dict[str, list[float]]) -> int:
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
-    filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry);
+    filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry); cells with
+    injection off go in as flag 3 (format_version 4; without one the image is version 3);
     interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
@@ -393,7 +453,7 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
 
 # -- what the layers above see of a map's LUT image (service/runs/lut_download.py: the download rules and
 # the receipt), so that they never import the wire codec (drivers/lut_image.py) themselves
-LUT_FORMAT_VERSION = lut_codec.FORMAT_VERSION  # what lut_image writes
+LUT_FORMAT_VERSION = lut_codec.FORMAT_VERSION  # what lut_image writes for a map without injection-off cells
 DEFAULT_INTERPOLATION = lut_codec.DEFAULT_INTERPOLATION  # the drive's mode when a download names none
 crc_hex = lut_codec.crc_hex  # a CRC as the service shows it everywhere: 0x and 8 hex digits
 
@@ -407,11 +467,13 @@ class LutEntries:
     filled: int  # flag 2: a fill (0 without fill)
     fills_left_out: int  # cells that carry a fill but go in as holes (only without fill)
     interpolation: str  # the header's mode
+    injection_off: int = 0  # flag 3: chosen, so never a hole
+    format_version: int = LUT_FORMAT_VERSION  # the image's (4 with an off cell)
 
     @property
     def holes(self) -> int:
-        """Cells without an entry: the drive injects nothing there."""
-        return self.cells - self.ok - self.filled
+        """Cells without an entry and not chosen off: the drive injects nothing there."""
+        return self.cells - self.ok - self.filled - self.injection_off
 
 
 def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> LutEntries:
@@ -426,6 +488,8 @@ def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None 
         filled=flags.count(lut_codec.FLAG_FILLED),
         fills_left_out=left_out,
         interpolation=mode,
+        injection_off=flags.count(lut_codec.FLAG_OFF),
+        format_version=lut_codec.format_version_of(flags),
     )
 
 

@@ -49,6 +49,12 @@ class MapCell(BaseModel):
         "every export flags it apart from valid, and a download takes it only with fill",
     )
     fill_source: str | None = Field(None, description="filled cells: where the theta comes from")
+    injection_off: bool = Field(
+        False,
+        description="the drive injects nothing in any LUT interval that has this cell as a corner of "
+        "non-zero weight (LUT flag 3, drivers/lut_image.py: never worse than no compensation where "
+        "interpolation misses theta*); the cell keeps its theta for the record",
+    )
 
 
 class MapQuality(BaseModel):
@@ -88,6 +94,7 @@ class MapView(BaseModel):
         "(?smooth=outliers); the stored map is never changed",
     )
     filled_cells: int = Field(0, description="cells not ok that carry a fill (service/maps/fill.py)")
+    injection_off_cells: int = Field(0, description="cells with injection off (MapCell.injection_off)")
     refined_from: int | None = Field(None, description="a refined map: the map it was refined from")
     provenance: dict[str, Any] | None = Field(
         None, description="how a refined map was made: refinement, rounds, cells added"
@@ -118,6 +125,7 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
             target_db=record.get("target_db"),
             noise_floor_db=record.get("noise_floor_db"),
             error=record["error"],
+            injection_off=bool(record.get("injection_off")),
         )
         if not ok and record.get("fill_theta_cos") is not None:  # the fill rule's entry (service/maps/fill.py)
             cell.theta_cos, cell.theta_sin = record["fill_theta_cos"], record["fill_theta_sin"]
@@ -170,6 +178,7 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
         status_counts=counts,
         cells=cells,
         filled_cells=sum(1 for c in cells if c.filled),
+        injection_off_cells=sum(1 for c in cells if c.injection_off),
         refined_from=row.get("refined_from"),
         provenance=row.get("provenance"),
         quality=summary,

@@ -2,7 +2,8 @@
 
 The drive injects at the LUT's entries: `ok` cells (flag 1) and, when the download takes the fill
 (`fill`, default True), the filled cells (flag 2: a cell not ok that carries a fill, service/maps/fill.py).
-Every other cell is a hole: the drive injects nothing there. A map without one ok cell is refused
+A cell with injection off (flag 3, set on the stored map) is a choice, not a hole: the drive injects
+nothing in any interval with it as a corner. Every other cell is a hole: the drive injects nothing there. A map without one ok cell is refused
 (whatever its fills: no cell met its target); a map with holes under the chosen fill goes only when
 asked with `force`, so a LUT with holes is never loaded by mistake. The interpolation mode goes into
 the image's header (None: lut_export.DEFAULT_INTERPOLATION). The image (service/maps/lut_export.py,
@@ -40,6 +41,11 @@ class LutDownload(BaseModel):
         0,
         description="cells not ok that went in with their fill (service/maps/fill.py); "
         "the drive injects at ok and filled cells",
+    )
+    injection_off_cells: int = Field(
+        0,
+        description="cells that went in with injection off (LUT flag 3): the drive injects nothing in "
+        "any interval with one as a corner",
     )
     fill: bool = Field(True, description="whether the fills were chosen for this download")
     interpolation: str = Field(
@@ -92,16 +98,18 @@ class PreparedLut:
     fill: bool = True
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = LUT_FORMAT_VERSION
+    injection_off_cells: int = 0  # cells with injection off (flag 3), chosen: never holes
 
     @property
     def holes(self) -> int:
-        """Cells without an entry: the drive injects nothing there."""
-        return self.cells - self.valid_cells - self.filled_cells
+        """Cells without an entry and not chosen off: the drive injects nothing there."""
+        return self.cells - self.valid_cells - self.filled_cells - self.injection_off_cells
 
     def receipt_fields(self) -> dict[str, Any]:
         """What the receipt says went in beyond LutDownload's first fields."""
         return {
             "filled_cells": self.filled_cells,
+            "injection_off_cells": self.injection_off_cells,
             "fill": self.fill,
             "interpolation": self.interpolation,
             "format_version": self.format_version,
@@ -149,6 +157,8 @@ def prepare(
         filled_cells=filled,
         fill=fill,
         interpolation=entries.interpolation,
+        format_version=entries.format_version,
+        injection_off_cells=entries.injection_off,
     )
 
 

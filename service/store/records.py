@@ -107,6 +107,7 @@ class MapCellRecord(TypedDict):
     fill_theta_cos: float | None  # the fill rule's entry (service/maps/fill.py)
     fill_theta_sin: float | None
     fill_source: str | None
+    injection_off: int  # 1: the drive injects nothing around this cell (LUT flag 3; schema 12)
 
 
 class MapRecord(TypedDict):

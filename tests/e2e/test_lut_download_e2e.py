@@ -71,6 +71,7 @@ def test_download_rules_crc_and_the_map_the_drive_holds(bench):
         "cells": 4,
         "valid_cells": 3,
         "filled_cells": 0,
+        "injection_off_cells": 0,
         "fill": False,
         "interpolation": DEFAULT_INTERPOLATION,
         "format_version": 3,

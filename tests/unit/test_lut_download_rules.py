@@ -55,6 +55,7 @@ def test_with_fill_only_the_cell_without_a_fill_is_a_hole(serve_map):
     assert (lut.cells, lut.valid_cells, lut.filled_cells, lut.holes, lut.forced) == (30, 27, 2, 1, True)
     assert lut.receipt_fields() == {
         "filled_cells": 2,
+        "injection_off_cells": 0,
         "fill": True,
         "interpolation": lut_image.DEFAULT_INTERPOLATION,
         "format_version": 3,
@@ -122,6 +123,7 @@ def test_download_map_keeps_its_positional_signature_and_the_receipt_says_what_w
     # the newer receipt fields, where lut_download.LutDownload has them (service/runs/lut_download.py)
     for key, value in {
         "filled_cells": 2,
+        "injection_off_cells": 0,
         "fill": True,
         "interpolation": lut_image.DEFAULT_INTERPOLATION,
         "format_version": 3,

@@ -81,7 +81,7 @@ def test_decode_refuses_another_format_version_and_map_id_0():
     image = bytearray(service_image(fixed_map()))
     struct.pack_into("<H", image, 4, 1)
     with pytest.raises(
-        lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2 and 3"
+        lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2, 3 and 4"
     ):
         lut_image.decode(bytes(image))
     with pytest.raises(lut_image.LutImageError, match="map_id 0 is not in 1"):
@@ -287,7 +287,7 @@ def test_decode_refuses_a_bad_flag_interpolation_or_reserved_field():
     with pytest.raises(lut_image.LutImageError, match="reserved header field"):
         lut_image.decode(patched(14, 1))
     with pytest.raises(lut_image.LutImageError, match="flags must be 0"):
-        lut_image.encode(6, [1.0], [1000.0], [12.0], [0.0], [0.0], [3], map_id=1)
+        lut_image.encode(6, [1.0], [1000.0], [12.0], [0.0], [0.0], [4], map_id=1)
     with pytest.raises(lut_image.LutImageError, match="interpolation 'spline' is not one of cartesian, polar"):
         lut_image.encode(6, [1.0], [1000.0], [12.0], [0.0], [0.0], map_id=1, interpolation="spline")
 

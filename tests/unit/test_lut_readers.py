@@ -209,7 +209,9 @@ def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tm
     assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text
     maps = {k.name: k for k in reader.get_characteristic_maps()}
     assert set(maps) == {
-        f"RIPPLECAL_H6_{kind}_U{u}V" for kind in ("THETA_COS", "THETA_SIN", "VALID", "FILLED") for u in (12, 24)
+        f"RIPPLECAL_H6_{kind}_U{u}V"
+        for kind in ("THETA_COS", "THETA_SIN", "VALID", "FILLED", "INJECTION_OFF")
+        for u in (12, 24)
     }
     for name, k in maps.items():
         u = 12.0 if name.endswith("_U12V") else 24.0
@@ -224,6 +226,8 @@ def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tm
                     assert value == (0 if p in FILLED or p == HOLE else 1), (name, p)
                 elif "_FILLED_" in name:
                     assert value == (1 if p in FILLED else 0), (name, p)
+                elif "_INJECTION_OFF_" in name:
+                    assert value == 0, (name, p)
                 else:
                     expected = 0.0 if p == HOLE else theta(*p)[0 if "_COS_" in name else 1]
                     assert value == pytest.approx(expected, abs=1e-10), (name, p)  # 9 digits
@@ -252,7 +256,8 @@ def test_csv_has_filled_and_fill_source_columns():
 
 def test_json_carries_filled_apart_from_valid_and_the_interpolation_mode():
     doc = json.loads(export_map(refined_map(), "json", interpolation="polar"))
-    assert (doc["format_version"], doc["interpolation"], doc["lut_format_version"]) == (2, "polar", 3)
+    assert (doc["format_version"], doc["interpolation"], doc["lut_format_version"]) == (3, "polar", 3)
+    assert sum(v for plane in doc["injection_off"] for row in plane for v in row) == 0
     assert json.loads(export_map(refined_map(), "json"))["interpolation"] == lut_image.DEFAULT_INTERPOLATION
     assert doc["axes"] == AXES and doc["index_order"] == ["udc_v", "speed_rpm", "torque_nm"]
     # [udc][speed][torque]: (2 Nm, 1800 rpm, 12 V) is [0][2][1]; (1 Nm, 1000 rpm, 24 V) [1][0][0]; the hole [1][4][2]

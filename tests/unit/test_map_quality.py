@@ -141,7 +141,8 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
     comments = [line for line in text.splitlines() if line.startswith("#")]
     assert any("quality: 1 outlier(s) (2 Nm / 1500 rpm / 12 V)" in line for line in comments)
     rows = list(csv.reader(io.StringIO("\n".join(line for line in text.splitlines() if not line.startswith("#")))))
-    # the columns before: as they were; filled and fill_source appended (issue "The LUT holds where the motor runs")
+    # the columns before: as they were; filled and fill_source appended (issue "The LUT holds where the motor
+    # runs"), then injection_off (issue 27)
     assert rows[0] == [
         "torque_nm",
         "speed_rpm",
@@ -154,6 +155,7 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
         "status",
         "filled",
         "fill_source",
+        "injection_off",
     ]
     doc = json.loads(export_map(m, "json"))
     assert set(doc["cells"][0]) == {
@@ -172,8 +174,9 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
         "error",
         "filled",
         "fill_source",
+        "injection_off",
     }
-    assert doc["format_version"] == 2 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
+    assert doc["format_version"] == 3 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
     assert doc["quality"]["cells"][0]["outlier_reason"].startswith("theta ")
     assert "quality: 1 outlier(s)" in export_map(m, "c") and "quality: 1 outlier(s)" in export_map(m, "dcm")
     # the smoothed export: same columns, one row changed, said in the header

@@ -150,12 +150,13 @@ def test_dcm_export_has_one_map_per_component(storage):
     m = map_public(storage, build_map_from_sweep(storage, sweep_with_results(storage))).model_dump()
     text = export_map(m, "dcm")
     assert "KONSERVIERUNG_FORMAT 2.0" in text
-    assert text.count("KENNFELD ") == 4 and text.count("END") == 4  # THETA_COS, THETA_SIN, VALID, FILLED
+    # THETA_COS, THETA_SIN, VALID, FILLED, INJECTION_OFF
+    assert text.count("KENNFELD ") == 5 and text.count("END") == 5
     assert "ST/X   1   2.5" in text and __version__ in text
 
 
 def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(storage, tmp_path, caplog):
-    """dcmReader (the DCM parser of the calibration tools' users) reads the four KENNFELDs with their
+    """dcmReader (the DCM parser of the calibration tools' users) reads the five KENNFELDs with their
     axes; VALID is 0 exactly at the cell that failed; THETA there is its fill if the map carries one
     (FILLED = 1), else 0 (no injection)."""
     from dcmReader.dcm_reader import DcmReader
@@ -175,6 +176,7 @@ def test_dcm_export_reads_in_dcmreader_with_valid_0_where_a_cell_is_not_ok(stora
         "RIPPLECAL_H6_THETA_SIN_U12V",
         "RIPPLECAL_H6_VALID_U12V",
         "RIPPLECAL_H6_FILLED_U12V",
+        "RIPPLECAL_H6_INJECTION_OFF_U12V",
     }
     valid = maps["RIPPLECAL_H6_VALID_U12V"]
     assert (valid.x_dimension, valid.y_dimension, valid.unit_x, valid.unit_y) == (2, 2, "Nm", "rpm")

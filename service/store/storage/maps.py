@@ -78,11 +78,39 @@ class MapStore(Database):
             cells = conn.execute(
                 "SELECT c.torque_nm, c.speed_rpm, c.udc_v, r.id AS result_id, r.status, r.theta_cos, r.theta_sin, "
                 "r.gamma_deg, r.delta_deg, r.suppression_db, r.target_db, r.noise_floor_db, r.error, c.fill_theta_cos, "
-                "c.fill_theta_sin, c.fill_source FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
+                "c.fill_theta_sin, c.fill_source, c.injection_off FROM map_cells c LEFT JOIN results r ON r.id = c.result_id "
                 "WHERE c.map_id = ? ORDER BY c.udc_v, c.speed_rpm, c.torque_nm",
                 (map_id,),
             ).fetchall()
             return cast(MapRecord, {**as_record(row), "cells": [as_record(c) for c in cells]})
+
+    def set_injection_off(self, map_id: int, cells: list[tuple[float, float, float]], off: bool = True) -> int:
+        """Set (off True) or clear injection off on map `map_id`'s cells named by (torque_nm, speed_rpm,
+        udc_v): the drive injects nothing in any LUT interval with such a cell as a corner (LUT flag 3).
+        All or nothing: ValueError naming the cells the map does not have. Returns the cells changed."""
+        with self.transaction() as conn:
+            changed = 0
+            unknown = []
+            for t, n, u in cells:
+                row = conn.execute(
+                    "SELECT injection_off FROM map_cells WHERE map_id = ? AND torque_nm = ? AND speed_rpm = ? "
+                    "AND udc_v = ?",
+                    (map_id, t, n, u),
+                ).fetchone()
+                if row is None:
+                    unknown.append((t, n, u))
+                    continue
+                if bool(row[0]) != off:
+                    conn.execute(
+                        "UPDATE map_cells SET injection_off = ? WHERE map_id = ? AND torque_nm = ? AND speed_rpm = ? "
+                        "AND udc_v = ?",
+                        (int(off), map_id, t, n, u),
+                    )
+                    changed += 1
+            if unknown:
+                where = "; ".join(f"{t:g} Nm / {n:g} rpm / {u:g} V" for t, n, u in unknown)
+                raise ValueError(f"map {map_id} has no cell at {where}")
+            return changed
 
     def list_maps(self, limit: int = 100) -> list[MapSummaryRecord]:
         with self.connect() as conn:
