@@ -110,6 +110,8 @@ class RefinementState(TypedDict):
     max_bench_s: NotRequired[float | None]
     plant_time_s: NotRequired[float]  # plant seconds spent in all rounds so far
     round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
+    guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
+    guard_rounds: NotRequired[int]
 
 
 @dataclass
@@ -326,3 +328,47 @@ def axes_with(axes: dict[str, list[float]], inserted: dict[str, list[float]]) ->
 def check_request(request: RefineRequest) -> None:
     if request.method not in METHODS:
         raise ValueError(f"method {request.method!r} is not available; choose one of {sorted(METHODS)}")
+
+
+HARM_ABOVE_FLOOR_DB = 20.0  # an order this far above its noise floor that the LUT makes worse is harm
+MAX_GUARD_ROUNDS = 3  # injection turned off where harm is seen, validated again, at most this often
+
+
+def harmful_points(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Judged points (grid, midpoints, run-up bins) where the LUT makes the order worse than no compensation
+    (suppression below 0 dB) while the order stands >= HARM_ABOVE_FLOOR_DB above the noise floor."""
+    return [
+        c
+        for c in cells
+        if c["status"] == "measured"
+        and c.get("suppression_db") is not None
+        and c["suppression_db"] < 0.0
+        and (c.get("above_floor_db") or 0.0) >= HARM_ABOVE_FLOOR_DB
+    ]
+
+
+def guard_cells(
+    axes: dict[str, list[float]], map_cells: list[dict[str, Any]], harmful: list[dict[str, Any]]
+) -> list[Cell]:
+    """The cells to turn injection off at so that the drive gives no compensation, rather than a harmful one,
+    where the LUT made things worse (LUT flag 3: every interval with such a cell as a corner injects nothing).
+    Per harmful point: of the corners of the interval it lies in, the one with the smallest |theta| (the turn,
+    where theta* passes near zero: turning it off costs least where the harm comes from)."""
+    grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
+    by_key = {_cell_of(c): c for c in map_cells}
+    chosen: set[Cell] = set()
+    for c in harmful:
+        key = _cell_of(c["operating_point"])
+        sides = []
+        for i, axis in enumerate(AXES):
+            values = grid_values[axis]
+            x = min(max(key[i], values[0]), values[-1])  # the drive clamps to the axis ends
+            sides.append([x] if x in values else list(_neighbours(values, x) or (x,)))
+        corners = [(t, n, u) for t in sides[0] for n in sides[1] for u in sides[2]]
+
+        def gamma(corner: Cell) -> float:
+            theta = _theta_at(by_key, corner)
+            return math.inf if theta is None else math.hypot(*theta)
+
+        chosen.add(min(corners, key=gamma))
+    return sorted(chosen)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from service.runs.refinement import axes_with, failing_points, plan_round
+from service.runs.refinement import axes_with, failing_points, guard_cells, harmful_points, plan_round
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
 
@@ -106,3 +106,60 @@ def test_values_inserted_on_two_axes_add_their_crossing_once():
     new_axes = axes_with(AXES, plan.inserted)
     assert new_axes["speed_rpm"] == [1000.0, 2000.0, 2500.0, 3000.0] and new_axes["torque_nm"] == [1.0, 2.0, 2.5, 3.0]
     assert math.prod(len(v) for v in new_axes.values()) == 9 + len(plan.new_cells)
+
+
+def runup_bin(t, n, db, holds=None, above_floor_db=40.0) -> dict:
+    return {
+        **vcell(t, n, db, kind="runup"),
+        "holds": db >= 30.0 if holds is None else holds,
+        "above_floor_db": above_floor_db,
+    }
+
+
+def test_a_stretch_of_failing_runup_bins_is_one_claim_at_its_worst_bin():
+    # 1.0 Nm row: bins 1400..1460 fail (worst at 1430); 2.5 Nm midpoint: one bin at 2600 fails
+    cells = validation({})
+    cells += [runup_bin(1.0, float(n), 45.0) for n in range(1000, 1400, 10)]
+    cells += [runup_bin(1.0, float(n), 10.0 if n != 1430 else 2.0) for n in range(1400, 1470, 10)]
+    cells += [runup_bin(2.5, 2600.0, 20.0)]
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.01 * t, 0.0005 * n)), cells, 30.0, 100)
+    assert plan.failing == 8
+    # one value for the stretch of 7 (serving 7 points for 3 cells), not seven; the single bin (1 point for 3
+    # cells) waits for the next validation (ROUND_SCORE_FRACTION)
+    assert plan.inserted == {"speed_rpm": [1430.0]}
+
+
+def test_a_runup_bin_holding_by_the_floor_rule_is_not_failing():
+    held_by_floor = runup_bin(1.0, 1500.0, 12.0, holds=True)
+    assert failing_points([held_by_floor], 30.0) == []
+    assert failing_points([runup_bin(1.0, 1500.0, 12.0)], 30.0) != []
+
+
+def test_max_bytes_refuses_an_insertion_that_would_not_fit_the_firmware_memory():
+    # image bytes = 24 header and CRC + 4 per breakpoint + 9 per cell: 3 x 3 x 1 -> 24 + 28 + 81 = 133 bytes;
+    # a speed inserted -> 3 x 4 x 1: 24 + 32 + 108 = 164 bytes
+    cells = validation({(2.0, 1500.0): 10.0})
+    assert plan_round(AXES, map_cells(lambda t, n: (0.0, 0.0001 * n)), cells, 30.0, 100, max_bytes=164).inserted
+    plan = plan_round(AXES, map_cells(lambda t, n: (0.0, 0.0001 * n)), cells, 30.0, 100, max_bytes=163)
+    assert not plan.inserted and "164 bytes, over max_bytes = 163" in plan.reasons[0]
+
+
+def test_image_bytes_is_the_size_of_the_image_the_drive_takes():
+    from service.maps.lut_export import image_bytes, lut_image
+
+    cells = [{**c, "udc_v": 12.0, "filled": False, "result_id": None} for c in map_cells()]
+    m = {"id": 1, "harmonic_order": 6, "axes": AXES, "cells": cells}
+    assert image_bytes(AXES) == len(lut_image(m)) == 133
+
+
+def test_harm_turns_injection_off_at_the_corner_nearest_the_turn():
+    # theta* small at (2 Nm, 2000 rpm): a bin worse than nothing between 1.5..2 Nm x 2000..3000 rpm
+    def theta(t, n):
+        return (0.0001, 0.0) if (t, n) == (2.0, 2000.0) else (0.02, 0.01)
+
+    harmful = [runup_bin(1.5, 2400.0, -4.0, above_floor_db=45.0), runup_bin(1.5, 2410.0, -1.0, above_floor_db=10.0)]
+    assert harmful_points(harmful) == harmful[:1]  # under 20 dB above the floor it is not harm
+    assert guard_cells(AXES, map_cells(theta), harmful_points(harmful)) == [(2.0, 2000.0, 12.0)]
+    # a point on a grid line has only that line's corners
+    on_line = [runup_bin(2.0, 2400.0, -3.0)]
+    assert guard_cells(AXES, map_cells(theta), on_line) == [(2.0, 2000.0, 12.0)]

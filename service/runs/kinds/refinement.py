@@ -19,11 +19,14 @@ from service.runs.kinds.host import JobHost, JobKind
 from service.runs.kinds.sweep import check_first_take
 from service.runs.plans import Grid
 from service.runs.refinement import (
+    MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
     RefinementState,
     RefineRequest,
     axes_with,
     check_request,
+    guard_cells,
+    harmful_points,
     plan_round,
 )
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
@@ -146,6 +149,8 @@ class RefinementRun:
                 raise Paused()
             if state["phase"] == "measure":
                 self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
+            elif state["phase"] == "guard":
+                self._refinement_guard(sweep_id, sweep, state, source)
             else:
                 self._refinement_validate(job_id, sweep_id, ctl, state)
             self._save_refinement(sweep_id, state)
@@ -274,6 +279,7 @@ class RefinementRun:
             state.get("max_bytes"),
         )
         summary = run.summary()
+        harmful = harmful_points(run.cells)
         round_plant_s = state.get("round_plant_s", 0.0) + float(summary["plant_time_s"] or 0.0)
         state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
         state["round_plant_s"] = 0.0
@@ -300,32 +306,80 @@ class RefinementRun:
                 "points_judged": summary.get("points"),
                 "held": summary.get("held"),
                 "median_db": summary.get("median_db"),
+                "harmful": len(harmful),
+                "injection_off": len(state.get("guard_off", [])),
             }
         )
         max_bench_s = state.get("max_bench_s")
-        if plan.failing == 0:
-            state["phase"], state["stopped"] = "done", None
+        guarding = state.get("guard_rounds", 0) > 0  # a guarded map is the last: its flags hold on its own axes
+        stopped: str | None = None  # why the refinement ends here (None: it holds, or it goes on)
+        if guarding or plan.failing == 0:
+            ending = True
         elif not plan.cells:
-            state["phase"] = "done"
-            state["stopped"] = f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + (
-                "; ".join(plan.reasons) or "nothing left to insert"
-            )
+            ending, stopped = True, "; ".join(plan.reasons) or "nothing left to insert"
         elif max_bench_s is not None and state["plant_time_s"] >= max_bench_s:
-            state["phase"] = "done"
-            state["stopped"] = (
-                f"{plan.failing} point(s) still below {state['target_db']:g} dB: the bench time budget "
-                f"(max_bench_s = {max_bench_s:g} s) is spent ({state['plant_time_s']:.0f} s)"
+            ending = True
+            stopped = (
+                f"the bench time budget (max_bench_s = {max_bench_s:g} s) is spent ({state['plant_time_s']:.0f} s)"
             )
         elif state["round"] + 1 >= MAX_ROUNDS:
-            state["phase"] = "done"
-            state["stopped"] = (
-                f"{plan.failing} point(s) still below {state['target_db']:g} dB after {MAX_ROUNDS} rounds"
-            )
+            ending, stopped = True, f"after {MAX_ROUNDS} rounds"
         else:
+            ending = False
+        if not ending:
             state["axes"] = axes_with(m.axes, plan.inserted)
             state["pending"] = [list(k) for k in plan.cells]
             state["round"] += 1
             state["phase"] = "measure"
+            return
+        if harmful and state.get("guard_rounds", 0) < MAX_GUARD_ROUNDS:
+            # never worse than nothing: the drive gives no compensation where this LUT made the order worse
+            off = {(c[0], c[1], c[2]) for c in state.get("guard_off", [])}
+            off |= set(guard_cells(m.axes, [c.model_dump() for c in m.cells], harmful))
+            state["guard_off"] = [list(c) for c in sorted(off)]
+            state["phase"] = "guard"
+            state["stopped"] = stopped  # kept for the guarded map's verdict
+            return
+        state["phase"] = "done"
+        reasons = [state.get("stopped") or stopped] if plan.failing else []
+        if state.get("guard_off"):
+            reasons.append(
+                f"injection off at {len(state['guard_off'])} cell(s) where the LUT made the order worse"
+                + (f"; {len(harmful)} point(s) still worse than no compensation" if harmful else "")
+            )
+        state["stopped"] = (
+            f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + "; ".join(r for r in reasons if r)
+            if plan.failing or harmful
+            else None
+        )
+
+    def _refinement_guard(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
+        """The current map built again as a map of its own with injection off at the guard's cells (LUT flag 3),
+        then validated: the refinement's last map."""
+        provenance = {
+            "refinement_id": sweep_id,
+            "source_map_id": sweep["source_map_id"],
+            "round": state["round"],
+            "cells_added": state["cells_added"],
+            "guard": "injection off where the LUT made the order worse",
+        }
+        map_id = build_map(
+            self.storage,
+            state["axes"],
+            self._refinement_rows(sweep_id, source),
+            sweep_id,
+            sweep["harmonic_order"],
+            sweep["method"],
+            self.bench.identity,
+            refined_from=sweep["source_map_id"],
+            provenance=provenance,
+        )
+        off = [(float(t), float(n), float(u)) for t, n, u in state.get("guard_off", [])]
+        self.storage.set_injection_off(map_id, off)
+        state["current_map_id"] = map_id
+        state["guard_rounds"] = state.get("guard_rounds", 0) + 1
+        state["round"] += 1
+        state["phase"] = "validate"
 
     def _save_refinement(self, sweep_id: int, state: RefinementState) -> None:
         # total: the cells planned so far (those measured, and the round's pending ones)
