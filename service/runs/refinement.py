@@ -35,6 +35,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 from service.identification.registry import METHODS
 from service.maps.lut_export import image_bytes
 from service.names import MAX_NAME_LENGTH, check_name
+from service.runs.runup_validation import is_harm
 from service.runs.validation import ValidationOptions
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
@@ -330,21 +331,13 @@ def check_request(request: RefineRequest) -> None:
         raise ValueError(f"method {request.method!r} is not available; choose one of {sorted(METHODS)}")
 
 
-HARM_ABOVE_FLOOR_DB = 20.0  # an order this far above its noise floor that the LUT makes worse is harm
 MAX_GUARD_ROUNDS = 3  # injection turned off where harm is seen, validated again, at most this often
 
 
 def harmful_points(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Judged points (grid, midpoints, run-up bins) where the LUT makes the order worse than no compensation
-    (suppression below 0 dB) while the order stands >= HARM_ABOVE_FLOOR_DB above the noise floor."""
-    return [
-        c
-        for c in cells
-        if c["status"] == "measured"
-        and c.get("suppression_db") is not None
-        and c["suppression_db"] < 0.0
-        and (c.get("above_floor_db") or 0.0) >= HARM_ABOVE_FLOOR_DB
-    ]
+    (service/runs/runup_validation.py is_harm)."""
+    return [c for c in cells if c["status"] == "measured" and is_harm(c.get("suppression_db"), c.get("above_floor_db"))]
 
 
 def guard_cells(

@@ -10,8 +10,9 @@ one judged point of kind `runup`:
   - it holds when suppression_db >= target_db, or when the residual lies target_db below the median
     uncompensated level of the run-up's range (where the order itself nearly vanishes, as at a resonance's
     anti-node, a relative figure means nothing: the floor rule judges it against the range);
-  - harm: a bin whose residual is above its uncompensated level (suppression < 0 dB) where the order stands
-    >= HARM_ABOVE_FLOOR_DB over the noise floor is the LUT making the ripple worse, said in its reason.
+  - harm (`is_harm`): a point whose residual is above its uncompensated level by more than the measurement's
+    repeatability (suppression < -HARM_MARGIN_DB) where the order stands >= HARM_ABOVE_FLOOR_DB over the noise
+    floor is the LUT making the ripple worse, said in its reason.
 The speed range of a torque is the map's speed range narrowed to where the envelope model of the motor
 settings holds the torque (a torque row past its field-weakening limit is run up to that limit only); a
 torque with no such range is not run up.
@@ -32,6 +33,9 @@ from service.runs.runup import RunupRequest, measure_runup
 from service.settings import Settings
 
 HARM_ABOVE_FLOOR_DB = 20.0  # an order this far above its noise floor made worse by the LUT: harm
+# ... by more than this: what two run-ups with the same injection differ by in a bin (measured where the drive injects
+# nothing, LUT intervals with injection off, paper-bench: within 0.2 dB at >= 20 dB above the floor)
+HARM_MARGIN_DB = 0.5
 RANGE_STEP_RPM = 10.0  # the envelope is checked along the range at this step
 
 
@@ -61,6 +65,16 @@ def runup_range(
     return lo, last_inside
 
 
+def is_harm(suppression_db: float | None, above_floor_db: float | None) -> bool:
+    """The LUT made the order worse than no compensation, beyond what a measurement repeats to (module doc)."""
+    return (
+        suppression_db is not None
+        and above_floor_db is not None
+        and suppression_db < -HARM_MARGIN_DB
+        and above_floor_db >= HARM_ABOVE_FLOOR_DB
+    )
+
+
 def _db(ratio: float) -> float:
     return 20.0 * math.log10(ratio)
 
@@ -86,7 +100,7 @@ def judge_bins(
         holds = suppression_db >= target_db or a_lut <= floor_rule_fs
         if holds:
             reason = None if suppression_db >= target_db else "below the floor rule (the order nearly vanishes here)"
-        elif suppression_db < 0 and above_floor_db >= HARM_ABOVE_FLOOR_DB:
+        elif is_harm(suppression_db, above_floor_db):
             reason = (
                 f"the LUT makes the order worse here ({suppression_db:.1f} dB), {above_floor_db:.0f} dB above the floor"
             )
