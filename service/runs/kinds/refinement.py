@@ -212,13 +212,15 @@ class RefinementRun:
             if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
         )
         state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
-        provenance = {
-            "refinement_id": sweep_id,
-            "source_map_id": sweep["source_map_id"],
-            "round": state["round"],
-            "cells_added": state["cells_added"],
-        }
-        state["current_map_id"] = build_map(
+        state["current_map_id"] = self._build_round_map(sweep_id, sweep, state, source)
+        state["phase"] = "validate"
+
+    def _build_round_map(
+        self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord, **provenance: Any
+    ) -> int:
+        """The round's map from every result so far (the source map's, then the refinement's), naming where it
+        comes from."""
+        return build_map(
             self.storage,
             state["axes"],
             self._refinement_rows(sweep_id, source),
@@ -227,9 +229,14 @@ class RefinementRun:
             sweep["method"],
             self.bench.identity,
             refined_from=sweep["source_map_id"],
-            provenance=provenance,
+            provenance={
+                "refinement_id": sweep_id,
+                "source_map_id": sweep["source_map_id"],
+                "round": state["round"],
+                "cells_added": state["cells_added"],
+                **provenance,
+            },
         )
-        state["phase"] = "validate"
 
     def _refinement_validate(self, job_id: int, sweep_id: int, ctl: SweepControl, state: RefinementState) -> None:
         """Validate the current map in the drive's LUT mode; plan the next round, or end."""
@@ -356,23 +363,8 @@ class RefinementRun:
     def _refinement_guard(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
         """The current map built again as a map of its own with injection off at the guard's cells (LUT flag 3),
         then validated: the refinement's last map."""
-        provenance = {
-            "refinement_id": sweep_id,
-            "source_map_id": sweep["source_map_id"],
-            "round": state["round"],
-            "cells_added": state["cells_added"],
-            "guard": "injection off where the LUT made the order worse",
-        }
-        map_id = build_map(
-            self.storage,
-            state["axes"],
-            self._refinement_rows(sweep_id, source),
-            sweep_id,
-            sweep["harmonic_order"],
-            sweep["method"],
-            self.bench.identity,
-            refined_from=sweep["source_map_id"],
-            provenance=provenance,
+        map_id = self._build_round_map(
+            sweep_id, sweep, state, source, guard="injection off where the LUT made the order worse"
         )
         off = [(float(t), float(n), float(u)) for t, n, u in state.get("guard_off", [])]
         self.storage.set_injection_off(map_id, off)
