@@ -299,10 +299,7 @@ class RefinementRun:
                 "below_target": plan.failing,
                 "grid_median_db": summary["grid"]["median_db"],
                 "midpoint_median_db": summary["midpoint"]["median_db"],
-                "min_db": min(
-                    (x for x in (summary["grid"]["min_db"], summary["midpoint"]["min_db"]) if x is not None),
-                    default=None,
-                ),
+                "min_db": summary["min_db"],  # over every judged point: grid, midpoints, run-up bins
                 "inserted": plan.inserted,
                 "remeasured": len(plan.remeasure),
                 "new_cells": len(plan.new_cells),
