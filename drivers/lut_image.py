@@ -2,7 +2,9 @@
 
 One definition for both ends of the wire: the service builds the image from a map
 (service/maps/lut_export.py) and the emulated drive firmware decodes it and interpolates with `Lut.theta`
-(plant_emulator/drive_firmware.py).
+(plant_emulator/drive_firmware.py). The exported C header carries the same interpolation in C for the
+firmware (service/maps/lut_export.py export_c, `ripplecal_lut_map<ID>_theta`): a change to `Lut.theta` is a
+change there too (tests/unit/test_lut_c_interpolator.py compares the two).
 
 Layout, format_version 3 and 4 (little-endian, 20-byte header):
     magic "RCL1" | u16 format_version = 3 or 4 | u8 harmonic_order | u8 interpolation (0 cartesian, 1 polar) |

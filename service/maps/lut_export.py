@@ -12,7 +12,9 @@ A cell with injection off (`injection_off`, set on the stored map: Storage.set_i
 INJECTION_OFF = 1 (VALID = 0, FILLED = 0) and carries its theta for the record where it has one; the
 drive injects nothing in any interval that has it as a corner of non-zero weight (LUT flag 3, image
 format_version 4: drivers/lut_image.py), so there it gives exactly no compensation, never worse.
-Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0, INJECTION_OFF = 0."""
+Every other cell exports theta = 0 (no injection), VALID = 0, FILLED = 0, INJECTION_OFF = 0.
+The C header also carries the drive's interpolation in C (`ripplecal_lut_map<ID>_theta`: Lut.theta, then the
+clamp to gamma_max), for firmware to use as is."""
 
 from __future__ import annotations
 
@@ -334,6 +336,8 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"#ifndef {guard}",
         f"#define {guard}",
         "",
+        "#include <float.h>",
+        "#include <math.h>",
         "#include <stdint.h>",
         "",
         f"#define {macro}_ID {int(m['id'])}u",
@@ -365,10 +369,170 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"static const uint8_t {array}_injection_off[{nu}][{nn}][{nt}] = "
         f"{_c_u8_array(_grid_values(m, 'injection_off'))};",
         "",
+        _c_interpolator(array, macro),
+        "",
         f"#endif /* {guard} */",
         "",
     ]
     return "\n".join(lines)
+
+
+# The reference interpolator in the header: the drive's rule (drivers/lut_image.py Lut.theta, then the clamp
+# to gamma_max of plant_emulator/drive_firmware.py effective_theta), in C99 on the header's arrays. `@A`
+# stands for the map's array prefix, `@M` for its macro prefix (str.format would trip over C's braces).
+_C_INTERPOLATOR = r"""/* Reference interpolator: the drive's rule (docs/interfaces.md "LUT image"; drivers/lut_image.py
+ * Lut.theta), to use as is. C99, no allocation, no state; from <math.h> only cosf, sinf, atan2f,
+ * hypotf (polar) and isfinite (link with -lm where libm is separate).
+ *
+ * @A_theta(torque_nm, speed_rpm, udc_v, with_fill, gamma_max_rad, &theta_cos_rad, &theta_sin_rad):
+ * theta (rad) at an operating point, interpolated by @M_INTERPOLATION:
+ * - per axis x clamped to the axis ends (not finite: the first breakpoint); weights by position in
+ *   x_j <= x < x_j+1; the corners of the enclosing cell with weight > 0 take part;
+ * - any such corner with injection_off == 1: theta = (0, 0) exactly;
+ * - entries: valid cells, and filled cells when with_fill != 0 (as the LUT download's `fill`, default
+ *   on, puts them into the drive's image); other cells count as theta 0;
+ * - cartesian: theta multilinear; polar: gamma multilinear, delta averaged over the corners with an
+ *   entry and gamma > 0, each unwrapped to within +-pi of the one with the largest weight (the first in
+ *   [udc][speed][torque] order on a tie), weights renormalised over them;
+ * - then, as the drive: |theta| clamped to gamma_max_rad (0x2000:5, 0 .. pi; 0 gives theta 0); pass
+ *   HUGE_VALF for no clamp. */
+
+/* the corners (1 or 2) of weight > 0 around x on a strictly increasing axis, clamped at its ends */
+static inline unsigned @A_axis_corners(const float *axis, unsigned n, float x, unsigned index[2],
+                                       float weight[2])
+{
+    unsigned j = 0u;
+    float f;
+    if (n == 1u || !isfinite(x) || x <= axis[0]) {
+        index[0] = 0u;
+        weight[0] = 1.0f;
+        return 1u;
+    }
+    if (x >= axis[n - 1u]) {
+        index[0] = n - 1u;
+        weight[0] = 1.0f;
+        return 1u;
+    }
+    while (axis[j + 1u] <= x) {
+        j++;
+    }
+    index[0] = j;
+    weight[0] = 1.0f;
+    if (x == axis[j]) {
+        return 1u; /* on the breakpoint: the next one weighs 0 */
+    }
+    f = (x - axis[j]) / (axis[j + 1u] - axis[j]);
+    if (f >= 1.0f) {
+        f = 1.0f - 0.5f * FLT_EPSILON; /* x < x_j+1: its lower corner keeps a weight > 0 in float too */
+    }
+    index[1] = j + 1u;
+    weight[0] = 1.0f - f;
+    weight[1] = f;
+    return 2u;
+}
+
+/* a cell the drive injects at: valid, or filled when the fill is in */
+static inline int @A_entry(unsigned u, unsigned n, unsigned t, int with_fill)
+{
+    return @A_valid[u][n][t] || (with_fill && @A_filled[u][n][t]);
+}
+
+/* polar over the corners: gamma multilinear, delta along the shortest arc around the reference */
+static inline void @A_polar(unsigned corner[8][3], const float weight[8], unsigned n_corners,
+                            int with_fill, float *theta_cos_rad, float *theta_sin_rad)
+{
+    const float pi = 3.14159265358979f;
+    float gamma_c[8], delta_c[8], gamma = 0.0f, w_sum = 0.0f, delta_sum = 0.0f, delta_ref = 0.0f, w_ref = 0.0f;
+    int phase[8], have_ref = 0;
+    unsigned k;
+    for (k = 0u; k < n_corners; k++) {
+        const unsigned u = corner[k][0], n = corner[k][1], t = corner[k][2];
+        const float cos_c = @A_theta_cos_rad[u][n][t], sin_c = @A_theta_sin_rad[u][n][t];
+        gamma_c[k] = hypotf(cos_c, sin_c);
+        delta_c[k] = -atan2f(sin_c, cos_c);
+        /* a zero theta has no phase */
+        phase[k] = @A_entry(u, n, t, with_fill) && gamma_c[k] > 0.0f;
+        if (phase[k] && (!have_ref || weight[k] > w_ref)) {
+            have_ref = 1; /* the first of the largest weight */
+            w_ref = weight[k];
+            delta_ref = delta_c[k];
+        }
+    }
+    if (!have_ref) {
+        *theta_cos_rad = 0.0f;
+        *theta_sin_rad = 0.0f;
+        return;
+    }
+    for (k = 0u; k < n_corners; k++) {
+        float arc;
+        if (!phase[k]) {
+            continue;
+        }
+        /* (delta_c - delta_ref + pi) mod 2 pi, both deltas in [-pi, pi] */
+        arc = delta_c[k] - delta_ref + pi;
+        if (arc < 0.0f) {
+            arc += 2.0f * pi;
+        } else if (arc >= 2.0f * pi) {
+            arc -= 2.0f * pi;
+        }
+        gamma += weight[k] * gamma_c[k];
+        delta_sum += weight[k] * (delta_ref + arc - pi);
+        w_sum += weight[k];
+    }
+    *theta_cos_rad = gamma * cosf(delta_sum / w_sum);
+    *theta_sin_rad = -gamma * sinf(delta_sum / w_sum);
+}
+
+static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int with_fill,
+                            float gamma_max_rad, float *theta_cos_rad, float *theta_sin_rad)
+{
+    unsigned it[2], in[2], iu[2], nt, nn, nu, a, b, c, k, n_corners = 0u;
+    unsigned corner[8][3];
+    float wt[2], wn[2], wu[2], weight[8], tc = 0.0f, ts = 0.0f, gamma;
+    nt = @A_axis_corners(@A_torque_nm, @M_N_TORQUE, torque_nm, it, wt);
+    nn = @A_axis_corners(@A_speed_rpm, @M_N_SPEED, speed_rpm, in, wn);
+    nu = @A_axis_corners(@A_udc_v, @M_N_UDC, udc_v, iu, wu);
+    *theta_cos_rad = 0.0f;
+    *theta_sin_rad = 0.0f;
+    /* the corners in [udc][speed][torque] index order */
+    for (a = 0u; a < nu; a++) {
+        for (b = 0u; b < nn; b++) {
+            for (c = 0u; c < nt; c++) {
+                if (@A_injection_off[iu[a]][in[b]][it[c]]) {
+                    return; /* injection off: exactly no compensation */
+                }
+                corner[n_corners][0] = iu[a];
+                corner[n_corners][1] = in[b];
+                corner[n_corners][2] = it[c];
+                weight[n_corners] = wu[a] * wn[b] * wt[c];
+                n_corners++;
+            }
+        }
+    }
+    if (@M_INTERPOLATION == @M_INTERPOLATION_POLAR) {
+        @A_polar(corner, weight, n_corners, with_fill, &tc, &ts);
+    } else {
+        for (k = 0u; k < n_corners; k++) {
+            const unsigned u = corner[k][0], n = corner[k][1], t = corner[k][2];
+            if (@A_entry(u, n, t, with_fill)) { /* no entry: theta 0 */
+                tc += weight[k] * @A_theta_cos_rad[u][n][t];
+                ts += weight[k] * @A_theta_sin_rad[u][n][t];
+            }
+        }
+    }
+    /* as the drive: |theta| clamped to gamma_max */
+    gamma = hypotf(tc, ts);
+    if (gamma > gamma_max_rad && gamma > 0.0f) {
+        tc *= gamma_max_rad / gamma;
+        ts *= gamma_max_rad / gamma;
+    }
+    *theta_cos_rad = tc;
+    *theta_sin_rad = ts;
+}"""
+
+
+def _c_interpolator(array: str, macro: str) -> str:
+    return _C_INTERPOLATOR.replace("@A", array).replace("@M", macro)
 
 
 def _dcm_number(x: float) -> str:

@@ -10,6 +10,7 @@ from service import __version__
 from service.identification.adaptive import AdaptiveOptions
 from service.identification.result import IdentificationResult
 from service.maps.build import build_map_from_sweep
+from service.maps.view import MapCell, MapView
 from service.model.harmonic import Phasor
 from service.model.operating_point import OperatingPoint
 from service.store.result_rows import result_row
@@ -100,3 +101,20 @@ def make_map(
     map_id = build_map_from_sweep(storage, sweep_id)
     storage.update_sweep(sweep_id, state="done", started_at=now_iso(), finished_at=now_iso(), map_id=map_id)
     return map_id
+
+
+def map_dict(map_id: int, axes: dict[str, list[float]], cells: list[MapCell], status_counts: dict[str, int]) -> dict:
+    """A map as GET /maps/{id} gives it (MapView.model_dump(), no validation), built from its cells without
+    storage: harmonic order 6, adaptive, bench "test-bench"."""
+    return MapView(
+        id=map_id,
+        sweep_id=3,
+        harmonic_order=6,
+        method="adaptive",
+        bench_identity="test-bench",
+        software_version="0",
+        created_at="2026-01-01T00:00:00Z",
+        axes=axes,
+        status_counts=status_counts,
+        cells=cells,
+    ).model_dump()

@@ -2,7 +2,7 @@
 drive inject exactly nothing in any interval that has an off cell as a corner of non-zero weight, in both
 interpolations (drivers/lut_image.py); an image without off cells stays the version 3 image it was, byte
 for byte; a map cell's `injection_off` (Storage.set_injection_off) goes into the image and every export,
-and the exported C header, interpolated by a C main that honours it, agrees with the drive's decoder.
+and the exported C header's own interpolator honours it as the drive's decoder does.
 
 The map: torque 1, 2, 3 Nm x speed 1000, 2000 rpm at 12 V; gamma linear in the operating point at a
 constant delta (so cartesian and polar both reproduce it exactly between entries); the cell (1 Nm,
@@ -15,9 +15,7 @@ import hashlib
 import io
 import json
 import math
-import shutil
 import struct
-import subprocess
 import zlib
 
 import numpy as np
@@ -27,6 +25,7 @@ from drivers import lut_image
 from service.maps.lut_export import export_map, lut_entries
 from service.maps.lut_export import lut_image as service_image
 from service.maps.view import map_view
+from tests.support.c_lut import HeaderTheta, needs_gcc
 from tests.support.maps import make_map, theta_of
 
 TORQUE_NM, SPEED_RPM, UDC_V = [1.0, 2.0, 3.0], [1000.0, 2000.0], [12.0]
@@ -199,85 +198,22 @@ def test_every_export_carries_the_off_cell(storage, tmp_path):
     assert f"ripplecal_lut_map{m['id']}_injection_off[1][2][3] = {{{{{{1u, 0u, 0u}}, {{0u, 0u, 0u}}}}}};" in header
 
 
-C_MAIN = r"""
-#include <stdio.h>
-#include "lut.h"
-#define M(x) RIPPLECAL_LUT_MAP##ID##_##x
-#define A(x) ripplecal_lut_map##ID##_##x
-
-static void locate(const float *axis, unsigned n, float x, unsigned *j, float *f)
-{
-    unsigned k;
-    if (n == 1u || x <= axis[0]) { *j = 0u; *f = 0.0f; return; }
-    if (x >= axis[n - 1u]) { *j = n - 2u; *f = 1.0f; return; }
-    for (k = 0u; k + 1u < n && axis[k + 1u] <= x; k++) { }
-    *j = k;
-    *f = (x - axis[k]) / (axis[k + 1u] - axis[k]);
-}
-
-/* bilinear (torque, speed) at U_dc index 0, cartesian; 0 wherever an off corner weighs > 0 */
-static void interpolate(float torque, float speed, float *tc, float *ts)
-{
-    unsigned jt, jn, a, b;
-    float ft, fn;
-    locate(A(torque_nm), M(N_TORQUE), torque, &jt, &ft);
-    locate(A(speed_rpm), M(N_SPEED), speed, &jn, &fn);
-    *tc = 0.0f;
-    *ts = 0.0f;
-    for (a = 0u; a < 2u; a++) {
-        for (b = 0u; b < 2u; b++) {
-            unsigned in = jn + a, it = jt + b;
-            float w = (a ? fn : 1.0f - fn) * (b ? ft : 1.0f - ft);
-            if (w > 0.0f && A(injection_off)[0][in][it]) { *tc = 0.0f; *ts = 0.0f; return; }
-            if (A(valid)[0][in][it] || A(filled)[0][in][it]) {
-                *tc += w * A(theta_cos_rad)[0][in][it];
-                *ts += w * A(theta_sin_rad)[0][in][it];
-            }
-        }
-    }
-}
-
-int main(void)
-{
-    static const float points[][2] = {POINTS};
-    unsigned i;
-    float tc, ts;
-    for (i = 0u; i < sizeof points / sizeof points[0]; i++) {
-        interpolate(points[i][0], points[i][1], &tc, &ts);
-        printf("%.9g %.9g\n", tc, ts);
-    }
-    return 0;
-}
-"""
 POINTS = [(1.5, 1500.0), (1.0, 1999.0), (2.0, 1500.0), (2.5, 1500.0), (1.5, 2000.0), (2.9, 1100.0)]
 
 
-@pytest.mark.skipif(
-    shutil.which("gcc") is None, reason="gcc is not on PATH: the exported C header cannot be compiled here"
-)
-def test_a_c_main_on_the_exported_header_agrees_with_the_drives_decoder(storage, tmp_path):
+@needs_gcc
+def test_the_exported_headers_own_interpolator_agrees_with_the_drives_decoder(storage, tmp_path):
     m = off_map(storage)
-    (tmp_path / "lut.h").write_text(export_map(m, "c", interpolation="cartesian"))
-    points = ", ".join(f"{{{t!r}f, {n!r}f}}" for t, n in POINTS)
-    main = C_MAIN.replace("##ID##", str(m["id"])).replace("POINTS", points)
-    (tmp_path / "main.c").write_text(main)
-    build = subprocess.run(
-        ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c")],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-    )
-    assert build.returncode == 0, build.stderr
-    out = subprocess.run([str(tmp_path / "lut")], capture_output=True, text=True, check=True).stdout.splitlines()
+    c_theta = HeaderTheta(tmp_path, export_map(m, "c", interpolation="cartesian"), m["id"])
     lut = lut_image.decode(service_image(m, interpolation="cartesian"))
-    for (t, n), line in zip(POINTS, out, strict=True):
-        c_theta = tuple(float(x) for x in line.split())
-        drive = lut.theta(t, n, 12.0)
+    points = [(t, n, 12.0) for t, n in POINTS]
+    for p, c in zip(points, c_theta.theta(points), strict=True):
+        drive = lut.theta(*p)
         if drive == (0.0, 0.0):
-            assert c_theta == (0.0, 0.0), (t, n)
+            assert c == (0.0, 0.0), p
         else:
-            assert c_theta == pytest.approx(drive, abs=1e-7), (t, n)
-    assert sum(1 for t, n in POINTS if lut.theta(t, n, 12.0) == (0.0, 0.0)) == 2  # both ways tested
+            assert c == pytest.approx(drive, abs=1e-7), p
+    assert sum(1 for p in points if lut.theta(*p) == (0.0, 0.0)) == 2  # both ways tested
 
 
 def test_gamma_is_linear_and_delta_constant_as_the_docstring_says():

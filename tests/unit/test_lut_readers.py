@@ -1,5 +1,5 @@
 """Every export of a refined map (non-uniform axes) with filled cells, read back by its real reader:
-the C header compiled by gcc with a small C main that interpolates by position, the DCM by dcmReader,
+the C header compiled by gcc with a small C main that calls the header's own interpolator, the DCM by dcmReader,
 CSV and JSON by the standard library, the LUT image by the drive's own decoder (drivers.lut_image,
 which the emulated firmware uses). Expected values are closed forms of the map below, never the
 exporters' own output.
@@ -15,7 +15,6 @@ import io
 import json
 import logging
 import math
-import shutil
 import subprocess
 
 import pytest
@@ -23,7 +22,9 @@ import pytest
 from drivers import lut_image
 from service.maps.lut_export import export_map
 from service.maps.lut_export import lut_image as service_image
-from service.maps.view import MapCell, MapView
+from service.maps.view import MapCell
+from tests.support.c_lut import HeaderTheta, build, needs_gcc
+from tests.support.maps import map_dict
 
 AXES = {"torque_nm": [1.0, 2.0, 4.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0], "udc_v": [12.0, 24.0]}
 MAP_ID = 31
@@ -90,18 +91,7 @@ def refined_map() -> dict:
                         )
                     )
     counts = {"ok": 27, "below_target": 2, "failed": 1}
-    return MapView(
-        id=MAP_ID,
-        sweep_id=3,
-        harmonic_order=6,
-        method="adaptive",
-        bench_identity="test-bench",
-        software_version="0",
-        created_at="2026-01-01T00:00:00Z",
-        axes=AXES,
-        status_counts=counts,
-        cells=cells,
-    ).model_dump()
+    return map_dict(MAP_ID, AXES, cells, counts)
 
 
 def test_the_map_is_what_the_docstring_says():
@@ -118,81 +108,38 @@ C_MAIN = r"""
 #define M(x) RIPPLECAL_LUT_MAP31_##x
 #define A(x) ripplecal_lut_map31_##x
 
-/* index j and fraction f of x on a strictly increasing axis, clamped at the ends */
-static void locate(const float *axis, unsigned n, float x, unsigned *j, float *f)
-{
-    unsigned k;
-    if (n == 1u || x <= axis[0]) { *j = 0u; *f = 0.0f; return; }
-    if (x >= axis[n - 1u]) { *j = n - 2u; *f = 1.0f; return; }
-    for (k = 0u; k + 1u < n && axis[k + 1u] <= x; k++) { }
-    *j = k;
-    *f = (x - axis[k]) / (axis[k + 1u] - axis[k]);
-}
-
-/* bilinear (torque, speed) at U_dc index iu, cartesian; with_fill 0: filled cells count as no entry */
-static void interpolate(unsigned iu, float torque, float speed, int with_fill, float *tc, float *ts)
-{
-    unsigned jt, jn, a, b;
-    float ft, fn;
-    locate(A(torque_nm), M(N_TORQUE), torque, &jt, &ft);
-    locate(A(speed_rpm), M(N_SPEED), speed, &jn, &fn);
-    *tc = 0.0f;
-    *ts = 0.0f;
-    for (a = 0u; a < 2u; a++) {
-        for (b = 0u; b < 2u; b++) {
-            unsigned in = jn + a, it = jt + b;
-            float w = (a ? fn : 1.0f - fn) * (b ? ft : 1.0f - ft);
-            int entry = A(valid)[iu][in][it] || (with_fill && A(filled)[iu][in][it]);
-            if (entry) {
-                *tc += w * A(theta_cos_rad)[iu][in][it];
-                *ts += w * A(theta_sin_rad)[iu][in][it];
-            }
-        }
-    }
-}
-
 int main(void)
 {
-    float tc, ts, tc0, ts0;
-    interpolate(0u, 2.5f, 1575.0f, 1, &tc, &ts);
-    interpolate(0u, 2.5f, 1575.0f, 0, &tc0, &ts0);
     printf("%u %u %u %u %u %d %d\n", M(ID), M(N_TORQUE), M(N_SPEED), M(N_UDC), M(FILLED_CELLS),
            M(INTERPOLATION) == M(INTERPOLATION_CARTESIAN), M(INTERPOLATION) == M(INTERPOLATION_POLAR));
     printf("%u %u %u %u\n", A(valid)[0][2][1], A(filled)[0][2][1], A(valid)[1][4][2], A(filled)[1][4][2]);
     printf("%.9g %.9g %.9g %.9g\n", A(speed_rpm)[1], A(speed_rpm)[2], A(speed_rpm)[3], A(torque_nm)[2]);
-    printf("%.9g %.9g %.9g %.9g\n", tc, ts, tc0, ts0);
     printf("%.9g %.9g\n", A(theta_cos_rad)[1][0][0], A(theta_sin_rad)[1][4][2]);
     return 0;
 }
 """
 
 
-@pytest.mark.skipif(
-    shutil.which("gcc") is None, reason="gcc is not on PATH: the exported C header cannot be compiled here"
-)
-def test_c_header_compiles_and_a_c_main_interpolates_it_by_position(tmp_path):
-    (tmp_path / "lut.h").write_text(export_map(refined_map(), "c", interpolation="cartesian"))
-    (tmp_path / "main.c").write_text(C_MAIN)
-    build = subprocess.run(
-        ["gcc", "-std=c99", "-Wall", "-Werror", "-o", str(tmp_path / "lut"), str(tmp_path / "main.c")],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-    )
-    assert build.returncode == 0, build.stderr
-    lines = subprocess.run([str(tmp_path / "lut")], capture_output=True, text=True, check=True).stdout.splitlines()
+@needs_gcc
+def test_c_header_compiles_and_its_own_function_interpolates_it_by_position(tmp_path):
+    header = export_map(refined_map(), "c", interpolation="cartesian")
+    program = build(tmp_path, {"lut.h": header, "main.c": C_MAIN})
+    lines = subprocess.run([str(program)], capture_output=True, text=True, check=True).stdout.splitlines()
     assert lines[0].split() == [str(MAP_ID), "3", "5", "2", "2", "1", "0"]  # cartesian, 2 filled cells
     assert lines[1].split() == ["0", "1", "0", "0"]  # the filled cell; the hole
     assert [float(x) for x in lines[2].split()] == [1500.0, 1800.0, 2000.0, 4.0]
-    tc, ts, tc0, ts0 = (float(x) for x in lines[3].split())
+    # the fill at (1 Nm, 1000 rpm, 24 V) is in the theta array; the hole's theta is 0
+    assert float(lines[3].split()[0]) == pytest.approx(theta(1.0, 1000.0, 24.0)[0], abs=1e-8)
+    assert float(lines[3].split()[1]) == 0.0
+    (tmp_path / "theta").mkdir()
+    c_theta = HeaderTheta(tmp_path / "theta", header, MAP_ID)
+    ((tc, ts),) = c_theta.theta([(2.5, 1575.0, 12.0)], with_fill=True)
+    ((tc0, ts0),) = c_theta.theta([(2.5, 1575.0, 12.0)], with_fill=False)
     # 2.5 Nm is 1/4 of 2 .. 4 Nm, 1575 rpm 1/4 of 1500 .. 1800 rpm: theta is linear, so exact
     assert (tc, ts) == pytest.approx(theta(2.5, 1575.0, 12.0), abs=2e-7)
     # without the fill the corner (2 Nm, 1800 rpm) counts 0: weight 3/4 (torque) x 1/4 (speed)
     f_tc, f_ts = theta(2.0, 1800.0, 12.0)
     assert (tc0, ts0) == pytest.approx((tc - 3 / 16 * f_tc, ts - 3 / 16 * f_ts), abs=2e-7)
-    # the fill at (1 Nm, 1000 rpm, 24 V) is in the theta array; the hole's theta is 0
-    assert float(lines[4].split()[0]) == pytest.approx(theta(1.0, 1000.0, 24.0)[0], abs=1e-8)
-    assert float(lines[4].split()[1]) == 0.0
 
 
 # -- DCM: dcmReader -------------------------------------------------------------------------------
