@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.bench.run import BenchRun
 from service.bench.speed_ramp import ramp_through
@@ -32,6 +32,7 @@ from service.errors import Invalid
 from service.model.limits import check_limits, check_point
 from service.model.operating_point import OperatingPoint
 from service.model.order_tracking import OrderTrack, track_orders
+from service.names import MAX_NAME_LENGTH, check_name
 from service.settings import Settings
 
 MAX_RAMP_S = 120.0  # per direction (module doc)
@@ -71,7 +72,13 @@ class RunupRequest(BaseModel):
     override_envelope_model: bool = Field(
         False, description="run where the envelope model of the motor settings refuses (never the hard limits)"
     )
-    bench: str | None = Field(None, description="the bench it runs on; default this service's")
+    # printable text as every name (service/names.py): a NUL or a newline is a 422, not a bench nobody serves
+    bench: Annotated[str, AfterValidator(lambda v: check_name(v, "bench name"))] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_NAME_LENGTH,
+        description="the bench it runs on; default this service's own bench",
+    )
 
     @field_validator("orders")
     @classmethod
