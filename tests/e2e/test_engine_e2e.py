@@ -61,7 +61,7 @@ def test_pause_resume_and_a_failing_point(svc):
     grid = Grid(torque_nm=[2.5], speed_rpm=[1500, 2000, 2300], udc_v=[12])
     sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
-    svc.engine.pause_sweep(sweep_id)
+    svc.engine.control_sweep(sweep_id, "pause")
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused")
     held = svc.storage.get_sweep(sweep_id)["done_points"]
     # the pause has taken effect: the run ended (bench safe) and the sweep's job is parked, queued but
@@ -97,7 +97,7 @@ def test_a_paused_sweep_releases_the_bench_and_resume_queues_it_again(svc):
     grid = Grid(torque_nm=[1.5, 2.5], speed_rpm=[1500, 2000], udc_v=[12])
     sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
-    svc.engine.pause_sweep(sweep_id)
+    svc.engine.control_sweep(sweep_id, "pause")
 
     def sweep_job() -> dict:
         return next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)
@@ -130,9 +130,9 @@ def test_a_paused_sweep_cancelled_ends_with_what_it_measured(svc):
     grid = Grid(torque_nm=[1.5, 2.5], speed_rpm=[1500, 2000], udc_v=[12])
     sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["done_points"] >= 1)
-    svc.engine.pause_sweep(sweep_id)
+    svc.engine.control_sweep(sweep_id, "pause")
     wait_for(lambda: svc.storage.get_sweep(sweep_id)["state"] == "paused" and not svc.bench.busy)
-    svc.engine.cancel_sweep(sweep_id)
+    svc.engine.control_sweep(sweep_id, "cancel")
     sweep = svc.storage.get_sweep(sweep_id)
     assert sweep["state"] == "cancelled" and sweep["map_id"] is not None
     assert next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)["state"] == "cancelled"
