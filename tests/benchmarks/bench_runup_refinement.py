@@ -1,0 +1,82 @@
+"""A LUT judged and refined along run-ups (issue 27), per machine: sweep -> validation -> refinement -> validation.
+
+Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 200]
+
+On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
+1..4 Nm x 1000..2600 rpm at 12 V, then a refinement (POST /maps/{id}/refine) whose validations include run-ups at
+every torque row and midpoint (`validation.runups`), within max_cells and max_bytes 2048. Printed per round: the
+LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB, median and
+minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells given
+injection off by the guard, and the round's plant seconds; then the totals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+from service.calibration_service import CalibrationService
+from service.runs.identify import parse_options
+from service.runs.plans import Grid
+from service.runs.refinement import RefineRequest
+from service.runs.validation import ValidationOptions
+from service.settings import load_settings
+
+GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
+ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
+
+
+def wait_until_ended(get, timeout_s: float = 7200.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while (row := get())["state"] in ("queued", "running"):
+        if time.monotonic() > deadline:
+            raise TimeoutError("the job did not end")
+        time.sleep(0.2)
+    return row
+
+
+def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
+        if seed is not None:
+            overrides["emulator.seed"] = seed
+        with CalibrationService(load_settings(environ={}, overrides=overrides)) as svc:
+            svc.start(status_period_s=None)
+            t0 = time.perf_counter()
+            sweep_id = svc.engine.submit_sweep(GRID, "probe", parse_options("probe", {}))
+            sweep = wait_until_ended(lambda: svc.storage.get_sweep(sweep_id))
+            request = RefineRequest(
+                target_db=30,
+                max_cells=max_cells,
+                max_bytes=2048,
+                validation=ValidationOptions(runups=True, runup_rate_rpm_per_s=rate_rpm_per_s),
+            )
+            job_id = svc.engine.submit("refinement", sweep["map_id"], request)
+            job = wait_until_ended(lambda: svc.storage.get_job(job_id))
+            state = svc.storage.get_sweep(job["sweep_id"])["refinement"]
+            print(
+                f"machine {'paper-bench' if seed is None else f'seed {seed}'}: job {job['state']}, wall "
+                f"{time.perf_counter() - t0:.0f} s"
+            )
+            for r in state["rounds"]:
+                figures = ", ".join(
+                    f"{k} {r[k]:.1f}" if isinstance(r.get(k), float) else f"{k} {r.get(k)}" for k in ROUND_KEYS
+                )
+                print(f"  {figures}, plant {r.get('plant_time_s', 0.0):.0f} s")
+            print(f"  total plant {state.get('plant_time_s', 0.0):.0f} s; stopped: {state['stopped']}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", default="-,3", help="comma-separated; - is paper-bench")
+    parser.add_argument("--max-cells", type=int, default=40)
+    parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
+    args = parser.parse_args()
+    for text in args.seeds.split(","):
+        machine(None if text == "-" else int(text), args.max_cells, args.rate)
+
+
+if __name__ == "__main__":
+    main()
