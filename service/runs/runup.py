@@ -7,7 +7,8 @@ the direction (up: from -> to; down: to -> from; both: up, then down again), wha
 
 The run (one bench run: interlocks armed, made safe at the end however it ends): move to the ramp's first
 speed and settle there (BenchRun.operating_point), set the injection, ramp (service/bench/speed_ramp.py),
-then computed order tracking over the DAQ stream (service/model/order_tracking.py): angle-domain windows of
+then, once the bench is safe again, computed order tracking over the record (service/model/order_tracking.py,
+whose survey of 48 orders over a long ramp takes seconds: never while the bench is held): angle-domain windows of
 whole electrical periods, each order's amplitude (sensor full scale) and phase per speed bin of at most
 `bin_rpm`, and the noise floor per bin. Both directions' windows are averaged per bin as phasors.
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -29,6 +31,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 from service.bench.run import BenchRun
 from service.bench.speed_ramp import ramp_through
 from service.errors import Invalid
+from service.model.demodulation import ResonanceMode
 from service.model.limits import check_limits, check_point
 from service.model.operating_point import OperatingPoint
 from service.model.order_tracking import OrderTrack, track_orders
@@ -131,18 +134,25 @@ def check_runup(req: RunupRequest, settings: Settings) -> None:
         check_point(op, settings, req.override_envelope_model)
 
 
-def measure_runup(
-    run: BenchRun,
-    settings: Settings,
-    req: RunupRequest,
-    recorder: Any = None,
-) -> dict[str, Any]:
-    """The run-up inside an open run (module doc): its result as stored and answered."""
-    h = run.harmonic_order
+@dataclass(frozen=True)
+class RampRecord:
+    """What a run-up's ramps read: the DAQ record of every leg (one record: the legs follow each other in the
+    stream without a break), and what the run knew of it."""
+
+    angle_rad: np.ndarray
+    accel_fs: np.ndarray
+    gap_before: np.ndarray
+    harmonic_order: int
+    settle_plant_s: float
+    ramp_plant_s: float
+    torque_actual_nm: float | None
+    resonance_mode: ResonanceMode
+
+
+def record_runup(run: BenchRun, settings: Settings, req: RunupRequest, recorder: Any = None) -> RampRecord:
+    """The run-up's ramps inside an open run (module doc): move to the first speed, set the injection, ramp."""
     legs = req.legs()
     start = OperatingPoint(torque_nm=req.torque_nm, speed_rpm=legs[0][0], udc_v=req.udc_v)
-    commands = run.commands
-    pole_pairs = settings.motor.pole_pairs
     with run.operating_point(start) as session:
         if req.injection == "lut":
             session.apply_injection_mode("lut")
@@ -152,38 +162,56 @@ def measure_runup(
             session.apply_injection_mode("off")
         session.recorder = recorder
         try:
-            samples = ramp_through(session, commands, legs, req.rate_rpm_per_s, pole_pairs)
+            samples = ramp_through(session, run.commands, legs, req.rate_rpm_per_s, settings.motor.pole_pairs)
         finally:
             session.recorder = None
-        # the ramps' samples (the load setpoint is no drive setpoint: the session's clock does not count them)
-        # and the settling at the first speed
         settle_s = session.op_settle_plant_s or 0.0
         torque_actual_nm, _ = run.torque_actual()
-    # one record of every leg: each bin averages both directions
+    # the ramps' plant time from their samples (a load setpoint is no drive setpoint: the session's clock does not
+    # count them), beside the settling at the first speed
     ramp_plant_s = (int(samples.index[-1]) - int(samples.index[0]) + 1) / settings.daq.sample_rate_hz
-    track = track_orders(
+    return RampRecord(
         samples.angle_rad,
         samples.accel_fs,
+        samples.gap_before,
+        run.harmonic_order,
+        settle_s,
+        ramp_plant_s,
+        torque_actual_nm,
+        run.bench.resonance.mode,
+    )
+
+
+def analyse_runup(record: RampRecord, settings: Settings, req: RunupRequest) -> dict[str, Any]:
+    """The order analysis of a run-up's record: its result as stored and answered (each bin averages every leg)."""
+    track = track_orders(
+        record.angle_rad,
+        record.accel_fs,
         settings.daq.sample_rate_hz,
-        pole_pairs,
-        req.orders_tracked(h),
+        settings.motor.pole_pairs,
+        req.orders_tracked(record.harmonic_order),
         bin_width_rpm=req.bin_rpm,
-        gap_before=samples.gap_before,
-        mode=run.bench.resonance.mode,
+        gap_before=record.gap_before,
+        mode=record.resonance_mode,
     )
     return {
         **track_public(track, req.speed_rpm),
-        "harmonic_order": h,
+        "harmonic_order": record.harmonic_order,
         "torque_nm": req.torque_nm,
-        "torque_actual_nm": torque_actual_nm,
+        "torque_actual_nm": record.torque_actual_nm,
         "udc_v": req.udc_v,
         "direction": req.direction,
         "injection": req.injection,
         "rate_rpm_per_s": req.rate_rpm_per_s,
-        "plant_time_s": settle_s + ramp_plant_s,
-        "ramp_plant_s": ramp_plant_s,
-        "samples": len(samples),
+        "plant_time_s": record.settle_plant_s + record.ramp_plant_s,
+        "ramp_plant_s": record.ramp_plant_s,
+        "samples": len(record.angle_rad),
     }
+
+
+def measure_runup(run: BenchRun, settings: Settings, req: RunupRequest, recorder: Any = None) -> dict[str, Any]:
+    """Record and analyse a run-up inside an open run (a validation's pairs: one order, a fraction of a second)."""
+    return analyse_runup(record_runup(run, settings, req, recorder), settings, req)
 
 
 def _finite_or_none(values: np.ndarray) -> list[float | None]:
@@ -210,6 +238,9 @@ def track_public(track: OrderTrack, speed_range_rpm: tuple[float, float]) -> dic
 def runup_in_run(
     bench: Any, settings: Settings, req: RunupRequest, cancel: threading.Event | None, recorder: Any = None
 ) -> dict[str, Any]:
-    """A run-up as a run of its own: the bench held, the interlocks armed, made safe at the end."""
+    """A run-up as a run of its own: the bench held, the interlocks armed, made safe at the end; the order analysis
+    after it (the survey of 48 orders over a long ramp takes seconds: the bench is not held, nor its watchdog
+    starved, meanwhile)."""
     with bench.run(settings.identification.harmonic_order, cancel=cancel) as run:
-        return measure_runup(run, settings, req, recorder)
+        record = record_runup(run, settings, req, recorder)
+    return analyse_runup(record, settings, req)
