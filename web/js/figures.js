@@ -378,8 +378,9 @@ export function gridSurface(r) {
 // cell that failed or was not measured stays blank with its reason on hover. Numeric axes: a
 // refined map's inserted values sit at their real positions. The colour range is fixed (0…60 dB),
 // so two validations (a map and its refinement) compare by colour. opts.title replaces the title.
+// The grid points and midpoints of a validation (its run-up bins are judged along speed: the API lists them).
 export function validationHeatmap(cells, udc, opts) {
-  const mine = cells.filter((c) => Number(c.operating_point.udc_v) === udc);
+  const mine = cells.filter((c) => c.kind !== "runup" && Number(c.operating_point.udc_v) === udc);
   const axis = (key) => [...new Set(mine.map((c) => Number(c.operating_point[key])))].sort((a, b) => a - b);
   const xs = axis("torque_nm");
   const ys = axis("speed_rpm");
