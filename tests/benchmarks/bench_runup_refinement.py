@@ -23,18 +23,10 @@ from service.runs.plans import Grid
 from service.runs.refinement import RefineRequest
 from service.runs.validation import ValidationOptions
 from service.settings import load_settings
+from tests.support.waiting import wait_run_finished
 
 GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
-
-
-def wait_until_ended(get, timeout_s: float = 7200.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while (row := get())["state"] in ("queued", "running"):
-        if time.monotonic() > deadline:
-            raise TimeoutError("the job did not end")
-        time.sleep(0.2)
-    return row
 
 
 def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
@@ -46,7 +38,7 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
             svc.start(status_period_s=None)
             t0 = time.perf_counter()
             sweep_id = svc.engine.submit_sweep(GRID, "probe", parse_options("probe", {}))
-            sweep = wait_until_ended(lambda: svc.storage.get_sweep(sweep_id))
+            sweep = wait_run_finished(lambda: svc.storage.get_sweep(sweep_id), 3600.0, f"sweep {sweep_id}")
             request = RefineRequest(
                 target_db=30,
                 max_cells=max_cells,
@@ -54,7 +46,7 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
                 validation=ValidationOptions(runups=True, runup_rate_rpm_per_s=rate_rpm_per_s),
             )
             job_id = svc.engine.submit("refinement", sweep["map_id"], request)
-            job = wait_until_ended(lambda: svc.storage.get_job(job_id))
+            job = wait_run_finished(lambda: svc.storage.get_job(job_id), 7200.0, f"refinement job {job_id}")
             state = svc.storage.get_sweep(job["sweep_id"])["refinement"]
             print(
                 f"machine {'paper-bench' if seed is None else f'seed {seed}'}: job {job['state']}, wall "

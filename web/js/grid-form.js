@@ -4,7 +4,8 @@ import { showMsg } from "./dom.js";
 
 const GRID_FIELDS = [["torque_nm", "torque"], ["speed_rpm", "speed"], ["udc_v", "DC link voltage"]];
 
-function parseList(str, name) {
+// {vals} or {error}: the numbers of a comma-separated field (also the run-up form's orders)
+export function parseList(str, name) {
   const parts = str.split(/[,;\s]+/).map((x) => x.trim()).filter((x) => x !== "");
   if (parts.length === 0) return { error: `${name}: enter at least one number` };
   const vals = [];

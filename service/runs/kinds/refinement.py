@@ -181,11 +181,7 @@ class RefinementRun:
     ) -> None:
         """Identify the round's pending cells (those not yet measured in this round), then build the
         refined map from every result and move on to its validation."""
-        measured = {
-            (r["torque_nm"], r["speed_rpm"], r["udc_v"])
-            for r in self.storage.sweep_results(sweep_id)
-            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
-        }
+        measured = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in self._round_results(sweep_id, state)}
         points = [
             OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
             for t, n, u in state["pending"]
@@ -206,14 +202,18 @@ class RefinementRun:
         )
         if ctl.cancel.is_set():
             return
-        state["round_plant_s"] = sum(
-            float(r.get("plant_time_s") or 0.0)
-            for r in self.storage.sweep_results(sweep_id)
-            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
-        )
+        state["round_plant_s"] = sum(float(r.get("plant_time_s") or 0.0) for r in self._round_results(sweep_id, state))
         state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
         state["current_map_id"] = self._build_round_map(sweep_id, sweep, state, source)
         state["phase"] = "validate"
+
+    def _round_results(self, sweep_id: int, state: RefinementState) -> list[ResultRecord]:
+        """The refinement's results measured in its current round (tagged refinement_round)."""
+        return [
+            r
+            for r in self.storage.sweep_results(sweep_id)
+            if ((r.get("detail") or {}).get("details") or {}).get("refinement_round") == state["round"]
+        ]
 
     def _build_round_map(
         self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord, **provenance: Any

@@ -52,19 +52,14 @@ def run(host: JobHost, job_id: int, job: JobRecord) -> None:
     try:
         result = runup_in_run(host.bench, host.settings, req, cancel, recorder)
     except Exception as exc:
+        discard_recorder(recorder)  # nothing analysed: no recording either
         if cancel.is_set() and not isinstance(exc, InterlockTripped):
-            discard_recorder(recorder)
             host.storage.insert_runup(row("cancelled", error="cancelled"))
             raise Cancelled() from exc
-        discard_recorder(recorder)
         host.storage.insert_runup(row("failed", error=error_text(exc)))
         raise
-    stored: dict[str, int] = {}
     # the bench is safe (the run has ended): a database that cannot take the result now is waited for
-    host.durably(
-        lambda: stored.setdefault("id", host.insert_runup(row("done", result=result), recorder)),
-        f"run-up {job_id}: its result",
-    )
+    host.durably(lambda: host.insert_runup(row("done", result=result), recorder), f"run-up {job_id}: its result")
 
 
 KIND = JobKind("runup", submit=submit, check_here=check_here, run=run)

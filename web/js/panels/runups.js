@@ -7,6 +7,7 @@ import { $, el, setText, showMsg } from "../dom.js";
 import { fmt, shortTime } from "../format.js";
 import * as figures from "../figures.js";
 import * as benchChoice from "../bench-choice.js";
+import { parseList } from "../grid-form.js";
 
 const LIST_LIMIT = 20;
 let runups = [];       // GET /runups, newest first
@@ -20,10 +21,6 @@ export function init() {
   });
 }
 
-function numbers(text) {
-  return String(text).split(",").map((s) => s.trim()).filter((s) => s !== "").map(Number);
-}
-
 function request() {
   const v = (id) => $(id).value.trim();
   const body = {
@@ -34,16 +31,24 @@ function request() {
     direction: v("runup-direction"),
     injection: v("runup-injection"),
   };
-  const orders = numbers(v("runup-orders"));
-  if (orders.length) body.orders = orders;
-  return benchChoice.withBench(body);
+  if (v("runup-orders") !== "") {  // empty: the harmonic order and the survey of orders 1..48
+    const orders = parseList(v("runup-orders"), "orders");
+    if (orders.error) return { error: orders.error };
+    body.orders = orders.vals;
+  }
+  return { body: benchChoice.withBench(body) };
 }
 
 async function submit(ev) {
   ev.preventDefault();
   showMsg("runup-error", null);
+  const { body, error } = request();
+  if (error) {
+    showMsg("runup-error", [error], "Run-up not sent");
+    return;
+  }
   try {
-    const job = await api.post("/runups", request());
+    const job = await api.post("/runups", body);
     chosenId = job.id;
     await reload();
   } catch (e) {
