@@ -446,7 +446,9 @@ export function campbell(result, title) {
     data: [{ type: "heatmap", x: result.speed_rpm, y: result.orders, z, colorscale: "Viridis", zmin: -100, zmax: 0,
       colorbar: { title: { text: "dB FS" } },
       hovertemplate: "order %{y}<br>%{x:.0f} rpm<br>%{z:.1f} dB FS<extra></extra>" }],
-    layout: baseLayout(title, "speed n (rpm)", "electrical order", { yaxis: { title: { text: "electrical order" } } }),
+    // orders are categories: a numeric axis would stretch each order's row over the gap to the next one asked
+    layout: baseLayout(title, "speed n (rpm)", "electrical order",
+      { yaxis: { title: { text: "electrical order" }, type: "category" } }),
     config: CONFIG,
   };
 }
@@ -460,8 +462,9 @@ export function orderCut(order, runs, title) {
     data.push({ x: run.result.speed_rpm, y: run.result.amplitude[k].map(dbOf), name: run.label, mode: "lines",
       line: { color: run.colour, width: 2 }, connectgaps: false,
       hovertemplate: `${escapeHtml(run.label)}<br>%{x:.0f} rpm<br>%{y:.1f} dB FS<extra></extra>` });
+    // named but not in the legend (the card's note says dotted = noise floor): four entries run into the axis title
     data.push({ x: run.result.speed_rpm, y: run.result.noise_floor.map(dbOf), name: `${run.label}: noise floor`,
-      mode: "lines", line: { color: run.colour, width: 1, dash: "dot" }, hoverinfo: "skip" });
+      mode: "lines", line: { color: run.colour, width: 1, dash: "dot" }, hoverinfo: "skip", showlegend: false });
   }
   return { data, layout: baseLayout(title, "speed n (rpm)", `order ${order} (dB FS)`), config: CONFIG };
 }
