@@ -171,3 +171,23 @@ def test_validation_along_runups_judges_every_speed_bin_at_each_torque_row_and_m
     assert v["points"] == len(judged) and v["held"] == sum(c["holds"] for c in judged)
     assert v["runup_plant_time_s"] >= 3 * 2 * 4.0  # 3 torques, 2 run-ups of 4 s of ramp each
     drive_is_safe(emu)
+
+
+def test_a_fault_mid_runup_fails_it_with_the_reason_stores_no_analysis_and_leaves_the_drive_safe(rig):
+    """An EMCY while the load ramps (a 30 s ramp: the fault lands inside it): the run-up job fails naming the
+    fault, its stored row holds the reason and no figures, the drive is left safe; a person resets."""
+    emu, api = rig
+    body = {"torque_nm": 2.5, "udc_v": 12, "speed_rpm": [1000, 1600], "rate_rpm_per_s": 20, "orders": [6]}
+    r = api.post("/runups", body)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    api.wait(lambda: api.get("/bench/status")["busy"], 60, "run-up running")
+    assert emu.control({"fault": "emcy", "code": 0x3210})["ok"]
+    job = api.job_finished(job_id, 120)
+    assert job["state"] == "failed" and "EMCY 0x3210" in job["error"], job
+    result = job["result"]
+    assert result["state"] == "failed" and "EMCY 0x3210" in result["error"]
+    assert result["speed_rpm"] == [] and result["amplitude"] == []  # a fault never becomes a number
+    faults = drive_is_safe(emu)
+    assert faults["drive_state"] == "fault"
+    assert api.post("/bench/fault-reset").status_code == 200
