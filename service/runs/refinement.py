@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Annotated, Any, Mapping, NotRequired, TypedDict
+from typing import Annotated, Any, Literal, Mapping, NotRequired, TypedDict
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
@@ -90,6 +90,11 @@ class RefineRequest(BaseModel):
     validation: ValidationOptions = Field(
         default_factory=ValidationOptions, description="how finely each validation point is measured"
     )
+    placement: Literal["curves", "validation"] = Field(
+        "curves",
+        description="curves: first place breakpoints from theta* identified between them (bisection along torque "
+        "and speed, service/runs/placement.py), then validate; validation: insert only where a validation fails",
+    )
 
 
 class RefinementState(TypedDict):
@@ -113,6 +118,9 @@ class RefinementState(TypedDict):
     round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
     guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
     guard_rounds: NotRequired[int]
+    candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
+    place_rounds: NotRequired[int]
+    placement_rounds: NotRequired[list[dict[str, Any]]]  # each placement round's candidates, what it kept, its cost
 
 
 @dataclass

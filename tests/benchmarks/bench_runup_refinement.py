@@ -29,7 +29,7 @@ GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], ud
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
 
 
-def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
+def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
         if seed is not None:
@@ -43,6 +43,7 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
                 target_db=30,
                 max_cells=max_cells,
                 max_bytes=2048,
+                placement=placement,
                 validation=ValidationOptions(runups=True, runup_rate_rpm_per_s=rate_rpm_per_s),
             )
             job_id = svc.engine.submit("refinement", sweep["map_id"], request)
@@ -52,6 +53,12 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float) -> None:
                 f"machine {'paper-bench' if seed is None else f'seed {seed}'}: job {job['state']}, wall "
                 f"{time.perf_counter() - t0:.0f} s"
             )
+            for r in state.get("placement_rounds", []):
+                print(
+                    f"  round {r['round']} placement: candidates {r['candidates']}, inserted "
+                    f"{ {a: len(v) for a, v in r['inserted'].items()} }, worst predicted {r['worst_predicted_db']}, "
+                    f"bytes {r['bytes']}, cells {r['cells']}, plant {r['plant_time_s']:.0f} s"
+                )
             for r in state["rounds"]:
                 figures = ", ".join(
                     f"{k} {r[k]:.1f}" if isinstance(r.get(k), float) else f"{k} {r.get(k)}" for k in ROUND_KEYS
@@ -65,9 +72,10 @@ def main() -> None:
     parser.add_argument("--seeds", default="-,3", help="comma-separated; - is paper-bench")
     parser.add_argument("--max-cells", type=int, default=40)
     parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
+    parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
     args = parser.parse_args()
     for text in args.seeds.split(","):
-        machine(None if text == "-" else int(text), args.max_cells, args.rate)
+        machine(None if text == "-" else int(text), args.max_cells, args.rate, args.placement)
 
 
 if __name__ == "__main__":

@@ -131,3 +131,34 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         api.close()
     finally:
         svc.stop()
+
+
+def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tmp_path):
+    """placement curves (service/maps/placement.py): lines of candidate cells identified at the midpoints, kept
+    where the drive's interpolation of their neighbours misses, bisected again; then one map, validated."""
+    db = tmp_path / "curves.db"
+    svc, api = start(emu, db)
+    try:
+        source = swept_map(api)
+        r = api.post(f"/maps/{source}/refine", {"target_db": 30, "max_cells": 60, "placement": "curves"})
+        assert r.status_code == 202, r.text
+        job = api.job_finished(r.json()["id"], 900)
+        assert job["state"] == "done", job
+        result = job["result"]
+        placement = result["placement"]
+        # round one: the midpoint of each axis' one interval, a line of cells each (2 + 2 + their cross cell)
+        assert placement and placement[0]["candidates"] == {"torque_nm": 1, "speed_rpm": 1}
+        refined = api.get(f"/maps/{result['map_id']}")
+        kept = {a: sorted({v for p in placement for v in p["inserted"].get(a, [])}) for a in ("torque_nm", "speed_rpm")}
+        for axis, values in kept.items():
+            assert set(values) <= set(refined["axes"][axis])
+        # the turn lies between 1800 and 2600 rpm: the interpolation misses it, so speed values were kept
+        assert kept["speed_rpm"], placement
+        assert placement[-1]["bytes"] == result["rounds"][0]["bytes"]
+        # the first validation judges the placed map, every identified cell once, all within the budget
+        assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 60
+        assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}
+        assert not api.get("/bench/status")["busy"]
+        api.close()
+    finally:
+        svc.stop()

@@ -34,6 +34,22 @@ class RefinementRoundPublic(BaseModel):
     median_db: float | None = None
 
 
+class PlacementRoundPublic(BaseModel):
+    """A round of placement from theta* curves (service/maps/placement.py): candidates identified, kept where the
+    drive's interpolation of their neighbours misses."""
+
+    round: int
+    candidates: dict[str, int] = Field(description="candidate values per axis, each a line of cells identified")
+    inserted: dict[str, list[float]] = Field(description="the candidates kept, per axis")
+    worst_predicted_db: dict[str, float | None] = Field(
+        description="per axis, the worst LUT-mode suppression the candidates' lines predict without them, dB"
+    )
+    bytes: int = Field(description="the LUT image with what is kept so far, bytes")
+    cells: int = Field(description="cells of the map with what is kept so far")
+    plant_time_s: float = Field(description="bench time of the round's identifications, plant seconds")
+    left_out: list[str] = Field(default_factory=list, description="candidates that missed but did not fit max_bytes")
+
+
 class RefinementPublic(BaseModel):
     """A map refined on the drive until its LUT holds (service/runs/refinement.py)."""
 
@@ -41,7 +57,7 @@ class RefinementPublic(BaseModel):
     source_map_id: int
     map_id: int = Field(description="the refined map (the latest round's)")
     state: str
-    phase: str = Field(description="measure | validate | done")
+    phase: str = Field(description="measure | place | validate | guard | done")
     target_db: float
     max_cells: int
     max_bytes: int | None = Field(None, description="the LUT image budget, bytes")
@@ -51,6 +67,9 @@ class RefinementPublic(BaseModel):
     cells_added: int = Field(description="cells identified by the refinement (new and re-measured)")
     holds: bool = Field(description="every point of the latest validation reached target_db")
     stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds)")
+    placement: list[PlacementRoundPublic] = Field(
+        default_factory=list, description="the placement rounds from curves, before the first validation"
+    )
     rounds: list[RefinementRoundPublic]
     validation: ValidationSummaryPublic | None = Field(None, description="the latest validation of map_id")
 
@@ -75,6 +94,7 @@ def refinement_public(records: Records, sweep: Mapping[str, Any]) -> RefinementP
         cells_added=state["cells_added"],
         holds=holds,
         stopped=state.get("stopped"),
+        placement=[PlacementRoundPublic(**r) for r in state.get("placement_rounds", [])],
         rounds=rounds,
         validation=validation_summary_public(latest) if latest else None,
     )

@@ -11,7 +11,8 @@ from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import image_bytes
+from service.maps.lut_export import DEFAULT_INTERPOLATION, image_bytes
+from service.maps.placement import MAX_PLACE_ROUNDS, candidate_cells, first_candidates, judge_candidates, place
 from service.maps.view import map_view
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, parse_options
@@ -57,15 +58,19 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         )
         check_plant_time(m.axes["speed_rpm"], request.method, options, host.settings)
     not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
+    candidates = first_candidates(m.axes) if request.placement == "curves" else {}
+    if len(not_ok) + len(candidate_cells(m.axes, candidates)) > request.max_cells:
+        candidates = {}  # the first bisection does not fit the cell budget: insert where validations fail only
+    pending = not_ok + [list(c) for c in candidate_cells(m.axes, candidates)]
     state: RefinementState = {
         "target_db": request.target_db,
         "max_cells": request.max_cells,
         "validation": request.validation.model_dump(),
-        "phase": "measure" if not_ok else "validate",
+        "phase": "measure" if pending else "validate",
         "round": 0,
         "current_map_id": map_id,
         "axes": m.axes,
-        "pending": not_ok,
+        "pending": pending,
         "cells_added": 0,
         "rounds": [],
         "stopped": None,
@@ -73,13 +78,15 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         "max_bench_s": request.max_bench_s,
         "plant_time_s": 0.0,
         "round_plant_s": 0.0,
+        "candidates": candidates,
+        "place_rounds": 0,
     }
     sweep_id = host.storage.create_sweep(
         request.method,
         m.harmonic_order,
         m.axes,
         options.model_dump(),
-        len(not_ok),
+        len(pending),
         host.bench.identity if own else f"bench {bench}",
         __version__,
         kind="refinement",
@@ -149,6 +156,8 @@ class RefinementRun:
                 raise Paused()
             if state["phase"] == "measure":
                 self._refinement_measure(sweep_id, sweep, ctl, options, state, source)
+            elif state["phase"] == "place":
+                self._refinement_place(sweep_id, sweep, state, source)
             elif state["phase"] == "guard":
                 self._refinement_guard(sweep_id, sweep, state, source)
             else:
@@ -187,7 +196,7 @@ class RefinementRun:
             for t, n, u in state["pending"]
             if (t, n, u) not in measured
         ]
-        grid = Grid(**state["axes"])
+        grid = Grid(**axes_with(state["axes"], state.get("candidates") or {}))
         self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
         self.runner.measure_points(
             sweep_id,
@@ -204,7 +213,59 @@ class RefinementRun:
             return
         state["round_plant_s"] = sum(float(r.get("plant_time_s") or 0.0) for r in self._round_results(sweep_id, state))
         state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
+        if state.get("candidates"):
+            state["phase"] = "place"  # the candidates' lines are judged before any map is built
+            return
         state["current_map_id"] = self._build_round_map(sweep_id, sweep, state, source)
+        state["phase"] = "validate"
+
+    def _refinement_place(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
+        """Placement from curves (service/runs/placement.py): keep the candidates whose line the drive's
+        interpolation of its neighbours misses, bisect their halves next round; when nothing is left to bisect
+        (or a budget is spent), build the map and validate it."""
+        thetas = {}
+        for r in self._refinement_rows(sweep_id, source):  # a later result for the same cell wins
+            tc, ts = r.get("theta_cos"), r.get("theta_sin")
+            if r["status"] == "ok" and tc is not None and ts is not None:
+                thetas[(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"]))] = complex(tc, ts)
+        candidates = state.get("candidates") or {}
+        interpolation = ValidationOptions.model_validate(state["validation"]).interpolation or DEFAULT_INTERPOLATION
+        judged = judge_candidates(state["axes"], candidates, thetas, interpolation)
+        kept, following, reasons = place(state["axes"], judged, state["target_db"], state.get("max_bytes"))
+        state["axes"] = axes_with(state["axes"], kept)
+        round_plant_s = state.get("round_plant_s", 0.0)
+        state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
+        state["round_plant_s"] = 0.0
+        state["place_rounds"] = state.get("place_rounds", 0) + 1
+        state.setdefault("placement_rounds", []).append(
+            {
+                "round": state["round"],
+                "candidates": {a: len(v) for a, v in candidates.items()},
+                "inserted": kept,
+                "worst_predicted_db": {
+                    a: min((db for db in by.values() if db is not None), default=None) for a, by in judged.items()
+                },
+                "bytes": image_bytes(state["axes"]),
+                "cells": math.prod(len(state["axes"][a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
+                "plant_time_s": round_plant_s,
+                "left_out": reasons,
+            }
+        )
+        pending = [list(c) for c in candidate_cells(state["axes"], following)]
+        max_bench_s = state.get("max_bench_s")
+        if (
+            pending
+            and state["place_rounds"] < MAX_PLACE_ROUNDS
+            and state["cells_added"] + len(pending) <= state["max_cells"]
+            and (max_bench_s is None or state["plant_time_s"] < max_bench_s)
+        ):
+            state["candidates"], state["pending"] = following, pending
+            state["round"] += 1
+            state["phase"] = "measure"
+            return
+        state["candidates"], state["pending"] = {}, []
+        state["current_map_id"] = self._build_round_map(sweep_id, sweep, state, source, placement="curves")
+        state["round"] += 1
         state["phase"] = "validate"
 
     def _round_results(self, sweep_id: int, state: RefinementState) -> list[ResultRecord]:

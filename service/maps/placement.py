@@ -1,0 +1,168 @@
+"""A LUT's breakpoints placed from theta* curves measured on the bench (issue 27, point 4); the refinement (service/runs/kinds/refinement.py) runs its rounds: dense where theta* turns,
+cheap elsewhere, along speed and along torque.
+
+Why from curves and not from validations: the drive's LUT-mode suppression at a point is
+20 log10 |theta*| / |theta_lut - theta*| (the residual is S (theta_lut - theta*), eq. 8, against the
+uncompensated -S theta*), so what a validation would measure between two breakpoints is known as soon as
+theta* is identified there: the drive's own interpolation (drivers.lut_image.Lut.theta) of the two
+neighbours against the identified theta* at the value between them. An identification costs 0.1-0.3 plant s
+(tests/benchmarks/bench_identification.py) where a validation point costs a move, an uncompensated and a
+LUT-mode window, and a run-up pair 2 x 16 s per torque.
+
+Bisection, per axis (torque and speed; U_dc lines are left as they are):
+  - a round's candidates are the midpoints of intervals not yet settled; each candidate is a whole line of
+    cells (a LUT is a full grid), identified at every value of the other axes;
+  - a candidate is judged by its worst cell: the interpolation of the candidate's two neighbours on its axis
+    (the current axes, without the other candidates) against the identified theta* there, in dB as above;
+  - a candidate short of target_db + PLACE_MARGIN_DB is kept (inserted into its axis) and both halves of its
+    interval become the next round's candidates while they are at least MIN_STEP wide; a candidate that
+    holds is dropped (its cells stay stored as evidence, outside the map) and its interval is settled;
+  - kept candidates are taken worst first while the LUT image fits `max_bytes`.
+The margin: a midpoint measures an interval's error where a smooth curve's is largest, but an identified
+theta* carries its own error (identification stops at a margin below its target) and a turn may sit off the
+midpoint; 6 dB (a factor 2 in the interpolation error) covers both in the run-ups measured.
+Points with no evidence (a neighbour or the candidate not identified ok: outside the envelope, failed) do not
+count; a candidate with none at all is dropped.
+Why steps and not tracking along a slow ramp: the adaptive law's time constant is ~0.04 plant s (40 dB in
+0.17 s, bench_identification), so on a ramp of r rpm/s it lags theta* by 0.04 r rpm; at the turn theta*
+moves up to 6.5 deg/rpm and 30 dB asks for 1.8 deg, i.e. a lag under 0.28 rpm: r <= 7 rpm/s, 2 x 230 s per
+torque over 1000..2600 rpm (up and down), where a 10 rpm step identified with its neighbour's prior costs
+~0.2 s.
+"""
+
+from __future__ import annotations
+
+import math
+from itertools import product
+
+import numpy as np
+
+from drivers.lut_image import FLAG_OK, Lut
+from service.maps.lut_export import image_bytes
+
+PLACED_AXES = ("torque_nm", "speed_rpm")
+AXES = ("torque_nm", "speed_rpm", "udc_v")
+PLACE_MARGIN_DB = 6.0
+# an interval is bisected only while its halves are at least this wide (the issue's <= 10 rpm where theta* turns)
+MIN_STEP = {"torque_nm": 0.125, "speed_rpm": 10.0}
+MAX_PLACE_ROUNDS = 8
+
+Cell = tuple[float, float, float]  # (torque_nm, speed_rpm, udc_v)
+
+
+def midpoints(values: list[float], axis: str) -> list[float]:
+    """The midpoint of each interval of `values` whose halves are at least MIN_STEP[axis] wide."""
+    v = sorted(values)
+    return [round((a + b) / 2.0, 6) for a, b in zip(v, v[1:]) if (b - a) / 2.0 >= MIN_STEP[axis] - 1e-9]
+
+
+def first_candidates(axes: dict[str, list[float]]) -> dict[str, list[float]]:
+    """Round one: the midpoint of every interval of the placed axes."""
+    return {a: midpoints(axes[a], a) for a in PLACED_AXES}
+
+
+def candidate_cells(axes: dict[str, list[float]], candidates: dict[str, list[float]]) -> list[Cell]:
+    """The cells the candidates' lines add to the full grid of `axes` (cross cells of two candidates included)."""
+    grown = {a: sorted(set(axes[a]) | set(candidates.get(a, []))) for a in AXES}
+    old = set(product(*(map(float, axes[a]) for a in AXES)))
+    return [(t, n, u) for t, n, u in product(*(map(float, grown[a]) for a in AXES)) if (t, n, u) not in old]
+
+
+def interpolated(theta_a: complex, theta_b: complex, x_a: float, x_b: float, x: float, interpolation: str) -> complex:
+    """The drive's interpolation (drivers.lut_image.Lut.theta, its one definition) between two breakpoints."""
+    shape = (1, 2, 1)  # (udc, axis, torque): the two breakpoints on the speed position of a one-row LUT
+    lut = Lut(
+        map_id=0,
+        harmonic_order=6,
+        torque_nm=np.array([0.0]),
+        speed_rpm=np.array([x_a, x_b], dtype=float),
+        udc_v=np.array([0.0]),
+        theta_cos=np.array([theta_a.real, theta_b.real]).reshape(shape),
+        theta_sin=np.array([theta_a.imag, theta_b.imag]).reshape(shape),
+        flags=np.full(shape, FLAG_OK, dtype=np.uint8),
+        crc=0,
+        interpolation=interpolation,
+    )
+    c, s = lut.theta(0.0, x, 0.0)
+    return complex(c, s)
+
+
+def predicted_db(theta_true: complex, theta_lut: complex) -> float:
+    """LUT-mode suppression where the drive injects theta_lut and theta* is theta_true (module doc), dB."""
+    error = abs(theta_lut - theta_true)
+    if error == 0.0:
+        return math.inf
+    return 20.0 * math.log10(abs(theta_true) / error) if theta_true != 0 else -math.inf
+
+
+def judge_candidates(
+    axes: dict[str, list[float]],
+    candidates: dict[str, list[float]],
+    thetas: dict[Cell, complex],
+    interpolation: str,
+) -> dict[str, dict[float, float | None]]:
+    """Each candidate's worst predicted suppression over its line (dB; None: no evidence), per axis."""
+    out: dict[str, dict[float, float | None]] = {}
+    for axis in PLACED_AXES:
+        k = AXES.index(axis)
+        values = sorted(map(float, axes[axis]))
+        others = [sorted(map(float, axes[a])) for a in AXES if a != axis]
+        out[axis] = {}
+        for c in candidates.get(axis, []):
+            lower = [v for v in values if v < c]
+            upper = [v for v in values if v > c]
+            if not lower or not upper:
+                out[axis][c] = None
+                continue
+            a, b = lower[-1], upper[0]
+            worst: float | None = None
+            for rest in product(*others):
+
+                def at(x: float) -> Cell:
+                    cell = list(rest)
+                    cell.insert(k, x)
+                    return (cell[0], cell[1], cell[2])
+
+                ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
+                if ta is None or tb is None or tc is None:
+                    continue
+                db = predicted_db(tc, interpolated(ta, tb, a, b, c, interpolation))
+                worst = db if worst is None else min(worst, db)
+            out[axis][c] = worst
+    return out
+
+
+def place(
+    axes: dict[str, list[float]],
+    judged: dict[str, dict[float, float | None]],
+    target_db: float,
+    max_bytes: int | None,
+) -> tuple[dict[str, list[float]], dict[str, list[float]], list[str]]:
+    """(kept values per axis, the next round's candidates, reasons for what was left out): candidates short of
+    target_db + PLACE_MARGIN_DB, worst first, while the image fits max_bytes; the next candidates are the
+    midpoints of the kept values' two halves."""
+    short = sorted(
+        (db, axis, c)
+        for axis, by_value in judged.items()
+        for c, db in by_value.items()
+        if db is not None and db < target_db + PLACE_MARGIN_DB
+    )
+    kept: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
+    reasons: list[str] = []
+    for db, axis, c in short:
+        trial = {
+            a: sorted(set(map(float, axes[a])) | set(kept.get(a, [])) | ({c} if a == axis else set())) for a in AXES
+        }
+        if max_bytes is not None and image_bytes(trial) > max_bytes:
+            reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: the LUT would exceed {max_bytes} bytes")
+            continue
+        kept[axis].append(c)
+    nxt: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
+    for axis in PLACED_AXES:
+        values = sorted(map(float, axes[axis]))
+        for c in kept[axis]:
+            a = max(v for v in values if v < c)
+            b = min(v for v in values if v > c)
+            nxt[axis] += midpoints([a, c, b], axis)
+        nxt[axis] = sorted(set(nxt[axis]))
+    return {a: sorted(v) for a, v in kept.items()}, nxt, reasons
