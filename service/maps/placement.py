@@ -17,7 +17,8 @@ Bisection, per axis (torque and speed; U_dc lines are left as they are):
   - a candidate short of target_db + PLACE_MARGIN_DB is kept (inserted into its axis) and both halves of its
     interval become the next round's candidates while they are at least MIN_STEP wide; a candidate that
     holds is dropped (its cells stay stored as evidence, outside the map) and its interval is settled;
-  - kept candidates are taken worst first while the LUT image fits `max_bytes`.
+  - kept candidates are taken while the LUT image fits `max_bytes`, those with the most cells short per byte
+    of their line first (then the worst): what a byte of firmware memory buys.
 The margin: a midpoint measures an interval's error where a smooth curve's is largest, but an identified
 theta* carries its own error (identification stops at a margin below its target) and a turn may sit off the
 midpoint; 6 dB (a factor 2 in the interpolation error) covers both in the run-ups measured.
@@ -100,9 +101,10 @@ def judge_candidates(
     candidates: dict[str, list[float]],
     thetas: dict[Cell, complex],
     interpolation: str,
-) -> dict[str, dict[float, float | None]]:
-    """Each candidate's worst predicted suppression over its line (dB; None: no evidence), per axis."""
-    out: dict[str, dict[float, float | None]] = {}
+) -> dict[str, dict[float, list[float]]]:
+    """Each candidate's predicted suppression at every cell of its line with evidence (dB; an empty list: none),
+    per axis."""
+    out: dict[str, dict[float, list[float]]] = {}
     for axis in PLACED_AXES:
         k = AXES.index(axis)
         values = sorted(map(float, axes[axis]))
@@ -111,11 +113,10 @@ def judge_candidates(
         for c in candidates.get(axis, []):
             lower = [v for v in values if v < c]
             upper = [v for v in values if v > c]
+            out[axis][c] = []
             if not lower or not upper:
-                out[axis][c] = None
                 continue
             a, b = lower[-1], upper[0]
-            worst: float | None = None
             for rest in product(*others):
 
                 def at(x: float) -> Cell:
@@ -124,32 +125,38 @@ def judge_candidates(
                     return (cell[0], cell[1], cell[2])
 
                 ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
-                if ta is None or tb is None or tc is None:
-                    continue
-                db = predicted_db(tc, interpolated(ta, tb, a, b, c, interpolation))
-                worst = db if worst is None else min(worst, db)
-            out[axis][c] = worst
+                if ta is not None and tb is not None and tc is not None:
+                    out[axis][c].append(predicted_db(tc, interpolated(ta, tb, a, b, c, interpolation)))
     return out
+
+
+def worst_db(judged: dict[str, dict[float, list[float]]]) -> dict[str, float | None]:
+    """Per axis, the worst predicted suppression over every candidate's line (None: no evidence)."""
+    return {axis: min((db for dbs in by.values() for db in dbs), default=None) for axis, by in judged.items()}
 
 
 def place(
     axes: dict[str, list[float]],
-    judged: dict[str, dict[float, float | None]],
+    judged: dict[str, dict[float, list[float]]],
     target_db: float,
     max_bytes: int | None,
 ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[str]]:
-    """(kept values per axis, the next round's candidates, reasons for what was left out): candidates short of
-    target_db + PLACE_MARGIN_DB, worst first, while the image fits max_bytes; the next candidates are the
-    midpoints of the kept values' two halves."""
-    short = sorted(
-        (db, axis, c)
-        for axis, by_value in judged.items()
-        for c, db in by_value.items()
-        if db is not None and db < target_db + PLACE_MARGIN_DB
-    )
+    """(kept values per axis, the next round's candidates, reasons for what was left out): candidates with a cell
+    short of target_db + PLACE_MARGIN_DB are kept while the image fits max_bytes, those with the most short cells
+    per byte of their line first (a full grid: a torque row costs a cell per speed value), then the worst; the
+    next candidates are the midpoints of the kept values' two halves."""
+    bar = target_db + PLACE_MARGIN_DB
+    base = image_bytes({a: list(map(float, axes[a])) for a in AXES})
+    short = []
+    for axis, by_value in judged.items():
+        for c, dbs in by_value.items():
+            n_short = sum(1 for db in dbs if db < bar)
+            if n_short:
+                line_bytes = image_bytes({**axes, axis: sorted(set(map(float, axes[axis])) | {c})}) - base
+                short.append((-n_short / line_bytes, min(dbs), axis, c))
     kept: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
     reasons: list[str] = []
-    for db, axis, c in short:
+    for _per_byte, db, axis, c in sorted(short):
         trial = {
             a: sorted(set(map(float, axes[a])) | set(kept.get(a, [])) | ({c} if a == axis else set())) for a in AXES
         }

@@ -39,13 +39,18 @@ HARM_MARGIN_DB = 0.5
 RANGE_STEP_RPM = 10.0  # the envelope is checked along the range at this step
 
 
-def runup_torques(torque_axis: list[float]) -> list[tuple[float, str]]:
-    """Each torque row and the midpoint between neighbouring rows: (torque_nm, row | midpoint)."""
+def runup_torques(torque_axis: list[float], most: int | None = None) -> list[tuple[float, str]]:
+    """Each torque row and the midpoint between neighbouring rows: (torque_nm, row | midpoint); with `most`, at
+    most that many of them, evenly spread by index with both ends kept."""
     values = sorted(float(t) for t in torque_axis)
     out: list[tuple[float, str]] = []
     for a, b in zip(values, values[1:]):
         out += [(a, "row"), ((a + b) / 2.0, "midpoint")]
-    return out + [(values[-1], "row")]
+    out.append((values[-1], "row"))
+    if most is None or len(out) <= most:
+        return out
+    picked = sorted({round(k * (len(out) - 1) / (most - 1)) for k in range(most)})
+    return [out[i] for i in picked]
 
 
 def runup_range(
@@ -132,12 +137,21 @@ def measure_runup_pair(
     speed_range: tuple[float, float],
     rate_rpm_per_s: float,
     target_db: float,
-) -> tuple[list[dict[str, Any]], float]:
-    """The pair of run-ups at one torque in the open run (off, then the LUT): its judged bins and the plant
-    seconds it took."""
+    uncompensated: dict[tuple[float, ...], dict[str, Any]] | None = None,
+) -> tuple[list[dict[str, Any]], float, bool]:
+    """The pair of run-ups at one torque in the open run (off, then the LUT): its judged bins, the plant seconds
+    it took and whether the uncompensated run-up was reused. `uncompensated`: the uncompensated run-ups a caller
+    keeps for the same bench and ramp (a refinement's rounds validate maps of one bench over one range: the order
+    without injection does not change with the LUT), taken from it and added to it."""
     order = brun.harmonic_order
     results = {}
+    key = (torque_nm, udc_v, *speed_range, rate_rpm_per_s, float(order))
+    reused = uncompensated is not None and key in uncompensated
+    if uncompensated is not None and key in uncompensated:
+        results["off"] = {**uncompensated[key], "plant_time_s": 0.0}  # paid for once, where it was measured
     for injection in ("off", "lut"):
+        if injection in results:
+            continue
         req = RunupRequest(
             torque_nm=torque_nm,
             udc_v=udc_v,
@@ -148,5 +162,7 @@ def measure_runup_pair(
             override_envelope_model=True,  # the range was narrowed to the envelope already (runup_range)
         )
         results[injection] = measure_runup(brun, settings, req)
+    if uncompensated is not None:
+        uncompensated[key] = results["off"]
     plant_s = sum(r["plant_time_s"] for r in results.values())
-    return judge_bins(results["off"], results["lut"], order, torque_nm, udc_v, target_db), plant_s
+    return judge_bins(results["off"], results["lut"], order, torque_nm, udc_v, target_db), plant_s, reused

@@ -89,6 +89,13 @@ class ValidationOptions(BaseModel):
         "(service/runs/runup_validation.py)",
     )
     runup_rate_rpm_per_s: float = Field(100.0, ge=10, le=1000, description="the run-ups' ramp rate, rpm/s")
+    runup_torques_max: int | None = Field(
+        None,
+        ge=2,
+        le=200,
+        description="run up at most this many torques, evenly spread over the rows and midpoints (both ends "
+        "included); None: at every row and midpoint. A refined map has many rows: bench time is the budget",
+    )
 
 
 class ValidationRefused(Invalid, ValueError):
@@ -152,11 +159,13 @@ class ValidationRun:
     started_at: str = field(default_factory=now_iso)
     row_id: int | None = None  # its map_validations row, once stored
     runup_plant_time_s: float = 0.0  # the run-up pairs' (their bins carry none each)
+    runups_reused: int = 0  # uncompensated run-ups taken from an earlier validation of the same bench and ramp
 
     def summary(self) -> dict[str, Any]:
         out = summarize(self.cells)
         out["plant_time_s"] += self.runup_plant_time_s
         out["runup_plant_time_s"] = self.runup_plant_time_s
+        out["runups_reused"] = self.runups_reused
         return out
 
 
@@ -230,13 +239,16 @@ def run_validation(
     on_cell: Callable[[dict[str, Any], int], None] | None = None,
     download: Callable[..., dict[str, Any]] = download_into_drive,
     on_progress: Callable[[ValidationRun], object] | None = None,
+    uncompensated: dict[tuple[float, ...], dict[str, Any]] | None = None,
 ) -> ValidationRun:
     """The whole job: download, then every point in one continuous bench run (service/bench/run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
     is made safe and a new one goes on from the next point). Never raises for a point: a failed point
     is a cell with its reason; an interlock trip or a cancel ends the run with state failed /
     cancelled and the remaining cells marked not measured. Errors before the first point (download)
-    do raise. `on_progress(run)` is told after the download and after every point (the job stores it)."""
+    do raise. `on_progress(run)` is told after the download and after every point (the job stores it).
+    `uncompensated`: run-ups without injection kept across validations of one bench (runup_validation.py
+    measure_runup_pair)."""
     m = map_view(storage, map_id)
     if m is None:
         raise KeyError(f"map {map_id} does not exist")
@@ -278,7 +290,7 @@ def run_validation(
                 }
             ]
         assert item.speed_range is not None
-        bins, plant_s = measure_runup_pair(
+        bins, plant_s, reused = measure_runup_pair(
             brun,
             settings,
             item.op.torque_nm,
@@ -286,8 +298,10 @@ def run_validation(
             item.speed_range,
             options.runup_rate_rpm_per_s,
             options.target_db,
+            uncompensated,
         )
         run.runup_plant_time_s += plant_s
+        run.runups_reused += int(reused)
         if not bins:
             raise MeasurementError("no speed bin of the run-up pair could be judged (the order was not fitted)")
         return bins
@@ -365,7 +379,7 @@ def validation_items(
     if not options.runups:
         return items
     for udc_v in axes["udc_v"]:
-        for torque_nm, _row in runup_torques(axes["torque_nm"]):
+        for torque_nm, _row in runup_torques(axes["torque_nm"], options.runup_torques_max):
             speed_range = runup_range(torque_nm, udc_v, axes["speed_rpm"], settings, options.override_envelope_model)
             start = OperatingPoint(torque_nm=torque_nm, speed_rpm=min(axes["speed_rpm"]), udc_v=udc_v)
             not_run = (

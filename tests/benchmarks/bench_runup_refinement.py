@@ -29,7 +29,7 @@ GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], ud
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
 
 
-def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str) -> None:
+def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str, runup_torques: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
         if seed is not None:
@@ -44,7 +44,9 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: 
                 max_cells=max_cells,
                 max_bytes=2048,
                 placement=placement,
-                validation=ValidationOptions(runups=True, runup_rate_rpm_per_s=rate_rpm_per_s),
+                validation=ValidationOptions(
+                    runups=True, runup_rate_rpm_per_s=rate_rpm_per_s, runup_torques_max=runup_torques
+                ),
             )
             job_id = svc.engine.submit("refinement", sweep["map_id"], request)
             job = wait_run_finished(lambda: svc.storage.get_job(job_id), 7200.0, f"refinement job {job_id}")
@@ -70,12 +72,13 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", default="-,3", help="comma-separated; - is paper-bench")
-    parser.add_argument("--max-cells", type=int, default=40)
+    parser.add_argument("--max-cells", type=int, default=1000)
+    parser.add_argument("--runup-torques", type=int, default=7, help="run-ups at most at this many torques")
     parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
     args = parser.parse_args()
     for text in args.seeds.split(","):
-        machine(None if text == "-" else int(text), args.max_cells, args.rate, args.placement)
+        machine(None if text == "-" else int(text), args.max_cells, args.rate, args.placement, args.runup_torques)
 
 
 if __name__ == "__main__":

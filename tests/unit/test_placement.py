@@ -19,6 +19,7 @@ from service.maps.placement import (
     midpoints,
     place,
     predicted_db,
+    worst_db,
 )
 
 
@@ -65,17 +66,21 @@ def test_a_candidate_is_judged_by_its_worst_cell_with_the_closed_form_midpoint_e
     judged = judge_candidates(axes, cands, thetas, "cartesian")
     # along speed at each torque row: error 1e-7 * 400^2 / 4 = 4e-3 (times the row's scale, as theta itself)
     expected = min(20 * math.log10(abs(f(t, 1200.0)) / (4e-3 * (1 + 0.1 * t))) for t in (1.0, 2.0))
-    assert judged["speed_rpm"][1200.0] == pytest.approx(expected, abs=1e-3)
-    assert judged["torque_nm"][1.5] > 200.0  # linear in torque: exact to rounding
+    assert len(judged["speed_rpm"][1200.0]) == 2  # a cell per torque row
+    assert min(judged["speed_rpm"][1200.0]) == pytest.approx(expected, abs=1e-3)
+    assert min(judged["torque_nm"][1.5]) > 200.0  # linear in torque: exact to rounding
+    assert worst_db(judged)["speed_rpm"] == pytest.approx(expected, abs=1e-3)
     del thetas[(1.0, 1200.0, 12.0)], thetas[(2.0, 1200.0, 12.0)]
-    assert judge_candidates(axes, cands, thetas, "cartesian")["speed_rpm"][1200.0] is None  # no evidence
+    assert judge_candidates(axes, cands, thetas, "cartesian")["speed_rpm"][1200.0] == []  # no evidence
 
 
-def test_place_keeps_what_misses_the_target_with_its_margin_worst_first_within_the_bytes():
+def test_place_keeps_what_misses_the_target_with_its_margin_most_cells_per_byte_first_within_the_bytes():
     axes = {"torque_nm": [1.0, 2.0], "speed_rpm": [1000.0, 1400.0, 1800.0], "udc_v": [12.0]}
+    bar = 30.0 + PLACE_MARGIN_DB
     judged = {
-        "torque_nm": {1.5: 30.0 + PLACE_MARGIN_DB + 1.0},  # holds with the margin: dropped, its interval settled
-        "speed_rpm": {1200.0: 20.0, 1600.0: 30.0 + PLACE_MARGIN_DB - 1.0, 2000.0: None},
+        "torque_nm": {1.5: [bar + 1.0, bar + 3.0, bar + 2.0]},  # holds with the margin: dropped, its interval settled
+        # 1200: one cell of two short, far; 1600: both cells short, barely; 2000: no evidence
+        "speed_rpm": {1200.0: [20.0, bar + 5.0], 1600.0: [bar - 1.0, bar - 2.0], 2000.0: []},
     }
     kept, following, reasons = place(axes, judged, 30.0, None)
     assert kept == {"torque_nm": [], "speed_rpm": [1200.0, 1600.0]}
@@ -83,5 +88,5 @@ def test_place_keeps_what_misses_the_target_with_its_margin_worst_first_within_t
     assert reasons == []
     one_more = image_bytes({**axes, "speed_rpm": [1000.0, 1200.0, 1400.0, 1800.0]})
     kept, following, reasons = place(axes, judged, 30.0, one_more)
-    assert kept["speed_rpm"] == [1200.0]  # the worst first; 1600 would not fit
-    assert len(reasons) == 1 and "1600" in reasons[0] and str(one_more) in reasons[0]
+    assert kept["speed_rpm"] == [1600.0]  # two short cells for the line's bytes beat one; 1200 would not fit
+    assert len(reasons) == 1 and "1200" in reasons[0] and str(one_more) in reasons[0]

@@ -48,6 +48,11 @@ def test_runups_run_at_every_torque_row_and_midpoint():
         (3.0, "row"),
     ]
 
+    # nine rows make 17 torques; at most 7 of them: evenly by index (0, 3, 5, 8, 11, 13, 16), both ends kept
+    nine = runup_torques([1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 3.5, 4.0], most=7)
+    assert [t for t, _ in nine] == [1.0, 1.375, 1.625, 2.0, 2.75, 3.25, 4.0]
+    assert runup_torques([1.0, 2.0], most=7) == [(1.0, "row"), (1.5, "midpoint"), (2.0, "row")]
+
 
 def test_a_runup_range_stops_where_the_envelope_model_stops_holding_the_torque():
     speeds = [1000.0, 1800.0, 2600.0]

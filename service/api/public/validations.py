@@ -71,6 +71,9 @@ class ValidationSummaryPublic(BaseModel):
     min_db: float | None = None
     torques_run_up: list[float] | None = Field(None, description="the torques the LUT was judged along run-ups at")
     runup_plant_time_s: float | None = Field(None, description="plant seconds of the run-up pairs (in plant_time_s)")
+    runups_reused: int | None = Field(
+        None, description="uncompensated run-ups reused from an earlier validation of the same refinement"
+    )
 
 
 class ValidationPublic(ValidationSummaryPublic):

@@ -12,7 +12,14 @@ from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
 from service.maps.lut_export import DEFAULT_INTERPOLATION, image_bytes
-from service.maps.placement import MAX_PLACE_ROUNDS, candidate_cells, first_candidates, judge_candidates, place
+from service.maps.placement import (
+    MAX_PLACE_ROUNDS,
+    candidate_cells,
+    first_candidates,
+    judge_candidates,
+    place,
+    worst_db,
+)
 from service.maps.view import map_view
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, parse_options
@@ -124,6 +131,8 @@ class RefinementRun:
 
     def __init__(self, runner: SweepRunner):
         self.runner, self.host = runner, runner.host
+        # the uncompensated run-ups of this refinement's validations (one bench, one range): measured once
+        self.uncompensated: dict[tuple[float, ...], dict[str, Any]] = {}
         self.storage, self.bench, self.settings, self.broker = (
             runner.storage,
             runner.bench,
@@ -242,9 +251,7 @@ class RefinementRun:
                 "round": state["round"],
                 "candidates": {a: len(v) for a, v in candidates.items()},
                 "inserted": kept,
-                "worst_predicted_db": {
-                    a: min((db for db in by.values() if db is not None), default=None) for a, by in judged.items()
-                },
+                "worst_predicted_db": worst_db(judged),
                 "bytes": image_bytes(state["axes"]),
                 "cells": math.prod(len(state["axes"][a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
                 "plant_time_s": round_plant_s,
@@ -320,6 +327,7 @@ class RefinementRun:
             ctl.cancel,
             on_cell=on_cell,
             on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
+            uncompensated=self.uncompensated,
         )
         validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
         if run.state == "cancelled":
@@ -397,10 +405,11 @@ class RefinementRun:
             state["round"] += 1
             state["phase"] = "measure"
             return
-        if harmful and state.get("guard_rounds", 0) < MAX_GUARD_ROUNDS:
+        already_off = {(c[0], c[1], c[2]) for c in state.get("guard_off", [])}
+        off = already_off | set(guard_cells(m.axes, [c.model_dump() for c in m.cells], harmful)) if harmful else set()
+        # a guard round that would turn off no new cell would validate the same LUT again: it ends here instead
+        if harmful and state.get("guard_rounds", 0) < MAX_GUARD_ROUNDS and off != already_off:
             # never worse than nothing: the drive gives no compensation where this LUT made the order worse
-            off = {(c[0], c[1], c[2]) for c in state.get("guard_off", [])}
-            off |= set(guard_cells(m.axes, [c.model_dump() for c in m.cells], harmful))
             state["guard_off"] = [list(c) for c in sorted(off)]
             state["phase"] = "guard"
             state["stopped"] = stopped  # kept for the guarded map's verdict

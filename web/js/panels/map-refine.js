@@ -292,6 +292,8 @@ function renderProgress() {
   if (phase === "measure") {
     doing = live.toMeasure !== null && running ? `measuring ${live.toMeasure} cell(s): ${live.measured} done` :
       "measuring cells";
+  } else if (phase === "place") {
+    doing = "placing breakpoints from the theta* identified between them";
   } else if (phase === "validate") {
     doing = `validating map ${mapNow ?? "—"}` +
       (running && live.total ? `: ${live.validated.size} of ${live.total} points` : "");
@@ -337,6 +339,12 @@ function renderOutcome() {
     level = ref.state === "cancelled" ? "warn" : "error";
     text = `Refinement ${ref.state}${run.error ? ": " + run.error : ""} — latest map ${ref.map_id}, ` +
       `${ref.cells_added} cell(s) added.`;
+  }
+  const placed = ref.placement || [];
+  if (placed.length) {        // placement from curves came before the first validation
+    const count = (axis) => placed.reduce((n, p) => n + ((p.inserted || {})[axis] || []).length, 0);
+    text += ` Placed from curves first: ${placed.length} round(s), ${count("torque_nm")} torque and ` +
+      `${count("speed_rpm")} speed value(s) inserted, ${placed[placed.length - 1].bytes} bytes.`;
   }
   if (run.queuedNote) {      // the outcome replaces the "queued" line (an error shown there stays)
     run.queuedNote = false;
