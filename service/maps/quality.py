@@ -9,8 +9,10 @@ spacing, and the fit interpolates by position.
 
 The statistic (robust, scaled by the grid spacing):
 - typical gradient per axis k: g_k = median over adjacent reference pairs along k of
-  |theta_a - theta_b| / |x_a - x_b| (rad per Nm, per rpm, per V); a median of absolute differences,
-  so up to half the pairs along an axis may be spoiled without moving it;
+  |theta_a - theta_b| / |x_a - x_b| (rad per Nm, per rpm, per V), each pair weighted by |x_a - x_b| (the
+  median change per unit of the axis: a refined map's close breakpoints at a turn do not make the turn
+  the whole map's typical change); a median of absolute differences, so up to half the axis may be
+  spoiled without moving it;
 - a cell's fit: the component-wise median of its reference neighbours' theta, each pair across the
   cell on one axis (at distances d_lo, d_hi) centred on its interpolation at the cell's position
   I = w_lo theta_lo + w_hi theta_hi, w_lo = d_hi / (d_lo + d_hi), w_hi = d_lo / (d_lo + d_hi): both
@@ -19,7 +21,10 @@ The statistic (robust, scaled by the grid spacing):
   stays one value of the median, and a bad one moves its partner's by |w_lo - 1/2| of its error at
   most (none on a uniform axis), so one bad neighbour is still outvoted. Exact for an interior
   cell of a map linear in the operating point, on any spacing (each pair is then symmetric about it);
-- its expected step: the median over those neighbours of g_k |x_neighbour - x_cell|, floored at
+- its expected step: the median over those neighbours of max(g_k, l_k) |x_neighbour - x_cell|, l_k the
+  change across the cell, |theta_hi - theta_lo| / (x_hi - x_lo) of its pair on axis k (where theta* turns
+  fast, as at the field-weakening turn that a refinement resolves with close breakpoints, the turn its two
+  neighbours agree on is not an outlier; a single bad cell leaves l_k of its own pair small), floored at
   MIN_STEP_DEG (a flat map's noise is not an outlier);
 - score = |theta - fit| / expected step; an outlier when score > OUTLIER_FACTOR.
 References are the ok cells not yet flagged: the worst cell over the factor is flagged, then every
@@ -107,7 +112,7 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
                         near[key].append((other, a, abs(values[a][j] - key[pos])))
     # |delta theta| / spacing of every adjacent pair, per axis, computed once
     pairs = [
-        (k, other, a, math.hypot(theta[other][0] - theta[k][0], theta[other][1] - theta[k][1]) / dx)
+        (k, other, a, math.hypot(theta[other][0] - theta[k][0], theta[other][1] - theta[k][1]) / dx, dx)
         for k, around in near.items()
         for other, a, dx in around
         if other > k
@@ -150,24 +155,44 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
     return MapQuality(evaluated, gradients)
 
 
-def _gradients(pairs: list[tuple[Key, Key, str, float]], flagged: set[Key]) -> dict[str, float | None]:
-    per_axis: dict[str, list[float]] = {a: [] for a in AXES}
-    for k, other, a, g in pairs:
+def _gradients(pairs: list[tuple[Key, Key, str, float, float]], flagged: set[Key]) -> dict[str, float | None]:
+    """Per axis, the median of the pairs' |delta theta| / spacing, each pair weighted by its spacing: the median
+    change per unit along the axis (a refined map's close breakpoints at a turn are many pairs over a few rpm,
+    and would otherwise make the whole map's typical change the turn's)."""
+    per_axis: dict[str, list[tuple[float, float]]] = {a: [] for a in AXES}
+    for k, other, a, g, dx in pairs:
         if k not in flagged and other not in flagged:
-            per_axis[a].append(g)
-    return {a: (statistics.median(g) if g else None) for a, g in per_axis.items()}
+            per_axis[a].append((g, dx))
+    return {a: (_weighted_median(g) if g else None) for a, g in per_axis.items()}
 
 
-# (the reference neighbours, their median theta, this cell's distance to it): _fit's answer
-Fitted = tuple[list[tuple[Key, str, float]], tuple[float, float] | None, float | None]
+def _weighted_median(values: list[tuple[float, float]]) -> float:
+    """The median of (value, weight) pairs: the mean of the two middle values where the weight splits exactly in
+    half (so equal weights give statistics.median)."""
+    ordered = sorted(values)
+    half = sum(w for _, w in ordered) / 2.0
+    cumulative = 0.0
+    for i, (v, w) in enumerate(ordered):
+        cumulative += w
+        if math.isclose(cumulative, half, rel_tol=1e-12):
+            return (v + ordered[i + 1][0]) / 2.0
+        if cumulative > half:
+            return v
+    return ordered[-1][0]
+
+
+# (the reference neighbours, their median theta, this cell's distance to it, the local change across it per axis
+# in rad per unit): _fit's answer
+Fitted = tuple[list[tuple[Key, str, float]], tuple[float, float] | None, float | None, dict[str, float]]
 
 
 def _fit(key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[float, float]]) -> Fitted:
     """(the reference neighbours, the component-wise median of their theta with each pair across the
     cell centred on its interpolation at the cell's position, this cell's distance to it)."""
     if len(around) < MIN_NEIGHBOURS:
-        return around, None, None
+        return around, None, None, {}
     values: list[tuple[float, float]] = []
+    across: dict[str, float] = {}
     for pos, a in enumerate(AXES):
         on_axis = [(o, dx) for o, ax, dx in around if ax == a]
         below = [(o, dx) for o, dx in on_axis if o[pos] < key[pos]]
@@ -178,17 +203,21 @@ def _fit(key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[
             k = d_hi / (d_lo + d_hi) - 0.5
             shift = (k * (theta[lo][0] - theta[hi][0]), k * (theta[lo][1] - theta[hi][1]))
             values += [(theta[o][0] + shift[0], theta[o][1] + shift[1]) for o in (lo, hi)]
+            across[a] = math.hypot(theta[hi][0] - theta[lo][0], theta[hi][1] - theta[lo][1]) / (d_lo + d_hi)
         else:
             values += [theta[o] for o, _ in on_axis]
     fit = (statistics.median([v[0] for v in values]), statistics.median([v[1] for v in values]))
     value = theta[key]
-    return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1])
+    return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1]), across
 
 
 def _evaluate(fitted: Fitted, gradients: dict[str, float | None]) -> CellQuality:
-    around, fit, deviation = fitted
+    around, fit, deviation, across = fitted
     neighbours = [o for o, _, _ in around]
-    steps = [g * dx for _, a, dx in around if (g := gradients[a]) is not None]
+    # per neighbour the step the map's median change predicts, or the change across the cell where theta* moves
+    # faster here (the field-weakening turn, where a refinement puts its breakpoints close: a turn its two
+    # neighbours agree on is a turn, not an outlier; one bad cell leaves its neighbours' change across it small)
+    steps = [max(g, across.get(a, 0.0)) * dx for _, a, dx in around if (g := gradients[a]) is not None]
     if fit is None or not steps:
         return CellQuality("unchecked", neighbours=neighbours)
     expected = max(statistics.median(steps), math.radians(MIN_STEP_DEG))

@@ -293,3 +293,33 @@ def test_filled_cells_are_neither_judged_nor_references():
     assert all(at not in c.neighbours for c in q.cells.values())
     # (2 Nm, 1500 rpm) lost its neighbour above: 3 left (1 and 3 Nm, 1000 rpm)
     assert len(q.cells[(2.0, 1500.0, 12.0)].neighbours) == 3
+
+
+# a refined map: a slow map with a fast turn between 2150 and 2250 rpm resolved by breakpoints every 25 rpm
+TURN_GRID = {
+    "torque_nm": [1.0, 2.0, 3.0, 4.0],
+    "speed_rpm": [1000.0, 1400.0, 1800.0, 2150.0, 2175.0, 2200.0, 2225.0, 2250.0, 2600.0],
+    "udc_v": [12.0],
+}
+
+
+def turning(p):
+    """theta* turning by 120 deg around 2200 rpm (a smooth tanh step of the phase, 25 rpm wide) at 3 deg, the slow
+    linear map elsewhere: the change across a turn cell is 30-50x the map's median per-rpm change."""
+    tc, ts = linear(p)
+    phase = math.radians(60.0) * (1.0 + math.tanh((p[1] - 2200.0) / 25.0))
+    g = math.hypot(tc, ts)
+    return g * math.cos(math.atan2(ts, tc) + phase), g * math.sin(math.atan2(ts, tc) + phase)
+
+
+def test_a_turn_resolved_by_close_breakpoints_is_not_an_outlier_and_a_bad_cell_on_it_still_is(storage):
+    m = map_public(storage, make_map(storage, TURN_GRID, turning)).model_dump()
+    assert m["quality"]["outliers"] == 0, [c["outlier_reason"] for c in m["cells"] if c["quality"] == "outlier"]
+    at = (2.0, 1400.0, 12.0)  # away from the turn: its neighbours agree, so 1.5 deg is still 3x what they expect
+
+    def spoiled(p):
+        tc, ts = turning(p)
+        return (tc + OFFSET[0], ts + OFFSET[1]) if p == at else (tc, ts)
+
+    m = map_public(storage, make_map(storage, TURN_GRID, spoiled)).model_dump()
+    assert [(c["torque_nm"], c["speed_rpm"]) for c in m["cells"] if c["quality"] == "outlier"] == [at[:2]]
