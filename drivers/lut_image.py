@@ -17,6 +17,11 @@ Layout, format_version 3 and 4 (little-endian, 20-byte header):
                    any interval that has this cell as a corner of non-zero weight, theta kept for the
                    record) |
     u32 crc32 (zlib) of every byte before it.
+Version 5 (cell_format "int16", 5 bytes a cell instead of 9: twice the cells in the same firmware memory) is
+version 4 with theta as integers: after the axes, f32 theta_quantum_rad (> 0), then i16 theta_cos_q[...],
+i16 theta_sin_q[...] (theta = q * theta_quantum_rad; the encoder takes the quantum as the largest |theta
+component| of the map / 32767, so a 3 deg map has a quantum of 1.6e-6 rad, 86 dB under theta), then the flags
+as in version 4.
 Version 4 is version 3 plus flag 3 (FLAG_OFF); version 2 is the same layout with byte 7 reserved (0) and
 u8 valid[...] (0/1) for the flags. The drive decodes all three: a version 2 image is flags = valid and
 cartesian interpolation. `encode` writes version 4 only when a cell carries FLAG_OFF, else version 3
@@ -63,7 +68,11 @@ import numpy as np
 MAGIC = b"RCL1"
 FORMAT_VERSION = 3  # what encode writes for a map without injection-off cells
 FORMAT_VERSION_OFF = 4  # what encode writes when a cell carries FLAG_OFF
-SUPPORTED_VERSIONS = (2, 3, 4)  # what the drive decodes
+FORMAT_VERSION_INT16 = 5  # what encode writes for cell_format "int16" (any flag)
+SUPPORTED_VERSIONS = (2, 3, 4, 5)  # what the drive decodes
+CELL_FORMATS = ("float32", "int16")  # theta per cell: f32 (versions 2-4) or i16 times one quantum (version 5)
+CELL_BYTES = {"float32": 9, "int16": 5}  # theta_cos, theta_sin and the flag
+INT16_FULL_SCALE = 32767
 HEADER = struct.Struct("<4sHBBHHHHI")
 TRAILER = struct.Struct("<I")  # CRC-32 (zlib) of every byte before it
 MAX_CELLS = 4096
@@ -78,6 +87,7 @@ VERSION_FLAGS = {
     2: (FLAG_NONE, FLAG_OK),
     3: (FLAG_NONE, FLAG_OK, FLAG_FILLED),
     4: FLAGS,
+    5: FLAGS,
 }
 # the header's interpolation byte: the code is the index
 INTERPOLATIONS = ("cartesian", "polar")
@@ -216,12 +226,14 @@ def encode(
     *,
     map_id: int,
     interpolation: str | None = None,
+    cell_format: str = "float32",
 ) -> bytes:
     """A format_version 3 image of map `map_id` (4 when a cell carries FLAG_OFF) from the axes and
     [udc][speed][torque] arrays (nested lists or arrays of that shape, or flat in that order). flags:
     FLAG_NONE / FLAG_OK / FLAG_FILLED / FLAG_OFF per cell (default all FLAG_OK); cells with flag 0 go in
     with theta 0, off cells with their theta (for the record). interpolation: "cartesian" or
-    "polar" (None: DEFAULT_INTERPOLATION). Raises LutImageError if the map has more than MAX_CELLS
+    "polar" (None: DEFAULT_INTERPOLATION). cell_format "int16": a version 5 image (module doc). Raises
+    LutImageError if the map has more than MAX_CELLS
     cells, an axis is not strictly increasing, a flag or theta is not allowed, or map_id is not in
     1 .. MAX_MAP_ID."""
     if not 1 <= int(map_id) <= MAX_MAP_ID:
@@ -241,26 +253,54 @@ def encode(
             f"flags must be {FLAG_NONE} (no entry), {FLAG_OK} (ok), {FLAG_FILLED} (filled) or {FLAG_OFF} (injection off)"
         )
     f = f.astype(np.uint8)
-    version = format_version_of(f)
-    tc = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_cos, dtype=np.float64).reshape(shape)).astype("<f4")
-    tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape)).astype("<f4")
+    if cell_format not in CELL_FORMATS:
+        raise LutImageError(f"cell_format {cell_format!r} is not one of {', '.join(CELL_FORMATS)}")
+    version = format_version_of(f, cell_format)
+    tc = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_cos, dtype=np.float64).reshape(shape))
+    tsn = np.where(f == FLAG_NONE, 0.0, np.asarray(theta_sin, dtype=np.float64).reshape(shape))
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
     body = HEADER.pack(MAGIC, version, int(harmonic_order), INTERPOLATIONS.index(mode), nt, nn, nu, 0, int(map_id))
     for axis in axes:
         body += np.asarray(axis, dtype="<f4").tobytes()
-    body += tc.tobytes() + tsn.tobytes() + f.tobytes()
+    if cell_format == "int16":
+        quantum = int16_quantum(tc, tsn)
+        body += np.float32(quantum).astype("<f4").tobytes()
+        body += quantized(tc, quantum).tobytes() + quantized(tsn, quantum).tobytes()
+    else:
+        body += tc.astype("<f4").tobytes() + tsn.astype("<f4").tobytes()
+    body += f.tobytes()
     return body + TRAILER.pack(_crc32(body))
 
 
-def format_version_of(flags) -> int:
-    """The format version `encode` writes for these flags: FORMAT_VERSION_OFF when any is FLAG_OFF, else
-    FORMAT_VERSION (an image without off cells stays what it was before version 4)."""
+def int16_quantum(theta_cos, theta_sin) -> float:
+    """The version 5 quantum, rad: the largest |theta component| / INT16_FULL_SCALE, as the f32 the image carries
+    (rounded up, so no component overflows); 1.0 for a map of zeros."""
+    largest = float(max(np.max(np.abs(theta_cos), initial=0.0), np.max(np.abs(theta_sin), initial=0.0)))
+    if largest == 0.0:
+        return 1.0
+    q = np.float32(largest / INT16_FULL_SCALE)
+    return float(q if float(q) * INT16_FULL_SCALE >= largest else np.nextafter(q, np.float32(np.inf)))
+
+
+def quantized(theta, quantum: float) -> np.ndarray:
+    """theta / quantum rounded to the nearest integer, as the i16 a version 5 image carries."""
+    return np.clip(np.rint(np.asarray(theta, dtype=np.float64) / quantum), -INT16_FULL_SCALE, INT16_FULL_SCALE).astype(
+        "<i2"
+    )
+
+
+def format_version_of(flags, cell_format: str = "float32") -> int:
+    """The format version `encode` writes for these flags and cells: FORMAT_VERSION_INT16 for int16 cells, else
+    FORMAT_VERSION_OFF when any is FLAG_OFF, else FORMAT_VERSION (an image without off cells stays what it was
+    before version 4)."""
+    if cell_format == "int16":
+        return FORMAT_VERSION_INT16
     return FORMAT_VERSION_OFF if np.any(np.asarray(flags) == FLAG_OFF) else FORMAT_VERSION
 
 
 def decode(blob: bytes) -> Lut:
-    """Check and decode an image of format_version 2, 3 or 4; LutImageError says what is wrong."""
+    """Check and decode an image of format_version 2, 3, 4 or 5; LutImageError says what is wrong."""
     blob = bytes(blob)
     if len(blob) < 6:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
@@ -292,7 +332,9 @@ def decode(blob: bytes) -> Lut:
     if min(nt, nn, nu) < 1 or nt * nn * nu > MAX_CELLS:
         raise LutImageError(f"bad axis lengths {nt} x {nn} x {nu}")
     cells = nt * nn * nu
-    expected = HEADER.size + 4 * (nt + nn + nu) + 8 * cells + cells + TRAILER.size
+    int16 = version == FORMAT_VERSION_INT16
+    theta_bytes = (4 + 4 * cells) if int16 else 8 * cells  # the quantum and two i16 per cell, or two f32
+    expected = HEADER.size + 4 * (nt + nn + nu) + theta_bytes + cells + TRAILER.size
     if len(blob) != expected:
         raise LutImageError(f"length {len(blob)} != {expected} for {nt} x {nn} x {nu}")
     (crc_stored,) = TRAILER.unpack_from(blob, len(blob) - TRAILER.size)
@@ -307,10 +349,20 @@ def decode(blob: bytes) -> Lut:
         if not np.all(np.isfinite(ax)) or np.any(np.diff(ax) <= 0):
             raise LutImageError(f"axis {name} not finite and strictly increasing")
         axes.append(ax)
-    tc = np.frombuffer(blob, dtype="<f4", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt)
-    off += 4 * cells
-    tsn = np.frombuffer(blob, dtype="<f4", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt)
-    off += 4 * cells
+    if int16:
+        (quantum,) = struct.unpack_from("<f", blob, off)
+        off += 4
+        if not (math.isfinite(quantum) and quantum > 0.0):
+            raise LutImageError(f"theta_quantum_rad {quantum} is not a positive finite number")
+        tc = np.frombuffer(blob, dtype="<i2", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt) * quantum
+        off += 2 * cells
+        tsn = np.frombuffer(blob, dtype="<i2", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt) * quantum
+        off += 2 * cells
+    else:
+        tc = np.frombuffer(blob, dtype="<f4", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt)
+        off += 4 * cells
+        tsn = np.frombuffer(blob, dtype="<f4", count=cells, offset=off).astype(np.float64).reshape(nu, nn, nt)
+        off += 4 * cells
     flags = np.frombuffer(blob, dtype=np.uint8, count=cells, offset=off).reshape(nu, nn, nt).copy()
     if not np.all(np.isin(flags, allowed)):
         raise LutImageError(f"flags must be one of {allowed} in a format_version {version} image")

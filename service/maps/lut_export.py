@@ -26,6 +26,8 @@ import re
 from dataclasses import dataclass
 from typing import Any, Callable, cast
 
+import numpy as np
+
 from drivers import lut_image as lut_codec
 from service import __version__
 from service.maps import quality as map_quality
@@ -124,9 +126,17 @@ def _off_text(m: dict[str, Any]) -> str:
     )
 
 
+def cell_format(m: dict[str, Any]) -> str:
+    """How the map's LUT image carries theta per cell: "float32" (9 bytes a cell) or "int16" (5 bytes a cell, image
+    version 5), as the map was built for (its provenance's `lut_cells`, chosen by the refinement that built it)."""
+    chosen = (m.get("provenance") or {}).get("lut_cells", "float32")
+    return chosen if chosen in lut_codec.CELL_FORMATS else "float32"
+
+
 def lut_format_version(m: dict[str, Any]) -> int:
-    """The format_version of the map's LUT image: 4 with a cell whose injection is off, else 3."""
-    return lut_codec.format_version_of([cell_flag(c) for c in m["cells"]])
+    """The format_version of the map's LUT image: 5 with int16 cells, else 4 with a cell whose injection is off,
+    else 3."""
+    return lut_codec.format_version_of([cell_flag(c) for c in m["cells"]], cell_format(m))
 
 
 def _counts_text(m: dict[str, Any]) -> str:
@@ -357,10 +367,7 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
         f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};",
         "",
-        f"/* theta_cos, rad (ok, filled and injection-off cells; 0 elsewhere) */\n"
-        f"static const float {array}_theta_cos_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_cos'))};",
-        f"/* theta_sin, rad (ok, filled and injection-off cells; 0 elsewhere) */\n"
-        f"static const float {array}_theta_sin_rad[{nu}][{nn}][{nt}] = {_c_array(_grid_values(m, 'theta_sin'))};",
+        *_c_theta_arrays(m, array, macro, (nu, nn, nt)),
         f"/* 1 where the cell holds an identified value (ok) */\n"
         f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
         f"/* 1 where the cell holds a fill (not ok; service/maps/fill.py) */\n"
@@ -447,7 +454,7 @@ static inline void @A_polar(unsigned corner[8][3], const float weight[8], unsign
     unsigned k;
     for (k = 0u; k < n_corners; k++) {
         const unsigned u = corner[k][0], n = corner[k][1], t = corner[k][2];
-        const float cos_c = @A_theta_cos_rad[u][n][t], sin_c = @A_theta_sin_rad[u][n][t];
+        const float cos_c = @M_THETA_COS(u, n, t), sin_c = @M_THETA_SIN(u, n, t);
         gamma_c[k] = hypotf(cos_c, sin_c);
         delta_c[k] = -atan2f(sin_c, cos_c);
         /* a zero theta has no phase */
@@ -515,8 +522,8 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
         for (k = 0u; k < n_corners; k++) {
             const unsigned u = corner[k][0], n = corner[k][1], t = corner[k][2];
             if (@A_entry(u, n, t, with_fill)) { /* no entry: theta 0 */
-                tc += weight[k] * @A_theta_cos_rad[u][n][t];
-                ts += weight[k] * @A_theta_sin_rad[u][n][t];
+                tc += weight[k] * @M_THETA_COS(u, n, t);
+                ts += weight[k] * @M_THETA_SIN(u, n, t);
             }
         }
     }
@@ -529,6 +536,42 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
     *theta_cos_rad = tc;
     *theta_sin_rad = ts;
 }"""
+
+
+def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int, int, int]) -> list[str]:
+    """theta_cos and theta_sin as the map's LUT image carries them: f32 arrays, or (int16 cells) i16 arrays and
+    their quantum, the same integers as the drive's image; <MACRO>_THETA_COS(u, n, t) reads either in rad."""
+    nu, nn, nt = shape
+    dims = f"[{nu}][{nn}][{nt}]"
+    what = "(ok, filled and injection-off cells; 0 elsewhere)"
+    tc, ts = _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin")
+    if cell_format(m) != "int16":
+        return [
+            f"/* theta_cos, rad {what} */\nstatic const float {array}_theta_cos_rad{dims} = {_c_array(tc)};",
+            f"/* theta_sin, rad {what} */\nstatic const float {array}_theta_sin_rad{dims} = {_c_array(ts)};",
+            f"#define {macro}_THETA_COS(u, n, t) ({array}_theta_cos_rad[u][n][t])",
+            f"#define {macro}_THETA_SIN(u, n, t) ({array}_theta_sin_rad[u][n][t])",
+        ]
+    quantum = lut_codec.int16_quantum(np.asarray(tc), np.asarray(ts))
+
+    def ints(values: list[list[list[float]]]) -> str:
+        q = lut_codec.quantized(values, quantum).tolist()
+        return (
+            "{"
+            + ", ".join(
+                "{" + ", ".join("{" + ", ".join(str(v) for v in row) + "}" for row in plane) + "}" for plane in q
+            )
+            + "}"
+        )
+
+    return [
+        f"/* theta quantum, rad: theta = q * quantum (LUT image version 5, int16 cells) */\n"
+        f"#define {macro}_THETA_QUANTUM_RAD {float(np.float32(quantum))!r}f",
+        f"/* theta_cos / quantum {what} */\nstatic const int16_t {array}_theta_cos_q{dims} = {ints(tc)};",
+        f"/* theta_sin / quantum {what} */\nstatic const int16_t {array}_theta_sin_q{dims} = {ints(ts)};",
+        f"#define {macro}_THETA_COS(u, n, t) ((float){array}_theta_cos_q[u][n][t] * {macro}_THETA_QUANTUM_RAD)",
+        f"#define {macro}_THETA_SIN(u, n, t) ((float){array}_theta_sin_q[u][n][t] * {macro}_THETA_QUANTUM_RAD)",
+    ]
 
 
 def _c_interpolator(array: str, macro: str) -> str:
@@ -589,18 +632,30 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
     return "\n".join(out)
 
 
-def image_bytes(axes: dict[str, list[float]]) -> int:
+CELL_FORMATS = lut_codec.CELL_FORMATS
+
+
+def image_bytes(axes: dict[str, list[float]], cells: str = "float32") -> int:
     """Bytes of the LUT image (firmware memory) of a map with these axes: header, each axis' breakpoints (f32),
-    theta_cos and theta_sin (f32) and the flag (u8) per cell, CRC (drivers/lut_image.py layout)."""
+    theta_cos and theta_sin (f32, or i16 after one f32 quantum with cells "int16") and the flag (u8) per cell, CRC
+    (drivers/lut_image.py layout)."""
     lengths = [len(axes[a]) for a in lut_codec.AXES]
-    return lut_codec.HEADER.size + 4 * sum(lengths) + 9 * math.prod(lengths) + lut_codec.TRAILER.size
+    quantum = 4 if cells == "int16" else 0
+    return (
+        lut_codec.HEADER.size
+        + 4 * sum(lengths)
+        + quantum
+        + lut_codec.CELL_BYTES[cells] * math.prod(lengths)
+        + lut_codec.TRAILER.size
+    )
 
 
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
     filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry); cells with
-    injection off go in as flag 3 (format_version 4; without one the image is version 3);
+    injection off go in as flag 3 (format_version 4; without one the image is version 3; a map built for int16
+    cells, `cell_format`, is version 5);
     interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
@@ -612,6 +667,7 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
         _grid_values(m, "flag", fill),
         map_id=m["id"],
         interpolation=interpolation,
+        cell_format=cell_format(m),
     )
 
 
@@ -653,7 +709,7 @@ def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None 
         fills_left_out=left_out,
         interpolation=mode,
         injection_off=flags.count(lut_codec.FLAG_OFF),
-        format_version=lut_codec.format_version_of(flags),
+        format_version=lut_codec.format_version_of(flags, cell_format(m)),
     )
 
 

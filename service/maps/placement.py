@@ -140,19 +140,20 @@ def place(
     judged: dict[str, dict[float, list[float]]],
     target_db: float,
     max_bytes: int | None,
+    lut_cells: str = "float32",
 ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[str]]:
     """(kept values per axis, the next round's candidates, reasons for what was left out): candidates with a cell
     short of target_db + PLACE_MARGIN_DB are kept while the image fits max_bytes, those with the most short cells
     per byte of their line first (a full grid: a torque row costs a cell per speed value), then the worst; the
-    next candidates are the midpoints of the kept values' two halves."""
+    next candidates are the midpoints of the kept values' two halves. lut_cells: the image's cell format (bytes)."""
     bar = target_db + PLACE_MARGIN_DB
-    base = image_bytes({a: list(map(float, axes[a])) for a in AXES})
+    base = image_bytes({a: list(map(float, axes[a])) for a in AXES}, lut_cells)
     short = []
     for axis, by_value in judged.items():
         for c, dbs in by_value.items():
             n_short = sum(1 for db in dbs if db < bar)
             if n_short:
-                line_bytes = image_bytes({**axes, axis: sorted(set(map(float, axes[axis])) | {c})}) - base
+                line_bytes = image_bytes({**axes, axis: sorted(set(map(float, axes[axis])) | {c})}, lut_cells) - base
                 short.append((-n_short / line_bytes, min(dbs), axis, c))
     kept: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
     reasons: list[str] = []
@@ -160,7 +161,7 @@ def place(
         trial = {
             a: sorted(set(map(float, axes[a])) | set(kept.get(a, [])) | ({c} if a == axis else set())) for a in AXES
         }
-        if max_bytes is not None and image_bytes(trial) > max_bytes:
+        if max_bytes is not None and image_bytes(trial, lut_cells) > max_bytes:
             reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: the LUT would exceed {max_bytes} bytes")
             continue
         kept[axis].append(c)

@@ -76,7 +76,8 @@ class RefineRequest(BaseModel):
         2048,
         ge=64,
         le=1 << 20,
-        description="largest LUT image the refinement may build, bytes of firmware memory (header, axes, 9 bytes a cell)",
+        description="largest LUT image the refinement may build, bytes of firmware memory (header, axes, 9 bytes a "
+        "cell; 5 with lut_cells int16)",
     )
     max_bench_s: float | None = Field(
         None,
@@ -89,6 +90,12 @@ class RefineRequest(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict, description="the method's options (as for a sweep)")
     validation: ValidationOptions = Field(
         default_factory=ValidationOptions, description="how finely each validation point is measured"
+    )
+    lut_cells: Literal["float32", "int16"] = Field(
+        "float32",
+        description="how the refined LUT carries theta per cell: float32 (9 bytes a cell, image version 3/4) or "
+        "int16 (5 bytes a cell, image version 5, theta = q x one quantum: the largest component / 32767); "
+        "max_bytes counts that format, and the refined map's downloads and exports use it",
     )
     placement: Literal["curves", "validation"] = Field(
         "curves",
@@ -120,6 +127,7 @@ class RefinementState(TypedDict):
     guard_rounds: NotRequired[int]
     candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
     place_rounds: NotRequired[int]
+    lut_cells: NotRequired[str]  # float32 | int16: the refined maps' LUT cells (max_bytes counts them)
     placement_rounds: NotRequired[list[dict[str, Any]]]  # each placement round's candidates, what it kept, its cost
 
 
@@ -216,6 +224,7 @@ def plan_round(
     target_db: float,
     budget_cells: int,
     max_bytes: int | None = None,
+    lut_cells: str = "float32",
 ) -> RoundPlan:
     """The next round's cells (module doc). map_cells: the current map's cells (MapCellPublic dumps);
     validation_cells: its validation's cells. Raises nothing: an empty plan means nothing is left to
@@ -281,7 +290,7 @@ def plan_round(
         if cost > left:
             plan.reasons.append(f"inserting {axis} = {value:g} needs {cost} cells, {left} left in the budget")
             continue
-        size = image_bytes({**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})})
+        size = image_bytes({**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})}, lut_cells)
         if max_bytes is not None and size > max_bytes:
             plan.reasons.append(
                 f"inserting {axis} = {value:g} makes the LUT {size} bytes, over max_bytes = {max_bytes}"

@@ -3,8 +3,9 @@
 Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 200]
 
 On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
-1..4 Nm x 1000..2600 rpm at 12 V, then a refinement (POST /maps/{id}/refine) whose validations include run-ups at
-every torque row and midpoint (`validation.runups`), within max_cells and max_bytes 2048. Printed per round: the
+1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
+then a refinement (POST /maps/{id}/refine: placement from curves, then the same validation), within max_cells and
+max_bytes 2048 (int16 cells: 5 bytes a cell, --lut-cells float32 for 9). Printed per round: the
 LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB, median and
 minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells given
 injection off by the guard, and the round's plant seconds; then the totals.
@@ -18,6 +19,7 @@ import time
 from pathlib import Path
 
 from service.calibration_service import CalibrationService
+from service.maps.view import map_view
 from service.runs.identify import parse_options
 from service.runs.plans import Grid
 from service.runs.refinement import RefineRequest
@@ -29,7 +31,9 @@ GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], ud
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
 
 
-def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str, runup_torques: int) -> None:
+def machine(
+    seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str, runup_torques: int, lut_cells: str
+) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
         if seed is not None:
@@ -39,14 +43,26 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: 
             t0 = time.perf_counter()
             sweep_id = svc.engine.submit_sweep(GRID, "probe", parse_options("probe", {}))
             sweep = wait_run_finished(lambda: svc.storage.get_sweep(sweep_id), 3600.0, f"sweep {sweep_id}")
+            sweep_plant_s = sum(float(r.get("plant_time_s") or 0.0) for r in svc.storage.sweep_results(sweep_id))
+            options = ValidationOptions(
+                runups=True, runup_rate_rpm_per_s=rate_rpm_per_s, runup_torques_max=runup_torques
+            )
+            # the sweep's map as it is, judged the same way (the "before"; not part of the calibration's bench time)
+            job_id = svc.engine.submit("validation", sweep["map_id"], True, options)
+            wait_run_finished(lambda: svc.storage.get_job(job_id), 3600.0, f"validation job {job_id}")
+            before = (svc.storage.validation_of_job(job_id) or {}).get("summary") or {}
+            print(
+                f"machine {'paper-bench' if seed is None else f'seed {seed}'}: sweep {GRID.size()} cells, plant "
+                f"{sweep_plant_s:.0f} s; its map validated: held {before.get('held')}/{before.get('points')}, median "
+                f"{before.get('median_db') or float('nan'):.1f} dB, min {before.get('min_db') or float('nan'):.1f} dB"
+            )
             request = RefineRequest(
                 target_db=30,
                 max_cells=max_cells,
                 max_bytes=2048,
                 placement=placement,
-                validation=ValidationOptions(
-                    runups=True, runup_rate_rpm_per_s=rate_rpm_per_s, runup_torques_max=runup_torques
-                ),
+                lut_cells=lut_cells,
+                validation=options,
             )
             job_id = svc.engine.submit("refinement", sweep["map_id"], request)
             job = wait_run_finished(lambda: svc.storage.get_job(job_id), 7200.0, f"refinement job {job_id}")
@@ -66,6 +82,12 @@ def machine(seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: 
                     f"{k} {r[k]:.1f}" if isinstance(r.get(k), float) else f"{k} {r.get(k)}" for k in ROUND_KEYS
                 )
                 print(f"  {figures}, plant {r.get('plant_time_s', 0.0):.0f} s")
+            final = map_view(svc.storage, state["current_map_id"])
+            outliers = sum(1 for c in final.cells if c.quality == "outlier") if final else None
+            print(
+                f"  refined map {state['current_map_id']}: {outliers} cell(s) called outliers; bench time sweep + "
+                f"refinement {sweep_plant_s + state.get('plant_time_s', 0.0):.0f} plant s"
+            )
             print(f"  total plant {state.get('plant_time_s', 0.0):.0f} s; stopped: {state['stopped']}")
 
 
@@ -76,9 +98,17 @@ def main() -> None:
     parser.add_argument("--runup-torques", type=int, default=7, help="run-ups at most at this many torques")
     parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
+    parser.add_argument("--lut-cells", default="int16", choices=("int16", "float32"), help="the LUT's cell format")
     args = parser.parse_args()
     for text in args.seeds.split(","):
-        machine(None if text == "-" else int(text), args.max_cells, args.rate, args.placement, args.runup_torques)
+        machine(
+            None if text == "-" else int(text),
+            args.max_cells,
+            args.rate,
+            args.placement,
+            args.runup_torques,
+            args.lut_cells,
+        )
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from drivers import lut_image
-from service.maps.lut_export import export_map
+from service.maps.lut_export import export_map, image_bytes
 from service.maps.lut_export import lut_image as service_image
 from service.maps.view import MapCell
 from tests.support.c_lut import HeaderTheta, build, f32, needs_gcc
@@ -125,6 +125,16 @@ MAPS = {
         wrapping,
         {(2.0, 2000.0, 12.0): "filled", (3.0, 1000.0, 24.0): "hole"},
     ),
+    # the same map with int16 cells (LUT image version 5): the header carries the image's integers and quantum
+    "int16 cells": {
+        **make_map(
+            45,
+            NON_UNIFORM,
+            lambda p: (0.0, 0.0) if p == (2.5, 1500.0, 48.0) else turning(p),
+            {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
+        ),
+        "provenance": {"lut_cells": "int16"},
+    },
     # delta turning once around the cell (0, 100, 200, 290 deg): at its centre the four corners tie and the
     # reference (the first of them) decides the result; no two corners 180 deg apart (no arc is ambiguous)
     "phase vortex": make_map(
@@ -237,3 +247,18 @@ def test_headers_go_twice_into_one_unit_and_into_two_units_of_one_program(tmp_pa
     lut_b = lut_image.decode(service_image(b, interpolation="polar"))
     assert (c, s) == pytest.approx(drive_theta(lut_a, (1.0, 1500.0, 12.0), f32(0.1)), abs=THETA_QUANTUM_RAD)
     assert other == pytest.approx(lut_b.theta(2.0, 1500.0, 12.0)[0], abs=THETA_QUANTUM_RAD)
+
+
+def test_an_int16_map_is_a_version_5_image_of_5_bytes_a_cell_within_half_a_quantum_of_its_theta():
+    m = MAPS["int16 cells"]
+    image = service_image(m, interpolation="polar")
+    assert len(image) == image_bytes(m["axes"], "int16") and image[4] == lut_image.FORMAT_VERSION_INT16
+    lut = lut_image.decode(image)
+    quantum = lut_image.int16_quantum(
+        np.array([c["theta_cos"] or 0.0 for c in m["cells"]]), np.array([c["theta_sin"] or 0.0 for c in m["cells"]])
+    )
+    # the quantum: the largest |component| over 32767, so 6 deg of gamma at most is 3.2e-6 rad
+    assert quantum == pytest.approx(max(abs(c["theta_cos"] or 0.0) for c in m["cells"]) / 32767, rel=1e-6)
+    float_lut = lut_image.decode(service_image({**m, "provenance": None}, interpolation="polar"))
+    assert np.max(np.abs(lut.theta_cos - float_lut.theta_cos)) <= quantum / 2 + 1e-9
+    assert np.max(np.abs(lut.theta_sin - float_lut.theta_sin)) <= quantum / 2 + 1e-9

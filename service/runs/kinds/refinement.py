@@ -87,6 +87,7 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         "round_plant_s": 0.0,
         "candidates": candidates,
         "place_rounds": 0,
+        "lut_cells": request.lut_cells,
     }
     sweep_id = host.storage.create_sweep(
         request.method,
@@ -240,7 +241,10 @@ class RefinementRun:
         candidates = state.get("candidates") or {}
         interpolation = ValidationOptions.model_validate(state["validation"]).interpolation or DEFAULT_INTERPOLATION
         judged = judge_candidates(state["axes"], candidates, thetas, interpolation)
-        kept, following, reasons = place(state["axes"], judged, state["target_db"], state.get("max_bytes"))
+        cells_format = state.get("lut_cells", "float32")
+        kept, following, reasons = place(
+            state["axes"], judged, state["target_db"], state.get("max_bytes"), cells_format
+        )
         state["axes"] = axes_with(state["axes"], kept)
         round_plant_s = state.get("round_plant_s", 0.0)
         state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
@@ -252,7 +256,7 @@ class RefinementRun:
                 "candidates": {a: len(v) for a, v in candidates.items()},
                 "inserted": kept,
                 "worst_predicted_db": worst_db(judged),
-                "bytes": image_bytes(state["axes"]),
+                "bytes": image_bytes(state["axes"], cells_format),
                 "cells": math.prod(len(state["axes"][a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
                 "plant_time_s": round_plant_s,
                 "left_out": reasons,
@@ -302,6 +306,7 @@ class RefinementRun:
                 "source_map_id": sweep["source_map_id"],
                 "round": state["round"],
                 "cells_added": state["cells_added"],
+                "lut_cells": state.get("lut_cells", "float32"),
                 **provenance,
             },
         )
@@ -353,6 +358,7 @@ class RefinementRun:
             state["target_db"],
             state["max_cells"] - state["cells_added"],
             state.get("max_bytes"),
+            state.get("lut_cells", "float32"),
         )
         summary = run.summary()
         harmful = harmful_points(run.cells)
@@ -373,7 +379,7 @@ class RefinementRun:
                 "remeasured": len(plan.remeasure),
                 "new_cells": len(plan.new_cells),
                 # what the user pays: firmware memory of this round's map and bench time (plant seconds)
-                "bytes": image_bytes(m.axes),
+                "bytes": image_bytes(m.axes, state.get("lut_cells", "float32")),
                 "cells": math.prod(len(m.axes[a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
                 "plant_time_s": round_plant_s,
                 "points_judged": summary.get("points"),
