@@ -142,7 +142,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
     try:
         source = swept_map(api)
         r = api.post(
-            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 60, "placement": "curves", "lut_cells": "int16"}
+            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int16"}
         )
         assert r.status_code == 202, r.text
         job = api.job_finished(r.json()["id"], 900)
@@ -165,7 +165,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
         assert receipt["format_version"] == 5 and receipt["bytes"] == 28 + 4 * n_values + 5 * n_cells, receipt
         assert refined["provenance"]["lut_cells"] == "int16"
         # the first validation judges the placed map, every identified cell once, all within the budget
-        assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 60
+        assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 24
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}
         assert not api.get("/bench/status")["busy"]
         api.close()
