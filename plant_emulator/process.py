@@ -411,14 +411,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+STOP_LINE = b"stop\n"  # what a parent writes before it closes the pipe in an orderly stop
+
+
 def _watch_parent_pipe(stop: threading.Event) -> None:
-    """Block on stdin; EOF (or an error) means the parent is gone: stop like on SIGTERM."""
+    """Block on stdin; EOF (or an error) means the parent is gone: stop like on SIGTERM. An orderly parent says
+    STOP_LINE first (an info line); EOF without it is a parent that died (a warning: kill -9, a crash)."""
+    asked = False
     try:
-        while sys.stdin.buffer.read1(4096):
-            pass
+        while chunk := sys.stdin.buffer.read1(4096):
+            asked = asked or STOP_LINE.strip() in chunk
     except (OSError, ValueError):
         pass
-    log.warning("stdin closed: the parent is gone; stopping")
+    if asked:
+        log.info("the parent asked it to stop; stopping")
+    else:
+        log.warning("stdin closed without a stop: the parent is gone; stopping")
     stop.set()
 
 

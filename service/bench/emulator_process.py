@@ -84,7 +84,12 @@ class EmulatorProcess:
             return
         if proc.stdin is not None:
             try:
-                proc.stdin.close()  # the child's cue as well, should the signal not reach it
+                proc.stdin.write("stop\n")  # an orderly stop, said (plant_emulator/process.py STOP_LINE) ...
+                proc.stdin.flush()
+            except OSError:
+                pass
+            try:
+                proc.stdin.close()  # ... then the child's cue, should the signal not reach it
             except OSError:
                 pass
         if proc.poll() is not None:

@@ -14,6 +14,7 @@ injection off by the guard, and the round's plant seconds; then the totals.
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -32,7 +33,13 @@ ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "
 
 
 def machine(
-    seed: int | None, max_cells: int, rate_rpm_per_s: float, placement: str, runup_torques: int, lut_cells: str
+    seed: int | None,
+    max_cells: int,
+    rate_rpm_per_s: float,
+    placement: str,
+    runup_torques: int,
+    lut_cells: str,
+    dump_dir: str | None = None,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
@@ -82,6 +89,19 @@ def machine(
                     f"{k} {r[k]:.1f}" if isinstance(r.get(k), float) else f"{k} {r.get(k)}" for k in ROUND_KEYS
                 )
                 print(f"  {figures}, plant {r.get('plant_time_s', 0.0):.0f} s")
+            if dump_dir is not None:  # the final map and its validation, for a closer look
+                final_validation = svc.storage.latest_validation(state["current_map_id"])
+                view = map_view(svc.storage, state["current_map_id"])
+                (Path(dump_dir) / f"{'paper-bench' if seed is None else f'seed-{seed}'}.json").write_text(
+                    json.dumps(
+                        {
+                            "map": view.model_dump() if view else None,
+                            "cells": (final_validation or {}).get("cells"),
+                            "refinement": state,
+                        },
+                        default=str,
+                    )
+                )
             final = map_view(svc.storage, state["current_map_id"])
             outliers = sum(1 for c in final.cells if c.quality == "outlier") if final else None
             print(
@@ -98,6 +118,7 @@ def main() -> None:
     parser.add_argument("--runup-torques", type=int, default=7, help="run-ups at most at this many torques")
     parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
+    parser.add_argument("--dump", default=None, help="a directory: the final map and validation as JSON per machine")
     parser.add_argument("--lut-cells", default="int16", choices=("int16", "float32"), help="the LUT's cell format")
     args = parser.parse_args()
     for text in args.seeds.split(","):
