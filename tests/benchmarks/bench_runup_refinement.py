@@ -129,6 +129,7 @@ def main() -> None:
             args.placement,
             args.runup_torques,
             args.lut_cells,
+            args.dump,
         )
 
 
