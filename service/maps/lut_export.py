@@ -301,16 +301,19 @@ def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
     )
 
 
-def _c_array(values: Any) -> str:
+def _c_nested(values: Any, leaf: Callable[[Any], str]) -> str:
+    """A (nested) list as a C initialiser, each value written by `leaf`."""
     if isinstance(values, list) and values and isinstance(values[0], list):
-        return "{" + ", ".join(_c_array(v) for v in values) + "}"
-    return "{" + ", ".join(_c_float(v) for v in values) + "}"
+        return "{" + ", ".join(_c_nested(v, leaf) for v in values) + "}"
+    return "{" + ", ".join(leaf(v) for v in values) + "}"
+
+
+def _c_array(values: Any) -> str:
+    return _c_nested(values, _c_float)
 
 
 def _c_u8_array(values: Any) -> str:
-    if isinstance(values, list) and values and isinstance(values[0], list):
-        return "{" + ", ".join(_c_u8_array(v) for v in values) + "}"
-    return "{" + ", ".join(f"{int(v)}u" for v in values) + "}"
+    return _c_nested(values, lambda v: f"{int(v)}u")
 
 
 def _c_float(value: float) -> str:
@@ -555,14 +558,7 @@ def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int,
     quantum = lut_codec.int16_quantum(np.asarray(tc), np.asarray(ts))
 
     def ints(values: list[list[list[float]]]) -> str:
-        q = lut_codec.quantized(values, quantum).tolist()
-        return (
-            "{"
-            + ", ".join(
-                "{" + ", ".join("{" + ", ".join(str(v) for v in row) + "}" for row in plane) + "}" for plane in q
-            )
-            + "}"
-        )
+        return _c_nested(lut_codec.quantized(values, quantum).tolist(), lambda v: str(int(v)))
 
     return [
         f"/* theta quantum, rad: theta = q * quantum (LUT image version 5, int16 cells) */\n"
@@ -635,17 +631,21 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
 CELL_FORMATS = lut_codec.CELL_FORMATS
 
 
+def cell_count(axes: dict[str, list[float]]) -> int:
+    """Cells of a full grid with these axes."""
+    return math.prod(len(axes[a]) for a in lut_codec.AXES)
+
+
 def image_bytes(axes: dict[str, list[float]], cells: str = "float32") -> int:
     """Bytes of the LUT image (firmware memory) of a map with these axes: header, each axis' breakpoints (f32),
     theta_cos and theta_sin (f32, or i16 after one f32 quantum with cells "int16") and the flag (u8) per cell, CRC
     (drivers/lut_image.py layout)."""
-    lengths = [len(axes[a]) for a in lut_codec.AXES]
     quantum = 4 if cells == "int16" else 0
     return (
         lut_codec.HEADER.size
-        + 4 * sum(lengths)
+        + 4 * sum(len(axes[a]) for a in lut_codec.AXES)
         + quantum
-        + lut_codec.CELL_BYTES[cells] * math.prod(lengths)
+        + lut_codec.CELL_BYTES[cells] * cell_count(axes)
         + lut_codec.TRAILER.size
     )
 

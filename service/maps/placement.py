@@ -38,11 +38,10 @@ from itertools import product
 
 import numpy as np
 
-from drivers.lut_image import FLAG_OK, Lut
+from drivers.lut_image import AXES, FLAG_OK, Lut
 from service.maps.lut_export import image_bytes
 
-PLACED_AXES = ("torque_nm", "speed_rpm")
-AXES = ("torque_nm", "speed_rpm", "udc_v")
+PLACED_AXES = ("torque_nm", "speed_rpm")  # of AXES (the LUT's, torque, speed, U_dc): U_dc lines stay as they are
 PLACE_MARGIN_DB = 6.0
 # an interval is bisected only while its halves are at least this wide (the issue's <= 10 rpm where theta* turns)
 MIN_STEP = {"torque_nm": 0.125, "speed_rpm": 10.0}

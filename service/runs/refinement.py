@@ -126,7 +126,6 @@ class RefinementState(TypedDict):
     guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
     guard_rounds: NotRequired[int]
     candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
-    place_rounds: NotRequired[int]
     lut_cells: NotRequired[str]  # float32 | int16: the refined maps' LUT cells (max_bytes counts them)
     placement_rounds: NotRequired[list[dict[str, Any]]]  # each placement round's candidates, what it kept, its cost
 

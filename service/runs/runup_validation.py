@@ -147,7 +147,7 @@ def measure_runup_pair(
     results = {}
     key = (torque_nm, udc_v, *speed_range, rate_rpm_per_s, float(order))
     reused = uncompensated is not None and key in uncompensated
-    if uncompensated is not None and key in uncompensated:
+    if uncompensated is not None and reused:
         results["off"] = {**uncompensated[key], "plant_time_s": 0.0}  # paid for once, where it was measured
     for injection in ("off", "lut"):
         if injection in results:
@@ -162,7 +162,7 @@ def measure_runup_pair(
             override_envelope_model=True,  # the range was narrowed to the envelope already (runup_range)
         )
         results[injection] = measure_runup(brun, settings, req)
-    if uncompensated is not None:
+    if uncompensated is not None and not reused:
         uncompensated[key] = results["off"]
     plant_s = sum(r["plant_time_s"] for r in results.values())
     return judge_bins(results["off"], results["lut"], order, torque_nm, udc_v, target_db), plant_s, reused

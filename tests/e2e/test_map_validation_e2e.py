@@ -105,16 +105,22 @@ def test_refusals_lose_nothing(rig, map_id):
     assert api.http.get("/maps/999999/validation").status_code == 404
 
 
+def faulted_mid_run(emu, api, path: str, body: dict, what: str) -> dict:
+    """POST the job, inject an EMCY 0x3210 once its run is under way (the bench busy), and return the finished
+    job, failed naming the fault."""
+    r = api.post(path, body)
+    assert r.status_code == 202, r.text
+    api.wait(lambda: api.get("/bench/status")["busy"], 60, f"{what} running")
+    assert emu.control({"fault": "emcy", "code": 0x3210})["ok"]
+    job = api.job_finished(r.json()["id"], 120)
+    assert job["state"] == "failed" and "EMCY 0x3210" in job["error"], job
+    return job
+
+
 def test_a_fault_mid_validation_fails_it_with_the_reason_and_leaves_the_drive_safe(rig, map_id):
     emu, api = rig
-    r = api.post(f"/maps/{map_id}/validate", {"force": True})
-    assert r.status_code == 202, r.text
-    job_id = r.json()["id"]
     # fault once the run is under way (the drive is in operation for a point)
-    api.wait(lambda: api.get("/bench/status")["busy"], 60, "validation running")
-    assert emu.control({"fault": "emcy", "code": 0x3210})["ok"]
-    job = api.job_finished(job_id, 120)
-    assert job["state"] == "failed" and "EMCY 0x3210" in job["error"], job
+    job = faulted_mid_run(emu, api, f"/maps/{map_id}/validate", {"force": True}, "validation")
     v = job["validation"]
     assert v["state"] == "failed" and "EMCY 0x3210" in v["error"]
     faulted = [c for c in v["cells"] if c["status"] == "failed"]
@@ -178,13 +184,7 @@ def test_a_fault_mid_runup_fails_it_with_the_reason_stores_no_analysis_and_leave
     fault, its stored row holds the reason and no figures, the drive is left safe; a person resets."""
     emu, api = rig
     body = {"torque_nm": 2.5, "udc_v": 12, "speed_rpm": [1000, 1600], "rate_rpm_per_s": 20, "orders": [6]}
-    r = api.post("/runups", body)
-    assert r.status_code == 202, r.text
-    job_id = r.json()["id"]
-    api.wait(lambda: api.get("/bench/status")["busy"], 60, "run-up running")
-    assert emu.control({"fault": "emcy", "code": 0x3210})["ok"]
-    job = api.job_finished(job_id, 120)
-    assert job["state"] == "failed" and "EMCY 0x3210" in job["error"], job
+    job = faulted_mid_run(emu, api, "/runups", body, "run-up")
     result = job["result"]
     assert result["state"] == "failed" and "EMCY 0x3210" in result["error"]
     assert result["speed_rpm"] == [] and result["amplitude"] == []  # a fault never becomes a number

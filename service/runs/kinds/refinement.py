@@ -4,14 +4,13 @@ body measures a round's cells through the sweep's (service/runs/sweep_run.py Swe
 
 from __future__ import annotations
 
-import math
 from typing import Any, cast
 
 from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import DEFAULT_INTERPOLATION, image_bytes
+from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, image_bytes
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     candidate_cells,
@@ -66,9 +65,10 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         check_plant_time(m.axes["speed_rpm"], request.method, options, host.settings)
     not_ok = [[c.torque_nm, c.speed_rpm, c.udc_v] for c in m.cells if c.status != "ok"]
     candidates = first_candidates(m.axes) if request.placement == "curves" else {}
-    if len(not_ok) + len(candidate_cells(m.axes, candidates)) > request.max_cells:
-        candidates = {}  # the first bisection does not fit the cell budget: insert where validations fail only
-    pending = not_ok + [list(c) for c in candidate_cells(m.axes, candidates)]
+    lines = candidate_cells(m.axes, candidates)
+    if len(not_ok) + len(lines) > request.max_cells:
+        candidates, lines = {}, []  # the first bisection does not fit the cell budget: insert where validations fail
+    pending = not_ok + [list(c) for c in lines]
     state: RefinementState = {
         "target_db": request.target_db,
         "max_cells": request.max_cells,
@@ -86,7 +86,6 @@ def submit(host: JobHost, map_id: int, request: RefineRequest, bench: str | None
         "plant_time_s": 0.0,
         "round_plant_s": 0.0,
         "candidates": candidates,
-        "place_rounds": 0,
         "lut_cells": request.lut_cells,
     }
     sweep_id = host.storage.create_sweep(
@@ -198,8 +197,9 @@ class RefinementRun:
         state: RefinementState,
         source: MapRecord,
     ) -> None:
-        """Identify the round's pending cells (those not yet measured in this round), then build the
-        refined map from every result and move on to its validation."""
+        """Identify the round's pending cells (those not yet measured in this round), then judge the placement
+        candidates among them (phase place) or build the refined map from every result and move on to its
+        validation."""
         measured = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in self._round_results(sweep_id, state)}
         points = [
             OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
@@ -230,7 +230,7 @@ class RefinementRun:
         state["phase"] = "validate"
 
     def _refinement_place(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
-        """Placement from curves (service/runs/placement.py): keep the candidates whose line the drive's
+        """Placement from curves (service/maps/placement.py): keep the candidates whose line the drive's
         interpolation of its neighbours misses, bisect their halves next round; when nothing is left to bisect
         (or a budget is spent), build the map and validate it."""
         thetas = {}
@@ -246,18 +246,16 @@ class RefinementRun:
             state["axes"], judged, state["target_db"], state.get("max_bytes"), cells_format
         )
         state["axes"] = axes_with(state["axes"], kept)
-        round_plant_s = state.get("round_plant_s", 0.0)
-        state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
-        state["round_plant_s"] = 0.0
-        state["place_rounds"] = state.get("place_rounds", 0) + 1
-        state.setdefault("placement_rounds", []).append(
+        round_plant_s = _close_round_plant(state)
+        placed = state.setdefault("placement_rounds", [])
+        placed.append(
             {
                 "round": state["round"],
                 "candidates": {a: len(v) for a, v in candidates.items()},
                 "inserted": kept,
                 "worst_predicted_db": worst_db(judged),
                 "bytes": image_bytes(state["axes"], cells_format),
-                "cells": math.prod(len(state["axes"][a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
+                "cells": cell_count(state["axes"]),
                 "plant_time_s": round_plant_s,
                 "left_out": reasons,
             }
@@ -266,7 +264,7 @@ class RefinementRun:
         max_bench_s = state.get("max_bench_s")
         if (
             pending
-            and state["place_rounds"] < MAX_PLACE_ROUNDS
+            and len(placed) < MAX_PLACE_ROUNDS
             and state["cells_added"] + len(pending) <= state["max_cells"]
             and (max_bench_s is None or state["plant_time_s"] < max_bench_s)
         ):
@@ -362,9 +360,7 @@ class RefinementRun:
         )
         summary = run.summary()
         harmful = harmful_points(run.cells)
-        round_plant_s = state.get("round_plant_s", 0.0) + float(summary["plant_time_s"] or 0.0)
-        state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
-        state["round_plant_s"] = 0.0
+        round_plant_s = _close_round_plant(state, float(summary["plant_time_s"] or 0.0))
         state["rounds"].append(
             {
                 "round": state["round"],
@@ -380,7 +376,7 @@ class RefinementRun:
                 "new_cells": len(plan.new_cells),
                 # what the user pays: firmware memory of this round's map and bench time (plant seconds)
                 "bytes": image_bytes(m.axes, state.get("lut_cells", "float32")),
-                "cells": math.prod(len(m.axes[a]) for a in ("torque_nm", "speed_rpm", "udc_v")),
+                "cells": cell_count(m.axes),
                 "plant_time_s": round_plant_s,
                 "points_judged": summary.get("points"),
                 "held": summary.get("held"),
@@ -466,6 +462,14 @@ class RefinementRun:
                 "cells_added": state["cells_added"],
             },
         )
+
+
+def _close_round_plant(state: RefinementState, validation_plant_s: float = 0.0) -> float:
+    """The round's plant seconds (its cells' measurements, and its validation's), added to the refinement's."""
+    round_plant_s = state.get("round_plant_s", 0.0) + validation_plant_s
+    state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
+    state["round_plant_s"] = 0.0
+    return round_plant_s
 
 
 KIND = JobKind("refinement", submit=submit, check_here=check_here, run=run)
