@@ -61,9 +61,14 @@ def first_candidates(axes: dict[str, list[float]]) -> dict[str, list[float]]:
     return {a: midpoints(axes[a], a) for a in PLACED_AXES}
 
 
+def axes_with(axes: dict[str, list[float]], inserted: dict[str, list[float]]) -> dict[str, list[float]]:
+    """The axes with the values `inserted` per axis added (sorted, each value once)."""
+    return {a: sorted(set(map(float, axes[a])) | set(inserted.get(a, []))) for a in AXES}
+
+
 def candidate_cells(axes: dict[str, list[float]], candidates: dict[str, list[float]]) -> list[Cell]:
     """The cells the candidates' lines add to the full grid of `axes` (cross cells of two candidates included)."""
-    grown = {a: sorted(set(axes[a]) | set(candidates.get(a, []))) for a in AXES}
+    grown = axes_with(axes, candidates)
     old = set(product(*(map(float, axes[a]) for a in AXES)))
     return [(t, n, u) for t, n, u in product(*(map(float, grown[a]) for a in AXES)) if (t, n, u) not in old]
 
@@ -146,20 +151,18 @@ def place(
     per byte of their line first (a full grid: a torque row costs a cell per speed value), then the worst; the
     next candidates are the midpoints of the kept values' two halves. lut_cells: the image's cell format (bytes)."""
     bar = target_db + PLACE_MARGIN_DB
-    base = image_bytes({a: list(map(float, axes[a])) for a in AXES}, lut_cells)
+    base = image_bytes(axes, lut_cells)
     short = []
     for axis, by_value in judged.items():
         for c, dbs in by_value.items():
             n_short = sum(1 for db in dbs if db < bar)
             if n_short:
-                line_bytes = image_bytes({**axes, axis: sorted(set(map(float, axes[axis])) | {c})}, lut_cells) - base
+                line_bytes = image_bytes(axes_with(axes, {axis: [c]}), lut_cells) - base
                 short.append((-n_short / line_bytes, min(dbs), axis, c))
     kept: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
     reasons: list[str] = []
     for _per_byte, db, axis, c in sorted(short):
-        trial = {
-            a: sorted(set(map(float, axes[a])) | set(kept.get(a, [])) | ({c} if a == axis else set())) for a in AXES
-        }
+        trial = axes_with(axes, {**kept, axis: [*kept[axis], c]})
         if max_bytes is not None and image_bytes(trial, lut_cells) > max_bytes:
             reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: the LUT would exceed {max_bytes} bytes")
             continue

@@ -338,10 +338,6 @@ def _theta_step(
     return math.hypot(a[0] - b[0], a[1] - b[1])
 
 
-def axes_with(axes: dict[str, list[float]], inserted: dict[str, list[float]]) -> dict[str, list[float]]:
-    return {a: sorted(set(map(float, axes[a])) | set(inserted.get(a, []))) for a in AXES}
-
-
 def check_request(request: RefineRequest) -> None:
     if request.method not in METHODS:
         raise ValueError(f"method {request.method!r} is not available; choose one of {sorted(METHODS)}")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from service.runs.refinement import axes_with, failing_points, guard_cells, harmful_points, plan_round
+from service.maps.placement import axes_with
+from service.runs.refinement import failing_points, guard_cells, harmful_points, plan_round
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
 

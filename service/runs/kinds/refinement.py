@@ -13,6 +13,7 @@ from service.maps.build import build_map
 from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, image_bytes
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
+    axes_with,
     candidate_cells,
     first_candidates,
     judge_candidates,
@@ -30,7 +31,6 @@ from service.runs.refinement import (
     MAX_ROUNDS,
     RefinementState,
     RefineRequest,
-    axes_with,
     check_request,
     guard_cells,
     harmful_points,
