@@ -17,8 +17,9 @@ LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
 download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
 force (0 without one). The drive takes format_version 4, 3 and 2 images (a version 2 image: its valid
-cells as flag 1, cartesian interpolation; version 4 adds flag 3, injection off). In injection mode 2 the control loop asks `effective_theta`
-at every chunk (or block) start: theta interpolated by the image's own mode (`Lut.theta`: cartesian
+cells as flag 1, cartesian interpolation; version 4 adds flag 3, injection off). In injection mode 2 the control loop's
+chunk-rate task takes theta at the shaft's speed from `theta_schedule` (so it follows a run-up within a piece, as a
+drive's torque task does): theta interpolated by the image's own mode (`Lut.theta`: cartesian
 theta or polar gamma/delta along the shortest arc, by position on the non-uniform axes) in (torque
 command, measured speed, measured U_dc), clamped at the axis ends; entries at flag 1 (ok) and 2
 (filled) cells, nothing at flag 0, and exactly nothing (theta 0) wherever a corner of non-zero weight
@@ -58,6 +59,11 @@ log = logging.getLogger(__name__)
 MODE_PROFILE_TORQUE = 4
 INJ_OFF, INJ_MANUAL, INJ_LUT = 0, 1, 2
 PER_MILLE = 1000.0
+RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+# LUT mode's speed schedule for a piece: theta linear between 1-rpm points misses Lut.theta by less than
+# 0.2 % of |theta| where theta* turns 6.5 deg/rpm (a chord of a 6.5 deg arc), -54 dB: far under any target
+SCHEDULE_STEP_RPM = 1.0
+SCHEDULE_MAX_ROWS = 8192  # a 0..8000 rpm axis at 1 rpm; wider axes at a coarser step
 MAX_HARMONIC_ORDER = 255
 
 
@@ -89,6 +95,8 @@ class DriveFirmware(Cia402Device):
         self.lut_blob = b""
         self.lut_status = 0
         self.lut_refused = 0
+        self._schedule_key: tuple | None = None  # theta_schedule's inputs and result, made again on a change
+        self._schedule = ph.NO_THETA_SCHEDULE
         # measurements published by the control loop
         self.speed_rpm = 0.0
         self.torque_actual_nm = 0.0
@@ -216,6 +224,34 @@ class DriveFirmware(Cia402Device):
             k = self.gamma_max_rad / g
             return c * k, s * k
         return c, s
+
+    def theta_schedule(self) -> np.ndarray:
+        """LUT mode: theta against the shaft's speed over the LUT's speed axis at the torque command, U_dc and
+        gamma_max in force, every SCHEDULE_STEP_RPM at most, each point `effective_theta`'s (Lut.theta, clamped
+        to gamma_max; beyond the axis ends Lut.theta holds the end's value, as the schedule does): the control
+        loop's chunk-rate task interpolates it at its own speed (physics/firmware.scheduled_theta), as a drive
+        looks its LUT up in its torque task. Made again only when one of those changes (U_dc to 10 mV, and
+        only where the LUT has a U_dc axis). Any other mode: no schedule (the setpoints' theta holds)."""
+        with self.lock:
+            if self.inj_mode != INJ_LUT or self.lut is None:
+                return ph.NO_THETA_SCHEDULE
+            lut = self.lut
+            udc_v = round(self.udc_v, 2) if len(lut.udc_v) > 1 else float(lut.udc_v[0])
+            key = (id(lut), self.torque_nm, udc_v, self.gamma_max_rad)
+            if self._schedule_key == key:
+                return self._schedule
+            lo_rpm, hi_rpm = float(lut.speed_rpm[0]), float(lut.speed_rpm[-1])
+            n = min(int(math.ceil((hi_rpm - lo_rpm) / SCHEDULE_STEP_RPM)), SCHEDULE_MAX_ROWS - 1) + 1
+            step_rpm = (hi_rpm - lo_rpm) / (n - 1) if n > 1 else 0.0
+            rows = np.empty((n, 3))
+            for i in range(n):
+                speed_rpm = lo_rpm + i * step_rpm
+                c, s = lut.theta(self.torque_nm, speed_rpm, udc_v)
+                g = math.hypot(c, s)
+                k = self.gamma_max_rad / g if g > self.gamma_max_rad else 1.0
+                rows[i] = speed_rpm * RPM_TO_RAD_S, c * k, s * k
+            self._schedule_key, self._schedule = key, rows
+            return rows
 
     def has_pending(self) -> bool:
         """True while setpoint events wait (the plant then runs single chunks)."""

@@ -242,7 +242,19 @@ class Emulator:
         trace = np.zeros((k, ph.N_TRACE)) if scoping else self._no_trace
         rows = -(-k // n)
         frames, summary = self._frames[: k * ph.FRAME_BYTES], self._summary[:rows]
-        ph.simulate(self.plant.x, self.params, self.tab, self.sp, noise, n, self.samples, frames, summary, trace)
+        ph.simulate(
+            self.plant.x,
+            self.params,
+            self.tab,
+            self.sp,
+            self.drive.theta_schedule(),
+            noise,
+            n,
+            self.samples,
+            frames,
+            summary,
+            trace,
+        )
         if scoping:
             self.scope.feed(trace)
         self.samples += k

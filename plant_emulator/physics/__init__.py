@@ -54,6 +54,7 @@ from .firmware import (
     X_VQ_APP,
     current_reference,
     mtpa_id,
+    scheduled_theta,
 )
 from .inverter import P_ANGLE_COMP, P_F_PWM, P_I_ZC, P_T_DEAD, X_UD_APP, X_UQ_APP
 from .loop import (
@@ -62,6 +63,7 @@ from .loop import (
     N_STATE,
     N_SUMMARY,
     N_TRACE,
+    NO_THETA_SCHEDULE,
     OMEGA_RECOMPUTE_RAD_S,
     TR_ALPHA,
     TR_ALPHA_MEAS,

@@ -4,7 +4,9 @@ Chunk-rate task (every `chunk` samples, like a real drive's 1 kHz torque task), 
   torque -> current references (feed-forward): MTPA (i_d = 0 for L_d = L_q, else the MTPA curve),
   and above the voltage limit field weakening: i_d < 0 such that the nominal steady-state |u_dq| =
   margin * U_dc/sqrt(3) (on the side of the constant-torque curve nearer MTPA); current limit I_max
-  (i_d has priority).
+  (i_d has priority). In LUT mode the same task takes theta at the shaft's speed from the speed
+  schedule the slow firmware made of its LUT for the piece (`scheduled_theta`): a drive looks its LUT
+  up in its torque task, so theta follows a speed ramp within a piece, not once per piece.
 Per control period k (paper section 2, Fig. 3):
   PI         `pi_current`: u = K_p e + integral + feed-forward of back-EMF and cross coupling computed
              from the REFERENCES (not the measured currents), |u| <= U_dc/sqrt(3) (vector scaling,
@@ -300,6 +302,21 @@ def voltage_estimate(id_ref, iq_ref, if_d, if_q, w_e, w_bw, g_cl, r_nom, ld_nom,
     if_d += g_cl * (id_ref - if_d)
     if_q += g_cl * (iq_ref - if_q)
     return uh_d, uh_q, if_d, if_q
+
+
+@njit(cache=True, inline="always")
+def scheduled_theta(schedule, w_m):
+    """(theta_cos, theta_sin) in rad at shaft speed w_m (rad/s) from a speed schedule: rows (w_m rad/s,
+    theta_cos, theta_sin) at a uniform speed step, linear between rows, clamped at the first and last."""
+    n = schedule.shape[0]
+    f = 0.0 if n == 1 else (w_m - schedule[0, 0]) / (schedule[1, 0] - schedule[0, 0])
+    if not f > 0.0:  # below the first row (or NaN)
+        return schedule[0, 1], schedule[0, 2]
+    if f >= n - 1:
+        return schedule[n - 1, 1], schedule[n - 1, 2]
+    j = int(f)
+    a = f - j
+    return (1.0 - a) * schedule[j, 1] + a * schedule[j + 1, 1], (1.0 - a) * schedule[j, 2] + a * schedule[j + 1, 2]
 
 
 @njit(cache=True, inline="always")

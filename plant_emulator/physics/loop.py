@@ -162,10 +162,12 @@ def _store_chunk_sums(summary, row, s_ud, s_uq, s_te, s_w, s_tl, n_over):
 
 
 @njit(cache=True, nogil=True)
-def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
+def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary, trace):
     """Advance the bench by n = len(noise) control periods in place.
 
-    x: state (N_STATE), p: parameters (N_PARAMS), tab: tables, sp: setpoints (N_SETPOINTS), noise: n
+    x: state (N_STATE), p: parameters (N_PARAMS), tab: tables, sp: setpoints (N_SETPOINTS), theta_schedule:
+    LUT mode's theta against shaft speed (rows w_m rad/s, theta_cos, theta_sin; firmware.scheduled_theta),
+    taken at every chunk-rate task, or shape (0, 3): the setpoints' theta for the whole call. noise: n
     standard normal samples for the sensor. frames: uint8 array of 12 n bytes receiving the DAQ frames
     (sequence numbers from seq0), or an empty array to skip. summary: (ceil(n / chunk), N_SUMMARY) sums
     per chunk. trace: (n, N_TRACE) array filled per sample, or shape (0, N_TRACE) to skip recording.
@@ -190,6 +192,7 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
     th_c = sp[S_THETA_COS]
     th_s = sp[S_THETA_SIN]
     inject = th_c != 0.0 or th_s != 0.0
+    scheduled = theta_schedule.shape[0] > 0
     h_int = int(sp[S_H] + 0.5)
     decouple = sp[S_DECOUPLING] > 0.5
     vest = sp[S_VEST] > 0.5
@@ -291,6 +294,9 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
                 fw_did = 0.0
             id_ref = id_ff + fw_did
             iq_ref = iq_ff
+            if scheduled:
+                th_c, th_s = firmware.scheduled_theta(theta_schedule, w_m)
+                inject = th_c != 0.0 or th_s != 0.0
             aw_l = abs(w_e) * ld_nom
             fw_gain = p[P_FW_BW] * ts / aw_l if (aw_l > 0.0 and power) else 0.0
             fw_did_min = -p[P_IMAX] - id_ff
@@ -490,6 +496,8 @@ def simulate(x, p, tab, sp, noise, chunk, seq0, frames, summary, trace):
 # ------------------------------------------------------------------------------------------------
 # Python-side helpers (startup only)
 
+NO_THETA_SCHEDULE = np.zeros((0, 3))  # simulate: the setpoints' theta for the whole call
+
 
 def new_state() -> np.ndarray:
     return np.zeros(N_STATE)
@@ -554,9 +562,9 @@ class Plant:
     def init_op(self, torque_nm: float, speed_rpm: float, udc_v: float) -> None:
         steady_state_init(self.x, self.p, torque_nm, speed_rpm, udc_v, self.tab)
 
-    def run(self, sp: np.ndarray, n: int, trace: bool = False, frames: bool = True):
+    def run(self, sp: np.ndarray, n: int, trace: bool = False, frames: bool = True, theta_schedule=None):
         """Simulate n samples with setpoints sp (the chunk-rate task runs at samples 0, chunk, ...
-        of this call). Returns (angle_counts, accel_counts, flags, trace)."""
+        of this call; theta_schedule: see `simulate`). Returns (angle_counts, accel_counts, flags, trace)."""
         m = n
         noise = self.rng.standard_normal(m) if self.p[P_NOISE] > 0.0 else np.zeros(m)
         fr = np.empty(m * FRAME_BYTES, dtype=np.uint8) if frames else self._no_frames
@@ -567,6 +575,7 @@ class Plant:
             self.p,
             self.tab,
             np.asarray(sp, dtype=np.float64),
+            NO_THETA_SCHEDULE if theta_schedule is None else np.asarray(theta_schedule, dtype=np.float64),
             noise,
             self.chunk,
             self.samples,

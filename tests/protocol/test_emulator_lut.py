@@ -15,6 +15,7 @@ import pytest
 from drivers import DRIVE_EDS, lut_image
 from drivers.cia402 import State402
 from plant_emulator import physics as ph
+from plant_emulator import scenario as scn
 from plant_emulator.drive_firmware import DriveFirmware
 
 T_AX = [1.0, 2.5, 4.0]
@@ -211,3 +212,79 @@ def test_a_version_2_image_is_still_taken_and_interpolated_cartesian(drive):
     with pytest.raises(canopen.SdoAbortedError):
         write(drive, 0x2001, 1, bad + struct.pack("<I", zlib.crc32(bad)))
     assert read(drive, 0x2001, 4) == 12 and read(drive, 0x2001, 3) == 2
+
+
+def _polar_turning_image() -> bytes:
+    """A polar LUT whose theta turns 90 deg between 1000 and 1100 rpm and 150 deg more by 1300 rpm (the
+    field-weakening turn's order of steepness: 0.9 deg/rpm), at 1 and 4 Nm."""
+    speeds = [800.0, 1000.0, 1100.0, 1300.0, 1600.0]
+    deltas = [0.0, 10.0, 100.0, 250.0, 300.0]
+    thetas = [_theta_deg(3.0 - 0.3 * it, d) for d in deltas for it in range(2)]  # cells [speed][torque]
+    return lut_image.encode(
+        6,
+        [1.0, 4.0],
+        speeds,
+        [12.0],
+        [t[0] for t in thetas],
+        [t[1] for t in thetas],
+        None,
+        map_id=9,
+        interpolation="polar",
+    )
+
+
+def test_lut_mode_schedules_theta_along_speed_for_the_control_loop(drive):
+    """The loop's chunk-rate task takes theta at its own speed from the drive's schedule: linear between
+    points every 1 rpm over the LUT's speed axis, it stays within 0.2 % of |theta| of Lut.theta (a chord of a
+    0.9 deg arc is far less), also beyond the axis, where both hold the end's value; other modes schedule
+    nothing."""
+    write(drive, 0x2001, 1, _polar_turning_image())
+    assert drive.theta_schedule().shape == (0, 3)  # mode off: the setpoints' theta holds
+    write(drive, 0x2000, 2, 2)
+    write(drive, 0x2000, 5, math.radians(10.0))  # gamma_max above the LUT's 3 deg
+    _lut_mode_theta(drive, 1.75, 1000.0)
+    schedule = drive.theta_schedule()
+    assert schedule.shape == (801, 3)  # the LUT's speed axis, 800..1600 rpm, every rpm
+    assert drive.theta_schedule() is schedule  # made once for the setpoints in force
+    rng = np.random.default_rng(5)
+    for speed_rpm in rng.uniform(700.0, 1700.0, 300):  # also beyond the axis ends, where the LUT clamps
+        got = ph.scheduled_theta(schedule, speed_rpm * 2.0 * math.pi / 60.0)
+        want = drive.lut.theta(drive.torque_nm, speed_rpm, 12.0)
+        assert math.dist(got, want) <= 2e-3 * math.hypot(*want)
+    _lut_mode_theta(drive, 3.0, 1000.0)
+    assert drive.theta_schedule() is not schedule  # another torque command: another schedule
+
+
+def test_lut_theta_follows_a_ramp_within_a_piece_as_the_drive_would():
+    """Along a 200 rpm/s ramp through the turn, one 16-chunk piece (the emulator's fast mode) injects
+    what 16 pieces of one chunk inject (each with its own schedule and setpoints): the LUT is looked up
+    at every chunk-rate task, not once per piece. The injection angle v_inj agrees sample by sample."""
+    sc = scn.load("paper-bench")
+    params, tab = scn.build(sc)
+    params[ph.P_NOISE] = 0.0
+    traces = []
+    for pieces in (1, 16):
+        d = DriveFirmware(canopen.Network(), 5, str(DRIVE_EDS))
+        d.state = State402.OPERATION_ENABLED
+        write(d, 0x2001, 1, _polar_turning_image())
+        write(d, 0x2000, 2, 2)
+        write(d, 0x2000, 5, math.radians(10.0))
+        write(d, 0x6071, 0, round(2000.0 / d.rated_torque_nm))  # 2 Nm
+        plant = ph.Plant(params, tab, noise_seed=0, chunk=256)
+        plant.init_op(2.0, 1000.0, 12.0)
+        sp = ph.new_setpoints(12.0)
+        sp[ph.S_LOAD_ON] = 1.0
+        sp[ph.S_LOAD_SPEED] = 1300.0 * 2.0 * math.pi / 60.0
+        sp[ph.S_LOAD_ACCEL] = sp[ph.S_LOAD_DECEL] = 200.0 * 2.0 * math.pi / 60.0
+        parts = []
+        n = 16 * 256 // pieces
+        for _ in range(pieces):
+            while d.chunk_setpoints(sp, 12.0):
+                pass
+            parts.append(
+                plant.run(sp, n, trace=True, frames=False, theta_schedule=d.theta_schedule())[3][:, ph.TR_V_INJ]
+            )
+        traces.append(np.concatenate(parts))
+    speeds_rpm = float(plant.x[ph.X_OMEGA_M]) * 60.0 / (2.0 * math.pi)
+    assert speeds_rpm > 1040.0  # the piece ramped through a good part of the turn
+    assert np.max(np.abs(traces[0] - traces[1])) <= 1e-3 * np.max(np.abs(traces[0]))
