@@ -26,9 +26,10 @@ makes new midpoints, which may need more). The axes stay strictly increasing and
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Annotated, Any, Literal, Mapping, NotRequired, TypedDict
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Mapping, NotRequired, TypedDict
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
@@ -36,6 +37,9 @@ from service.identification.registry import METHODS
 from service.maps.lut_export import image_bytes
 from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.runup_validation import is_harm
+
+if TYPE_CHECKING:  # validation.py runs the items; this module only reads them
+    from service.runs.validation import ValidationItem
 from service.runs.validation import ValidationOptions
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
@@ -125,6 +129,7 @@ class RefinementState(TypedDict):
     round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
     guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
     guard_rounds: NotRequired[int]
+    guard_changed: NotRequired[list[list[float]]]  # the cells the last guard round turned off (its validation's reuse)
     candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
     lut_cells: NotRequired[str]  # float32 | int16: the refined maps' LUT cells (max_bytes counts them)
     placement_rounds: NotRequired[list[dict[str, Any]]]  # each placement round's candidates, what it kept, its cost
@@ -352,6 +357,57 @@ def harmful_points(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [c for c in cells if c["status"] == "measured" and is_harm(c.get("suppression_db"), c.get("above_floor_db"))]
 
 
+def corner_values(values: list[float], x: float) -> list[float]:
+    """The breakpoints of an axis with a non-zero weight in the drive's interpolation at x (clamped at the ends)."""
+    x = min(max(x, values[0]), values[-1])
+    return [x] if x in values else list(_neighbours(values, x) or (x,))
+
+
+def touched_by(
+    axes: dict[str, list[float]], cells: list[Cell], point: Mapping[str, Any], along_speed: bool = False
+) -> bool:
+    """True where the drive's LUT value at the point (every speed of it: a run-up, along_speed) has one of the
+    cells as a corner of non-zero weight: where a change to those cells changes what the drive injects."""
+    if not cells:
+        return False
+    grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
+    key = _cell_of(point)
+    corners = [
+        None if along_speed and a == "speed_rpm" else set(corner_values(grid_values[a], key[i]))
+        for i, a in enumerate(AXES)
+    ]
+    return any(all(c is None or cell[i] in c for i, c in enumerate(corners)) for cell in cells)
+
+
+def guard_reuse(
+    previous_cells: list[dict[str, Any]], axes: dict[str, list[float]], changed: list[Cell]
+) -> Callable[[ValidationItem], list[dict[str, Any]] | None]:
+    """For a guard round's validation (run_validation's `reuse`): its map is the map validated before with
+    injection off at the `changed` cells, so what the drive injects differs only where those cells are a corner
+    of non-zero weight (`touched_by`: at a point, or at any speed of a run-up's torque). Elsewhere the earlier
+    cells are taken as they are (reused, no plant time); a point or run-up pair not measured then is measured."""
+    earlier: dict[tuple[str, Cell], list[dict[str, Any]]] = {}
+    for cell in previous_cells:
+        earlier.setdefault((cell["kind"], _item_key(cell["kind"], cell["operating_point"])), []).append(cell)
+
+    def reuse(item: ValidationItem) -> list[dict[str, Any]] | None:
+        op = item.op.model_dump()
+        if item.not_run is not None or touched_by(axes, changed, op, along_speed=item.kind == "runup"):
+            return None
+        cells = earlier.get((item.kind, _item_key(item.kind, op)))
+        if not cells or any(c["status"] != "measured" for c in cells):
+            return None
+        return [{**c, "plant_time_s": 0.0, "reused": True} for c in cells]
+
+    return reuse
+
+
+def _item_key(kind: str, op: Mapping[str, Any]) -> Cell:
+    """A validation item's key: a point's operating point; a run-up pair's torque and U_dc (its bins' speeds vary)."""
+    t, n, u = _cell_of(op)
+    return (t, 0.0 if kind == "runup" else n, u)
+
+
 def guard_cells(
     axes: dict[str, list[float]], map_cells: list[dict[str, Any]], harmful: list[dict[str, Any]]
 ) -> list[Cell]:
@@ -364,11 +420,7 @@ def guard_cells(
     chosen: set[Cell] = set()
     for c in harmful:
         key = _cell_of(c["operating_point"])
-        sides = []
-        for i, axis in enumerate(AXES):
-            values = grid_values[axis]
-            x = min(max(key[i], values[0]), values[-1])  # the drive clamps to the axis ends
-            sides.append([x] if x in values else list(_neighbours(values, x) or (x,)))
+        sides = [corner_values(grid_values[axis], key[i]) for i, axis in enumerate(AXES)]
         corners = [(t, n, u) for t in sides[0] for n in sides[1] for u in sides[2]]
 
         def gamma(corner: Cell) -> float:

@@ -160,12 +160,14 @@ class ValidationRun:
     row_id: int | None = None  # its map_validations row, once stored
     runup_plant_time_s: float = 0.0  # the run-up pairs' (their bins carry none each)
     runups_reused: int = 0  # uncompensated run-ups taken from an earlier validation of the same bench and ramp
+    items_reused: int = 0  # points and run-up pairs taken from an earlier validation where the LUT is the same
 
     def summary(self) -> dict[str, Any]:
         out = summarize(self.cells)
         out["plant_time_s"] += self.runup_plant_time_s
         out["runup_plant_time_s"] = self.runup_plant_time_s
         out["runups_reused"] = self.runups_reused
+        out["items_reused"] = self.items_reused
         return out
 
 
@@ -240,6 +242,7 @@ def run_validation(
     download: Callable[..., dict[str, Any]] = download_into_drive,
     on_progress: Callable[[ValidationRun], object] | None = None,
     uncompensated: dict[tuple[float, ...], dict[str, Any]] | None = None,
+    reuse: Callable[[ValidationItem], list[dict[str, Any]] | None] | None = None,
 ) -> ValidationRun:
     """The whole job: download, then every point in one continuous bench run (service/bench/run.py:
     the drive enabled and the load turning from point to point; a run that the bench itself broke
@@ -248,7 +251,8 @@ def run_validation(
     cancelled and the remaining cells marked not measured. Errors before the first point (download)
     do raise. `on_progress(run)` is told after the download and after every point (the job stores it).
     `uncompensated`: run-ups without injection kept across validations of one bench (runup_validation.py
-    measure_runup_pair)."""
+    measure_runup_pair). `reuse(item)`: an earlier validation's cells for an item where the drive's LUT is the
+    same as then (a refinement's guard round changes a few cells), taken as they are; None: measured."""
     m = map_view(storage, map_id)
     if m is None:
         raise KeyError(f"map {map_id} does not exist")
@@ -316,6 +320,12 @@ def run_validation(
             with bench.run(h, decoupling=decoupling, cancel=cancel) as brun:
                 while i < len(items) and not cancel.is_set():
                     item = items[i]
+                    earlier = reuse(item) if reuse is not None else None
+                    if earlier is not None:
+                        run.items_reused += 1
+                        finish(*earlier)
+                        i += 1
+                        continue
                     cell = new_cell(item.op, item.kind)
                     if item.not_run is not None:  # never run where the envelope model says the drive cannot hold it
                         cell.update(status="not_measured", error=item.not_run)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 
 from service.maps.placement import axes_with
-from service.runs.refinement import failing_points, guard_cells, harmful_points, plan_round
+from service.model.operating_point import OperatingPoint
+from service.runs.refinement import failing_points, guard_cells, guard_reuse, harmful_points, plan_round, touched_by
+from service.runs.validation import ValidationItem
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
 
@@ -164,3 +166,36 @@ def test_harm_turns_injection_off_at_the_corner_nearest_the_turn():
     # a point on a grid line has only that line's corners
     on_line = [runup_bin(2.0, 2400.0, -3.0)]
     assert guard_cells(AXES, map_cells(theta), on_line) == [(2.0, 2000.0, 12.0)]
+
+
+def test_a_guard_rounds_validation_measures_again_only_what_the_newly_off_cell_touches():
+    """Injection off at (2 Nm, 2000 rpm): the drive's LUT changes at every point with that cell as a corner of
+    non-zero weight, 1 < t < 3 Nm and 1000 < n < 3000 rpm (on its own lines: only there), and along the run-ups
+    at such torques; everything else is taken from the validation before, at no plant time."""
+    off = [(2.0, 2000.0, 12.0)]
+    previous = [{**c, "plant_time_s": 0.4} for c in validation({})]
+    previous += [{**runup_bin(t, n, 40.0), "plant_time_s": 0.0} for t in (1.0, 1.5, 3.0) for n in (1000.0, 1010.0)]
+    reuse = guard_reuse(previous, AXES, off)
+
+    def item(t, n, kind="grid"):
+        return ValidationItem(OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=12.0), kind)
+
+    touched = {(t, n) for t in (1.5, 2.0, 2.5) for n in (1500.0, 2000.0, 2500.0)}
+    for c in validation({}):
+        op = c["operating_point"]
+        got = reuse(item(op["torque_nm"], op["speed_rpm"], c["kind"]))
+        if (op["torque_nm"], op["speed_rpm"]) in touched:
+            assert got is None, op
+        else:
+            assert got is not None and got[0]["reused"] and got[0]["plant_time_s"] == 0.0, op
+            assert got[0]["operating_point"] == op
+    # run-up pairs: at 1.5 Nm the cell weighs at every speed; at 1 and 3 Nm (rows beside it) never
+    assert reuse(item(1.5, 1000.0, "runup")) is None
+    assert [b["operating_point"]["speed_rpm"] for b in reuse(item(3.0, 1000.0, "runup"))] == [1000.0, 1010.0]
+    assert reuse(item(1.0, 1000.0, "runup")) is not None
+    # not measured before (no such run-up then): measured now
+    assert reuse(item(2.5, 1000.0, "runup")) is None
+    assert reuse(item(9.0, 1000.0)) is None
+    # clamped beyond the axis ends, as the drive does: 4 Nm reads the 3 Nm row only
+    assert touched_by(AXES, off, {"torque_nm": 4.0, "speed_rpm": 2000.0, "udc_v": 12.0}) is False
+    assert touched_by(AXES, [(3.0, 2000.0, 12.0)], {"torque_nm": 4.0, "speed_rpm": 2100.0, "udc_v": 12.0}) is True

@@ -35,6 +35,11 @@ class ValidationCellPublic(BaseModel):
         None, description="the residual is within 3 noise rms of zero: suppression_db is a lower bound"
     )
     plant_time_s: float | None = None
+    reused: bool | None = Field(
+        None,
+        description="taken from the validation before (a refinement's guard round): the drive's LUT is the same here "
+        "as then; plant_time_s 0",
+    )
     speed_rpm_measured: float | None = None
     harmonic_frequency_hz: float | None = None
     map_cell_status: str | None = Field(None, description="grid points: the map cell's status")
@@ -73,6 +78,11 @@ class ValidationSummaryPublic(BaseModel):
     runup_plant_time_s: float | None = Field(None, description="plant seconds of the run-up pairs (in plant_time_s)")
     runups_reused: int | None = Field(
         None, description="uncompensated run-ups reused from an earlier validation of the same refinement"
+    )
+    items_reused: int | None = Field(
+        None,
+        description="points and run-up pairs taken from the validation before, where a guard round left the LUT "
+        "the same (service/runs/refinement.py touched_by)",
     )
 
 

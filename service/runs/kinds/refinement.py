@@ -4,6 +4,7 @@ body measures a round's cells through the sweep's (service/runs/sweep_run.py Swe
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, cast
 
 from service import __version__
@@ -33,12 +34,19 @@ from service.runs.refinement import (
     RefineRequest,
     check_request,
     guard_cells,
+    guard_reuse,
     harmful_points,
     plan_round,
 )
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
 from service.runs.sweep_run import SweepRunner, job_sweep_id, stored_sweep
-from service.runs.validation import ValidationOptions, check_points, run_validation, store_validation
+from service.runs.validation import (
+    ValidationItem,
+    ValidationOptions,
+    check_points,
+    run_validation,
+    store_validation,
+)
 from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord
 from service.store.storage import now_iso
 
@@ -331,6 +339,7 @@ class RefinementRun:
             on_cell=on_cell,
             on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
             uncompensated=self.uncompensated,
+            reuse=self._guard_reuse(state),
         )
         validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
         if run.state == "cancelled":
@@ -413,6 +422,7 @@ class RefinementRun:
         if harmful and state.get("guard_rounds", 0) < MAX_GUARD_ROUNDS and off != already_off:
             # never worse than nothing: the drive gives no compensation where this LUT made the order worse
             state["guard_off"] = [list(c) for c in sorted(off)]
+            state["guard_changed"] = [list(c) for c in sorted(off - already_off)]
             state["phase"] = "guard"
             state["stopped"] = stopped  # kept for the guarded map's verdict
             return
@@ -428,6 +438,17 @@ class RefinementRun:
             if plan.failing or harmful
             else None
         )
+
+    def _guard_reuse(self, state: RefinementState) -> Callable[[ValidationItem], list[dict[str, Any]] | None] | None:
+        """A guard round's validation measures again only what its newly-off cells touch (refinement.guard_reuse);
+        the rest comes from the validation of the map before it."""
+        changed = [(float(t), float(n), float(u)) for t, n, u in state.get("guard_changed", [])]
+        if not changed or not state["rounds"]:
+            return None
+        previous = self.storage.latest_validation(state["rounds"][-1]["map_id"])
+        if previous is None or previous["state"] != "done":
+            return None
+        return guard_reuse(previous["cells"], state["axes"], changed)
 
     def _refinement_guard(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
         """The current map built again as a map of its own with injection off at the guard's cells (LUT flag 3),
