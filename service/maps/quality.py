@@ -20,7 +20,12 @@ The statistic (robust, scaled by the grid spacing):
   on a non-uniform one the plain median would lean towards the farther neighbour). Each neighbour
   stays one value of the median, and a bad one moves its partner's by |w_lo - 1/2| of its error at
   most (none on a uniform axis), so one bad neighbour is still outvoted. Exact for an interior
-  cell of a map linear in the operating point, on any spacing (each pair is then symmetric about it);
+  cell of a map linear in the operating point, on any spacing (each pair is then symmetric about it).
+  A lone neighbour on an axis (an axis end, or the other side not a reference) is extrapolated along the
+  line through it and the next reference beyond it (when that one is at least as far from it as the cell:
+  never stretched over more than its own span), and their change per unit is that axis's local change
+  below: a low-torque edge row, where theta* changes fast with torque at the turn, is not an outlier of
+  its one neighbour row;
 - its expected step: the median over those neighbours of max(g_k, l_k) |x_neighbour - x_cell|, l_k the
   change across the cell, |theta_hi - theta_lo| / (x_hi - x_lo) of its pair on axis k (where theta* turns
   fast, as at the field-weakening turn that a refinement resolves with close breakpoints, the turn its two
@@ -38,6 +43,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Container
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -119,7 +125,8 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
     ]
     flagged: set[Key] = set()
     why: dict[Key, CellQuality] = {}  # each outlier as it was when flagged (its fit may lose references later)
-    fits = {k: _fit(k, near[k], theta) for k in theta}
+    axis_values = [values[a] for a in AXES]
+    fits = {k: _fit(k, near[k], theta, axis_values, flagged) for k in theta}
     # more outliers than a quarter of the cells: a noisy map, not a few bad points; the cells then
     # over the factor are all flagged at once instead of one by one
     one_by_one = max(1, int(len(theta) * ONE_BY_ONE_SHARE))
@@ -144,9 +151,9 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
         flagged.add(worst)
         why[worst] = evaluated[worst]
         for other, _, _ in near[worst]:  # only the worst's neighbours lose a reference
-            fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta)
+            fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta, axis_values, flagged)
     if len(flagged) > one_by_one:  # flagged at once: the fits without all of them
-        fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta) for k in theta}
+        fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta, axis_values, flagged) for k in theta}
         evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
     for k in flagged:
         evaluated[k] = why[k]
@@ -186,9 +193,16 @@ def _weighted_median(values: list[tuple[float, float]]) -> float:
 Fitted = tuple[list[tuple[Key, str, float]], tuple[float, float] | None, float | None, dict[str, float]]
 
 
-def _fit(key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[float, float]]) -> Fitted:
+def _fit(
+    key: Key,
+    around: list[tuple[Key, str, float]],
+    theta: dict[Key, tuple[float, float]],
+    axis_values: list[list[float]],
+    flagged: Container[Key],
+) -> Fitted:
     """(the reference neighbours, the component-wise median of their theta with each pair across the
-    cell centred on its interpolation at the cell's position, this cell's distance to it)."""
+    cell centred on its interpolation at the cell's position, a lone neighbour on an axis extrapolated along the
+    line to the next reference beyond it, this cell's distance to it)."""
     if len(around) < MIN_NEIGHBOURS:
         return around, None, None, {}
     values: list[tuple[float, float]] = []
@@ -205,10 +219,38 @@ def _fit(key: Key, around: list[tuple[Key, str, float]], theta: dict[Key, tuple[
             values += [(theta[o][0] + shift[0], theta[o][1] + shift[1]) for o in (lo, hi)]
             across[a] = math.hypot(theta[hi][0] - theta[lo][0], theta[hi][1] - theta[lo][1]) / (d_lo + d_hi)
         else:
-            values += [theta[o] for o, _ in on_axis]
+            for o, dx in on_axis:
+                # one side only (an axis end, or the other side not ok): the line through this neighbour and the next
+                # one beyond it, at the cell; and the change per unit between them (neither is this cell, so a bad
+                # cell does not excuse itself: at a turn, as at an axis end of a steep map, the map changes that fast)
+                beyond = _next_along(o, pos, o[pos] - key[pos], axis_values[pos])
+                span = abs(beyond[pos] - o[pos]) if beyond is not None else 0.0
+                # no reference beyond, or one so close that the line would be extrapolated over more than its span
+                # (its noise amplified): the neighbour as it is
+                if beyond is None or beyond not in theta or beyond in flagged or span < dx:
+                    values.append(theta[o])
+                    continue
+                k = dx / span
+                values.append(
+                    (
+                        theta[o][0] + k * (theta[o][0] - theta[beyond][0]),
+                        theta[o][1] + k * (theta[o][1] - theta[beyond][1]),
+                    )
+                )
+                across[a] = math.hypot(theta[o][0] - theta[beyond][0], theta[o][1] - theta[beyond][1]) / span
     fit = (statistics.median([v[0] for v in values]), statistics.median([v[1] for v in values]))
     value = theta[key]
     return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1]), across
+
+
+def _next_along(o: Key, pos: int, direction: float, values: list[float]) -> Key | None:
+    """The grid point one index beyond o along axis pos, away from the cell (direction: the sign of o - cell)."""
+    i = values.index(o[pos]) + (1 if direction > 0 else -1)
+    if not 0 <= i < len(values):
+        return None
+    moved = list(o)
+    moved[pos] = values[i]
+    return (moved[0], moved[1], moved[2])
 
 
 def _evaluate(fitted: Fitted, gradients: dict[str, float | None]) -> CellQuality:

@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -323,3 +324,26 @@ def test_a_turn_resolved_by_close_breakpoints_is_not_an_outlier_and_a_bad_cell_o
 
     m = map_public(storage, make_map(storage, TURN_GRID, spoiled)).model_dump()
     assert [(c["torque_nm"], c["speed_rpm"]) for c in m["cells"] if c["quality"] == "outlier"] == [at[:2]]
+
+
+REFINED_TURN_MAP = Path(__file__).resolve().parents[1] / "data" / "refined_turn_map.json"
+
+
+def test_a_refined_maps_turn_is_not_called_outliers_and_a_bad_cell_on_it_still_is():
+    """paper-bench's refined map (tests/data/refined_turn_map.json): at its low-torque edge rows theta* changes
+    fast with torque and loops at the turn, so a cell with one torque neighbour is fitted along the line to the
+    next row beyond it (not to that neighbour's value alone): no outlier. A cell 3 deg off (about 2x |theta| of
+    the low rows' 1.5..4 deg) is flagged alone, at the edge row, at the turn and inside."""
+    data = json.loads(REFINED_TURN_MAP.read_text())
+    keys = ("torque_nm", "speed_rpm", "udc_v", "status", "theta_cos", "theta_sin")
+    cells = [dict(zip(keys, row, strict=True)) for row in data["cells"]]
+    assert map_quality.assess(cells, data["axes"]).count("outlier") == 0
+    for at in [(1.0, 2250.0), (1.0, 1400.0), (1.5, 2450.0), (2.0, 1400.0), (4.0, 1000.0)]:
+        spoiled = [
+            {**c, "theta_cos": c["theta_cos"] + OFFSET[0] * 2.0, "theta_sin": c["theta_sin"] + OFFSET[1] * 2.0}
+            if (c["torque_nm"], c["speed_rpm"]) == at
+            else c
+            for c in cells
+        ]
+        q = map_quality.assess(spoiled, data["axes"])
+        assert [k[:2] for k, c in q.cells.items() if c.quality == "outlier"] == [at], at
