@@ -127,15 +127,16 @@ def _off_text(m: dict[str, Any]) -> str:
 
 
 def cell_format(m: dict[str, Any]) -> str:
-    """How the map's LUT image carries theta per cell: "float32" (9 bytes a cell) or "int16" (5 bytes a cell, image
-    version 5), as the map was built for (its provenance's `lut_cells`, chosen by the refinement that built it)."""
+    """How the map's LUT image carries theta per cell: "float32" (9 bytes a cell), "int16" (5 bytes a cell, image
+    version 5) or "int11" (3 bytes a cell, version 6), as the map was built for (its provenance's `lut_cells`,
+    chosen by the refinement that built it)."""
     chosen = (m.get("provenance") or {}).get("lut_cells", "float32")
     return chosen if chosen in lut_codec.CELL_FORMATS else "float32"
 
 
 def lut_format_version(m: dict[str, Any]) -> int:
-    """The format_version of the map's LUT image: 5 with int16 cells, else 4 with a cell whose injection is off,
-    else 3."""
+    """The format_version of the map's LUT image: 5 with int16 cells, 6 with int11 cells, else 4 with a cell whose
+    injection is off, else 3."""
     return lut_codec.format_version_of([cell_flag(c) for c in m["cells"]], cell_format(m))
 
 
@@ -542,26 +543,30 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
 
 
 def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int, int, int]) -> list[str]:
-    """theta_cos and theta_sin as the map's LUT image carries them: f32 arrays, or (int16 cells) i16 arrays and
-    their quantum, the same integers as the drive's image; <MACRO>_THETA_COS(u, n, t) reads either in rad."""
+    """theta_cos and theta_sin as the map's LUT image carries them: f32 arrays, or (int16 and int11 cells) i16
+    arrays and their quantum, the same integers as the drive's image (int11: within +-1023, unpacked from the
+    image's 24-bit words: the header keeps one array per component for the firmware to read directly);
+    <MACRO>_THETA_COS(u, n, t) reads any of them in rad."""
     nu, nn, nt = shape
     dims = f"[{nu}][{nn}][{nt}]"
     what = "(ok, filled and injection-off cells; 0 elsewhere)"
     tc, ts = _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin")
-    if cell_format(m) != "int16":
+    cells = cell_format(m)
+    if cells not in lut_codec.FULL_SCALE:
         return [
             f"/* theta_cos, rad {what} */\nstatic const float {array}_theta_cos_rad{dims} = {_c_array(tc)};",
             f"/* theta_sin, rad {what} */\nstatic const float {array}_theta_sin_rad{dims} = {_c_array(ts)};",
             f"#define {macro}_THETA_COS(u, n, t) ({array}_theta_cos_rad[u][n][t])",
             f"#define {macro}_THETA_SIN(u, n, t) ({array}_theta_sin_rad[u][n][t])",
         ]
-    quantum = lut_codec.int16_quantum(np.asarray(tc), np.asarray(ts))
+    quantum = lut_codec.theta_quantum(np.asarray(tc), np.asarray(ts), cells)
 
     def ints(values: list[list[list[float]]]) -> str:
-        return _c_nested(lut_codec.quantized(values, quantum).tolist(), lambda v: str(int(v)))
+        return _c_nested(lut_codec.quantized(values, quantum, cells).tolist(), lambda v: str(int(v)))
 
+    version = lut_codec.format_version_of([], cells)
     return [
-        f"/* theta quantum, rad: theta = q * quantum (LUT image version 5, int16 cells) */\n"
+        f"/* theta quantum, rad: theta = q * quantum (LUT image version {version}, {cells} cells) */\n"
         f"#define {macro}_THETA_QUANTUM_RAD {float(np.float32(quantum))!r}f",
         f"/* theta_cos / quantum {what} */\nstatic const int16_t {array}_theta_cos_q{dims} = {ints(tc)};",
         f"/* theta_sin / quantum {what} */\nstatic const int16_t {array}_theta_sin_q{dims} = {ints(ts)};",
@@ -638,9 +643,9 @@ def cell_count(axes: dict[str, list[float]]) -> int:
 
 def image_bytes(axes: dict[str, list[float]], cells: str = "float32") -> int:
     """Bytes of the LUT image (firmware memory) of a map with these axes: header, each axis' breakpoints (f32),
-    theta_cos and theta_sin (f32, or i16 after one f32 quantum with cells "int16") and the flag (u8) per cell, CRC
-    (drivers/lut_image.py layout)."""
-    quantum = 4 if cells == "int16" else 0
+    theta_cos and theta_sin (f32, or integers after one f32 quantum with cells "int16" or "int11") and the flag per
+    cell (CELL_BYTES a cell in all), CRC (drivers/lut_image.py layout)."""
+    quantum = 4 if cells in lut_codec.FULL_SCALE else 0
     return (
         lut_codec.HEADER.size
         + 4 * sum(len(axes[a]) for a in lut_codec.AXES)
@@ -655,7 +660,7 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
     filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry); cells with
     injection off go in as flag 3 (format_version 4; without one the image is version 3; a map built for int16
-    cells, `cell_format`, is version 5);
+    or int11 cells, `cell_format`, is version 5 or 6);
     interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]

@@ -95,16 +95,17 @@ class RefineRequest(BaseModel):
     validation: ValidationOptions = Field(
         default_factory=ValidationOptions, description="how finely each validation point is measured"
     )
-    lut_cells: Literal["float32", "int16"] = Field(
+    lut_cells: Literal["float32", "int16", "int11"] = Field(
         "float32",
-        description="how the refined LUT carries theta per cell: float32 (9 bytes a cell, image version 3/4) or "
-        "int16 (5 bytes a cell, image version 5, theta = q x one quantum: the largest component / 32767); "
-        "max_bytes counts that format, and the refined map's downloads and exports use it",
+        description="how the refined LUT carries theta per cell: float32 (9 bytes a cell, image version 3/4), "
+        "int16 (5 bytes a cell, image version 5, theta = q x one quantum: the largest component / 32767) or int11 "
+        "(3 bytes a cell, image version 6: two 11-bit integers and the flag in 24 bits, quantum the largest "
+        "component / 1023); max_bytes counts that format, and the refined map's downloads and exports use it",
     )
     placement: Literal["curves", "validation"] = Field(
         "curves",
         description="curves: first place breakpoints from theta* identified between them (bisection along torque "
-        "and speed, service/runs/placement.py), then validate; validation: insert only where a validation fails",
+        "and speed, service/maps/placement.py), then validate; validation: insert only where a validation fails",
     )
 
 

@@ -5,7 +5,7 @@ Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cell
 On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
 1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
 then a refinement (POST /maps/{id}/refine: placement from curves, then the same validation), within max_cells and
-max_bytes 2048 (int16 cells: 5 bytes a cell, --lut-cells float32 for 9). Printed per round: the
+max_bytes 2048 (int11 cells: 3 bytes a cell; --lut-cells int16 for 5, float32 for 9). Printed per round: the
 LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB, median and
 minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells given
 injection off by the guard, and the round's plant seconds; then the totals.
@@ -119,7 +119,9 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
     parser.add_argument("--dump", default=None, help="a directory: the final map and validation as JSON per machine")
-    parser.add_argument("--lut-cells", default="int16", choices=("int16", "float32"), help="the LUT's cell format")
+    parser.add_argument(
+        "--lut-cells", default="int11", choices=("int11", "int16", "float32"), help="the LUT's cell format"
+    )
     args = parser.parse_args()
     for text in args.seeds.split(","):
         machine(

@@ -142,7 +142,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
     try:
         source = swept_map(api)
         r = api.post(
-            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int16"}
+            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int11"}
         )
         assert r.status_code == 202, r.text
         job = api.job_finished(r.json()["id"], 900)
@@ -158,12 +158,12 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
         # the turn lies between 1800 and 2600 rpm: the interpolation misses it, so speed values were kept
         assert kept["speed_rpm"], placement
         assert placement[-1]["bytes"] == result["rounds"][0]["bytes"]
-        # int16 cells: the drive took a version 5 image of 5 bytes a cell (28 + 4 per axis value), CRC read back
+        # int11 cells: the drive took a version 6 image of 3 bytes a cell (28 + 4 per axis value), CRC read back
         receipt = api.get(f"/maps/{result['map_id']}/validation")["download"]
         n_values = sum(len(v) for v in refined["axes"].values())
         n_cells = len(refined["axes"]["torque_nm"]) * len(refined["axes"]["speed_rpm"])
-        assert receipt["format_version"] == 5 and receipt["bytes"] == 28 + 4 * n_values + 5 * n_cells, receipt
-        assert refined["provenance"]["lut_cells"] == "int16"
+        assert receipt["format_version"] == 6 and receipt["bytes"] == 28 + 4 * n_values + 3 * n_cells, receipt
+        assert refined["provenance"]["lut_cells"] == "int11"
         # the first validation judges the placed map, every identified cell once, all within the budget
         assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 24
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}

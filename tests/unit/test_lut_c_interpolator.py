@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from drivers import lut_image
-from service.maps.lut_export import export_map, image_bytes
+from service.maps.lut_export import cell_count, export_map, image_bytes
 from service.maps.lut_export import lut_image as service_image
 from service.maps.view import MapCell
 from tests.support.c_lut import HeaderTheta, build, f32, needs_gcc
@@ -134,6 +134,16 @@ MAPS = {
             {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
         ),
         "provenance": {"lut_cells": "int16"},
+    },
+    # and with int11 cells (version 6: two 11-bit integers and the flag packed in 3 bytes a cell)
+    "int11 cells": {
+        **make_map(
+            46,
+            NON_UNIFORM,
+            lambda p: (0.0, 0.0) if p == (2.5, 1500.0, 48.0) else turning(p),
+            {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
+        ),
+        "provenance": {"lut_cells": "int11"},
     },
     # delta turning once around the cell (0, 100, 200, 290 deg): at its centre the four corners tie and the
     # reference (the first of them) decides the result; no two corners 180 deg apart (no arc is ambiguous)
@@ -249,16 +259,28 @@ def test_headers_go_twice_into_one_unit_and_into_two_units_of_one_program(tmp_pa
     assert other == pytest.approx(lut_b.theta(2.0, 1500.0, 12.0)[0], abs=THETA_QUANTUM_RAD)
 
 
-def test_an_int16_map_is_a_version_5_image_of_5_bytes_a_cell_within_half_a_quantum_of_its_theta():
-    m = MAPS["int16 cells"]
+@pytest.mark.parametrize(
+    ("cells", "version", "full_scale"),
+    [("int16", lut_image.FORMAT_VERSION_INT16, 32767), ("int11", lut_image.FORMAT_VERSION_INT11, 1023)],
+)
+def test_an_integer_cell_map_is_its_versions_image_within_half_a_quantum_of_its_theta(cells, version, full_scale):
+    """int16: version 5, 5 bytes a cell; int11: version 6, 3 bytes a cell (flag packed with theta). Both within half a
+    quantum (the largest |component| / full scale) of the float image's theta, with the same flags."""
+    m = MAPS[f"{cells} cells"]
     image = service_image(m, interpolation="polar")
-    assert len(image) == image_bytes(m["axes"], "int16") and image[4] == lut_image.FORMAT_VERSION_INT16
-    lut = lut_image.decode(image)
-    quantum = lut_image.int16_quantum(
-        np.array([c["theta_cos"] or 0.0 for c in m["cells"]]), np.array([c["theta_sin"] or 0.0 for c in m["cells"]])
+    assert len(image) == image_bytes(m["axes"], cells) and image[4] == version
+    assert image_bytes(m["axes"], cells) - image_bytes(m["axes"], "float32") == (
+        4 + (lut_image.CELL_BYTES[cells] - 9) * cell_count(m["axes"])
     )
-    # the quantum: the largest |component| over 32767, so 6 deg of gamma at most is 3.2e-6 rad
-    assert quantum == pytest.approx(max(abs(c["theta_cos"] or 0.0) for c in m["cells"]) / 32767, rel=1e-6)
+    lut = lut_image.decode(image)
+    quantum = lut_image.theta_quantum(
+        np.array([c["theta_cos"] or 0.0 for c in m["cells"]]),
+        np.array([c["theta_sin"] or 0.0 for c in m["cells"]]),
+        cells,
+    )
+    # the quantum: the largest |component| over the full scale (6 deg of gamma: 3.2e-6 rad in int16, 1e-4 in int11)
+    assert quantum == pytest.approx(max(abs(c["theta_cos"] or 0.0) for c in m["cells"]) / full_scale, rel=1e-6)
     float_lut = lut_image.decode(service_image({**m, "provenance": None}, interpolation="polar"))
     assert np.max(np.abs(lut.theta_cos - float_lut.theta_cos)) <= quantum / 2 + 1e-9
     assert np.max(np.abs(lut.theta_sin - float_lut.theta_sin)) <= quantum / 2 + 1e-9
+    assert np.array_equal(lut.flags, float_lut.flags) and int(lut.injection_off.sum()) == 1
