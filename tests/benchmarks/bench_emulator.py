@@ -50,11 +50,15 @@ def physics_factor(seconds: float = 2.0, chunk: int = 256, block_chunks: int = 1
     frames = np.empty(k * ph.FRAME_BYTES, dtype=np.uint8)
     summary = np.zeros((block_chunks, ph.N_SUMMARY))
     no_trace = np.zeros((0, ph.N_TRACE))
-    ph.simulate(plant.x, p, tab, sp, plant.rng.standard_normal(k), chunk, 0, frames, summary, no_trace)
+    ph.simulate(
+        plant.x, p, tab, sp, ph.NO_THETA_SCHEDULE, plant.rng.standard_normal(k), chunk, 0, frames, summary, no_trace
+    )
     n = 0
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        ph.simulate(plant.x, p, tab, sp, plant.rng.standard_normal(k), chunk, n, frames, summary, no_trace)
+        ph.simulate(
+            plant.x, p, tab, sp, ph.NO_THETA_SCHEDULE, plant.rng.standard_normal(k), chunk, n, frames, summary, no_trace
+        )
         frames.tobytes()
         n += k
     return n * p[ph.P_TS] / (time.perf_counter() - t0)

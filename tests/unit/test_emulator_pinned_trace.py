@@ -39,7 +39,9 @@ def _run(x, p, tab, sp, n, chunk, seq0, noise_seed):
     frames = np.zeros(n * ph.FRAME_BYTES, dtype=np.uint8)
     summary = np.zeros((-(-n // chunk), ph.N_SUMMARY))
     trace = np.zeros((n, ph.N_TRACE))
-    ph.simulate(x, p, tab, np.asarray(sp, dtype=np.float64), noise, chunk, seq0, frames, summary, trace)
+    ph.simulate(
+        x, p, tab, np.asarray(sp, dtype=np.float64), ph.NO_THETA_SCHEDULE, noise, chunk, seq0, frames, summary, trace
+    )
     return {
         "trace": trace[::TRACE_EVERY].tolist(),
         "state": x.tolist(),

@@ -339,6 +339,7 @@ def test_emulator_frames_decode_bit_exactly_with_the_driver_decoder():
         p,
         tab,
         sp,
+        ph.NO_THETA_SCHEDULE,
         np.random.default_rng(3).standard_normal(n),
         256,
         seq0,
