@@ -23,6 +23,7 @@ import io
 import json
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Callable, cast
 
@@ -673,6 +674,41 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
         map_id=m["id"],
         interpolation=interpolation,
         cell_format=cell_format(m),
+    )
+
+
+def injection_unchanged(
+    before: dict[str, Any], after: dict[str, Any], fill: bool = True, interpolation: str | None = None
+) -> Callable[[Mapping[str, Any], bool], bool]:
+    """same(point, along_speed): True where the drive injects the same theta under both maps' LUT images (built as
+    `lut_image(m, fill, interpolation)`, interpolated by Lut.theta, the drive's one definition) at the operating
+    point, or (along_speed: a run-up) at every speed at its torque and U_dc: at each breakpoint of both speed axes
+    and midway between them (between them both are interpolations of the same corners). The same means within
+    rounding: two quanta of integer cells (an inserted cell may change a map's quantum), else 1e-9 rad."""
+    lut_a = lut_codec.decode(lut_image(before, fill, interpolation))
+    lut_b = lut_codec.decode(lut_image(after, fill, interpolation))
+    tolerance_rad = 1e-9 + 2.0 * max(_theta_quantum(before), _theta_quantum(after))
+    breakpoints = sorted({float(v) for v in (*lut_a.speed_rpm, *lut_b.speed_rpm)})
+    along = breakpoints + [(a + b) / 2.0 for a, b in zip(breakpoints, breakpoints[1:])]
+
+    def same(point: Mapping[str, Any], along_speed: bool = False) -> bool:
+        t, u = float(point["torque_nm"]), float(point["udc_v"])
+        for n in along if along_speed else [float(point["speed_rpm"])]:
+            (ca, sa), (cb, sb) = lut_a.theta(t, n, u), lut_b.theta(t, n, u)
+            if abs(ca - cb) > tolerance_rad or abs(sa - sb) > tolerance_rad:
+                return False
+        return True
+
+    return same
+
+
+def _theta_quantum(m: dict[str, Any]) -> float:
+    """The rad a unit of the map's integer cells stands for in its LUT image; 0 for float32 cells."""
+    cells = cell_format(m)
+    if cells not in lut_codec.FULL_SCALE:
+        return 0.0
+    return lut_codec.theta_quantum(
+        np.asarray(_grid_values(m, "theta_cos")), np.asarray(_grid_values(m, "theta_sin")), cells
     )
 
 

@@ -130,7 +130,6 @@ class RefinementState(TypedDict):
     round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
     guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
     guard_rounds: NotRequired[int]
-    guard_changed: NotRequired[list[list[float]]]  # the cells the last guard round turned off (its validation's reuse)
     candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
     lut_cells: NotRequired[str]  # float32 | int16: the refined maps' LUT cells (max_bytes counts them)
     placement_rounds: NotRequired[list[dict[str, Any]]]  # each placement round's candidates, what it kept, its cost
@@ -364,39 +363,24 @@ def corner_values(values: list[float], x: float) -> list[float]:
     return [x] if x in values else list(_neighbours(values, x) or (x,))
 
 
-def touched_by(
-    axes: dict[str, list[float]], cells: list[Cell], point: Mapping[str, Any], along_speed: bool = False
-) -> bool:
-    """True where the drive's LUT value at the point (every speed of it: a run-up, along_speed) has one of the
-    cells as a corner of non-zero weight: where a change to those cells changes what the drive injects."""
-    if not cells:
-        return False
-    grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
-    key = _cell_of(point)
-    corners = [
-        None if along_speed and a == "speed_rpm" else set(corner_values(grid_values[a], key[i]))
-        for i, a in enumerate(AXES)
-    ]
-    return any(all(c is None or cell[i] in c for i, c in enumerate(corners)) for cell in cells)
-
-
-def guard_reuse(
-    previous_cells: list[dict[str, Any]], axes: dict[str, list[float]], changed: list[Cell]
+def reuse_where(
+    previous_cells: list[dict[str, Any]], same: Callable[[Mapping[str, Any], bool], bool]
 ) -> Callable[[ValidationItem], list[dict[str, Any]] | None]:
-    """For a guard round's validation (run_validation's `reuse`): its map is the map validated before with
-    injection off at the `changed` cells, so what the drive injects differs only where those cells are a corner
-    of non-zero weight (`touched_by`: at a point, or at any speed of a run-up's torque). Elsewhere the earlier
-    cells are taken as they are (reused, no plant time); a point or run-up pair not measured then is measured."""
+    """run_validation's `reuse` for a refinement's next validation: where the drive injects the same theta as under
+    the map validated before (`same(point, along_speed)`, service/maps/lut_export.py injection_unchanged: at a
+    point, or at every speed of a run-up's torque), that validation's cells are taken as they are (reused, no plant
+    time): a guard round changes a few cells, an insertion round the intervals it splits. A point or run-up pair
+    not measured then, or measured then but not at its status `measured`, is measured."""
     earlier: dict[tuple[str, Cell], list[dict[str, Any]]] = {}
     for cell in previous_cells:
         earlier.setdefault((cell["kind"], _item_key(cell["kind"], cell["operating_point"])), []).append(cell)
 
     def reuse(item: ValidationItem) -> list[dict[str, Any]] | None:
         op = item.op.model_dump()
-        if item.not_run is not None or touched_by(axes, changed, op, along_speed=item.kind == "runup"):
-            return None
         cells = earlier.get((item.kind, _item_key(item.kind, op)))
-        if not cells or any(c["status"] != "measured" for c in cells):
+        if item.not_run is not None or not cells or any(c["status"] != "measured" for c in cells):
+            return None
+        if not same(op, item.kind == "runup"):
             return None
         return [{**c, "plant_time_s": 0.0, "reused": True} for c in cells]
 

@@ -1093,6 +1093,7 @@ def test_refine_on_drive_shows_its_rounds_and_the_refined_validation_beside_the_
         page.wait_for_selector('[data-testid="refine-button"]:not([disabled])', timeout=10_000)
         page.fill('[data-testid="refine-max-cells"]', "4")
         page.fill('[data-testid="refine-target"]', "30")
+        page.select_option('[data-testid="refine-lut-cells"]', "int11")  # 3 bytes a cell (LUT image version 6)
         # every (phase, round) the progress line shows, recorded as it changes
         page.evaluate(f"""() => {{
             const p = document.querySelector('{progress}');
@@ -1103,6 +1104,13 @@ def test_refine_on_drive_shows_its_rounds_and_the_refined_validation_beside_the_
         with page.expect_response(lambda r: r.url.endswith(f"/api/v1/maps/{map_id}/refine")) as answer:
             page.click('[data-testid="refine-button"]')
         assert answer.value.status == 202, answer.value.text()
+        sent = answer.value.request.post_data_json
+        assert (sent["lut_cells"], sent["max_bytes"], sent["max_cells"], "validation" in sent) == (
+            "int11",
+            2048,
+            4,
+            False,
+        )
         job_id = answer.value.json()["id"]
         try:
             page.wait_for_selector('[data-testid="refine-outcome"]:not([hidden])', timeout=180_000)
@@ -1121,6 +1129,7 @@ def test_refine_on_drive_shows_its_rounds_and_the_refined_validation_beside_the_
         assert job["kind"] == "refinement" and job["state"] == "done", job
         refined = result["map_id"]
         assert result["rounds"] and result["rounds"][-1]["map_id"] == refined, result
+        assert _api(service, "GET", f"/maps/{refined}")["provenance"]["lut_cells"] == "int11"
 
         seen = page.evaluate("() => window.refineSeen")
         running = [s for s in seen if s[0] in ("measure", "validate") and s[1].isdigit()]

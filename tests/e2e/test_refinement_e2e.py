@@ -73,6 +73,11 @@ def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu
         assert validation["id"] == result["validation"]["id"]
         n_t, n_n = len(refined["axes"]["torque_nm"]), len(refined["axes"]["speed_rpm"])
         assert len(validation["cells"]) == (2 * n_t - 1) * (2 * n_n - 1)
+        # a later round measures again only where the drive's injection changed (the source's grid points whose
+        # cells stayed keep theirs): the rest is taken from the round before, at no plant time
+        reused = [c for c in validation["cells"] if c.get("reused")]
+        assert validation["items_reused"] == len(reused) and all(c["plant_time_s"] == 0.0 for c in reused)
+        assert len(result["rounds"]) < 2 or reused, result["rounds"]
         sweep = api.get(f"/sweeps/{result['refinement_id']}")
         assert sweep["kind"] == "refinement" and sweep["state"] == "done" and sweep["map_id"] == result["map_id"]
         # each cell the refinement identified, once

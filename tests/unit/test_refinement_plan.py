@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 
+from service.maps.lut_export import injection_unchanged
 from service.maps.placement import axes_with
 from service.model.operating_point import OperatingPoint
-from service.runs.refinement import failing_points, guard_cells, guard_reuse, harmful_points, plan_round, touched_by
+from service.runs.refinement import failing_points, guard_cells, harmful_points, plan_round, reuse_where
 from service.runs.validation import ValidationItem
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
@@ -168,34 +169,69 @@ def test_harm_turns_injection_off_at_the_corner_nearest_the_turn():
     assert guard_cells(AXES, map_cells(theta), on_line) == [(2.0, 2000.0, 12.0)]
 
 
-def test_a_guard_rounds_validation_measures_again_only_what_the_newly_off_cell_touches():
-    """Injection off at (2 Nm, 2000 rpm): the drive's LUT changes at every point with that cell as a corner of
-    non-zero weight, 1 < t < 3 Nm and 1000 < n < 3000 rpm (on its own lines: only there), and along the run-ups
-    at such torques; everything else is taken from the validation before, at no plant time."""
-    off = [(2.0, 2000.0, 12.0)]
+def lut_map(axes, theta, off=(), map_id=1, lut_cells="float32") -> dict:
+    """A map as the LUT exports read it: every cell ok at theta(t, n), injection off at `off`."""
+    cells = [
+        {
+            "torque_nm": t,
+            "speed_rpm": n,
+            "udc_v": 12.0,
+            "status": "ok",
+            "theta_cos": theta(t, n)[0],
+            "theta_sin": theta(t, n)[1],
+            "filled": False,
+            "injection_off": (t, n) in off,
+        }
+        for n in axes["speed_rpm"]
+        for t in axes["torque_nm"]
+    ]
+    return {"id": map_id, "harmonic_order": 6, "axes": axes, "cells": cells, "provenance": {"lut_cells": lut_cells}}
+
+
+def smooth(t, n):
+    return (0.01 * t + 1e-5 * n, 0.02 - 0.003 * t)
+
+
+def point(t, n):
+    return {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}
+
+
+def test_the_drives_injection_is_unchanged_only_where_no_changed_cell_weighs():
+    """Injection off at (2 Nm, 2000 rpm): the drive's theta changes wherever that cell is a corner of non-zero weight
+    (1 < t < 3 Nm and 1000 < n < 3000 rpm, on its own lines only there) and along the run-ups at such torques. A
+    speed value inserted at 2500 rpm with a theta off the line: only in 2000..3000 rpm, and along every run-up."""
+    for cells in ("float32", "int11"):
+        before = lut_map(AXES, smooth, lut_cells=cells)
+        same = injection_unchanged(before, lut_map(AXES, smooth, off=[(2.0, 2000.0)], lut_cells=cells))
+        touched = {(t, n) for t in (1.5, 2.0, 2.5) for n in (1500.0, 2000.0, 2500.0)}
+        for t in (1.0, 1.5, 2.0, 2.5, 3.0, 4.0):
+            for n in (900.0, 1000.0, 1500.0, 2000.0, 2500.0, 3000.0):
+                assert same(point(t, n), False) is ((t, n) not in touched), (cells, t, n)
+        assert not same(point(1.5, 1000.0), True) and same(point(1.0, 1000.0), True) and same(point(3.0, 0.0), True)
+        axes = {**AXES, "speed_rpm": [1000.0, 2000.0, 2500.0, 3000.0]}
+        same = injection_unchanged(
+            before, lut_map(axes, lambda t, n: (0.05, 0.0) if n == 2500.0 else smooth(t, n), lut_cells=cells)
+        )
+        assert same(point(1.5, 1500.0), False) and same(point(2.0, 2000.0), False)
+        assert not same(point(1.5, 2250.0), False) and not same(point(3.0, 2750.0), False)
+        assert not same(point(1.0, 1000.0), True)
+
+
+def test_a_rounds_validation_takes_the_earlier_cells_where_the_injection_is_the_same():
     previous = [{**c, "plant_time_s": 0.4} for c in validation({})]
-    previous += [{**runup_bin(t, n, 40.0), "plant_time_s": 0.0} for t in (1.0, 1.5, 3.0) for n in (1000.0, 1010.0)]
-    reuse = guard_reuse(previous, AXES, off)
+    previous += [{**runup_bin(t, n, 40.0), "plant_time_s": 0.0} for t in (1.0, 1.5) for n in (1000.0, 1010.0)]
+    previous[0] = {**previous[0], "status": "failed"}  # (1 Nm, 1000 rpm) failed then: measured now
+    changed = {(1.5, 1500.0), (1.5, 0.0)}
+    reuse = reuse_where(previous, lambda op, along: (op["torque_nm"], 0.0 if along else op["speed_rpm"]) not in changed)
 
     def item(t, n, kind="grid"):
         return ValidationItem(OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=12.0), kind)
 
-    touched = {(t, n) for t in (1.5, 2.0, 2.5) for n in (1500.0, 2000.0, 2500.0)}
-    for c in validation({}):
-        op = c["operating_point"]
-        got = reuse(item(op["torque_nm"], op["speed_rpm"], c["kind"]))
-        if (op["torque_nm"], op["speed_rpm"]) in touched:
-            assert got is None, op
-        else:
-            assert got is not None and got[0]["reused"] and got[0]["plant_time_s"] == 0.0, op
-            assert got[0]["operating_point"] == op
-    # run-up pairs: at 1.5 Nm the cell weighs at every speed; at 1 and 3 Nm (rows beside it) never
-    assert reuse(item(1.5, 1000.0, "runup")) is None
-    assert [b["operating_point"]["speed_rpm"] for b in reuse(item(3.0, 1000.0, "runup"))] == [1000.0, 1010.0]
-    assert reuse(item(1.0, 1000.0, "runup")) is not None
-    # not measured before (no such run-up then): measured now
-    assert reuse(item(2.5, 1000.0, "runup")) is None
-    assert reuse(item(9.0, 1000.0)) is None
-    # clamped beyond the axis ends, as the drive does: 4 Nm reads the 3 Nm row only
-    assert touched_by(AXES, off, {"torque_nm": 4.0, "speed_rpm": 2000.0, "udc_v": 12.0}) is False
-    assert touched_by(AXES, [(3.0, 2000.0, 12.0)], {"torque_nm": 4.0, "speed_rpm": 2100.0, "udc_v": 12.0}) is True
+    assert reuse(item(1.0, 1000.0)) is None and reuse(item(1.5, 1500.0, "midpoint")) is None
+    got = reuse(item(2.0, 1500.0, "midpoint"))
+    assert got is not None and got[0]["reused"] and got[0]["plant_time_s"] == 0.0
+    assert got[0]["operating_point"] == point(2.0, 1500.0)
+    assert reuse(item(1.5, 1000.0, "runup")) is None  # its torque's injection changed
+    assert [b["operating_point"]["speed_rpm"] for b in reuse(item(1.0, 1000.0, "runup"))] == [1000.0, 1010.0]
+    assert reuse(item(2.5, 1000.0, "runup")) is None  # not run then
+    assert reuse(ValidationItem(OperatingPoint(torque_nm=2.0, speed_rpm=1500.0, udc_v=12.0), "midpoint", "no")) is None

@@ -11,7 +11,7 @@ from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, image_bytes
+from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, image_bytes, injection_unchanged
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     axes_with,
@@ -34,9 +34,9 @@ from service.runs.refinement import (
     RefineRequest,
     check_request,
     guard_cells,
-    guard_reuse,
     harmful_points,
     plan_round,
+    reuse_where,
 )
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
 from service.runs.sweep_run import SweepRunner, job_sweep_id, stored_sweep
@@ -328,18 +328,19 @@ class RefinementRun:
                 {"job_id": job_id, "kind": "refinement", "round": state["round"], "total": total, "cell": cell},
             )
 
+        options = ValidationOptions.model_validate(state["validation"])
         run = run_validation(
             self.storage,
             self.bench,
             self.settings,
             map_id,
             True,
-            ValidationOptions.model_validate(state["validation"]),
+            options,
             ctl.cancel,
             on_cell=on_cell,
             on_progress=lambda r: store_validation(self.storage, job_id, r, self.bench.identity, finished=False),
             uncompensated=self.uncompensated,
-            reuse=self._guard_reuse(state),
+            reuse=self._round_reuse(state, map_id, options),
         )
         validation_id = store_validation(self.storage, job_id, run, self.bench.identity)
         if run.state == "cancelled":
@@ -422,7 +423,6 @@ class RefinementRun:
         if harmful and state.get("guard_rounds", 0) < MAX_GUARD_ROUNDS and off != already_off:
             # never worse than nothing: the drive gives no compensation where this LUT made the order worse
             state["guard_off"] = [list(c) for c in sorted(off)]
-            state["guard_changed"] = [list(c) for c in sorted(off - already_off)]
             state["phase"] = "guard"
             state["stopped"] = stopped  # kept for the guarded map's verdict
             return
@@ -439,16 +439,20 @@ class RefinementRun:
             else None
         )
 
-    def _guard_reuse(self, state: RefinementState) -> Callable[[ValidationItem], list[dict[str, Any]] | None] | None:
-        """A guard round's validation measures again only what its newly-off cells touch (refinement.guard_reuse);
-        the rest comes from the validation of the map before it."""
-        changed = [(float(t), float(n), float(u)) for t, n, u in state.get("guard_changed", [])]
-        if not changed or not state["rounds"]:
+    def _round_reuse(
+        self, state: RefinementState, map_id: int, options: ValidationOptions
+    ) -> Callable[[ValidationItem], list[dict[str, Any]] | None] | None:
+        """A round's validation measures again only where the drive's injection differs from the map validated the
+        round before (refinement.reuse_where); the first validation measures everything."""
+        if not state["rounds"]:
             return None
-        previous = self.storage.latest_validation(state["rounds"][-1]["map_id"])
-        if previous is None or previous["state"] != "done":
+        before_id = state["rounds"][-1]["map_id"]
+        previous = self.storage.latest_validation(before_id)
+        before, after = map_view(self.storage, before_id), map_view(self.storage, map_id)
+        if previous is None or previous["state"] != "done" or before is None or after is None:
             return None
-        return guard_reuse(previous["cells"], state["axes"], changed)
+        same = injection_unchanged(before.model_dump(), after.model_dump(), options.fill, options.interpolation)
+        return reuse_where(previous["cells"], same)
 
     def _refinement_guard(self, sweep_id: int, sweep: SweepRecord, state: RefinementState, source: MapRecord) -> None:
         """The current map built again as a map of its own with injection off at the guard's cells (LUT flag 3),

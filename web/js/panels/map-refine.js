@@ -77,14 +77,17 @@ async function start() {
   showMsg("refine-note", null);
   const target = Number($("refine-target").value);
   const maxCells = Number($("refine-max-cells").value);
-  if (!Number.isFinite(target) || !Number.isInteger(maxCells)) {
-    showMsg("refine-note", ["target (dB) and max cells (a whole number) are needed"], "Refinement not started");
+  const maxBytes = Number($("refine-max-bytes").value);
+  if (!Number.isFinite(target) || !Number.isInteger(maxCells) || !Number.isInteger(maxBytes)) {
+    showMsg("refine-note", ["target (dB), max cells and max bytes (whole numbers) are needed"], "Refinement not started");
     return;
   }
+  const body = { target_db: target, max_cells: maxCells, max_bytes: maxBytes, lut_cells: $("refine-lut-cells").value };
+  if ($("refine-runups").checked) body.validation = { runups: true, runup_torques_max: 7 };
   const source = mapId;
   $("refine-btn").disabled = true;
   try {
-    const job = await api.post(`/maps/${source}/refine`, benchChoice.withBench({ target_db: target, max_cells: maxCells }));
+    const job = await api.post(`/maps/${source}/refine`, benchChoice.withBench(body));
     const r = fresh(job.sweep_id, job.id);
     take(r, job.result, job.state === "queued" ? "queued" : (job.result || {}).state, job.error);
     showMsg("refine-note", [`Refinement ${job.sweep_id} of map ${source} queued (job ${job.id}): target ` +
