@@ -363,6 +363,18 @@ def corner_values(values: list[float], x: float) -> list[float]:
     return [x] if x in values else list(_neighbours(values, x) or (x,))
 
 
+def no_progress(rounds: list[dict[str, Any]]) -> str | None:
+    """Why a refinement ends for want of progress, or None: the round before the last only measured cells again
+    (it inserted no axis value) and the last validation holds no more points than the one before it; more such
+    rounds spend bench time for nothing (measured: seed 5 ran three at 388-451 plant s each, held 3137, 3135, 3136)."""
+    if len(rounds) < 2 or rounds[-2]["inserted"] or (rounds[-1].get("held") or 0) > (rounds[-2].get("held") or 0):
+        return None
+    return (
+        f"measuring {rounds[-2]['remeasured']} cell(s) again held no more points "
+        f"({rounds[-1].get('held')} of {rounds[-1].get('points_judged')})"
+    )
+
+
 def reuse_where(
     previous_cells: list[dict[str, Any]], same: Callable[[Mapping[str, Any], bool], bool]
 ) -> Callable[[ValidationItem], list[dict[str, Any]] | None]:

@@ -7,7 +7,14 @@ import math
 from service.maps.lut_export import injection_unchanged
 from service.maps.placement import axes_with
 from service.model.operating_point import OperatingPoint
-from service.runs.refinement import failing_points, guard_cells, harmful_points, plan_round, reuse_where
+from service.runs.refinement import (
+    failing_points,
+    guard_cells,
+    harmful_points,
+    no_progress,
+    plan_round,
+    reuse_where,
+)
 from service.runs.validation import ValidationItem
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
@@ -235,3 +242,15 @@ def test_a_rounds_validation_takes_the_earlier_cells_where_the_injection_is_the_
     assert [b["operating_point"]["speed_rpm"] for b in reuse(item(1.0, 1000.0, "runup"))] == [1000.0, 1010.0]
     assert reuse(item(2.5, 1000.0, "runup")) is None  # not run then
     assert reuse(ValidationItem(OperatingPoint(torque_nm=2.0, speed_rpm=1500.0, udc_v=12.0), "midpoint", "no")) is None
+
+
+def test_a_refinement_ends_when_measuring_cells_again_holds_no_more_points():
+    def rnd(held, inserted=None, remeasured=0):
+        return {"held": held, "points_judged": 3289, "inserted": inserted or {}, "remeasured": remeasured}
+
+    assert no_progress([rnd(3137)]) is None  # one round: nothing to compare
+    assert no_progress([rnd(3137, remeasured=12), rnd(3140)]) is None  # it gained
+    assert no_progress([rnd(3137, {"speed_rpm": [2212.5]}), rnd(3130)]) is None  # an insertion: judged by its plan
+    assert no_progress([rnd(3137, remeasured=12), rnd(3135)]) == (
+        "measuring 12 cell(s) again held no more points (3135 of 3289)"
+    )

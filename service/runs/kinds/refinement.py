@@ -35,6 +35,7 @@ from service.runs.refinement import (
     check_request,
     guard_cells,
     harmful_points,
+    no_progress,
     plan_round,
     reuse_where,
 )
@@ -400,6 +401,8 @@ class RefinementRun:
         stopped: str | None = None  # why the refinement ends here (None: it holds, or it goes on)
         if guarding or plan.failing == 0:
             ending = True
+        elif (stalled := no_progress(state["rounds"])) is not None:
+            ending, stopped = True, stalled
         elif not plan.cells:
             ending, stopped = True, "; ".join(plan.reasons) or "nothing left to insert"
         elif max_bench_s is not None and state["plant_time_s"] >= max_bench_s:
