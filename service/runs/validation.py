@@ -310,6 +310,9 @@ def run_validation(
             raise MeasurementError("no speed bin of the run-up pair could be judged (the order was not fitted)")
         return bins
 
+    # taken from an earlier validation: found before the bench runs, and added without a store each (a refined
+    # map's thousands of reused points must not hold the run's loop, which the bench watchdog times)
+    earlier = {} if reuse is None else {k: cells for k, item in enumerate(items) if (cells := reuse(item)) is not None}
     i = 0
     while i < len(items) and run.state == "done":
         if cancel.is_set():
@@ -320,10 +323,9 @@ def run_validation(
             with bench.run(h, decoupling=decoupling, cancel=cancel) as brun:
                 while i < len(items) and not cancel.is_set():
                     item = items[i]
-                    earlier = reuse(item) if reuse is not None else None
-                    if earlier is not None:
+                    if i in earlier:
                         run.items_reused += 1
-                        finish(*earlier)
+                        run.cells.extend(earlier[i])  # stored with the next point measured, or at the end
                         i += 1
                         continue
                     cell = new_cell(item.op, item.kind)
