@@ -28,7 +28,7 @@ integer in -1023 .. 1023, the quantum the largest |theta component| / 1023), bit
 no flag array. The rounding error is at most half a quantum per component: for a cell at a tenth of the map's
 largest |theta| 20 log10(0.1 * 1023 * sqrt 2) = 43 dB under it, beyond what identification reaches at most
 cells; for twice the cells of int16 in the same firmware memory (measured on paper-bench's refined map: the
-rounding alone leaves a median 62 dB and a minimum 31 dB under the cell's theta).
+rounding alone leaves a median 62 dB and a minimum 33 dB under the cell's theta).
 Version 4 is version 3 plus flag 3 (FLAG_OFF); version 2 is the same layout with byte 7 reserved (0) and
 u8 valid[...] (0/1) for the flags. The drive decodes all three: a version 2 image is flags = valid and
 cartesian interpolation. `encode` writes version 4 only when a cell carries FLAG_OFF, else version 3
