@@ -219,6 +219,10 @@ class DriveFirmware(Cia402Device):
             c, s = self.lut.theta(self.torque_nm, self.speed_rpm, self.udc_v)
         else:
             return 0.0, 0.0
+        return self._clamped(c, s)
+
+    def _clamped(self, c: float, s: float) -> tuple[float, float]:
+        """theta with |theta| clamped to gamma_max (0x2000:5), as the control loop takes it."""
         g = math.hypot(c, s)
         if g > self.gamma_max_rad and g > 0.0:
             k = self.gamma_max_rad / g
@@ -246,10 +250,7 @@ class DriveFirmware(Cia402Device):
             rows = np.empty((n, 3))
             for i in range(n):
                 speed_rpm = lo_rpm + i * step_rpm
-                c, s = lut.theta(self.torque_nm, speed_rpm, udc_v)
-                g = math.hypot(c, s)
-                k = self.gamma_max_rad / g if g > self.gamma_max_rad else 1.0
-                rows[i] = speed_rpm * RPM_TO_RAD_S, c * k, s * k
+                rows[i] = (speed_rpm * RPM_TO_RAD_S, *self._clamped(*lut.theta(self.torque_nm, speed_rpm, udc_v)))
             self._schedule_key, self._schedule = key, rows
             return rows
 

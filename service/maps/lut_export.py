@@ -560,7 +560,7 @@ def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int,
             f"#define {macro}_THETA_COS(u, n, t) ({array}_theta_cos_rad[u][n][t])",
             f"#define {macro}_THETA_SIN(u, n, t) ({array}_theta_sin_rad[u][n][t])",
         ]
-    quantum = lut_codec.theta_quantum(np.asarray(tc), np.asarray(ts), cells)
+    quantum = _theta_quantum(m)
 
     def ints(values: list[list[list[float]]]) -> str:
         return _c_nested(lut_codec.quantized(values, quantum, cells).tolist(), lambda v: str(int(v)))

@@ -96,6 +96,21 @@ NON_UNIFORM = {
     "speed_rpm": [500.0, 1500.0, 1800.0, 2000.0, 2600.0],
     "udc_v": [12.0, 24.0, 48.0],
 }
+
+
+def with_integer_cells(map_id: int, cells: str) -> dict:
+    """The non-uniform turning map (one ok cell at theta 0, a fill, a hole, injection off) built for integer cells."""
+    return {
+        **make_map(
+            map_id,
+            NON_UNIFORM,
+            lambda p: (0.0, 0.0) if p == (2.5, 1500.0, 48.0) else turning(p),
+            {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
+        ),
+        "provenance": {"lut_cells": cells},
+    }
+
+
 MAPS = {
     # filled cells, holes, injection-off cells (one interior, one at a corner of the grid), a zero theta
     "non-uniform": make_map(
@@ -126,25 +141,9 @@ MAPS = {
         {(2.0, 2000.0, 12.0): "filled", (3.0, 1000.0, 24.0): "hole"},
     ),
     # the same map with int16 cells (LUT image version 5): the header carries the image's integers and quantum
-    "int16 cells": {
-        **make_map(
-            45,
-            NON_UNIFORM,
-            lambda p: (0.0, 0.0) if p == (2.5, 1500.0, 48.0) else turning(p),
-            {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
-        ),
-        "provenance": {"lut_cells": "int16"},
-    },
+    "int16 cells": with_integer_cells(45, "int16"),
     # and with int11 cells (version 6: two 11-bit integers and the flag packed in 3 bytes a cell)
-    "int11 cells": {
-        **make_map(
-            46,
-            NON_UNIFORM,
-            lambda p: (0.0, 0.0) if p == (2.5, 1500.0, 48.0) else turning(p),
-            {(1.0, 1800.0, 12.0): "filled", (0.5, 2600.0, 24.0): "hole", (2.5, 1500.0, 24.0): "off"},
-        ),
-        "provenance": {"lut_cells": "int11"},
-    },
+    "int11 cells": with_integer_cells(46, "int11"),
     # delta turning once around the cell (0, 100, 200, 290 deg): at its centre the four corners tie and the
     # reference (the first of them) decides the result; no two corners 180 deg apart (no arc is ambiguous)
     "phase vortex": make_map(
