@@ -118,7 +118,7 @@ def test_with_the_override_the_actuals_interlock_trips_and_leaves_the_bench_safe
 
 def test_a_sweep_that_runs_away_pauses_with_the_reason_and_keeps_what_it_measured(rig):
     """Overridden, a sweep moves on from a point within the envelope to the issue's: the trip pauses it with the
-    reason (the existing interlock machinery), the point in flight is discarded, the first point stays ok."""
+    reason (the existing interlock machinery), the point in flight is discarded, the first point keeps its result."""
     emu, _, api, _ = rig
     body = {
         "grid": {"torque_nm": [-2.5], "speed_rpm": [2000, 5000], "udc_v": [12]},
@@ -133,7 +133,10 @@ def test_a_sweep_that_runs_away_pauses_with_the_reason_and_keeps_what_it_measure
     )
     assert sweep["state"] == "paused" and "the motor left the envelope" in sweep["pause_reason"], sweep
     by_speed = {p["operating_point"]["speed_rpm"]: p for p in sweep["points"]}
-    assert by_speed[2000.0]["state"] == "ok", by_speed
+    # kept as measured: ok, or below_target on a loaded PC at speedup 1 (CI saw it), never the trip's
+    first = by_speed[2000.0]
+    assert first["state"] in ("ok", "below_target"), by_speed
+    assert "left the envelope" not in (first.get("error") or "") + (first.get("reason") or ""), first
     assert 5000.0 not in by_speed or by_speed[5000.0]["state"] != "ok"
     wait_until(lambda: not api.get("/bench/status")["busy"], 30, "bench idle")
     assert drive_state(emu) == "switch_on_disabled"
