@@ -19,9 +19,12 @@ request, and never blocks.
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
+import traceback
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Callable
 
 from drivers.drive import DriveClient
@@ -29,6 +32,8 @@ from drivers.load_machine import LoadClient
 from service.bench.trips import Trip
 
 log = logging.getLogger(__name__)
+
+_OUR_CODE = str(Path(__file__).resolve().parents[2])  # a stall names the innermost frame of the project's code
 
 PERIOD_S = 0.05  # how often the watchdog looks at the run's last kick
 STANDSTILL_RPM = 20.0  # the load is disabled once its own speed reading is below this ...
@@ -63,6 +68,7 @@ class BenchWatchdog:
         self.last_stop: Trip | None = None  # the latest stop, kept for the status until the next one
         # time.monotonic() (system-wide CLOCK_MONOTONIC) of the run's last kick before a stop for silence
         self.silent_since_monotonic: float | None = None
+        self._worker: int | None = None  # the thread that armed the run
         self._thread: threading.Thread | None = None
 
     # --- the run's side (the worker) ---------------------------------------------------------------------
@@ -72,6 +78,7 @@ class BenchWatchdog:
         self._load_braking = False
         self._asked = None
         self._last_kick = time.monotonic()
+        self._worker = threading.get_ident()  # whose stack a stall names
         self._armed = True
 
     def kick(self) -> None:
@@ -139,10 +146,16 @@ class BenchWatchdog:
             self.silent_since_monotonic = None
         elif silent_s > self.bound_s:
             self.silent_since_monotonic = self._last_kick
+            stack = self._worker_stack()
+            ours = [f for f in stack if f.filename.startswith(_OUR_CODE) and "site-packages" not in f.filename]
+            at = (ours or stack)[-1] if stack else None
+            where = f" at {Path(at.filename).name}:{at.lineno} in {at.name}" if at is not None else ""
             reason = (
                 f"the run's loop did not report for {silent_s:.1f} s (bound {self.bound_s:g} s; the worker is "
-                "stuck, e.g. waiting for the database): drive and load disabled by the bench watchdog"
+                f"stuck{where}, e.g. waiting for the database): drive and load disabled by the bench watchdog"
             )
+            # where the worker was when it went silent: what a person needs to find why
+            log.error("the stalled run's worker, innermost last:\n%s", "".join(traceback.format_list(stack)))
             kind = "stalled"
         else:
             return
@@ -168,6 +181,11 @@ class BenchWatchdog:
                 self.on_stop(trip)
             except Exception:  # noqa: BLE001 - a reporter that fails must not undo the stop
                 log.exception("bench watchdog: reporting the stop failed")
+
+    def _worker_stack(self) -> traceback.StackSummary:
+        """The armed run's thread's stack now (empty when that thread is gone)."""
+        frame = sys._current_frames().get(self._worker) if self._worker is not None else None
+        return traceback.extract_stack(frame) if frame is not None else traceback.StackSummary()
 
     def _disable_all(self) -> str:
         """Drive first (its torque is what hurts), then the load braked on its speed loop and disabled.

@@ -2,8 +2,8 @@
 
 At every torque of the map's finer torque axis (each row and the midpoint between neighbouring rows) and each
 U_dc, two run-ups over the map's speed range (service/runs/runup.py): injection off (the uncompensated order)
-and the drive's LUT in force (the residual), tracking the map's harmonic order. Every speed bin of the pair is
-one judged point of kind `runup`:
+and the drive's LUT in force (the residual), tracking the map's harmonic order among every order of the run-up's
+survey (fitted together, so none leaks into it). Every speed bin of the pair is one judged point of kind `runup`:
   - suppression_db = 20 log10(|A_off| / |A_lut|) of the bin (as a grid point's figure);
   - above_floor_db = 20 log10(|A_off| / floor), floor the bin's noise floor of the uncompensated run-up
     (service/model/order_tracking.py: the rms amplitude an order without a tone shows there);
@@ -158,7 +158,9 @@ def measure_runup_pair(
             speed_rpm=speed_range,
             rate_rpm_per_s=rate_rpm_per_s,
             injection=injection,
-            orders=[order],
+            # every order of the survey fitted, not only the map's: an unfitted order leaks into it (order_tracking),
+            # and the injection's own 2h, amplified where it crosses the sensor's resonance, read as a failing bin
+            orders=None,
             override_envelope_model=True,  # the range was narrowed to the envelope already (runup_range)
         )
         results[injection] = measure_runup(brun, settings, req)

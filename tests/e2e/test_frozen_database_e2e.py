@@ -100,6 +100,7 @@ def test_a_frozen_database_leaves_the_bench_safe_cancel_and_sigterm_act_and_no_p
         status = api.get("/bench/status")  # the bench's status needs no database
         watchdog = status["watchdog"]
         assert watchdog["last_stop"] is not None and "did not report" in watchdog["last_stop"]["reason"], watchdog
+        assert "stuck at " in watchdog["last_stop"]["reason"], watchdog  # where the worker waited, named
         silent_since = watchdog["silent_since_monotonic"]
         assert silent_since is not None and off_at - silent_since <= SAFE_WITHIN_S, (
             f"drive off {off_at - silent_since:.2f} s after the run went silent ({off_at - t_freeze:.2f} s after "

@@ -13,6 +13,7 @@ from service.maps.lut_export import image_bytes
 from service.maps.placement import (
     PLACE_MARGIN_DB,
     candidate_cells,
+    cells_to_measure,
     first_candidates,
     interpolated,
     judge_candidates,
@@ -84,9 +85,32 @@ def test_place_keeps_what_misses_the_target_with_its_margin_most_cells_per_byte_
     }
     kept, following, reasons = place(axes, judged, 30.0, None)
     assert kept == {"torque_nm": [], "speed_rpm": [1200.0, 1600.0]}
-    assert following == {"torque_nm": [], "speed_rpm": [1100.0, 1300.0, 1500.0, 1700.0]}
+    # the torque interval settled at 1000, 1400, 1800 rpm is judged again at the speeds just kept
+    assert following == {"torque_nm": [1.5], "speed_rpm": [1100.0, 1300.0, 1500.0, 1700.0]}
     assert reasons == []
     one_more = image_bytes({**axes, "speed_rpm": [1000.0, 1200.0, 1400.0, 1800.0]})
     kept, following, reasons = place(axes, judged, 30.0, one_more)
     assert kept["speed_rpm"] == [1600.0]  # two short cells for the line's bytes beat one; 1200 would not fit
     assert len(reasons) == 1 and "1200" in reasons[0] and str(one_more) in reasons[0]
+
+
+def test_an_axis_is_judged_again_where_the_other_axis_grew_and_only_unmeasured_cells_are_measured():
+    """Torque 1.5 held at the first speeds; a speed kept later re-opens it, and the next round measures the grid's
+    new cells and the candidates' lines there, never a cell measured before nor the crossing of two candidates."""
+    axes = {"torque_nm": [1.0, 2.0], "speed_rpm": [1000.0, 1400.0, 1800.0], "udc_v": [12.0]}
+    bar = 30.0 + PLACE_MARGIN_DB
+    kept, following, _ = place(axes, {"torque_nm": {}, "speed_rpm": {1600.0: [bar - 5.0, bar - 5.0]}}, 30.0, None)
+    assert kept == {"torque_nm": [], "speed_rpm": [1600.0]} and following["torque_nm"] == [1.5]
+    # nothing kept on the speed axis: a settled torque interval stays settled
+    _, quiet, _ = place(axes, {"torque_nm": {}, "speed_rpm": {1600.0: [bar + 5.0, bar + 5.0]}}, 30.0, None)
+    assert quiet == {"torque_nm": [], "speed_rpm": []}
+
+    grown = {**axes, "speed_rpm": [1000.0, 1400.0, 1600.0, 1800.0]}
+    measured = {(t, n, 12.0) for t in (1.0, 1.5, 2.0) for n in (1000.0, 1400.0, 1800.0)} | {(1.0, 1600.0, 12.0)}
+    cells = cells_to_measure(grown, following, measured)
+    # the grid's new cell (2 Nm at 1600), the 1.5 Nm line at the new speed, the speed candidates' lines (1500, 1700)
+    # at the torque rows; not 1.5 Nm x 1500/1700 rpm (two candidates cross) and not what was measured
+    assert cells == sorted(
+        [(2.0, 1600.0, 12.0), (1.5, 1600.0, 12.0)] + [(t, n, 12.0) for t in (1.0, 2.0) for n in (1500.0, 1700.0)]
+    )
+    assert cells_to_measure(grown, {}, measured | {(2.0, 1600.0, 12.0)}) == []

@@ -16,6 +16,7 @@ from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     axes_with,
     candidate_cells,
+    cells_to_measure,
     first_candidates,
     judge_candidates,
     place,
@@ -243,7 +244,8 @@ class RefinementRun:
         interpolation of its neighbours misses, bisect their halves next round; when nothing is left to bisect
         (or a budget is spent), build the map and validate it."""
         thetas = {}
-        for r in self._refinement_rows(sweep_id, source):  # a later result for the same cell wins
+        rows = self._refinement_rows(sweep_id, source)
+        for r in rows:  # a later result for the same cell wins
             tc, ts = r.get("theta_cos"), r.get("theta_sin")
             if r["status"] == "ok" and tc is not None and ts is not None:
                 thetas[(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"]))] = complex(tc, ts)
@@ -269,19 +271,22 @@ class RefinementRun:
                 "left_out": reasons,
             }
         )
-        pending = [list(c) for c in candidate_cells(state["axes"], following)]
+        measured = {(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"])) for r in rows}
+        pending = cells_to_measure(state["axes"], following, measured)
         max_bench_s = state.get("max_bench_s")
-        if (
-            pending
+        if not (
+            any(following.values())
             and len(placed) < MAX_PLACE_ROUNDS
             and state["cells_added"] + len(pending) <= state["max_cells"]
             and (max_bench_s is None or state["plant_time_s"] < max_bench_s)
         ):
-            state["candidates"], state["pending"] = following, pending
+            # placement ends; the cells of the grid not measured yet (where two kept values cross) still are
+            following, pending = {}, cells_to_measure(state["axes"], {}, measured)
+        state["candidates"], state["pending"] = following, [list(c) for c in pending]
+        if pending or any(following.values()):  # candidates with every cell measured are judged next round as they are
             state["round"] += 1
             state["phase"] = "measure"
             return
-        state["candidates"], state["pending"] = {}, []
         state["current_map_id"] = self._build_round_map(sweep_id, sweep, state, source, placement="curves")
         state["round"] += 1
         state["phase"] = "validate"
