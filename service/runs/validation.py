@@ -49,7 +49,7 @@ from service.runs.runup_validation import measure_runup_pair, runup_range, runup
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
-PROGRESS_STORE_S = 1.0  # wall seconds between a running validation's stores (the points since are kept in memory)
+STORE_SPACING = 10.0  # a running validation spends at most ~1/10 of its wall time storing its progress
 AT_FLOOR_SIGMAS = 3.0  # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
 
 
@@ -251,8 +251,8 @@ def run_validation(
     is made safe and a new one goes on from the next point). Never raises for a point: a failed point
     is a cell with its reason; an interlock trip or a cancel ends the run with state failed /
     cancelled and the remaining cells marked not measured. Errors before the first point (download)
-    do raise. `on_progress(run)` is told after the download and then as points finish, at most once a
-    PROGRESS_STORE_S (the job stores it; the caller stores the end).
+    do raise. `on_progress(run)` is told after the download and then as points finish, spaced by STORE_SPACING
+    times what it took (the job stores it; the caller stores the end).
     `uncompensated`: run-ups without injection kept across validations of one bench (runup_validation.py
     measure_runup_pair). `reuse(item)`: an earlier validation's cells for an item where the drive's LUT is the
     same as then (a refinement's guard round changes a few cells), taken as they are; None: measured."""
@@ -278,16 +278,20 @@ def run_validation(
             cell["map_cell_filled"] = bool(c is not None and c.filled and options.fill)
         return cell
 
-    stored_at = [time.monotonic()]
+    stored_at, store_s = time.monotonic(), 0.0
 
     def finish(*cells: dict[str, Any]) -> None:
+        nonlocal stored_at, store_s
         run.cells.extend(cells)
-        # stored as it measures, at most once a PROGRESS_STORE_S (a store writes every cell so far: a refined map's
-        # thousands, 0.1-0.2 s each; stored per item, a row of points outside the envelope held the run's loop
-        # past the bench watchdog's 3 s, and per point it is quadratic); the caller stores the end
-        if on_progress is not None and time.monotonic() - stored_at[0] >= PROGRESS_STORE_S:
+        # stored as it measures, but spaced by STORE_SPACING times what a store took (a store writes every cell
+        # so far: a small map's after each point, a refined map's thousands, 0.1-0.2 s each, about once a second;
+        # stored per item, a row of points outside the envelope held the run's loop past the bench watchdog's
+        # 3 s); the caller stores the end
+        if on_progress is not None and time.monotonic() - stored_at >= STORE_SPACING * store_s:
+            started = time.monotonic()
             on_progress(run)
-            stored_at[0] = time.monotonic()
+            stored_at = time.monotonic()
+            store_s = stored_at - started
         if on_cell is not None:
             for cell in cells:
                 on_cell(cell, len(items))
