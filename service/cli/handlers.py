@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import sys
 import time
 from datetime import datetime
@@ -95,7 +96,9 @@ def cmd_serve(args) -> int:
     finally:
         for limiter in limiters:
             limiter.close()  # the summaries still held back
-    return 0
+    # a Ctrl+C whose re-raise did nothing: SIGINT ignored since the start (a background job of a shell without
+    # job control inherits SIG_IGN; uvicorn handled it all the same): interrupted, as with the handler in place
+    return 130 if server.signals and server.signals[0] == signal.SIGINT else 0
 
 
 def _path_without_query(record: logging.LogRecord) -> bool:
