@@ -29,6 +29,16 @@ no flag array. The rounding error is at most half a quantum per component: for a
 largest |theta| 20 log10(0.1 * 1023 * sqrt 2) = 43 dB under it, beyond what identification reaches at most
 cells; for twice the cells of int16 in the same firmware memory (measured on paper-bench's refined map: the
 rounding alone leaves a median 62 dB and a minimum 33 dB under the cell's theta).
+Version 7 (cell_format "int11-sparse": per-row speed breakpoints on one shared axis) is version 6 storing only some
+cells: after the f32 theta_quantum_rad, u8 stored[ceil(cells / 8)] (bit i of byte i // 8, least significant
+first, for cell i in [udc][speed][torque] order: 1 stored), then the 24-bit words of the stored cells only, in
+index order. A row is the cells of one torque and U_dc along speed; its first and last cells are stored, and a
+cell not stored (derived) lies between the row's nearest stored cells a and b (both entries, flag 1 or 2): the
+drive gives it the interpolation of a and b by position along speed in the image's mode (`between`), flag 1
+where both are flag 1, else 2. The drive's theta along that row is then exactly the interpolation between a and
+b (cartesian: linear of linear; polar: gamma linear and delta on one unwrapped arc): each row has its own speed
+breakpoints, and a breakpoint costs a cell only in the rows that need it (the field-weakening turn moves with
+torque, measured: a shared axis spent most of 2048 bytes on cells that rows far from their turn interpolate).
 Version 4 is version 3 plus flag 3 (FLAG_OFF); version 2 is the same layout with byte 7 reserved (0) and
 u8 valid[...] (0/1) for the flags. The drive decodes all three: a version 2 image is flags = valid and
 cartesian interpolation. `encode` writes version 4 only when a cell carries FLAG_OFF, else version 3
@@ -77,11 +87,14 @@ FORMAT_VERSION = 3  # what encode writes for a map without injection-off cells
 FORMAT_VERSION_OFF = 4  # what encode writes when a cell carries FLAG_OFF
 FORMAT_VERSION_INT16 = 5  # what encode writes for cell_format "int16" (any flag)
 FORMAT_VERSION_INT11 = 6  # what encode writes for cell_format "int11" (any flag)
-SUPPORTED_VERSIONS = (2, 3, 4, 5, 6)  # what the drive decodes
+FORMAT_VERSION_SPARSE = 7  # what encode writes for cell_format "int11-sparse" (stored cells and a bitmap)
+SUPPORTED_VERSIONS = (2, 3, 4, 5, 6, 7)  # what the drive decodes
 # theta per cell: f32 (versions 2-4), i16 (version 5) or packed 11-bit integers (version 6) times one quantum
-CELL_FORMATS = ("float32", "int16", "int11")
-CELL_BYTES = {"float32": 9, "int16": 5, "int11": 3}  # theta_cos, theta_sin and the flag
-FULL_SCALE = {"int16": 32767, "int11": 1023}  # the integer cells' largest |q|
+CELL_FORMATS = ("float32", "int16", "int11", "int11-sparse")
+# theta_cos, theta_sin and the flag (int11-sparse: a stored cell, plus one bit a cell for the bitmap)
+CELL_BYTES = {"float32": 9, "int16": 5, "int11": 3, "int11-sparse": 3}
+FULL_SCALE = {"int16": 32767, "int11": 1023, "int11-sparse": 1023}  # the integer cells' largest |q|
+SPARSE = "int11-sparse"
 INT16_FULL_SCALE = FULL_SCALE["int16"]
 INT11_BITS = 11
 HEADER = struct.Struct("<4sHBBHHHHI")
@@ -100,6 +113,7 @@ VERSION_FLAGS = {
     4: FLAGS,
     5: FLAGS,
     6: FLAGS,
+    7: FLAGS,
 }
 # the header's interpolation byte: the code is the index
 INTERPOLATIONS = ("cartesian", "polar")
@@ -131,6 +145,7 @@ class Lut:
     crc: int  # image_crc: CRC-32 of the image without its CRC field
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = FORMAT_VERSION
+    stored: np.ndarray | None = None  # bool per cell (version 7): False where the drive derived it; None: all stored
 
     @property
     def valid(self) -> np.ndarray:
@@ -199,6 +214,81 @@ def _signed11(words: np.ndarray) -> np.ndarray:
     return np.where(low >= 1 << (INT11_BITS - 1), low - (1 << INT11_BITS), low).astype(np.float64)
 
 
+def between(theta_a: complex, theta_b: complex, x_a: float, x_b: float, x: float, interpolation: str) -> complex:
+    """theta at x between two breakpoints x_a < x_b of one axis that carry theta_a and theta_b (entries): `Lut.theta`'s
+    rule (module doc) with these two corners, in closed form (a derived cell of a version 7 row, and the placement's
+    prediction; tests/unit/test_lut_sparse.py holds it to Lut.theta)."""
+    f = 0.0 if not math.isfinite(x) or x <= x_a else (1.0 if x >= x_b else (x - x_a) / (x_b - x_a))
+    corners = [(t, w) for t, w in ((theta_a, 1.0 - f), (theta_b, f)) if w != 0.0]
+    if interpolation != "polar":
+        return complex(sum(w * t for t, w in corners))
+    with_phase = [(t, w) for t, w in corners if abs(t) > 0.0]
+    if not with_phase:
+        return 0j
+    gamma = sum(w * abs(t) for t, w in with_phase)
+    ref_theta = max(with_phase, key=lambda tw: tw[1])[0]  # the first of the largest weight
+    ref = -math.atan2(ref_theta.imag, ref_theta.real)
+    total = sum(w for _, w in with_phase)
+    delta = (
+        sum(
+            w * (ref + (-math.atan2(t.imag, t.real) - ref + math.pi) % (2.0 * math.pi) - math.pi) for t, w in with_phase
+        )
+        / total
+    )
+    return complex(gamma * math.cos(delta), -gamma * math.sin(delta))
+
+
+def check_stored(stored: np.ndarray, flags: np.ndarray) -> None:
+    """LutImageError unless every row (the cells of one torque and U_dc along speed, [udc][speed][torque]) stores
+    its first and last cell, and every cell not stored lies between stored entries (flag 1 or 2) and is one itself
+    (an off cell, or one without an entry, is always stored)."""
+    entry = (flags == FLAG_OK) | (flags == FLAG_FILLED)
+    if not (np.all(stored[:, 0, :]) and np.all(stored[:, -1, :])):
+        raise LutImageError("the first and last cell of every row along speed must be stored")
+    nu, nn, nt = stored.shape
+    for iu in range(nu):
+        for it in range(nt):
+            last = 0
+            for j in range(1, nn):
+                if not stored[iu, j, it]:
+                    if not entry[iu, j, it]:
+                        raise LutImageError(f"cell [{iu}][{j}][{it}] is not stored but is not an entry")
+                    continue
+                if j - last > 1 and not (entry[iu, last, it] and entry[iu, j, it]):
+                    raise LutImageError(
+                        f"cells between [{iu}][{last}][{it}] and [{iu}][{j}][{it}] are derived from a cell without "
+                        "an entry"
+                    )
+                last = j
+
+
+def _derive_rows(lut_axes: tuple[np.ndarray, np.ndarray, np.ndarray], tc, tsn, flags, stored, mode: str) -> None:
+    """Fill the cells not stored (in place) with the interpolation of their row's nearest stored cells (module doc)."""
+    speed = lut_axes[1]
+    nu, nn, nt = stored.shape
+    for iu in range(nu):
+        for it in range(nt):
+            kept = [j for j in range(nn) if stored[iu, j, it]]
+            for a, b in zip(kept, kept[1:]):
+                theta_a, theta_b = complex(tc[iu, a, it], tsn[iu, a, it]), complex(tc[iu, b, it], tsn[iu, b, it])
+                both_ok = flags[iu, a, it] == FLAG_OK and flags[iu, b, it] == FLAG_OK
+                for j in range(a + 1, b):
+                    theta = between(theta_a, theta_b, float(speed[a]), float(speed[b]), float(speed[j]), mode)
+                    tc[iu, j, it], tsn[iu, j, it] = theta.real, theta.imag
+                    flags[iu, j, it] = FLAG_OK if both_ok else FLAG_FILLED
+
+
+def _pack11(qc: np.ndarray, qs: np.ndarray, f: np.ndarray) -> bytes:
+    """Cells as 24-bit little-endian words: bits 0-10 theta_cos_q, 11-21 theta_sin_q, 22-23 the flag."""
+    mask = (1 << INT11_BITS) - 1
+    words = (
+        (qc.astype(np.int64).ravel() & mask)
+        | ((qs.astype(np.int64).ravel() & mask) << INT11_BITS)
+        | (f.astype(np.int64).ravel() << (2 * INT11_BITS))
+    )
+    return words.astype("<u4").view(np.uint8).reshape(-1, 4)[:, :3].tobytes()
+
+
 def _weights(axis: np.ndarray, x: float) -> list[tuple[int, float]]:
     """(index, weight) of the breakpoints around x, by position on a non-uniform axis; clamped."""
     n = len(axis)
@@ -245,12 +335,14 @@ def encode(
     map_id: int,
     interpolation: str | None = None,
     cell_format: str = "float32",
+    stored=None,
 ) -> bytes:
     """A format_version 3 image of map `map_id` (4 when a cell carries FLAG_OFF) from the axes and
     [udc][speed][torque] arrays (nested lists or arrays of that shape, or flat in that order). flags:
     FLAG_NONE / FLAG_OK / FLAG_FILLED / FLAG_OFF per cell (default all FLAG_OK); cells with flag 0 go in
     with theta 0, off cells with their theta (for the record). interpolation: "cartesian" or
-    "polar" (None: DEFAULT_INTERPOLATION). cell_format "int16" / "int11": a version 5 / 6 image (module doc). Raises
+    "polar" (None: DEFAULT_INTERPOLATION). cell_format "int16" / "int11": a version 5 / 6 image (module doc);
+    "int11-sparse": version 7, storing the cells where `stored` (bool per cell, default all) is true. Raises
     LutImageError if the map has more than MAX_CELLS
     cells, an axis is not strictly increasing, a flag or theta is not allowed, or map_id is not in
     1 .. MAX_MAP_ID."""
@@ -287,14 +379,14 @@ def encode(
         qc, qs = quantized(tc, quantum, cell_format), quantized(tsn, quantum, cell_format)
         if cell_format == "int16":
             body += qc.tobytes() + qs.tobytes()
+        elif cell_format == SPARSE:  # the bitmap, then the stored cells' words
+            keep = np.ones(shape, dtype=bool) if stored is None else np.asarray(stored, dtype=bool).reshape(shape)
+            check_stored(keep, f)
+            body += np.packbits(keep.ravel(), bitorder="little").tobytes()
+            body += _pack11(qc.ravel()[keep.ravel()], qs.ravel()[keep.ravel()], f.ravel()[keep.ravel()])
+            return body + TRAILER.pack(_crc32(body))
         else:  # one 24-bit word a cell: the flag travels in it
-            mask = (1 << INT11_BITS) - 1
-            words = (
-                (qc.astype(np.int64).ravel() & mask)
-                | ((qs.astype(np.int64).ravel() & mask) << INT11_BITS)
-                | (f.astype(np.int64).ravel() << (2 * INT11_BITS))
-            )
-            body += words.astype("<u4").view(np.uint8).reshape(-1, 4)[:, :3].tobytes()
+            body += _pack11(qc, qs, f)
             return body + TRAILER.pack(_crc32(body))
     else:
         body += tc.astype("<f4").tobytes() + tsn.astype("<f4").tobytes()
@@ -328,11 +420,13 @@ def format_version_of(flags, cell_format: str = "float32") -> int:
         return FORMAT_VERSION_INT16
     if cell_format == "int11":
         return FORMAT_VERSION_INT11
+    if cell_format == SPARSE:
+        return FORMAT_VERSION_SPARSE
     return FORMAT_VERSION_OFF if np.any(np.asarray(flags) == FLAG_OFF) else FORMAT_VERSION
 
 
 def decode(blob: bytes) -> Lut:
-    """Check and decode an image of format_version 2 to 6; LutImageError says what is wrong."""
+    """Check and decode an image of format_version 2 to 7; LutImageError says what is wrong."""
     blob = bytes(blob)
     if len(blob) < 6:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
@@ -365,9 +459,28 @@ def decode(blob: bytes) -> Lut:
         raise LutImageError(f"bad axis lengths {nt} x {nn} x {nu}")
     cells = nt * nn * nu
     int16 = version == FORMAT_VERSION_INT16
-    int11 = version == FORMAT_VERSION_INT11
-    # the quantum and two i16 per cell, or the quantum and one 24-bit word (flag included), or two f32; the flags
-    cell_bytes = 4 + 5 * cells if int16 else (4 + 3 * cells if int11 else 9 * cells)
+    sparse = version == FORMAT_VERSION_SPARSE
+    int11 = version == FORMAT_VERSION_INT11 or sparse
+    stored = np.ones(cells, dtype=bool)
+    bitmap_at = HEADER.size + 4 * (nt + nn + nu) + 4
+    if sparse:
+        bitmap_bytes = (cells + 7) // 8
+        if len(blob) < bitmap_at + bitmap_bytes + TRAILER.size:
+            raise LutImageError(f"image too short ({len(blob)} bytes) for the bitmap of {nt} x {nn} x {nu} cells")
+        bits = np.frombuffer(blob, dtype=np.uint8, count=bitmap_bytes, offset=bitmap_at)
+        unpacked = np.unpackbits(bits, bitorder="little")
+        if np.any(unpacked[cells:]):
+            raise LutImageError("the stored-cell bitmap has bits set past the last cell")
+        stored = unpacked[:cells].astype(bool)
+    n_words = int(np.count_nonzero(stored))
+    # the quantum and two i16 per cell, or the quantum and one 24-bit word (flag included) per stored cell (and
+    # the bitmap), or two f32; the flags
+    if int16:
+        cell_bytes = 4 + 5 * cells
+    elif int11:
+        cell_bytes = 4 + ((cells + 7) // 8 if sparse else 0) + 3 * n_words
+    else:
+        cell_bytes = 9 * cells
     expected = HEADER.size + 4 * (nt + nn + nu) + cell_bytes + TRAILER.size
     if len(blob) != expected:
         raise LutImageError(f"length {len(blob)} != {expected} for {nt} x {nn} x {nu}")
@@ -389,9 +502,12 @@ def decode(blob: bytes) -> Lut:
         if not (math.isfinite(quantum) and quantum > 0.0):
             raise LutImageError(f"theta_quantum_rad {quantum} is not a positive finite number")
     if int11:
-        raw = np.frombuffer(blob, dtype=np.uint8, count=3 * cells, offset=off).reshape(cells, 3).astype(np.int64)
-        off += 3 * cells
-        words = raw[:, 0] | (raw[:, 1] << 8) | (raw[:, 2] << 16)
+        if sparse:
+            off += (cells + 7) // 8
+        raw = np.frombuffer(blob, dtype=np.uint8, count=3 * n_words, offset=off).reshape(n_words, 3).astype(np.int64)
+        off += 3 * n_words
+        words = np.zeros(cells, dtype=np.int64)
+        words[stored] = raw[:, 0] | (raw[:, 1] << 8) | (raw[:, 2] << 16)
         tc = (_signed11(words) * quantum).reshape(nu, nn, nt)
         tsn = (_signed11(words >> INT11_BITS) * quantum).reshape(nu, nn, nt)
         flags = (words >> (2 * INT11_BITS)).astype(np.uint8).reshape(nu, nn, nt)
@@ -411,6 +527,11 @@ def decode(blob: bytes) -> Lut:
         raise LutImageError(f"flags must be one of {allowed} in a format_version {version} image")
     if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tsn))):
         raise LutImageError("theta values not finite")
+    stored_cells = stored.reshape(nu, nn, nt)
+    if sparse:  # the derived cells: checked like the encoder's, then interpolated along their rows
+        flags[~stored_cells] = FLAG_OK  # not carried; set by _derive_rows
+        check_stored(stored_cells, flags)
+        _derive_rows((axes[0], axes[1], axes[2]), tc, tsn, flags, stored_cells, interpolation)
     entry = flags != FLAG_NONE  # an off cell keeps its theta (the record); Lut.theta never injects it
     return Lut(
         int(map_id),
@@ -424,4 +545,5 @@ def decode(blob: bytes) -> Lut:
         crc,
         interpolation,
         int(version),
+        stored_cells if sparse else None,
     )

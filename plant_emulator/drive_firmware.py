@@ -16,8 +16,9 @@ without a toggle: it only clamps |theta|.
 LUT (0x2001): a download is decoded and checked (drivers.lut_image.decode, docs/interfaces.md "LUT image");
 a bad image is refused with SDO abort 0x08000020 and the LUT in force stays (status 2 = last
 download refused). 0x2001:2 and :4 report the CRC (lut_image.image_crc) and the map id of the LUT in
-force (0 without one). The drive takes format_version 4, 3 and 2 images (a version 2 image: its valid
-cells as flag 1, cartesian interpolation; version 4 adds flag 3, injection off). In injection mode 2 the control loop's
+force (0 without one). The drive takes format_version 2 to 7 images (a version 2 image: its valid
+cells as flag 1, cartesian interpolation; version 4 adds flag 3, injection off; 5 and 6 integer cells; 7 per-row
+speed breakpoints, its cells not stored derived along their row at decode). In injection mode 2 the control loop's
 chunk-rate task takes theta at the shaft's speed from `theta_schedule` (so it follows a run-up within a piece, as a
 drive's torque task does): theta interpolated by the image's own mode (`Lut.theta`: cartesian
 theta or polar gamma/delta along the shortest arc, by position on the non-uniform axes) in (torque

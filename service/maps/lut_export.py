@@ -129,15 +129,16 @@ def _off_text(m: dict[str, Any]) -> str:
 
 def cell_format(m: dict[str, Any]) -> str:
     """How the map's LUT image carries theta per cell: "float32" (9 bytes a cell), "int16" (5 bytes a cell, image
-    version 5) or "int11" (3 bytes a cell, version 6), as the map was built for (its provenance's `lut_cells`,
+    version 5), "int11" (3 bytes a cell, version 6) or "int11-sparse" (3 bytes a stored cell, version 7), as the map
+    was built for (its provenance's `lut_cells`,
     chosen by the refinement that built it)."""
     chosen = (m.get("provenance") or {}).get("lut_cells", "float32")
     return chosen if chosen in lut_codec.CELL_FORMATS else "float32"
 
 
 def lut_format_version(m: dict[str, Any]) -> int:
-    """The format_version of the map's LUT image: 5 with int16 cells, 6 with int11 cells, else 4 with a cell whose
-    injection is off, else 3."""
+    """The format_version of the map's LUT image: 5 with int16 cells, 6 with int11 cells, 7 with int11-sparse cells,
+    else 4 with a cell whose injection is off, else 3."""
     return lut_codec.format_version_of([cell_flag(c) for c in m["cells"]], cell_format(m))
 
 
@@ -331,6 +332,12 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
     # every name carries the map id, so the headers of several maps go into one translation unit
     macro, array = f"RIPPLECAL_LUT_MAP{int(m['id'])}", f"ripplecal_lut_map{int(m['id'])}"
     guard = f"{macro}_H"
+    # a version 7 image's cells as the drive holds them (its derived cells interpolated along their rows)
+    held = lut_codec.decode(lut_image(m, interpolation=mode)) if cell_format(m) == lut_codec.SPARSE else None
+
+    def flag_array(key: str, flag: int) -> Any:
+        return _grid_values(m, key) if held is None else (held.flags == flag).astype(int).tolist()
+
     version = re.sub(r"[^0-9A-Za-z.+-]", "", __version__)
     lines = [
         f"/* ripplecal LUT for harmonic injection: map {m['id']}, method {m['method']}.",
@@ -372,14 +379,15 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"/* speed axis, rpm (mechanical) */\nstatic const float {array}_speed_rpm[{nn}] = {_c_array(m['axes']['speed_rpm'])};",
         f"/* DC-link voltage axis, V */\nstatic const float {array}_udc_v[{nu}] = {_c_array(m['axes']['udc_v'])};",
         "",
-        *_c_theta_arrays(m, array, macro, (nu, nn, nt)),
+        *_c_theta_arrays(m, array, macro, (nu, nn, nt), held),
         f"/* 1 where the cell holds an identified value (ok) */\n"
-        f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'valid'))};",
+        f"static const uint8_t {array}_valid[{nu}][{nn}][{nt}] = {_c_u8_array(flag_array('valid', lut_codec.FLAG_OK))};",
         f"/* 1 where the cell holds a fill (not ok; service/maps/fill.py) */\n"
-        f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = {_c_u8_array(_grid_values(m, 'filled'))};",
+        f"static const uint8_t {array}_filled[{nu}][{nn}][{nt}] = "
+        f"{_c_u8_array(flag_array('filled', lut_codec.FLAG_FILLED))};",
         f"/* 1 where injection is off: theta 0 in every interval with this cell as a corner of non-zero weight */\n"
         f"static const uint8_t {array}_injection_off[{nu}][{nn}][{nt}] = "
-        f"{_c_u8_array(_grid_values(m, 'injection_off'))};",
+        f"{_c_u8_array(flag_array('injection_off', lut_codec.FLAG_OFF))};",
         "",
         _c_interpolator(array, macro),
         "",
@@ -543,7 +551,9 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
 }"""
 
 
-def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int, int, int]) -> list[str]:
+def _c_theta_arrays(
+    m: dict[str, Any], array: str, macro: str, shape: tuple[int, int, int], held: lut_codec.Lut | None = None
+) -> list[str]:
     """theta_cos and theta_sin as the map's LUT image carries them: f32 arrays, or (int16 and int11 cells) i16
     arrays and their quantum, the same integers as the drive's image (int11: within +-1023, unpacked from the
     image's 24-bit words: the header keeps one array per component for the firmware to read directly);
@@ -553,7 +563,14 @@ def _c_theta_arrays(m: dict[str, Any], array: str, macro: str, shape: tuple[int,
     what = "(ok, filled and injection-off cells; 0 elsewhere)"
     tc, ts = _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin")
     cells = cell_format(m)
-    if cells not in lut_codec.FULL_SCALE:
+    if held is not None:  # version 7: every cell as the drive holds it, f32 (the header is the firmware's full grid)
+        stored = int(np.count_nonzero(held.stored)) if held.stored is not None else held.flags.size
+        what = (
+            f"(LUT image version 7 expanded: {stored} of {held.flags.size} cells stored, the others as the drive "
+            "derives them along their row; 0 where there is no entry)"
+        )
+        tc, ts = held.theta_cos.tolist(), held.theta_sin.tolist()
+    if cells not in lut_codec.FULL_SCALE or held is not None:
         return [
             f"/* theta_cos, rad {what} */\nstatic const float {array}_theta_cos_rad{dims} = {_c_array(tc)};",
             f"/* theta_sin, rad {what} */\nstatic const float {array}_theta_sin_rad{dims} = {_c_array(ts)};",
@@ -635,6 +652,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
 
 
 CELL_FORMATS = lut_codec.CELL_FORMATS
+SPARSE = lut_codec.SPARSE  # the cell format of a version 7 image (per-row speed breakpoints)
 
 
 def cell_count(axes: dict[str, list[float]]) -> int:
@@ -642,38 +660,152 @@ def cell_count(axes: dict[str, list[float]]) -> int:
     return math.prod(len(axes[a]) for a in lut_codec.AXES)
 
 
-def image_bytes(axes: dict[str, list[float]], cells: str = "float32") -> int:
+def image_bytes(axes: dict[str, list[float]], cells: str = "float32", stored: int | None = None) -> int:
     """Bytes of the LUT image (firmware memory) of a map with these axes: header, each axis' breakpoints (f32),
     theta_cos and theta_sin (f32, or integers after one f32 quantum with cells "int16" or "int11") and the flag per
-    cell (CELL_BYTES a cell in all), CRC (drivers/lut_image.py layout)."""
+    cell (CELL_BYTES a cell in all), CRC (drivers/lut_image.py layout). "int11-sparse": one bit a cell and
+    CELL_BYTES per stored cell (`stored` of them; None: all)."""
     quantum = 4 if cells in lut_codec.FULL_SCALE else 0
+    n = cell_count(axes)
+    per_cell = lut_codec.CELL_BYTES[cells] * n
+    if cells == lut_codec.SPARSE:
+        per_cell = (n + 7) // 8 + lut_codec.CELL_BYTES[cells] * (n if stored is None else stored)
     return (
         lut_codec.HEADER.size
         + 4 * sum(len(axes[a]) for a in lut_codec.AXES)
         + quantum
-        + lut_codec.CELL_BYTES[cells] * cell_count(axes)
+        + per_cell
         + lut_codec.TRAILER.size
     )
+
+
+# a cell a version 7 image leaves out is reproduced by its row's interpolation within this under its |theta|: the
+# refinement's 30 dB and the placement's margin (service/maps/placement.py PLACE_MARGIN_DB), unless the map's
+# provenance names another (`lut_sparse_db`)
+SPARSE_BAR_DB = 36.0
+# with a budget (`lut_max_bytes`) the image is filled up to it: the bar rises to at most this (identification itself
+# holds theta* to about this, so a higher bar buys nothing measurable)
+SPARSE_BAR_MAX_DB = 60.0
+
+
+def row_stored(
+    speed_rpm: list[float],
+    thetas: list[complex | None],
+    bar_db: float,
+    interpolation: str,
+    flags: list[int] | None = None,
+) -> list[bool]:
+    """Which cells of one row along speed a version 7 image stores (None: a cell without an entry, always stored):
+    greedy from the row's start, each stored cell followed by the farthest cell whose interpolation from it
+    (drivers.lut_image.between, the drive's) reproduces every cell between them within bar_db under that cell's
+    |theta|, 20 log10 |theta| / |error| (the LUT-mode suppression there, service/maps/placement.py predicted_db),
+    and all of whose cells carry the same flag (`flags`, default all alike: a derived cell takes its ends' flag).
+    The first and last cells are always stored."""
+    n = len(thetas)
+    flag = flags or [lut_codec.FLAG_OK] * n
+    keep = [True] * n
+    a = 0
+    while a < n - 1:
+        b = a + 1
+        while b + 1 < n and thetas[a] is not None and thetas[b + 1] is not None:
+            ta, tb = cast(complex, thetas[a]), cast(complex, thetas[b + 1])
+            ok = True
+            if flag[b + 1] != flag[a]:
+                break
+            for k in range(a + 1, b + 1):
+                tk = thetas[k]
+                if tk is None or flag[k] != flag[a]:
+                    ok = False
+                    break
+                error = abs(lut_codec.between(ta, tb, speed_rpm[a], speed_rpm[b + 1], speed_rpm[k], interpolation) - tk)
+                if error > 0.0 and (abs(tk) == 0.0 or 20.0 * math.log10(abs(tk) / error) < bar_db):
+                    ok = False
+                    break
+            if not ok:
+                break
+            b += 1
+        for k in range(a + 1, b):
+            keep[k] = False
+        a = b
+    return keep
+
+
+def stored_mask(
+    speed_rpm: list[float], theta_cos: Any, theta_sin: Any, flags: Any, bar_db: float, interpolation: str
+) -> np.ndarray:
+    """The cells a version 7 image stores, bool [udc][speed][torque]: `row_stored` per row; an off cell or one
+    without an entry is stored and ends the rows' interpolation there."""
+    tc, ts, f = (np.asarray(x, dtype=float) for x in (theta_cos, theta_sin, flags))
+    nu, nn, nt = f.shape
+    entry = (f == lut_codec.FLAG_OK) | (f == lut_codec.FLAG_FILLED)
+    speeds = [float(v) for v in speed_rpm]
+    keep = np.ones(f.shape, dtype=bool)
+    for iu in range(nu):
+        for it in range(nt):
+            row = [complex(tc[iu, j, it], ts[iu, j, it]) if entry[iu, j, it] else None for j in range(nn)]
+            keep[iu, :, it] = row_stored(speeds, row, bar_db, interpolation, [int(x) for x in f[iu, :, it]])
+    return keep
+
+
+def sparse_bar_db(m: dict[str, Any]) -> float:
+    """The bar a map's version 7 image leaves cells out at (`SPARSE_BAR_DB` unless its provenance names one)."""
+    return float((m.get("provenance") or {}).get("lut_sparse_db", SPARSE_BAR_DB))
 
 
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
     filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry); cells with
-    injection off go in as flag 3 (format_version 4; without one the image is version 3; a map built for int16
-    or int11 cells, `cell_format`, is version 5 or 6);
+    injection off go in as flag 3 (format_version 4; without one the image is version 3; a map built for int16,
+    int11 or int11-sparse cells, `cell_format`, is version 5, 6 or 7: version 7 stores the cells `stored_mask`
+    keeps at `sparse_bar_db`, judged on the values the image carries; with a budget, the map's `lut_max_bytes`, the
+    highest bar whose image fits it);
     interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
+    cells = cell_format(m)
+    tc, ts, flags = (_grid_values(m, key, fill) for key in ("theta_cos", "theta_sin", "flag"))
+    stored = None
+    if cells == lut_codec.SPARSE:
+        mode = lut_codec.check_interpolation(interpolation)
+        quantum = lut_codec.theta_quantum(np.asarray(tc), np.asarray(ts), cells)
+        carried_cos, carried_sin = (lut_codec.quantized(v, quantum, cells) * quantum for v in (tc, ts))
+        max_bytes = (m.get("provenance") or {}).get("lut_max_bytes")
+
+        def stored_at(bar_db: float) -> np.ndarray:
+            return stored_mask(axes["speed_rpm"], carried_cos, carried_sin, flags, bar_db, mode)
+
+        def fits(mask: np.ndarray) -> bool:
+            return image_bytes(axes, cells, int(mask.sum())) <= int(max_bytes)
+
+        stored = stored_at(sparse_bar_db(m))
+        if max_bytes is not None:
+            # the budget is firmware memory, spent: the highest whole-dB bar up to SPARSE_BAR_MAX_DB (or every cell)
+            # that fits, or below the map's bar where even that does not (bisection: a higher bar stores more)
+            everything = np.ones_like(stored)
+            if fits(everything):
+                stored = everything
+            else:
+                low, high = 0, int(SPARSE_BAR_MAX_DB)
+                best = stored_at(low)
+                while low < high:
+                    mid = (low + high + 1) // 2
+                    trial = stored_at(float(mid))
+                    if fits(trial):
+                        low, best = mid, trial
+                    else:
+                        high = mid - 1
+                stored = best
     return lut_codec.encode(
         m["harmonic_order"],
         *cast(tuple[Any, Any, Any], tuple(axes[key] for key in lut_codec.AXES)),  # torque, speed, udc
-        _grid_values(m, "theta_cos", fill),
-        _grid_values(m, "theta_sin", fill),
-        _grid_values(m, "flag", fill),
+        tc,
+        ts,
+        flags,
         map_id=m["id"],
         interpolation=interpolation,
-        cell_format=cell_format(m),
+        cell_format=cells,
+        stored=stored,
     )
 
 

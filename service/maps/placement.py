@@ -38,10 +38,8 @@ from __future__ import annotations
 import math
 from itertools import product
 
-import numpy as np
-
-from drivers.lut_image import AXES, FLAG_OK, Lut
-from service.maps.lut_export import image_bytes
+from drivers.lut_image import AXES, SPARSE, between
+from service.maps.lut_export import SPARSE_BAR_DB, image_bytes, row_stored
 
 PLACED_AXES = ("torque_nm", "speed_rpm")  # of AXES (the LUT's, torque, speed, U_dc): U_dc lines stay as they are
 PLACE_MARGIN_DB = 6.0
@@ -77,21 +75,7 @@ def candidate_cells(axes: dict[str, list[float]], candidates: dict[str, list[flo
 
 def interpolated(theta_a: complex, theta_b: complex, x_a: float, x_b: float, x: float, interpolation: str) -> complex:
     """The drive's interpolation (drivers.lut_image.Lut.theta, its one definition) between two breakpoints."""
-    shape = (1, 2, 1)  # (udc, axis, torque): the two breakpoints on the speed position of a one-row LUT
-    lut = Lut(
-        map_id=0,
-        harmonic_order=6,
-        torque_nm=np.array([0.0]),
-        speed_rpm=np.array([x_a, x_b], dtype=float),
-        udc_v=np.array([0.0]),
-        theta_cos=np.array([theta_a.real, theta_b.real]).reshape(shape),
-        theta_sin=np.array([theta_a.imag, theta_b.imag]).reshape(shape),
-        flags=np.full(shape, FLAG_OK, dtype=np.uint8),
-        crc=0,
-        interpolation=interpolation,
-    )
-    c, s = lut.theta(0.0, x, 0.0)
-    return complex(c, s)
+    return between(theta_a, theta_b, x_a, x_b, x, interpolation)
 
 
 def predicted_db(theta_true: complex, theta_lut: complex) -> float:
@@ -141,34 +125,94 @@ def worst_db(judged: dict[str, dict[float, list[float]]]) -> dict[str, float | N
     return {axis: min((db for dbs in by.values() for db in dbs), default=None) for axis, by in judged.items()}
 
 
+def _row_thetas(
+    axes: dict[str, list[float]], thetas: dict[Cell, complex], torque: float, udc: float
+) -> list[complex | None]:
+    return [thetas.get((torque, float(n), udc)) for n in sorted(map(float, axes["speed_rpm"]))]
+
+
+def grid_bytes(
+    axes: dict[str, list[float]], thetas: dict[Cell, complex], lut_cells: str, interpolation: str = "polar"
+) -> int:
+    """Bytes of the LUT image of the grid `axes` with the identified theta* `thetas` (a cell not identified counts as
+    stored): image_bytes, with the cells a version 7 image stores (service/maps/lut_export.py row_stored)."""
+    if lut_cells != SPARSE:
+        return image_bytes(axes, lut_cells)
+    speeds = sorted(map(float, axes["speed_rpm"]))
+    stored = sum(
+        sum(row_stored(speeds, _row_thetas(axes, thetas, float(t), float(u)), SPARSE_BAR_DB, interpolation))
+        for t in axes["torque_nm"]
+        for u in axes["udc_v"]
+    )
+    return image_bytes(axes, lut_cells, stored)
+
+
+def _line_bytes(
+    axes: dict[str, list[float]],
+    axis: str,
+    value: float,
+    n_short: int,
+    thetas: dict[Cell, complex],
+    lut_cells: str,
+    interpolation: str,
+) -> int:
+    """What a candidate's line adds to the image. A version 7 image: the axis value and the bitmap's bits, and a
+    speed value's cells only in the rows where it is short (elsewhere the row's interpolation holds it: it is
+    left out), a torque row's the cells its own row stores."""
+    if lut_cells != SPARSE:
+        return image_bytes(axes_with(axes, {axis: [value]}), lut_cells) - image_bytes(axes, lut_cells)
+    n = math.prod(len(axes[a]) for a in AXES)
+    line = n // len(axes[axis])
+    bitmap = (n + line + 7) // 8 - (n + 7) // 8
+    if axis == "speed_rpm":
+        cells = n_short
+    else:
+        speeds = sorted(map(float, axes["speed_rpm"]))
+        cells = sum(
+            sum(row_stored(speeds, _row_thetas(axes, thetas, value, float(u)), SPARSE_BAR_DB, interpolation))
+            for u in axes["udc_v"]
+        )
+    return 4 + bitmap + 3 * cells
+
+
 def place(
     axes: dict[str, list[float]],
     judged: dict[str, dict[float, list[float]]],
     target_db: float,
     max_bytes: int | None,
     lut_cells: str = "float32",
+    thetas: dict[Cell, complex] | None = None,
+    interpolation: str = "polar",
 ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[str]]:
     """(kept values per axis, the next round's candidates, reasons for what was left out): candidates with a cell
     short of target_db + PLACE_MARGIN_DB are kept while the image fits max_bytes, those with the most short cells
-    per byte of their line first (a full grid: a torque row costs a cell per speed value), then the worst; the
-    next candidates are the midpoints of the kept values' two halves. lut_cells: the image's cell format (bytes)."""
+    per byte of their line first (a full grid: a torque row costs a cell per speed value; a version 7 image: a
+    speed value costs a cell only in the rows where it is short, `_line_bytes`), then the worst; the next
+    candidates are the midpoints of the kept values' two halves. lut_cells: the image's cell format (bytes);
+    thetas: theta* identified per cell (what a version 7 image stores depends on it)."""
     bar = target_db + PLACE_MARGIN_DB
-    base = image_bytes(axes, lut_cells)
+    thetas = thetas or {}
+    base = grid_bytes(axes, thetas, lut_cells, interpolation)
     short = []
     for axis, by_value in judged.items():
         for c, dbs in by_value.items():
             n_short = sum(1 for db in dbs if db < bar)
             if n_short:
-                line_bytes = image_bytes(axes_with(axes, {axis: [c]}), lut_cells) - base
-                short.append((-n_short / line_bytes, min(dbs), axis, c))
+                line_bytes = _line_bytes(axes, axis, c, n_short, thetas, lut_cells, interpolation)
+                short.append((-n_short / line_bytes, min(dbs), axis, c, line_bytes))
     kept: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
     reasons: list[str] = []
-    for _per_byte, db, axis, c in sorted(short):
-        trial = axes_with(axes, {**kept, axis: [*kept[axis], c]})
-        if max_bytes is not None and image_bytes(trial, lut_cells) > max_bytes:
+    spent = 0
+    for _per_byte, db, axis, c, line_bytes in sorted(short):
+        if lut_cells == SPARSE:
+            size = base + spent + line_bytes
+        else:
+            size = image_bytes(axes_with(axes, {**kept, axis: [*kept[axis], c]}), lut_cells)
+        if max_bytes is not None and size > max_bytes:
             reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: the LUT would exceed {max_bytes} bytes")
             continue
         kept[axis].append(c)
+        spent += line_bytes
     nxt: dict[str, list[float]] = {a: [] for a in PLACED_AXES}
     grown = axes_with(axes, kept)
     for axis in PLACED_AXES:

@@ -34,7 +34,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, Mapping, NotRequired,
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from service.identification.registry import METHODS
-from service.maps.lut_export import image_bytes
+from service.maps.lut_export import SPARSE, cell_count, image_bytes
+from service.maps.placement import grid_bytes
 from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.runup_validation import is_harm
 
@@ -95,12 +96,14 @@ class RefineRequest(BaseModel):
     validation: ValidationOptions = Field(
         default_factory=ValidationOptions, description="how finely each validation point is measured"
     )
-    lut_cells: Literal["float32", "int16", "int11"] = Field(
+    lut_cells: Literal["float32", "int16", "int11", "int11-sparse"] = Field(
         "float32",
         description="how the refined LUT carries theta per cell: float32 (9 bytes a cell, image version 3/4), "
         "int16 (5 bytes a cell, image version 5, theta = q x one quantum: the largest component / 32767) or int11 "
         "(3 bytes a cell, image version 6: two 11-bit integers and the flag in 24 bits, quantum the largest "
-        "component / 1023); max_bytes counts that format, and the refined map's downloads and exports use it",
+        "component / 1023) or int11-sparse (image version 7: int11 cells stored only where the drive cannot interpolate them "
+        "from their row along speed within 36 dB, one bit a cell says which: per-row speed breakpoints); max_bytes "
+        "counts that format, and the refined map's downloads and exports use it",
     )
     placement: Literal["curves", "validation"] = Field(
         "curves",
@@ -242,6 +245,7 @@ def plan_round(
     grid_values = {a: sorted(float(v) for v in axes[a]) for a in AXES}
     remeasure: dict[Cell, list[float]] = {}
     insertions: dict[tuple[str, float], list[float]] = {}  # (axis, value) -> dB short of each point served
+    rows_touched: dict[tuple[str, float], set[float]] = {}  # (axis, value) -> the torque rows its points lie between
     claims = [(c, 1) for c in failing if c["kind"] != "runup"]
     claims += _runup_claims([c for c in failing if c["kind"] == "runup"])
     for c, serves in claims:
@@ -271,6 +275,9 @@ def plan_round(
                 v for a, v in insertions if a == axis and abs(v - value) <= MERGE_INSERT_RPM and axis == "speed_rpm"
             ]
             insertions.setdefault((axis, near[0] if near else value), []).extend([short_db] * serves)
+            rows_touched.setdefault((axis, near[0] if near else value), set()).update(
+                corner_values(grid_values["torque_nm"], key[0])
+            )
     # candidates by failing points served per cell they cost, then by the dB they are short
     sizes = {a: len(grid_values[a]) for a in AXES}
     candidates: list[_Remeasure | _Insert] = [_Remeasure(shorts, key) for key, shorts in remeasure.items()]
@@ -279,6 +286,14 @@ def plan_round(
     candidates.sort(key=lambda c: (-len(c.shorts) / c.cost, -sum(c.shorts) / c.cost, c.cost))
     left = budget_cells
     chosen_axes = {a: list(grid_values[a]) for a in AXES}
+    # a version 7 image: what it stores now, and per insertion an estimate (a speed value stored in the rows its
+    # failing points lie between, a torque row half its speed values); lut_export.lut_image keeps the image in
+    # max_bytes whatever the estimate missed
+    sparse_bytes = (
+        grid_bytes(axes, {k: complex(*t) for k in by_key if (t := _theta_at(by_key, k)) is not None}, SPARSE)
+        if lut_cells == SPARSE
+        else 0
+    )
     best_score = len(candidates[0].shorts) / candidates[0].cost if candidates else 0.0
     for candidate in candidates:
         if len(candidate.shorts) / candidate.cost < ROUND_SCORE_FRACTION * best_score:
@@ -294,13 +309,22 @@ def plan_round(
         if cost > left:
             plan.reasons.append(f"inserting {axis} = {value:g} needs {cost} cells, {left} left in the budget")
             continue
-        size = image_bytes({**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})}, lut_cells)
+        grown = {**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})}
+        if lut_cells == SPARSE:
+            rows = (
+                len(rows_touched.get((axis, value), ())) if axis == "speed_rpm" else len(chosen_axes["speed_rpm"]) // 2
+            )
+            bitmap = (cell_count(grown) + 7) // 8 - (cell_count(chosen_axes) + 7) // 8
+            size = sparse_bytes + 4 + bitmap + 3 * max(rows, 1)
+        else:
+            size = image_bytes(grown, lut_cells)
         if max_bytes is not None and size > max_bytes:
             plan.reasons.append(
                 f"inserting {axis} = {value:g} makes the LUT {size} bytes, over max_bytes = {max_bytes}"
             )
             continue
-        chosen_axes[axis] = sorted(set(chosen_axes[axis]) | {value})
+        chosen_axes[axis] = grown[axis]
+        sparse_bytes = size if lut_cells == SPARSE else 0
         plan.inserted.setdefault(axis, []).append(value)
         left -= cost
     # the new grid's cells that do not exist yet (a value inserted on two axes adds their crossing once)

@@ -120,7 +120,10 @@ def main() -> None:
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
     parser.add_argument("--dump", default=None, help="a directory: the final map and validation as JSON per machine")
     parser.add_argument(
-        "--lut-cells", default="int11", choices=("int11", "int16", "float32"), help="the LUT's cell format"
+        "--lut-cells",
+        default="int11",
+        choices=("int11", "int11-sparse", "int16", "float32"),
+        help="the LUT's cell format",
     )
     args = parser.parse_args()
     for text in args.seeds.split(","):

@@ -138,16 +138,17 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         svc.stop()
 
 
-def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tmp_path):
+@pytest.mark.parametrize("lut_cells", ["int11", "int11-sparse"])
+def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tmp_path, lut_cells):
     """placement curves (service/maps/placement.py): lines of candidate cells identified at the midpoints, kept
     where the drive's interpolation of their neighbours misses, bisected again; then one map, validated, its LUT
-    in int16 cells (image version 5)."""
+    in int11 cells (image version 6), or int11-sparse (version 7: per-row speed breakpoints)."""
     db = tmp_path / "curves.db"
     svc, api = start(emu, db)
     try:
         source = swept_map(api)
         r = api.post(
-            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int11"}
+            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": lut_cells}
         )
         assert r.status_code == 202, r.text
         job = api.job_finished(r.json()["id"], 900)
@@ -162,13 +163,21 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
             assert set(values) <= set(refined["axes"][axis])
         # the turn lies between 1800 and 2600 rpm: the interpolation misses it, so speed values were kept
         assert kept["speed_rpm"], placement
-        assert placement[-1]["bytes"] == result["rounds"][0]["bytes"]
-        # int11 cells: the drive took a version 6 image of 3 bytes a cell (28 + 4 per axis value), CRC read back
         receipt = api.get(f"/maps/{result['map_id']}/validation")["download"]
         n_values = sum(len(v) for v in refined["axes"].values())
         n_cells = len(refined["axes"]["torque_nm"]) * len(refined["axes"]["speed_rpm"])
-        assert receipt["format_version"] == 6 and receipt["bytes"] == 28 + 4 * n_values + 3 * n_cells, receipt
-        assert refined["provenance"]["lut_cells"] == "int11"
+        if lut_cells == "int11":
+            assert placement[-1]["bytes"] == result["rounds"][0]["bytes"]
+            # int11 cells: the drive took a version 6 image of 3 bytes a cell (28 + 4 per axis value), CRC read back
+            assert receipt["format_version"] == 6 and receipt["bytes"] == 28 + 4 * n_values + 3 * n_cells, receipt
+        else:
+            # version 7: a bit a cell and 3 bytes a stored cell; at least the rows' ends stored, at most every cell
+            n_rows = len(refined["axes"]["torque_nm"])
+            least, most = (28 + 4 * n_values + (n_cells + 7) // 8 + 3 * k for k in (2 * n_rows, n_cells))
+            assert receipt["format_version"] == 7 and least <= receipt["bytes"] <= most, receipt
+            final_round = [r for r in result["rounds"] if r["map_id"] == result["map_id"]]
+            assert final_round and final_round[-1]["bytes"] == receipt["bytes"], (result["rounds"], receipt)
+        assert refined["provenance"]["lut_cells"] == lut_cells
         # the first validation judges the placed map, every identified cell once, all within the budget
         assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 24
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}

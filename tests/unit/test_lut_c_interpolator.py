@@ -144,6 +144,8 @@ MAPS = {
     "int16 cells": with_integer_cells(45, "int16"),
     # and with int11 cells (version 6: two 11-bit integers and the flag packed in 3 bytes a cell)
     "int11 cells": with_integer_cells(46, "int11"),
+    # and as a version 7 image (int11-sparse: per-row speed breakpoints, cells the drive derives along their row)
+    "int11-sparse cells": with_integer_cells(47, "int11-sparse"),
     # delta turning once around the cell (0, 100, 200, 290 deg): at its centre the four corners tie and the
     # reference (the first of them) decides the result; no two corners 180 deg apart (no arc is ambiguous)
     "phase vortex": make_map(

@@ -122,8 +122,8 @@ def test_flag_3_is_refused_in_a_version_3_image_and_version_4_is_what_the_drive_
     struct.pack_into("<H", blob, 4, 3)  # the same flags under a version 3 header
     with pytest.raises(lut_image.LutImageError, match="flags must be one of .* in a format_version 3 image"):
         lut_image.decode(bytes(blob) + struct.pack("<I", zlib.crc32(bytes(blob))))
-    struct.pack_into("<H", blob, 4, 7)
-    with pytest.raises(lut_image.LutImageError, match="takes versions 2, 3, 4, 5 and 6"):
+    struct.pack_into("<H", blob, 4, 8)
+    with pytest.raises(lut_image.LutImageError, match="takes versions 2, 3, 4, 5, 6 and 7"):
         lut_image.decode(bytes(blob) + struct.pack("<I", zlib.crc32(bytes(blob))))
 
 

@@ -11,13 +11,14 @@ from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, image_bytes, injection_unchanged
+from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, injection_unchanged, lut_image
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     axes_with,
     candidate_cells,
     cells_to_measure,
     first_candidates,
+    grid_bytes,
     judge_candidates,
     place,
     worst_db,
@@ -254,7 +255,7 @@ class RefinementRun:
         judged = judge_candidates(state["axes"], candidates, thetas, interpolation)
         cells_format = state.get("lut_cells", "float32")
         kept, following, reasons = place(
-            state["axes"], judged, state["target_db"], state.get("max_bytes"), cells_format
+            state["axes"], judged, state["target_db"], state.get("max_bytes"), cells_format, thetas, interpolation
         )
         state["axes"] = axes_with(state["axes"], kept)
         round_plant_s = _close_round_plant(state)
@@ -265,7 +266,7 @@ class RefinementRun:
                 "candidates": {a: len(v) for a, v in candidates.items()},
                 "inserted": kept,
                 "worst_predicted_db": worst_db(judged),
-                "bytes": image_bytes(state["axes"], cells_format),
+                "bytes": grid_bytes(state["axes"], thetas, cells_format, interpolation),
                 "cells": cell_count(state["axes"]),
                 "plant_time_s": round_plant_s,
                 "left_out": reasons,
@@ -319,6 +320,7 @@ class RefinementRun:
                 "round": state["round"],
                 "cells_added": state["cells_added"],
                 "lut_cells": state.get("lut_cells", "float32"),
+                "lut_max_bytes": state.get("max_bytes"),  # a version 7 image is made to fit (lut_export.lut_image)
                 **provenance,
             },
         )
@@ -391,7 +393,7 @@ class RefinementRun:
                 "remeasured": len(plan.remeasure),
                 "new_cells": len(plan.new_cells),
                 # what the user pays: firmware memory of this round's map and bench time (plant seconds)
-                "bytes": image_bytes(m.axes, state.get("lut_cells", "float32")),
+                "bytes": len(lut_image(m.model_dump(), interpolation=options.interpolation)),
                 "cells": cell_count(m.axes),
                 "plant_time_s": round_plant_s,
                 "points_judged": summary.get("points"),
