@@ -770,13 +770,14 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
         mode = lut_codec.check_interpolation(interpolation)
         quantum = lut_codec.theta_quantum(np.asarray(tc), np.asarray(ts), cells)
         carried_cos, carried_sin = (lut_codec.quantized(v, quantum, cells) * quantum for v in (tc, ts))
-        max_bytes = (m.get("provenance") or {}).get("lut_max_bytes")
+        budget = (m.get("provenance") or {}).get("lut_max_bytes")
+        max_bytes = None if budget is None else int(budget)
 
         def stored_at(bar_db: float) -> np.ndarray:
             return stored_mask(axes["speed_rpm"], carried_cos, carried_sin, flags, bar_db, mode)
 
         def fits(mask: np.ndarray) -> bool:
-            return image_bytes(axes, cells, int(mask.sum())) <= int(max_bytes)
+            return max_bytes is None or image_bytes(axes, cells, int(mask.sum())) <= max_bytes
 
         stored = stored_at(sparse_bar_db(m))
         if max_bytes is not None:

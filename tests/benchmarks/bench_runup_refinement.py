@@ -1,6 +1,6 @@
 """A LUT judged and refined along run-ups (issue 27), per machine: sweep -> validation -> refinement -> validation.
 
-Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 200]
+Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 100]
 
 On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
 1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
@@ -116,7 +116,9 @@ def main() -> None:
     parser.add_argument("--seeds", default="-,3", help="comma-separated; - is paper-bench")
     parser.add_argument("--max-cells", type=int, default=1000)
     parser.add_argument("--runup-torques", type=int, default=7, help="run-ups at most at this many torques")
-    parser.add_argument("--rate", type=float, default=200.0, help="the validation's run-up rate, rpm/s")
+    parser.add_argument(
+        "--rate", type=float, default=100.0, help="the validation's run-up rate, rpm/s (the service's default)"
+    )
     parser.add_argument("--placement", default="curves", choices=("curves", "validation"))
     parser.add_argument("--dump", default=None, help="a directory: the final map and validation as JSON per machine")
     parser.add_argument(
