@@ -463,8 +463,8 @@ def decode(blob: bytes) -> Lut:
     int11 = version == FORMAT_VERSION_INT11 or sparse
     stored = np.ones(cells, dtype=bool)
     bitmap_at = HEADER.size + 4 * (nt + nn + nu) + 4
+    bitmap_bytes = (cells + 7) // 8 if sparse else 0
     if sparse:
-        bitmap_bytes = (cells + 7) // 8
         if len(blob) < bitmap_at + bitmap_bytes + TRAILER.size:
             raise LutImageError(f"image too short ({len(blob)} bytes) for the bitmap of {nt} x {nn} x {nu} cells")
         bits = np.frombuffer(blob, dtype=np.uint8, count=bitmap_bytes, offset=bitmap_at)
@@ -478,7 +478,7 @@ def decode(blob: bytes) -> Lut:
     if int16:
         cell_bytes = 4 + 5 * cells
     elif int11:
-        cell_bytes = 4 + ((cells + 7) // 8 if sparse else 0) + 3 * n_words
+        cell_bytes = 4 + bitmap_bytes + 3 * n_words
     else:
         cell_bytes = 9 * cells
     expected = HEADER.size + 4 * (nt + nn + nu) + cell_bytes + TRAILER.size
@@ -502,8 +502,7 @@ def decode(blob: bytes) -> Lut:
         if not (math.isfinite(quantum) and quantum > 0.0):
             raise LutImageError(f"theta_quantum_rad {quantum} is not a positive finite number")
     if int11:
-        if sparse:
-            off += (cells + 7) // 8
+        off += bitmap_bytes
         raw = np.frombuffer(blob, dtype=np.uint8, count=3 * n_words, offset=off).reshape(n_words, 3).astype(np.int64)
         off += 3 * n_words
         words = np.zeros(cells, dtype=np.int64)

@@ -776,27 +776,20 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
         def stored_at(bar_db: float) -> np.ndarray:
             return stored_mask(axes["speed_rpm"], carried_cos, carried_sin, flags, bar_db, mode)
 
-        def fits(mask: np.ndarray) -> bool:
-            return max_bytes is None or image_bytes(axes, cells, int(mask.sum())) <= max_bytes
-
-        stored = stored_at(sparse_bar_db(m))
-        if max_bytes is not None:
-            # the budget is firmware memory, spent: the highest whole-dB bar up to SPARSE_BAR_MAX_DB (or every cell)
-            # that fits, or below the map's bar where even that does not (bisection: a higher bar stores more)
-            everything = np.ones_like(stored)
-            if fits(everything):
-                stored = everything
-            else:
-                low, high = 0, int(SPARSE_BAR_MAX_DB)
-                best = stored_at(low)
-                while low < high:
-                    mid = (low + high + 1) // 2
-                    trial = stored_at(float(mid))
-                    if fits(trial):
-                        low, best = mid, trial
-                    else:
-                        high = mid - 1
-                stored = best
+        if max_bytes is None:
+            stored = stored_at(sparse_bar_db(m))
+        elif image_bytes(axes, cells) > max_bytes:  # (within it: every cell stored, encode's default)
+            # the budget is firmware memory, spent: the highest whole-dB bar up to SPARSE_BAR_MAX_DB that fits (or
+            # every cell), below the map's bar where even that does not (bisection: a higher bar stores more)
+            low, high = 0, int(SPARSE_BAR_MAX_DB)
+            stored = stored_at(low)
+            while low < high:
+                mid = (low + high + 1) // 2
+                trial = stored_at(float(mid))
+                if image_bytes(axes, cells, int(trial.sum())) <= max_bytes:
+                    low, stored = mid, trial
+                else:
+                    high = mid - 1
     return lut_codec.encode(
         m["harmonic_order"],
         *cast(tuple[Any, Any, Any], tuple(axes[key] for key in lut_codec.AXES)),  # torque, speed, udc

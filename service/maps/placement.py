@@ -4,7 +4,7 @@ cheap elsewhere, along speed and along torque.
 Why from curves and not from validations: the drive's LUT-mode suppression at a point is
 20 log10 |theta*| / |theta_lut - theta*| (the residual is S (theta_lut - theta*), eq. 8, against the
 uncompensated -S theta*), so what a validation would measure between two breakpoints is known as soon as
-theta* is identified there: the drive's own interpolation (drivers.lut_image.Lut.theta) of the two
+theta* is identified there: the drive's own interpolation (drivers.lut_image.between, Lut.theta's rule) of the two
 neighbours against the identified theta* at the value between them. An identification costs 0.1-0.3 plant s
 (tests/benchmarks/bench_identification.py) where a validation point costs a move, an uncompensated and a
 LUT-mode window, and a run-up pair 2 x 16 s per torque.
@@ -38,8 +38,10 @@ from __future__ import annotations
 import math
 from itertools import product
 
-from drivers.lut_image import AXES, SPARSE, between
-from service.maps.lut_export import SPARSE_BAR_DB, image_bytes, row_stored
+import numpy as np
+
+from drivers.lut_image import AXES, FLAG_NONE, FLAG_OK, SPARSE, between
+from service.maps.lut_export import SPARSE_BAR_DB, image_bytes, stored_mask
 
 PLACED_AXES = ("torque_nm", "speed_rpm")  # of AXES (the LUT's, torque, speed, U_dc): U_dc lines stay as they are
 PLACE_MARGIN_DB = 6.0
@@ -71,11 +73,6 @@ def candidate_cells(axes: dict[str, list[float]], candidates: dict[str, list[flo
     grown = axes_with(axes, candidates)
     old = set(product(*(map(float, axes[a]) for a in AXES)))
     return [(t, n, u) for t, n, u in product(*(map(float, grown[a]) for a in AXES)) if (t, n, u) not in old]
-
-
-def interpolated(theta_a: complex, theta_b: complex, x_a: float, x_b: float, x: float, interpolation: str) -> complex:
-    """The drive's interpolation (drivers.lut_image.Lut.theta, its one definition) between two breakpoints."""
-    return between(theta_a, theta_b, x_a, x_b, x, interpolation)
 
 
 def predicted_db(theta_true: complex, theta_lut: complex) -> float:
@@ -116,7 +113,7 @@ def judge_candidates(
 
                 ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
                 if ta is not None and tb is not None and tc is not None:
-                    out[axis][c].append(predicted_db(tc, interpolated(ta, tb, a, b, c, interpolation)))
+                    out[axis][c].append(predicted_db(tc, between(ta, tb, a, b, c, interpolation)))
     return out
 
 
@@ -125,26 +122,27 @@ def worst_db(judged: dict[str, dict[float, list[float]]]) -> dict[str, float | N
     return {axis: min((db for dbs in by.values() for db in dbs), default=None) for axis, by in judged.items()}
 
 
-def _row_thetas(
-    axes: dict[str, list[float]], thetas: dict[Cell, complex], torque: float, udc: float
-) -> list[complex | None]:
-    return [thetas.get((torque, float(n), udc)) for n in sorted(map(float, axes["speed_rpm"]))]
+def _stored_cells(axes: dict[str, list[float]], thetas: dict[Cell, complex], interpolation: str) -> int:
+    """Cells a version 7 image of the grid `axes` stores with the identified theta* `thetas` (service/maps/lut_export.py
+    stored_mask, the encoder's walk; a cell not identified has no entry there: stored)."""
+    shape = tuple(len(axes[a]) for a in reversed(AXES))  # [udc][speed][torque]
+    theta = np.zeros(shape, dtype=complex)
+    flags = np.full(shape, FLAG_NONE)
+    for (iu, u), (i_n, n), (it, t) in product(*(enumerate(map(float, sorted(axes[a]))) for a in reversed(AXES))):
+        if (t, n, u) in thetas:
+            theta[iu, i_n, it], flags[iu, i_n, it] = thetas[(t, n, u)], FLAG_OK
+    speeds = sorted(map(float, axes["speed_rpm"]))
+    return int(stored_mask(speeds, theta.real, theta.imag, flags, SPARSE_BAR_DB, interpolation).sum())
 
 
 def grid_bytes(
     axes: dict[str, list[float]], thetas: dict[Cell, complex], lut_cells: str, interpolation: str = "polar"
 ) -> int:
     """Bytes of the LUT image of the grid `axes` with the identified theta* `thetas` (a cell not identified counts as
-    stored): image_bytes, with the cells a version 7 image stores (service/maps/lut_export.py row_stored)."""
+    stored): image_bytes, with the cells a version 7 image stores."""
     if lut_cells != SPARSE:
         return image_bytes(axes, lut_cells)
-    speeds = sorted(map(float, axes["speed_rpm"]))
-    stored = sum(
-        sum(row_stored(speeds, _row_thetas(axes, thetas, float(t), float(u)), SPARSE_BAR_DB, interpolation))
-        for t in axes["torque_nm"]
-        for u in axes["udc_v"]
-    )
-    return image_bytes(axes, lut_cells, stored)
+    return image_bytes(axes, lut_cells, _stored_cells(axes, thetas, interpolation))
 
 
 def _line_bytes(
@@ -159,20 +157,11 @@ def _line_bytes(
     """What a candidate's line adds to the image. A version 7 image: the axis value and the bitmap's bits, and a
     speed value's cells only in the rows where it is short (elsewhere the row's interpolation holds it: it is
     left out), a torque row's the cells its own row stores."""
+    grown = axes_with(axes, {axis: [value]})
     if lut_cells != SPARSE:
-        return image_bytes(axes_with(axes, {axis: [value]}), lut_cells) - image_bytes(axes, lut_cells)
-    n = math.prod(len(axes[a]) for a in AXES)
-    line = n // len(axes[axis])
-    bitmap = (n + line + 7) // 8 - (n + 7) // 8
-    if axis == "speed_rpm":
-        cells = n_short
-    else:
-        speeds = sorted(map(float, axes["speed_rpm"]))
-        cells = sum(
-            sum(row_stored(speeds, _row_thetas(axes, thetas, value, float(u)), SPARSE_BAR_DB, interpolation))
-            for u in axes["udc_v"]
-        )
-    return 4 + bitmap + 3 * cells
+        return image_bytes(grown, lut_cells) - image_bytes(axes, lut_cells)
+    cells = n_short if axis == "speed_rpm" else _stored_cells({**axes, axis: [value]}, thetas, interpolation)
+    return image_bytes(grown, lut_cells, cells) - image_bytes(axes, lut_cells, 0)
 
 
 def place(

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, Mapping, NotRequired,
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from service.identification.registry import METHODS
-from service.maps.lut_export import SPARSE, cell_count, image_bytes
+from service.maps.lut_export import SPARSE, image_bytes
 from service.maps.placement import grid_bytes
 from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.runup_validation import is_harm
@@ -314,8 +314,7 @@ def plan_round(
             rows = (
                 len(rows_touched.get((axis, value), ())) if axis == "speed_rpm" else len(chosen_axes["speed_rpm"]) // 2
             )
-            bitmap = (cell_count(grown) + 7) // 8 - (cell_count(chosen_axes) + 7) // 8
-            size = sparse_bytes + 4 + bitmap + 3 * max(rows, 1)
+            size = sparse_bytes + image_bytes(grown, SPARSE, max(rows, 1)) - image_bytes(chosen_axes, SPARSE, 0)
         else:
             size = image_bytes(grown, lut_cells)
         if max_bytes is not None and size > max_bytes:

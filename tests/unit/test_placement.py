@@ -9,13 +9,13 @@ import math
 
 import pytest
 
+from drivers.lut_image import between
 from service.maps.lut_export import image_bytes
 from service.maps.placement import (
     PLACE_MARGIN_DB,
     candidate_cells,
     cells_to_measure,
     first_candidates,
-    interpolated,
     judge_candidates,
     midpoints,
     place,
@@ -40,10 +40,10 @@ def test_candidate_lines_add_every_cell_of_the_grown_full_grid_and_only_those():
 
 def test_the_drives_interpolation_is_linear_in_cartesian_and_in_gamma_and_delta_in_polar():
     a, b = complex(0.02, 0.01), complex(-0.01, 0.03)
-    assert interpolated(a, b, 1000.0, 1400.0, 1100.0, "cartesian") == pytest.approx(0.75 * a + 0.25 * b, abs=1e-7)
+    assert between(a, b, 1000.0, 1400.0, 1100.0, "cartesian") == pytest.approx(0.75 * a + 0.25 * b, abs=1e-7)
     pa, pb = cmath.rect(0.02, 0.3), cmath.rect(0.04, 0.9)
     # the LUT stores theta = gamma (cos delta, -sin delta): gamma and delta each linear between the breakpoints
-    assert interpolated(pa, pb, 0.0, 1.0, 0.5, "polar") == pytest.approx(cmath.rect(0.03, 0.6), abs=1e-7)
+    assert between(pa, pb, 0.0, 1.0, 0.5, "polar") == pytest.approx(cmath.rect(0.03, 0.6), abs=1e-7)
 
 
 def test_predicted_suppression_is_the_relative_error_in_db():
