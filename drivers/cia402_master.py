@@ -118,6 +118,9 @@ class Cia402Master:
         # one SDO transfer at a time: the SDO client keeps a single response queue per node
         self._sdo_lock = threading.RLock()
         self._sdo_failed_at: float | None = None  # monotonic time of a transaction that lost its answer
+        # called after every SDO transfer the device answered (an abort is an answer): a caller that watches
+        # its own loop for silence (the bench watchdog) learns the loop is at work on a slow bus
+        self.on_answer: Callable[[], None] | None = None
         self._network: canopen.Network | None = None
         self._heartbeat_lock = threading.Lock()
         self._heartbeat_seen_monotonic: float | None = None
@@ -315,12 +318,17 @@ class Cia402Master:
         with self._sdo_lock:
             self._quiet_channel()
             try:
-                return self._variable(index, subindex).raw
+                value = self._variable(index, subindex).raw
             except SdoCommunicationError as exc:
                 self._sdo_failed_at = time.monotonic()
                 raise self._translate("read", index, subindex, exc) from exc
-            except (SdoAbortedError, CanError) as exc:
+            except SdoAbortedError as exc:
+                self._answered()
                 raise self._translate("read", index, subindex, exc) from exc
+            except CanError as exc:
+                raise self._translate("read", index, subindex, exc) from exc
+            self._answered()
+            return value
 
     def write(self, index: int, subindex: int, value: Any) -> None:
         """Write one object by SDO (encoded per its EDS data type; expedited when it fits in 4 bytes)."""
@@ -332,13 +340,17 @@ class Cia402Master:
             except SdoCommunicationError as exc:
                 self._sdo_failed_at = time.monotonic()
                 raise self._translate("write", index, subindex, exc, value) from exc
-            except (SdoAbortedError, CanError) as exc:
+            except SdoAbortedError as exc:
+                self._answered()
+                raise self._translate("write", index, subindex, exc, value) from exc
+            except CanError as exc:
                 raise self._translate("write", index, subindex, exc, value) from exc
             except (struct.error, TypeError, ValueError) as exc:
                 name = self._object_name(index, subindex)
                 raise ValueError(
                     f"node {self.node_id}: value {value!r} does not fit 0x{index:04X}:{subindex:02X} '{name}': {exc}"
                 ) from exc
+            self._answered()
 
     def download_domain(self, index: int, subindex: int, data: bytes) -> None:
         """Write a DOMAIN object by segmented SDO transfer (block transfer is never used)."""
@@ -346,12 +358,22 @@ class Cia402Master:
         with self._sdo_lock:
             self._quiet_channel()
             try:
-                self.node.sdo.download(index, subindex, bytes(data), force_segment=True)
+                # segment by segment (the raw stream, unbuffered), so that each answered segment is reported
+                with self.node.sdo.open(index, subindex, "wb", buffering=0, size=len(data), force_segment=True) as raw:
+                    rest = memoryview(bytes(data))
+                    while len(rest):
+                        rest = rest[raw.write(rest) :]
+                        self._answered()
             except SdoCommunicationError as exc:
                 self._sdo_failed_at = time.monotonic()
                 raise self._translate("write", index, subindex, exc, f"<{len(data)} bytes>") from exc
             except (SdoAbortedError, CanError) as exc:
                 raise self._translate("write", index, subindex, exc, f"<{len(data)} bytes>") from exc
+            self._answered()
+
+    def _answered(self) -> None:
+        if self.on_answer is not None:
+            self.on_answer()
 
     # -- CiA 402 state machine ----------------------------------------------------------------------
     def statusword(self) -> int:

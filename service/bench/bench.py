@@ -54,7 +54,8 @@ class Bench:
         self.identity = identity
         lock = threading.RLock()  # one user of the wires at a time (SDO is not re-entrant)
         self._lock = lock
-        self._links = BenchLinks(settings)
+        # an SDO answered on the run's own thread tells the watchdog the run is at work (a slow bus)
+        self._links = BenchLinks(settings, on_answer=lambda: self._runs.watchdog.bus_answered())
         # on_trip: the service's reporter (SSE); called from the monitor thread
         self._faults = BenchFaults(settings, self._links, lock, busy=lambda: self._runs.busy, on_trip=on_trip)
         self._runs = RunLifecycle(settings, self._links, self._faults, lock, after_run=self._after_run)

@@ -24,6 +24,7 @@ import logging
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from typing import Callable
 
 from drivers.canopen_bus import CanBus
 from drivers.cia402 import State402
@@ -74,8 +75,11 @@ class OpenLinks:
 class BenchLinks:
     """The links to the bench's devices (module doc); None until opened (`opened()`: all of them)."""
 
-    def __init__(self, settings: Settings):
+    def __init__(self, settings: Settings, on_answer: Callable[[], None] | None = None):
         self.settings = settings
+        # given to drive and load: called after every SDO transfer they answered (the bench watchdog's
+        # sign that a run's loop is at work on a slow bus)
+        self.on_answer = on_answer
         self.bus: CanBus | None = None
         self.drive: DriveClient | None = None
         self.load: LoadClient | None = None
@@ -222,12 +226,14 @@ class BenchLinks:
         self.drive = DriveClient(
             self._opened_bus(), self.settings.can.drive_node, sdo_timeout_s=self.settings.can.sdo_timeout_s
         )
+        self.drive.on_answer = self.on_answer
         self.drive.connect(arm_consumer=False)
 
     def _connect_load(self) -> None:
         self.load = LoadClient(
             self._opened_bus(), self.settings.can.load_node, sdo_timeout_s=self.settings.can.sdo_timeout_s
         )
+        self.load.on_answer = self.on_answer
         self.load.connect(arm_consumer=False)
 
     def _connect_supply(self, url: str) -> None:

@@ -1,7 +1,7 @@
 """The bench watchdog: the bench made safe without waiting on the worker, storage or the network.
 
-A run's loop kicks the watchdog (every guard check, before each DAQ read, and while it waits for the
-supply). While a run is armed, a loop silent for `bound_s` of wall time (the worker stuck: a database
+A run's loop kicks the watchdog (every guard check, before each DAQ read, every SDO transfer its thread
+gets answered, and while it waits for the supply). While a run is armed, a loop silent for `bound_s` of wall time (the worker stuck: a database
 that hangs, a lock, a bug) makes the watchdog's own thread disable drive and load at once: the drivers'
 disable (torque 0, injection off, power stage off), then the load braked on its own speed loop and
 disabled. A stop asked from outside (a cancel, a shutdown, a signal) disables the drive at once and
@@ -84,6 +84,13 @@ class BenchWatchdog:
     def kick(self) -> None:
         """The run's loop is alive."""
         self._last_kick = time.monotonic()
+
+    def bus_answered(self) -> None:
+        """A device answered an SDO transfer: from the armed run's own thread that is its loop at work (one
+        move may take many transfers, each bounded by the SDO timeout, on a slow bus), so it counts as a kick.
+        Answers to other threads (the status poll) say nothing of the run."""
+        if self._armed and threading.get_ident() == self._worker:
+            self._last_kick = time.monotonic()
 
     def disarm(self) -> Trip | None:
         """The run has ended (made safe by its own make_safe); the watchdog's stop of it, if any."""

@@ -19,7 +19,7 @@ def test_setpoint_toggles_lost_in_a_daq_overflow_are_counted_and_the_run_is_ok(t
     with served_bench(tmp_path, "overflow.db", speedup=1.0) as (emu, svc, api, db):
         assert emu.control({"fault": "sdo_delay", "seconds": 0.1})["ok"]
         job = api.identify(OP1, "probe", timeout_s=240)
-        assert job["state"] == "done", job
+        assert job["state"] == "done", (job.get("error"), job.get("result"))
         r = job["result"]
         hidden = r["details"]["sync_toggles_hidden"]
         # the move wrote several setpoints into the overflow: their toggles were lost in pairs, and counted

@@ -148,6 +148,23 @@ def test_slow_sdo_answers_never_make_an_idle_bench_busy(rig):
     assert api.identify(OP1)["state"] == "done"
 
 
+def test_a_move_on_a_slow_link_is_a_run_at_work_not_a_stall(rig):
+    """Every SDO answer 0.25 s late: the move to the point writes and polls some 30 objects without a guard
+    check between them, longer than the watchdog's 3 s bound. Each answered transfer is the run's loop at
+    work (service/bench/watchdog.py bus_answered): the run is not stopped as stuck (it was, 'stuck at
+    cia402_master.py in write')."""
+    emu, svc, api, _ = rig
+    stop_before = api.get("/bench/status")["watchdog"]["last_stop"]
+    assert emu.control({"fault": "sdo_delay", "seconds": 0.25})["ok"]
+    try:
+        job = api.identify(OP1, "probe", timeout_s=240)
+    finally:
+        assert emu.control({"fault": "clear"})["ok"]
+    assert job["state"] == "done", (job.get("error"), job.get("result"))
+    assert job["result"]["status"] == "ok", job["result"]["error"]
+    assert api.get("/bench/status")["watchdog"]["last_stop"] == stop_before
+
+
 def test_heartbeat_lost_by_a_stalled_service_names_the_cause(rig):
     """The service process stops (SIGSTOP) long enough for the drive's consumer heartbeat to lapse:
     the drive goes safe by itself; the job's error names the heartbeat as the first cause."""
