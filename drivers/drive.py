@@ -38,6 +38,8 @@ SUB_THETA_SIN = 4  # REAL32 rad, staged
 SUB_GAMMA_MAX = 5  # REAL32 rad
 SUB_DECOUPLING = 6  # U8
 SUB_COMMIT = 7  # U8: write 1 applies the staged pair; reads commits mod 256
+OD_FURTHER_ORDERS = 0x2002  # order k at sub 3k-2 (U8, 0: unused), theta_cos / theta_sin at 3k-1 / 3k (REAL32 rad)
+MAX_FURTHER_ORDERS = 3  # staged, applied by the next commit with the main order's theta
 OD_LUT = 0x2001
 SUB_LUT_DATA = 1  # DOMAIN
 SUB_LUT_CRC = 2  # U32, CRC-32 of the LUT in force (lut_image.image_crc), 0: none
@@ -121,6 +123,8 @@ class DriveClient(Cia402Master):
         # told every TPDO of the actuals, from the CAN receive thread: must be quick, never an SDO
         self.on_actuals: Callable[[DriveActuals], None] | None = None
         self.actuals: DriveActuals | None = None  # the latest
+        # the further orders last written to 0x2002 (None: unknown, all written at the next set_injection)
+        self._further_written: tuple[tuple[int, float, float], ...] | None = None
 
     def write(self, index: int, subindex: int, value) -> None:
         try:
@@ -170,6 +174,7 @@ class DriveClient(Cia402Master):
         return report
 
     def _after_connect(self) -> None:
+        self._further_written = None  # another master may have written 0x2002 meanwhile
         rated_mnm = int(self.read(OD_RATED_TORQUE))
         if rated_mnm <= 0:
             raise ConfigurationError(
@@ -249,18 +254,50 @@ class DriveClient(Cia402Master):
         """The drive's torque actual 0x6077 (its estimate from the measured currents), Nm."""
         return int(self.read(OD_TORQUE_ACTUAL)) / PER_MILLE * self._rated_nm()
 
-    def set_injection(self, theta_cos_rad: float, theta_sin_rad: float) -> int:
-        """Stage theta = [theta_cos, theta_sin] (REAL32, rad) and commit, so that the drive applies the
-        pair atomically at its next control period. Exactly one setpoint (one sync toggle); the
-        injection mode is set separately with set_injection_mode. Returns 1."""
+    def set_injection(
+        self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()
+    ) -> int:
+        """Stage theta = [theta_cos, theta_sin] (REAL32, rad) of the main order (0x2000:1) and the further
+        orders `further` ((order, theta_cos_rad, theta_sin_rad), up to 3, 0x2002), and commit, so that the
+        drive applies them all atomically at its next control period: v_inj is their sum (eq. 3, 12), the
+        voltage rotated once by it. Exactly one setpoint (one sync toggle); the injection mode is set
+        separately with set_injection_mode. 0x2002 is written only where it changed. Returns 1."""
         for name, value in (("theta_cos_rad", theta_cos_rad), ("theta_sin_rad", theta_sin_rad)):
             if not math.isfinite(value):
                 raise ValueError(f"{name} must be finite, got {value!r}")
+        staged = self._further_slots(further)
         self._require_connected()
+        self._stage_further(staged)
         self.write(OD_INJECTION, SUB_THETA_COS, float(theta_cos_rad))
         self.write(OD_INJECTION, SUB_THETA_SIN, float(theta_sin_rad))
         self.write(OD_INJECTION, SUB_COMMIT, 1)
         return 1
+
+    @staticmethod
+    def _further_slots(further: tuple[tuple[int, float, float], ...]) -> tuple[tuple[int, float, float], ...]:
+        """The 3 slots of 0x2002 for `further` (unused slots order 0); ValueError naming what is wrong."""
+        if len(further) > MAX_FURTHER_ORDERS:
+            raise ValueError(f"at most {MAX_FURTHER_ORDERS} further orders, got {len(further)}")
+        slots = []
+        for order, c, s in further:
+            if isinstance(order, bool) or int(order) != order or not 1 <= int(order) <= 255:
+                raise ValueError(f"a further order must be an integer 1..255, got {order!r}")
+            if not (math.isfinite(c) and math.isfinite(s)):
+                raise ValueError(f"theta of order {order} must be finite, got ({c!r}, {s!r})")
+            slots.append((int(order), float(c), float(s)))
+        if len({h for h, _, _ in slots}) != len(slots):
+            raise ValueError(f"further orders given twice: {[h for h, _, _ in slots]}")
+        return tuple(slots) + ((0, 0.0, 0.0),) * (MAX_FURTHER_ORDERS - len(slots))
+
+    def _stage_further(self, slots: tuple[tuple[int, float, float], ...]) -> None:
+        before = self._further_written
+        self._further_written = None  # unknown until every write below went through
+        for k, slot in enumerate(slots):
+            if before is not None and before[k] == slot:
+                continue
+            for sub, value in zip((3 * k + 1, 3 * k + 2, 3 * k + 3), slot):
+                self.write(OD_FURTHER_ORDERS, sub, value)
+        self._further_written = slots
 
     def injection_off(self) -> None:
         """Injection mode 0 (off); always written, it is part of the safety path."""

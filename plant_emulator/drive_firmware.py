@@ -6,6 +6,11 @@ it validates SDO writes, stages setpoints, and hands them to the control loop at
 (a 256-sample chunk when the plant runs as fast as the DAQ is read; in paced mode a piece of a few ms,
 cut where the setpoint was written: `setpoint_written` wakes the plant thread on every event).
 
+Further injection orders (0x2002, up to 3: order and theta each) are staged and applied with the next
+commit (0x2000:7), with the main order's theta, as one event: in manual mode the control loop injects
+the sum of every order's angle (physics/firmware.py), every theta scaled by one factor so that the sum of
+their |theta| is at most gamma_max.
+
 Setpoint application and the DAQ sync line: every accepted write of target torque (0x6071), theta
 commit (0x2000:7), injection mode (0x2000:2), harmonic order (0x2000:1), decoupling (0x2000:6) or
 voltage estimate (0x2000:8, eq. 11) becomes one event. At each piece start the control loop takes at most ONE event, applies it from the
@@ -83,6 +88,8 @@ class DriveFirmware(Cia402Device):
         self.inj_mode = int(od[0x2000][2].default)
         self.harmonic_order = int(od[0x2000][1].default)
         self.theta = (0.0, 0.0)
+        # further injection orders in force (0x2002, committed with 0x2000:7): ((h_k, theta_cos, theta_sin), ...)
+        self.further: tuple[tuple[int, float, float], ...] = ()
         self.gamma_max_rad = float(od[0x2000][5].default)
         self.decoupling = int(od[0x2000][6].default)
         self.voltage_estimate = int(od[0x2000][8].default)
@@ -139,6 +146,8 @@ class DriveFirmware(Cia402Device):
             self._queue_event("torque", int(value) / PER_MILLE * self.rated_torque_nm)
         elif index == 0x2000:
             self._write_injection(subindex, value)
+        elif index == 0x2002:
+            self._write_further(subindex, value)
         elif index == 0x2001 and subindex == 1:
             blob = bytes(value)
             try:
@@ -191,10 +200,34 @@ class DriveFirmware(Cia402Device):
         elif subindex == 7:
             if int(value) == 1:
                 staged = (float(self.stored(0x2000, 3)), float(self.stored(0x2000, 4)))
-                self._queue_event("theta", staged)
+                self._queue_event("theta", (staged, self._staged_further()))
                 self.commit_count += 1
             elif int(value) != 0:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
+
+    def _write_further(self, subindex: int, value) -> None:
+        """0x2002: order k at sub 3k-2 (0: unused), its theta_cos and theta_sin at 3k-1 and 3k; staged until
+        the next commit (0x2000:7) applies them with the main order's theta, as one setpoint."""
+        if not 1 <= subindex <= 3 * (ph.MAX_INJECTION_ORDERS - 1):
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        if subindex % 3 == 1:
+            if not 0 <= int(value) <= MAX_HARMONIC_ORDER:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+        elif not math.isfinite(float(value)) or abs(float(value)) > math.pi:
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+
+    def _staged_further(self) -> tuple[tuple[int, float, float], ...]:
+        """The further orders staged in 0x2002 (those with an order); refused (value range) when an order is
+        given twice or is the main order (0x2000:1): one theta per order."""
+        further = []
+        for k in range(ph.MAX_INJECTION_ORDERS - 1):
+            order = int(self.stored(0x2002, 3 * k + 1))
+            if order:
+                further.append((order, float(self.stored(0x2002, 3 * k + 2)), float(self.stored(0x2002, 3 * k + 3))))
+        orders = [int(self.stored(0x2000, 1))] + [h for h, _, _ in further]
+        if len(set(orders)) != len(orders):
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        return tuple(further)
 
     def _queue_event(self, kind: str, value) -> None:
         self._events.append((kind, value))
@@ -211,9 +244,10 @@ class DriveFirmware(Cia402Device):
 
     # -- control loop interface (physics thread) ---------------------------------------------------
     def effective_theta(self) -> tuple[float, float]:
-        """Theta the control loop uses: mode manual: the committed pair; mode LUT: the LUT
-        interpolated by its own mode at (torque command, measured speed, measured U_dc)
-        (drivers.lut_image.Lut.theta); off (or LUT mode without a LUT): zero. Clamped to gamma_max."""
+        """Theta of the main order the control loop uses: mode manual: the committed pair; mode LUT: the
+        LUT interpolated by its own mode at (torque command, measured speed, measured U_dc)
+        (drivers.lut_image.Lut.theta); off (or LUT mode without a LUT): zero. Clamped with the further
+        orders (`effective_further`) so that the sum of their |theta| is at most gamma_max."""
         if self.inj_mode == INJ_MANUAL:
             c, s = self.theta
         elif self.inj_mode == INJ_LUT and self.lut is not None:
@@ -222,13 +256,27 @@ class DriveFirmware(Cia402Device):
             return 0.0, 0.0
         return self._clamped(c, s)
 
+    def effective_further(self) -> tuple[tuple[int, float, float], ...]:
+        """The further orders the control loop injects (mode manual only: a LUT holds one order), each
+        theta scaled by the same factor as the main order's (`_scale`)."""
+        if self.inj_mode != INJ_MANUAL:
+            return ()
+        k = self._scale(*self.theta)
+        return tuple((h, c * k, s * k) for h, c, s in self.further)
+
+    def _scale(self, c: float, s: float) -> float:
+        """The factor on every order's theta that keeps |v_inj| <= gamma_max (0x2000:5) at every angle:
+        the sum of the orders' |theta| (the main order's (c, s) and the further orders in force in manual
+        mode) clamped to gamma_max; with one order that is |theta| <= gamma_max."""
+        total = math.hypot(c, s)
+        if self.inj_mode == INJ_MANUAL:
+            total += sum(math.hypot(fc, fs) for _, fc, fs in self.further)
+        return self.gamma_max_rad / total if total > self.gamma_max_rad and total > 0.0 else 1.0
+
     def _clamped(self, c: float, s: float) -> tuple[float, float]:
-        """theta with |theta| clamped to gamma_max (0x2000:5), as the control loop takes it."""
-        g = math.hypot(c, s)
-        if g > self.gamma_max_rad and g > 0.0:
-            k = self.gamma_max_rad / g
-            return c * k, s * k
-        return c, s
+        """theta of the main order scaled by `_scale`, as the control loop takes it."""
+        k = self._scale(c, s)
+        return c * k, s * k
 
     def theta_schedule(self) -> np.ndarray:
         """LUT mode: theta against the shaft's speed over the LUT's speed axis at the torque command, U_dc and
@@ -271,7 +319,7 @@ class DriveFirmware(Cia402Device):
                 if kind == "torque":
                     self.torque_nm = float(value)
                 elif kind == "theta":
-                    self.theta = value
+                    self.theta, self.further = value
                 elif kind == "inj_mode":
                     self.inj_mode = int(value)
                 elif kind == "harmonic_order":
@@ -286,6 +334,10 @@ class DriveFirmware(Cia402Device):
             sp[ph.S_POWER] = 1.0 if (self.power_on and udc_v >= self.udc_min_v) else 0.0
             sp[ph.S_TORQUE_NM] = self.torque_nm
             sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN] = self.effective_theta()
+            further = self.effective_further()
+            for k in range(ph.MAX_INJECTION_ORDERS - 1):
+                h, c, s = further[k] if k < len(further) else (0, 0.0, 0.0)
+                sp[ph.S_XH_ORDER + k], sp[ph.S_XH_COS + k], sp[ph.S_XH_SIN + k] = float(h), c, s
             lut_h = self.inj_mode == INJ_LUT and self.lut is not None
             sp[ph.S_H] = float(self.lut.harmonic_order if lut_h else self.harmonic_order)
             sp[ph.S_DECOUPLING] = float(self.decoupling)

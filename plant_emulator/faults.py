@@ -200,6 +200,8 @@ class FaultState:
             "drive_injection_mode": self.emu.drive.inj_mode,
             "drive_torque_nm": self.emu.drive.torque_nm,
             "drive_theta_rad": list(self.emu.drive.effective_theta()),
+            # further orders in force: [[order, theta_cos, theta_sin], ...] (scaled as the control loop takes them)
+            "drive_further_theta_rad": [list(f) for f in self.emu.drive.effective_further()],
             "drive_speed_rpm": self.emu.drive.speed_rpm,
             "load_state": self.emu.load.state.value,
             # whose heartbeat each device consumes, and how long it waits (0: it does not)

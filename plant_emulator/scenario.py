@@ -6,7 +6,8 @@ perturbs the truth (never the [firmware] nominal values) uniformly within the ra
 section: R_s, L_d, L_q, psi_p by +-`r_s_rel`, `inductance_rel`, `psi_p_rel`; the sensor resonance
 (poles) by +-`resonance_rel`; the disturbance map by a common amplitude factor
 +-`disturbance_amplitude_rel` and phase offset +-`disturbance_phase_rad`, plus per cell
-+-`disturbance_cell_rel` / +-`disturbance_cell_phase_rad`.
++-`disturbance_cell_rel` / +-`disturbance_cell_phase_rad`; each further harmonic ([[disturbance.harmonics]]) by
+its own draws within the same ranges.
 """
 
 from __future__ import annotations
@@ -108,7 +109,16 @@ def perturb(sc: Scenario, seed: int) -> None:
     ph_deg = ph_deg + math.degrees(d_phase) + np.degrees(rng.uniform(-cell_phase, cell_phase, ph_deg.shape))
     dist["amplitude_nm"] = amp.tolist()
     dist["phase_deg"] = ph_deg.tolist()
-    dist["phase_2h_rad"] = float(dist.get("phase_2h_rad", 0.0)) + rng.uniform(-span_phase, span_phase)
+    # each further harmonic its own draws (after the map's: a seed's map of order h stays what it was)
+    for extra in dist.get("harmonics", []) or []:
+        f_k = rel("disturbance_amplitude_rel", 0.2)
+        phase_k = rng.uniform(-span_phase, span_phase)
+        amp_k = np.asarray(extra["amplitude_nm"], dtype=float)
+        ph_k = np.asarray(extra["phase_deg"], dtype=float)
+        extra["amplitude_nm"] = (amp_k * f_k * (1.0 + rng.uniform(-cell_rel, cell_rel, amp_k.shape))).tolist()
+        extra["phase_deg"] = (
+            ph_k + math.degrees(phase_k) + np.degrees(rng.uniform(-cell_phase, cell_phase, ph_k.shape))
+        ).tolist()
     sc.perturbation = {
         **{k: v for k, v in factors.items()},
         "resonance": f_res,
@@ -143,6 +153,20 @@ def validate(sc: Scenario) -> None:
         arr = np.asarray(dist.get(key, [[0.0]]), dtype=float)
         if arr.shape != (len(n_axis), len(t_axis)):
             raise ValueError(f"[disturbance] {key} must have len(speed_rpm) rows of len(torque_nm) values")
+    extras = dist.get("harmonics", []) or []
+    if len(extras) > ph.MAX_FURTHER_HARMONICS:
+        raise ValueError(f"[disturbance] harmonics: at most {ph.MAX_FURTHER_HARMONICS} further orders")
+    orders = [int(dist.get("order", 6))]
+    for i, extra in enumerate(extras):
+        where = f"[[disturbance.harmonics]] entry {i + 1}"
+        order = extra.get("order")
+        if not isinstance(order, int) or not 1 <= order <= 48 or order in orders:
+            raise ValueError(f"{where}: order must be an integer 1..48 not given before, got {order!r}")
+        orders.append(order)
+        for key in ("amplitude_nm", "phase_deg"):
+            arr = np.asarray(extra.get(key, [[0.0]]), dtype=float)
+            if arr.shape != (len(n_axis), len(t_axis)):
+                raise ValueError(f"{where}: {key} must have len(speed_rpm) rows of len(torque_nm) values")
 
 
 def tables(sc: Scenario) -> tuple[np.ndarray, dict]:
@@ -174,6 +198,18 @@ def tables(sc: Scenario) -> tuple[np.ndarray, dict]:
     block = np.concatenate([t_axis, n_axis, (amp * np.cos(phase)).ravel(), (amp * np.sin(phase)).ravel()])
     meta["dmap"] = (len(t_axis), len(n_axis), off)
     parts.append(block)
+    off += len(block)
+    # further harmonics (physics.machine.map_phasor): their orders, then X_k, Y_k on the map's axes
+    extras = dist.get("harmonics", []) or []
+    orders = np.zeros(ph.MAX_FURTHER_HARMONICS)
+    phasors = []
+    for k, extra in enumerate(extras):
+        orders[k] = float(extra["order"])
+        amp_k = np.asarray(extra["amplitude_nm"], dtype=float)
+        phase_k = np.radians(np.asarray(extra["phase_deg"], dtype=float))
+        phasors += [(amp_k * np.cos(phase_k)).ravel(), (amp_k * np.sin(phase_k)).ravel()]
+    parts.append(np.concatenate([orders, *phasors]))
+    meta["further"] = (len(extras), off)
     tab = np.concatenate(parts) if parts else np.zeros(1)
     return tab, meta
 
@@ -225,8 +261,6 @@ def build(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
     p[ph.P_ALPHA_FS] = fs
     p[ph.P_NOISE] = float(sensor.get("noise_rms_fraction", 0.0)) * fs
     p[ph.P_DIST_SCALE] = float(dist.get("scale", 1.0))
-    p[ph.P_D2_RATIO] = float(dist.get("ratio_2h", 0.0))
-    p[ph.P_PHI_D2] = float(dist.get("phase_2h_rad", 0.0))
     p[ph.P_T_RATED] = sc.rated_torque_nm
     p[ph.P_H_DIST] = float(dist.get("order", 6))
     # load speed loop: P part sets the crossover w_c = K_p/J, PI corner a quarter below it
@@ -244,6 +278,7 @@ def build(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
     tab, meta = tables(sc)
     p[ph.P_SAT_N], p[ph.P_SAT_OFF] = meta["sat"]
     p[ph.P_DMAP_NT], p[ph.P_DMAP_NN], p[ph.P_DMAP_OFF] = meta["dmap"]
+    p[ph.P_XH_N], p[ph.P_XH_OFF] = meta["further"]
     return p, tab
 
 

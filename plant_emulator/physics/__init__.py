@@ -21,6 +21,7 @@ declared by the stage that owns it; this package exports them all under one name
 
 from .daq import FRAME_BYTES, OVER_RANGE_FLAG, P_ALPHA_FS, S_SYNC, SYNC_FLAG
 from .firmware import (
+    MAX_INJECTION_ORDERS,
     P_FW_BW,
     P_FW_TARGET,
     P_IMAX,
@@ -43,6 +44,9 @@ from .firmware import (
     S_TORQUE_NM,
     S_UDC_V,
     S_VEST,
+    S_XH_COS,
+    S_XH_ORDER,
+    S_XH_SIN,
     X_FW_DID,
     X_IF_D,
     X_IF_Q,
@@ -97,7 +101,7 @@ from .loop import (
     steady_state_init,
 )
 from .machine import (
-    P_D2_RATIO,
+    MAX_FURTHER_HARMONICS,
     P_DIST_SCALE,
     P_DMAP_NN,
     P_DMAP_NT,
@@ -107,17 +111,19 @@ from .machine import (
     P_LQ,
     P_NP,
     P_OFF_DECAY,
-    P_PHI_D2,
     P_PSI,
     P_R,
     P_SAT_DECAY,
     P_SAT_N,
     P_SAT_OFF,
     P_T_RATED,
+    P_XH_N,
+    P_XH_OFF,
     X_ID,
     X_IMAG_F,
     X_IQ,
     disturbance_phasor,
+    map_phasor,
     saturated_params,
     zoh_dq,
 )

@@ -14,7 +14,8 @@ Per control period k (paper section 2, Fig. 3):
   FW loop    `field_weakening`: a slow voltage loop (as drives do to survive parameter errors) adds
              delta i_d <= 0 while the PI output |u| exceeds fw_target U_dc/sqrt(3):
              d(delta i_d)/dt = -w_fw (|u| - u_target) / (|w_e| L_d,nom), i_q cut to the current limit.
-  injection  v_inj = theta_cos cos(h phi_e) + theta_sin sin(h phi_e)            (eq. 3, 12)
+  injection  v_inj = sum_k theta_cos,k cos(h_k phi_e) + theta_sin,k sin(h_k phi_e)   (eq. 3, 12)
+             (the main order h and up to 3 further ones, each its own theta; one rotation by the sum)
              `inject`: default u* = R(v_inj) u (exact rotation, |u*| = |u|, eq. 2-4);
              eq. 11 variant (S_VEST): u* = u + (R(v_inj) - I) u_hat0, u_hat0 = sat(G_EM^-1 G_cl i*)
              from the nominal model (`voltage_estimate`; the injection no longer follows the PI
@@ -61,6 +62,12 @@ S_H = 4  # harmonic order used by the firmware's injection
 S_DECOUPLING = 5  # 0/1
 S_UDC_V = 6  # DC-link voltage
 S_VEST = 10  # 0/1, eq. 11: G_comp from the estimate u_hat_dq,0 instead of the PI output
+# further injection orders k = 1..3 (0 order: unused): v_inj = sum over all orders (`injection_angle`)
+S_XH_ORDER = 13  # 13, 14, 15: h_k
+S_XH_COS = 16  # 16, 17, 18: rad, theta_cos of order k, clamped with the others (the sum of |theta|)
+S_XH_SIN = 19  # 19, 20, 21
+MAX_INJECTION_ORDERS = 4  # the main order and 3 further ones
+INDEX_BLOCKS = {"S_XH_ORDER": 3, "S_XH_COS": 3, "S_XH_SIN": 3}  # indices that start a block of this many
 
 # ---- state (indices into x) ----
 X_INT_D = 4  # V, PI integrators

@@ -33,6 +33,7 @@ from drivers.daq_protocol import FRAME_DTYPE
 from . import daq, firmware, inverter, machine, mechanics
 from .daq import FRAME_BYTES, OVER_RANGE_FLAG, P_ALPHA_FS, S_SYNC, SYNC_FLAG
 from .firmware import (
+    MAX_INJECTION_ORDERS,
     P_FW_BW,
     P_FW_TARGET,
     P_IMAX,
@@ -55,6 +56,9 @@ from .firmware import (
     S_TORQUE_NM,
     S_UDC_V,
     S_VEST,
+    S_XH_COS,
+    S_XH_ORDER,
+    S_XH_SIN,
     X_FW_DID,
     X_IF_D,
     X_IF_Q,
@@ -67,7 +71,7 @@ from .firmware import (
 )
 from .inverter import P_ANGLE_COMP, P_F_PWM, P_I_ZC, P_T_DEAD, X_UD_APP, X_UQ_APP
 from .machine import (
-    P_D2_RATIO,
+    MAX_FURTHER_HARMONICS,
     P_DMAP_NN,
     P_DMAP_NT,
     P_H_DIST,
@@ -75,11 +79,11 @@ from .machine import (
     P_LQ,
     P_NP,
     P_OFF_DECAY,
-    P_PHI_D2,
     P_PSI,
     P_R,
     P_SAT_DECAY,
     P_SAT_N,
+    P_XH_N,
     X_ID,
     X_IMAG_F,
     X_IQ,
@@ -113,7 +117,7 @@ SQRT3 = math.sqrt(3.0)
 TWO_PI = 2.0 * math.pi
 
 N_PARAMS = 50  # p: indices declared by the stages (25, 26 unused)
-N_SETPOINTS = 13  # sp
+N_SETPOINTS = 22  # sp
 X_SAMPLES = 16  # samples simulated so far
 N_STATE = 21  # x
 
@@ -191,7 +195,19 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
     torque_ref = sp[S_TORQUE_NM] if power else 0.0
     th_c = sp[S_THETA_COS]
     th_s = sp[S_THETA_SIN]
-    inject = th_c != 0.0 or th_s != 0.0
+    # further injection orders (firmware S_XH_*): their own theta, constant over the call
+    n_xi = 0
+    xi_order = np.zeros(MAX_INJECTION_ORDERS - 1, dtype=np.int64)
+    xi_c = np.zeros(MAX_INJECTION_ORDERS - 1)
+    xi_s = np.zeros(MAX_INJECTION_ORDERS - 1)
+    for kk in range(MAX_INJECTION_ORDERS - 1):
+        order_k = int(sp[S_XH_ORDER + kk] + 0.5)
+        if order_k > 0 and (sp[S_XH_COS + kk] != 0.0 or sp[S_XH_SIN + kk] != 0.0):
+            xi_order[n_xi] = order_k
+            xi_c[n_xi] = sp[S_XH_COS + kk]
+            xi_s[n_xi] = sp[S_XH_SIN + kk]
+            n_xi += 1
+    inject = th_c != 0.0 or th_s != 0.0 or n_xi > 0
     scheduled = theta_schedule.shape[0] > 0
     h_int = int(sp[S_H] + 0.5)
     decouple = sp[S_DECOUPLING] > 0.5
@@ -201,11 +217,16 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
     load_on = sp[S_LOAD_ON] > 0.5
     load_target = sp[S_LOAD_SPEED]
     sync_bits = SYNC_FLAG if sp[S_SYNC] > 0.5 else 0
-    d2_ratio = p[P_D2_RATIO]
     h_dist_int = int(p[P_H_DIST] + 0.5)
     same_h = h_dist_int == h_int
-    cos_pd2 = math.cos(p[P_PHI_D2])
-    sin_pd2 = math.sin(p[P_PHI_D2])
+    # further torque harmonics of their own (machine.map_phasor k >= 1): orders, phasors per chunk
+    n_xh = int(p[P_XH_N]) if p[P_DMAP_NT] > 0.0 and p[P_DMAP_NN] > 0.0 else 0  # no map: no tables to read
+    xh_order = np.zeros(MAX_FURTHER_HARMONICS, dtype=np.int64)
+    xh_x = np.zeros(MAX_FURTHER_HARMONICS)
+    xh_y = np.zeros(MAX_FURTHER_HARMONICS)
+    for kk in range(n_xh):
+        xh_order[kk] = machine.further_order(p, tab, kk + 1)
+    xh_on = False
     b0 = p[P_H_B0]
     b1 = p[P_H_B1]
     b2 = p[P_H_B2]
@@ -296,7 +317,7 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
             iq_ref = iq_ff
             if scheduled:
                 th_c, th_s = firmware.scheduled_theta(theta_schedule, w_m)
-                inject = th_c != 0.0 or th_s != 0.0
+                inject = th_c != 0.0 or th_s != 0.0 or n_xi > 0
             aw_l = abs(w_e) * ld_nom
             fw_gain = p[P_FW_BW] * ts / aw_l if (aw_l > 0.0 and power) else 0.0
             fw_did_min = -p[P_IMAX] - id_ff
@@ -306,6 +327,10 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
             # drive it (a disabled bench crept at -6 rpm)
             d_x, d_y = machine.disturbance_phasor(p, tab, torque_ref, w_m) if power else (0.0, 0.0)
             d_on = d_x != 0.0 or d_y != 0.0
+            xh_on = False
+            for kk in range(n_xh):
+                xh_x[kk], xh_y[kk] = machine.map_phasor(p, tab, kk + 1, torque_ref, w_m) if power else (0.0, 0.0)
+                xh_on = xh_on or xh_x[kk] != 0.0 or xh_y[kk] != 0.0
             zoh_true = machine.zoh_dq(r, ld, lq, w_e, ts)
             zoh_nom = machine.zoh_dq(r_nom, ld_nom, lq_nom, w_e, ts)
             w_zoh = w_e
@@ -348,6 +373,9 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
                 if_q = iq_ref
             if inject:
                 v_inj = firmware.injection_angle(th_c, th_s, chp, shp)
+                for kk in range(n_xi):  # every further order adds its angle: one rotation by the sum
+                    ck, sk = machine.harmonic(cphi, sphi, xi_order[kk])
+                    v_inj += firmware.injection_angle(xi_c[kk], xi_s[kk], ck, sk)
                 u_ds, u_qs = firmware.inject(u_d, u_q, uh_d, uh_q, v_inj, vest, u_lim)
             else:
                 v_inj = 0.0
@@ -374,7 +402,11 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
                 sx = shp
             else:
                 cx, sx = machine.harmonic(cphi, sphi, h_dist_int)
-            dist = machine.disturbance(d_x, d_y, d2_ratio, cx, sx, cos_pd2, sin_pd2)
+            dist = machine.harmonic_torque(d_x, d_y, cx, sx)
+        if xh_on:
+            for kk in range(n_xh):
+                cx, sx = machine.harmonic(cphi, sphi, xh_order[kk])
+                dist += machine.harmonic_torque(xh_x[kk], xh_y[kk], cx, sx)
         t_em = machine.torque(i_d, i_q, psi, ld, lq, n_p) + dist
         t_lm, load_ref, load_int = mechanics.load_machine(
             load_on, load_ref, load_int, load_target, w_m, ramp_up, ramp_down, load_kp, load_ki, j_shaft, ts, tmax

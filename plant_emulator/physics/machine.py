@@ -7,9 +7,11 @@ discretised exactly (zero-order hold over T_s) with the 2x2 matrix exponential a
 magnitude (`saturated_params`, updated once per chunk by the loop).
 
     T_em = 1.5 N_p (psi_p i_q + (L_d - L_q) i_d i_q) + d                          (eq. 20 plus d)
-    d = D cos(h phi_e + phi_D) + r D cos(2 h phi_e + phi_D2)
-with D, phi_D bilinear in the disturbance map over (T*, mechanical speed), interpolated as the phasor
-(X, Y) = (D cos phi_D, D sin phi_D) (`disturbance_phasor`, `disturbance`).
+    d = sum_k D_k cos(h_k phi_e + phi_Dk)
+k = 0 the map's order h (P_H_DIST), k = 1..3 further orders of their own (slotting, saturation: the
+12th, 18th), each D_k, phi_Dk bilinear in its own map over (T*, mechanical speed) on the shared axes,
+interpolated as the phasor (X, Y) = (D cos phi_D, D sin phi_D) (`map_phasor`). The 2h the injection
+makes is not here: it comes from the exact rotation of the voltage (firmware.inject, eq. 3-4).
 
 Units: V, A, Ohm, H, Wb, Nm, rad, rad/s. The scenario's tables live in the flat array `tab` at the
 offsets P_SAT_OFF and P_DMAP_OFF.
@@ -28,8 +30,8 @@ P_LD = 3  # H, true L_d at zero current (times the saturation table factor)
 P_LQ = 4  # H
 P_PSI = 5  # Wb, true PM flux linkage at zero current (times the table factor)
 P_DIST_SCALE = 24  # factor on the whole disturbance map (1; tests/calibration set 0)
-P_D2_RATIO = 27  # D_2 / D
-P_PHI_D2 = 28  # rad
+P_XH_N = 27  # number of further torque harmonics (0..MAX_FURTHER_HARMONICS), each with its own map
+P_XH_OFF = 28  # offset of [their orders (MAX_FURTHER_HARMONICS), then X_k, Y_k (nn*nt each) per order] in tab
 P_T_RATED = 29  # Nm
 P_H_DIST = 30  # order of the true torque harmonic
 P_OFF_DECAY = 35  # per-period factor of the currents with the inverter off
@@ -39,6 +41,8 @@ P_SAT_OFF = 44  # offset of [i_axis, ld_rel, lq_rel, psi_rel] in tab
 P_DMAP_NT = 45  # disturbance map: torque axis length
 P_DMAP_NN = 46  # speed axis length
 P_DMAP_OFF = 47  # offset of [torque axis, speed axis (rad/s mech), X (nn*nt), Y (nn*nt)] in tab
+
+MAX_FURTHER_HARMONICS = 3  # the map's order and up to 3 more (a drive injects up to 4 orders at once)
 
 # ---- state (indices into x) ----
 X_ID = 0  # A, true currents
@@ -121,17 +125,10 @@ def harmonic(c, s, n):
 
 
 @njit(cache=True, inline="always")
-def disturbance(d_x, d_y, d2_ratio, cx, sx, cos_pd2, sin_pd2):
-    """d = D cos(h phi_e + phi_D) + r D cos(2 h phi_e + phi_D2), Nm, from (X, Y) = D (cos phi_D,
-    sin phi_D) and (cx, sx) = (cos h phi_e, sin h phi_e)."""
-    c2x = 2.0 * cx * cx - 1.0
-    s2x = 2.0 * sx * cx
-    # D cos(x + phi_D) = X cos x - Y sin x; 2h part with |D| r at phi_D2
-    dist = d_x * cx - d_y * sx
-    if d2_ratio != 0.0:
-        d2 = d2_ratio * math.sqrt(d_x * d_x + d_y * d_y)
-        dist += d2 * (c2x * cos_pd2 - s2x * sin_pd2)
-    return dist
+def harmonic_torque(d_x, d_y, cx, sx):
+    """D cos(x + phi_D) = X cos x - Y sin x, Nm, from (X, Y) = D (cos phi_D, sin phi_D) and
+    (cx, sx) = (cos x, sin x), x = h phi_e."""
+    return d_x * cx - d_y * sx
 
 
 @njit(cache=True)
@@ -167,8 +164,9 @@ def _axis_pos(tab, off, n, xq):
 
 
 @njit(cache=True)
-def disturbance_phasor(p, tab, torque_nm, w_m):
-    """(X, Y) = (D cos phi_D, D sin phi_D) of the h-th torque harmonic at (T*, w_m), bilinear."""
+def map_phasor(p, tab, k, torque_nm, w_m):
+    """(X, Y) = (D_k cos phi_Dk, D_k sin phi_Dk) of torque harmonic k at (T*, w_m), bilinear on the
+    disturbance map's axes: k = 0 the map's order, k = 1..P_XH_N the further orders."""
     nt = int(p[P_DMAP_NT])
     nn = int(p[P_DMAP_NN])
     if nt == 0 or nn == 0:
@@ -176,7 +174,10 @@ def disturbance_phasor(p, tab, torque_nm, w_m):
     off = int(p[P_DMAP_OFF])
     jt, ft = _axis_pos(tab, off, nt, torque_nm)
     jn, fn = _axis_pos(tab, off + nt, nn, w_m)
-    xo = off + nt + nn
+    if k == 0:
+        xo = off + nt + nn
+    else:
+        xo = int(p[P_XH_OFF]) + MAX_FURTHER_HARMONICS + (k - 1) * 2 * nt * nn
     yo = xo + nt * nn
     jt1 = jt + 1 if nt > 1 else jt
     jn1 = jn + 1 if nn > 1 else jn
@@ -198,6 +199,18 @@ def disturbance_phasor(p, tab, torque_nm, w_m):
     )
     s = p[P_DIST_SCALE]
     return s * x, s * y
+
+
+@njit(cache=True)
+def disturbance_phasor(p, tab, torque_nm, w_m):
+    """(X, Y) of the map's own order h at (T*, w_m) (map_phasor k = 0)."""
+    return map_phasor(p, tab, 0, torque_nm, w_m)
+
+
+@njit(cache=True)
+def further_order(p, tab, k):
+    """Electrical order of further harmonic k = 1..P_XH_N."""
+    return int(tab[int(p[P_XH_OFF]) + k - 1] + 0.5)
 
 
 @njit(cache=True)

@@ -35,6 +35,7 @@ from drivers.errors import (
     StateTransitionError,
 )
 from drivers.load_machine import LoadClient, LoadStatus
+from plant_emulator import physics as ph
 from plant_emulator.drive_firmware import DriveFirmware
 from plant_emulator.load_machine import LoadMachineFirmware
 from plant_emulator.socketcand_server import SocketcandServer
@@ -183,6 +184,41 @@ def test_set_injection_writes_real32_pair_and_commits(drive, drive_peer):
     assert index_order == [(0x2000, 3), (0x2000, 4), (0x2000, 7), (0x2000, 2), (0x2000, 3), (0x2000, 4), (0x2000, 7)]
     drive.injection_off()
     assert drive_peer.device.stored(0x2000, 2) == 0
+
+
+def test_further_orders_are_staged_in_0x2002_and_applied_with_the_commit(drive, drive_peer):
+    """set_injection with further orders: 0x2002 written (only where it changed), one commit (one sync
+    toggle) applies every order at once; the control loop gets each order's theta, all scaled by one
+    factor so that the sum of |theta| is at most gamma_max (|v_inj| <= gamma_max at every angle)."""
+    before = drive.setpoints_written
+    drive.set_gamma_max_rad(0.01)
+    drive.set_injection(0.006, -0.008, further=((12, 0.003, 0.004),))  # |theta| 0.01 and 0.005
+    assert drive.setpoints_written == before + 1
+    assert drive_peer.writes_to(0x2002, 1) == [12] and drive_peer.writes_to(0x2002, 4) == [0]
+    drive.set_injection_mode("manual")
+    sp = ph.new_setpoints(12.0)
+    while drive_peer.device.has_pending():  # the drive's control loop takes one event per piece
+        drive_peer.device.chunk_setpoints(sp, 12.0)
+    drive_peer.device.chunk_setpoints(sp, 12.0)
+    k = 0.01 / 0.015  # the sum of |theta| was 0.015
+    assert (sp[ph.S_THETA_COS], sp[ph.S_THETA_SIN]) == pytest.approx((0.006 * k, -0.008 * k), rel=1e-6)
+    assert (sp[ph.S_XH_ORDER], sp[ph.S_XH_COS], sp[ph.S_XH_SIN]) == pytest.approx((12, 0.003 * k, 0.004 * k), rel=1e-6)
+    assert sp[ph.S_XH_ORDER + 1] == 0 and sp[ph.S_XH_ORDER + 2] == 0
+    # the same further orders again: 0x2002 not written again; none: slot 1 cleared, nothing else
+    writes = len([w for w in drive_peer.writes if w[0] == 0x2002])
+    drive.set_injection(0.001, 0.0, further=((12, 0.003, 0.004),))
+    assert len([w for w in drive_peer.writes if w[0] == 0x2002]) == writes
+    drive.set_injection(0.001, 0.0)
+    assert len([w for w in drive_peer.writes if w[0] == 0x2002]) == writes + 3
+    assert drive_peer.writes_to(0x2002, 1) == [12, 0]
+    # one theta per order: the main order again, or an order twice, is refused (by us, and by the drive)
+    with pytest.raises(ValueError, match="twice"):
+        drive.set_injection(0.0, 0.0, further=((12, 0.0, 0.0), (12, 0.001, 0.0)))
+    drive_peer.device.chunk_setpoints(sp, 12.0)
+    commits = drive.commit_count()
+    with pytest.raises(SdoAbortError):
+        drive.set_injection(0.0, 0.0, further=((6, 0.001, 0.0),))  # 6 is 0x2000:1, the main order
+    assert drive.commit_count() == commits  # nothing applied
 
 
 def test_injection_parameters(drive, drive_peer):

@@ -13,7 +13,10 @@ band assumed the fundamental's slope, so the 6th harmonic depended on where the 
 the sample grid, a phase a speed with whole samples per turn latched for a whole run); the current
 PI's anti-windup became back-calculation (fw_vest_decoupled_h12 saturates: conditional integration
 froze the integrators for as long as the limit held, so at a point the true machine cannot reach the
-voltage angle, the currents and the harmonic kept the run's history).
+voltage angle, the currents and the harmonic kept the run's history); the disturbance's 2h part tied to
+the h-th by a ratio gave way to further harmonics with maps of their own (paper-bench: a 12th; checked in
+closed form by test_emulator_truth.py test_each_torque_harmonic_is_its_own_map; the two cases without
+the map's tables stayed as recorded).
 """
 
 from __future__ import annotations

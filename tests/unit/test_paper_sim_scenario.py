@@ -13,7 +13,7 @@ from plant_emulator.scope import CHANNELS, Scope
 def test_paper_sim_disturbance_is_eq_23_alone():
     """d = 40 mNm sin(6 phi_e) at any operating point, no dead-time voltage, a linear machine."""
     p, tab = scn.build(scn.load("paper-sim"))
-    assert p[ph.P_SAT_N] == 0 and p[ph.P_T_DEAD] == 0 and p[ph.P_D2_RATIO] == 0
+    assert p[ph.P_SAT_N] == 0 and p[ph.P_T_DEAD] == 0 and p[ph.P_XH_N] == 0
     assert p[ph.P_W_BW] == pytest.approx(2 * math.pi * 1200)
     for torque_nm, speed_rpm in ((4.746, 1000.0), (4.746, 200.0), (1.0, 3000.0)):
         plant = ph.Plant(p, tab)
