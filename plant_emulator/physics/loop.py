@@ -224,8 +224,11 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
     xh_order = np.zeros(MAX_FURTHER_HARMONICS, dtype=np.int64)
     xh_x = np.zeros(MAX_FURTHER_HARMONICS)
     xh_y = np.zeros(MAX_FURTHER_HARMONICS)
+    xh_mult = np.zeros(MAX_FURTHER_HARMONICS, dtype=np.int64)  # order / h where a multiple of it, else 0
     for kk in range(n_xh):
         xh_order[kk] = machine.further_order(p, tab, kk + 1)
+        if h_dist_int > 0 and xh_order[kk] % h_dist_int == 0:
+            xh_mult[kk] = xh_order[kk] // h_dist_int
     xh_on = False
     b0 = p[P_H_B0]
     b1 = p[P_H_B1]
@@ -374,7 +377,10 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
             if inject:
                 v_inj = firmware.injection_angle(th_c, th_s, chp, shp)
                 for kk in range(n_xi):  # every further order adds its angle: one rotation by the sum
-                    ck, sk = machine.harmonic(cphi, sphi, xi_order[kk])
+                    if h_int > 0 and xi_order[kk] % h_int == 0:
+                        ck, sk = machine.harmonic(chp, shp, xi_order[kk] // h_int)
+                    else:
+                        ck, sk = machine.harmonic(cphi, sphi, xi_order[kk])
                     v_inj += firmware.injection_angle(xi_c[kk], xi_s[kk], ck, sk)
                 u_ds, u_qs = firmware.inject(u_d, u_q, uh_d, uh_q, v_inj, vest, u_lim)
             else:
@@ -396,17 +402,20 @@ def simulate(x, p, tab, sp, theta_schedule, noise, chunk, seq0, frames, summary,
 
         # ---------------- 2. plant: torque, shaft, sensor at sample k ----------------
         dist = 0.0
-        if d_on:
+        if d_on or xh_on:
             if same_h:
                 cx = chp
                 sx = shp
             else:
                 cx, sx = machine.harmonic(cphi, sphi, h_dist_int)
             dist = machine.harmonic_torque(d_x, d_y, cx, sx)
-        if xh_on:
             for kk in range(n_xh):
-                cx, sx = machine.harmonic(cphi, sphi, xh_order[kk])
-                dist += machine.harmonic_torque(xh_x[kk], xh_y[kk], cx, sx)
+                # a multiple of the map's order from its cos/sin: one squaring for the 12th, not four
+                if xh_mult[kk] > 0:
+                    ck, sk = machine.harmonic(cx, sx, xh_mult[kk])
+                else:
+                    ck, sk = machine.harmonic(cphi, sphi, xh_order[kk])
+                dist += machine.harmonic_torque(xh_x[kk], xh_y[kk], ck, sk)
         t_em = machine.torque(i_d, i_q, psi, ld, lq, n_p) + dist
         t_lm, load_ref, load_int = mechanics.load_machine(
             load_on, load_ref, load_int, load_target, w_m, ramp_up, ramp_down, load_kp, load_ki, j_shaft, ts, tmax

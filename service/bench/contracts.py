@@ -29,7 +29,9 @@ Guard = Callable[[], None]
 class DriveCommands(Protocol):
     """What a session may send to the drive while it measures (the bench checks every value)."""
 
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None: ...
+    def send_theta(
+        self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()
+    ) -> None: ...
 
     def send_injection_mode(self, mode: str) -> None: ...
 

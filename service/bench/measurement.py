@@ -120,6 +120,8 @@ class OperatingPointSession:
         self._observe = observe
         self.on_window = on_window
         self.theta_in_force: tuple[float, float] | None = None  # (cos, sin) the drive applies now in manual mode
+        # the further orders in force with it ((order, cos, sin), ...; None: unknown)
+        self.further_in_force: tuple[tuple[int, float, float], ...] | None = ()
         self.noise_rms_fs: float | None = None  # rms of alpha around the fitted model, last window
         self.settled: Settled | None = None
         self.over_range_windows = 0  # windows refused: clipped over most of their samples
@@ -164,17 +166,23 @@ class OperatingPointSession:
             return self._settle_on_data(max_plant_s)
         return self.stream.wait_for_effect(max_plant_s)
 
-    def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
+    def apply_theta(
+        self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()
+    ) -> None:
+        """theta of the session's order, and of the further orders `further` ((order, cos, sin), applied by the
+        same commit); returns once in effect and settled."""
         theta = (float(theta_cos_rad), float(theta_sin_rad))
-        if theta == self.theta_in_force:
+        further = tuple((int(h), float(c), float(s)) for h, c, s in further)
+        if theta == self.theta_in_force and further == self.further_in_force:
             # already in force and settled (the move left it so): nothing to send, wait for or settle
             self.clock.start_segment_at_next()
             if self.recorder is not None:
                 self.recorder.setpoint(self.stream.next_index(), *theta)
             return
-        self.commands.send_theta(*theta)
+        self.commands.send_theta(*theta, further)
         effect_index = self.wait_for_effect()
         self.theta_in_force = theta
+        self.further_in_force = further
         if self.recorder is not None:
             self.recorder.setpoint(effect_index, *theta)
         self.stream.skip(self.settle_after_theta_s)
@@ -184,6 +192,7 @@ class OperatingPointSession:
         and return once it is in effect and the plant has settled, as apply_theta does."""
         self.commands.send_injection_mode(mode)
         self.theta_in_force = None if mode != "manual" else self.theta_in_force
+        self.further_in_force = None if mode != "manual" else self.further_in_force
         self.wait_for_effect()
         self.stream.skip(self.settle_after_theta_s)
 

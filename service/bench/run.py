@@ -122,6 +122,7 @@ class BenchRun:
                 self._move(op, timing)
                 commands = self.commands
                 session.theta_in_force = commands.theta if commands.mode == "manual" else None
+                session.further_in_force = commands.further if commands.mode == "manual" else None
                 t0 = time.perf_counter()
                 session.settle_operating_point(op.speed_rpm, target_db)
                 actual_nm = self.commands.torque_actual_nm()
@@ -208,7 +209,7 @@ class BenchRun:
             commands.configure_injection(self.harmonic_order, self.decoupling)
         if commands.mode != "manual":
             commands.send_injection_mode("manual")
-        if commands.theta != (0.0, 0.0):
+        if commands.theta != (0.0, 0.0) or commands.further != ():
             commands.send_theta(0.0, 0.0)
         # always written: its toggle marks the sample from which the whole move is in force
         commands.set_torque_nm(op.torque_nm)

@@ -58,6 +58,8 @@ class RunCommands:
         self.cancel = cancel
         # what the hardware was last told during this run (None: unknown, written again by the next move)
         self.theta: tuple[float, float] | None = None
+        # the further orders last sent with theta ((order, theta_cos, theta_sin), ...; None: unknown)
+        self.further: tuple[tuple[int, float, float], ...] | None = ()
         self.mode: str | None = None
         self.torque_nm: float | None = None
         self.speed_rpm: float | None = None
@@ -78,6 +80,7 @@ class RunCommands:
         """At a run's first move and after an error: nothing the hardware applies is known (the move writes it
         all again)."""
         self.theta = self.mode = None
+        self.further = None
         self.torque_nm = self.speed_rpm = self.udc_v = None
 
     # --- the DC link -------------------------------------------------------------------------------------
@@ -165,21 +168,28 @@ class RunCommands:
         self._drive.set_torque_nm(torque_nm)
         self.torque_nm = torque_nm
 
-    def send_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        """Theta to the drive (manual mode; one setpoint); refuses, before anything is sent, a gamma above the
-        run's gamma_max."""
-        gamma_rad = math.hypot(theta_cos_rad, theta_sin_rad)
+    def send_theta(
+        self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()
+    ) -> None:
+        """Theta to the drive (manual mode; one setpoint), with the further orders `further` ((order,
+        theta_cos, theta_sin), 0x2002) applied by the same commit; refuses, before anything is sent, a sum of
+        the orders' gamma above the run's gamma_max (the drive would scale them all down)."""
+        gammas = [math.hypot(theta_cos_rad, theta_sin_rad)] + [math.hypot(c, s) for _, c, s in further]
+        gamma_rad = sum(gammas)
         if not math.isfinite(gamma_rad):
-            raise LimitError(f"theta ({theta_cos_rad}, {theta_sin_rad}) is not finite")
+            raise LimitError(f"theta ({theta_cos_rad}, {theta_sin_rad}) {list(further) or ''} is not finite")
         if gamma_rad > self.gamma_max_rad * (1 + 1e-9):
+            what = "gamma" if not further else "the orders' gamma summed"
             raise LimitError(
-                f"gamma {math.degrees(gamma_rad):.3f} deg exceeds the run's gamma_max of "
+                f"{what} {math.degrees(gamma_rad):.3f} deg exceeds the run's gamma_max of "
                 f"{math.degrees(self.gamma_max_rad):.3f} deg"
             )
         self.guard()
         self.theta = None  # unknown until written: a refused or lost write leaves it so
-        self._drive.set_injection(theta_cos_rad, theta_sin_rad)
+        self.further = None
+        self._drive.set_injection(theta_cos_rad, theta_sin_rad, further)
         self.theta = (float(theta_cos_rad), float(theta_sin_rad))
+        self.further = tuple(further)
 
     def send_injection_mode(self, mode: str) -> None:
         """The drive's injection mode (off / manual / lut; one setpoint); make_safe sets it off again."""

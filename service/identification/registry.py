@@ -12,6 +12,7 @@ from pydantic import BaseModel
 
 from service.identification.adaptive import AdaptiveOptions, identify_adaptive
 from service.identification.grid import GridOptions, identify_grid
+from service.identification.orders import OrdersOptions, identify_orders
 from service.identification.probe import ProbeOptions, identify_probe
 
 
@@ -40,6 +41,14 @@ METHODS: dict[str, Method] = {
             "two probe injections measure S as a 2x2; Newton steps with Broyden updates land on theta*",
             ProbeOptions,
             identify_probe,
+        ),
+        Method(
+            "probe-orders",
+            "probe + Newton, several orders",
+            "every order of `orders` (the 6th and 12th by default) cancelled at once: probes measure the whole "
+            "Jacobian with the cross-paths between orders; joint Newton steps with Broyden updates",
+            OrdersOptions,
+            identify_orders,
         ),
         Method(
             "grid",

@@ -48,3 +48,25 @@ class IdentificationResult:
     @property
     def suppression_db(self) -> float:
         return suppression_db(self.uncompensated, self.residual)
+
+    def second_harmonic(self) -> dict[str, Any] | None:
+        """Order 2h before (theta = 0) and after (theta applied), from the order spectra of the reference and
+        the final window (traces spectrum_before / spectrum_after, whole periods of both orders): the paper's
+        warning in numbers (sec. 2.4, eq. 5-6), cancelling order h by voltage-angle injection raises order 2h
+        by the gamma^2 term. `rise_db` > 0: raised. `noise_fs`: the rms amplitude a phasor of pure noise shows
+        in the final window (sqrt(2) sigma, the sensor's white noise the same at every order): a level within a
+        few of it is noise, not the order. None
+        without both spectra or when 2h is beyond them."""
+        before = self.traces.get("spectrum_before") or []
+        after = self.traces.get("spectrum_after") or []
+        order = 2 * self.harmonic_order
+        if len(before) < order or len(after) < order or self.noise_floor_db is None:
+            return None
+        before_fs, after_fs = float(before[order - 1]), float(after[order - 1])
+        return {
+            "order": order,
+            "uncompensated_fs": before_fs,
+            "compensated_fs": after_fs,
+            "rise_db": 20.0 * math.log10(max(after_fs, 1e-300) / max(before_fs, 1e-300)),
+            "noise_fs": self.uncompensated.amplitude * 10.0 ** (self.noise_floor_db / 20.0),
+        }

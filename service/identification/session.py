@@ -38,8 +38,11 @@ class MeasurementSession(Protocol):
     sample_rate_hz: float
     settle_after_theta_s: float  # plant time apply_theta lets pass after the setpoint took effect
 
-    def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
-        """Send theta to the drive and return once it is in effect and the plant has settled."""
+    def apply_theta(
+        self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()
+    ) -> None:
+        """Send theta to the drive (and the further orders' (order, theta_cos, theta_sin), applied by the same
+        commit) and return once it is in effect and the plant has settled."""
 
     harmonic_frequency_hz: float  # f_h at the operating point, Hz
 

@@ -70,9 +70,16 @@ def whole_period_samples(angle_rad: np.ndarray, harmonic_order: int, periods: in
 def phasor(alpha_fs: np.ndarray, angle_rad: np.ndarray, harmonic_order: int, periods: int) -> Phasor:
     """Phasor of order h over the first `periods` whole periods of the record."""
     n = whole_period_samples(angle_rad, harmonic_order, periods)
-    hphi = harmonic_order * angle_rad[:n]
-    a_c = 2.0 / n * float(np.dot(alpha_fs[:n], np.cos(hphi)))
-    a_s = 2.0 / n * float(np.dot(alpha_fs[:n], np.sin(hphi)))
+    return demodulate(alpha_fs[:n], angle_rad[:n], harmonic_order, periods)
+
+
+def demodulate(alpha_fs: np.ndarray, angle_rad: np.ndarray, harmonic_order: int, periods: int) -> Phasor:
+    """Phasor of order h over the whole record, which must span `periods` whole periods of it (a window cut
+    to whole electrical turns spans whole periods of every integer order)."""
+    n = len(alpha_fs)
+    hphi = harmonic_order * angle_rad
+    a_c = 2.0 / n * float(np.dot(alpha_fs, np.cos(hphi)))
+    a_s = 2.0 / n * float(np.dot(alpha_fs, np.sin(hphi)))
     return Phasor(a_c, a_s, n, periods)
 
 

@@ -245,3 +245,57 @@ def _bin_windows(windows: list[_Window], orders: tuple[int, ...], bin_width_rpm:
         windows=window_count,
         bin_width_rpm=float(bin_width_rpm),
     )
+
+
+DEFAULT_LIST_ABOVE_DB = 20.0  # an order is listed where it stands this far above its bins' noise floor ...
+DEFAULT_LIST_MIN_FRACTION = 0.25  # ... in at least this fraction of the bins where it was fitted
+
+
+@dataclass(frozen=True)
+class ProminentOrder:
+    """An order that stands above the noise over the range (`prominent_orders`): what an engineer picks
+    the orders to compensate from."""
+
+    order: int
+    max_amplitude_fs: float  # the largest bin amplitude over the range, fs
+    at_speed_rpm: float  # the bin of that largest amplitude
+    median_above_floor_db: float  # median over the fitted bins of 20 log10(amplitude / noise floor)
+    fraction_above: float  # of the fitted bins, the fraction at least level_db above the floor
+
+    def public(self) -> dict[str, float | int]:
+        return {
+            "order": self.order,
+            "max_amplitude": self.max_amplitude_fs,
+            "at_speed_rpm": self.at_speed_rpm,
+            "median_above_floor_db": self.median_above_floor_db,
+            "fraction_above": self.fraction_above,
+        }
+
+
+def prominent_orders(
+    track: OrderTrack, level_db: float = DEFAULT_LIST_ABOVE_DB, min_fraction: float = DEFAULT_LIST_MIN_FRACTION
+) -> list[ProminentOrder]:
+    """The orders at least `level_db` above their bin's noise floor in at least `min_fraction` of the bins
+    where they were fitted, largest first (a resonance crossing of one bin does not list an order: an order
+    to compensate is there over the range). An order fitted in no bin is never listed."""
+    listed = []
+    for k, order in enumerate(track.orders):
+        amplitude = track.amplitude_fs[k]
+        fitted = np.isfinite(amplitude) & np.isfinite(track.noise_floor_fs) & (track.noise_floor_fs > 0)
+        if not fitted.any():
+            continue
+        above_db = 20.0 * np.log10(np.maximum(amplitude[fitted], 1e-300) / track.noise_floor_fs[fitted])
+        fraction = float(np.mean(above_db >= level_db))
+        if fraction < min_fraction:
+            continue
+        best = int(np.nanargmax(np.where(fitted, amplitude, np.nan)))
+        listed.append(
+            ProminentOrder(
+                order=int(order),
+                max_amplitude_fs=float(amplitude[best]),
+                at_speed_rpm=float(track.speed_rpm[best]),
+                median_above_floor_db=float(np.median(above_db)),
+                fraction_above=fraction,
+            )
+        )
+    return sorted(listed, key=lambda p: -p.max_amplitude_fs)

@@ -150,6 +150,7 @@ def identify_in_run(
         result.details["speed_rpm_measured"] = session.speed_rpm_measured
         result.details["harmonic_frequency_hz"] = session.harmonic_frequency_hz
         result.details["decoupling"] = decoupling  # the drive must run the LUT with the same setting
+        result.details["order_2h"] = result.second_harmonic()  # what cancelling h did to 2h (sec. 2.4)
         result.details["resonance"] = run.bench.resonance.snapshot()
         hold_to_command(result, op, run, settings)
     # wall seconds of the point by what they were spent on (the run's end, make_safe, comes after)

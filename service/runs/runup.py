@@ -34,7 +34,7 @@ from service.errors import Invalid
 from service.model.demodulation import ResonanceMode
 from service.model.limits import check_limits, check_point
 from service.model.operating_point import OperatingPoint
-from service.model.order_tracking import OrderTrack, track_orders
+from service.model.order_tracking import DEFAULT_LIST_ABOVE_DB, OrderTrack, prominent_orders, track_orders
 from service.names import MAX_NAME_LENGTH, check_name
 from service.settings import Settings
 
@@ -72,6 +72,12 @@ class RunupRequest(BaseModel):
         description=f"electrical orders to track (1..{MAX_ORDER}); default the harmonic order and orders 1..48",
     )
     bin_rpm: float = Field(10.0, ge=1.0, le=10.0, description="speed bin width of the order analysis, rpm")
+    list_above_db: float = Field(
+        DEFAULT_LIST_ABOVE_DB,
+        ge=0.0,
+        le=80.0,
+        description="the result's orders_above lists the orders this far above the noise floor over the range, dB",
+    )
     override_envelope_model: bool = Field(
         False, description="run where the envelope model of the motor settings refuses (never the hard limits)"
     )
@@ -196,6 +202,9 @@ def analyse_runup(record: RampRecord, settings: Settings, req: RunupRequest) -> 
     )
     return {
         **track_public(track, req.speed_rpm),
+        # the orders to pick for compensation: above the floor over the range, largest first
+        "orders_above": [p.public() for p in prominent_orders(track, req.list_above_db)],
+        "list_above_db": req.list_above_db,
         "harmonic_order": record.harmonic_order,
         "torque_nm": req.torque_nm,
         "torque_actual_nm": record.torque_actual_nm,

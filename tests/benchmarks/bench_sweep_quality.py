@@ -39,6 +39,15 @@ def _reason_class(status: str, reason: str) -> str:
     return f"{status}: {found}"
 
 
+def sweep_service(seed: int | None, db_name: str) -> CalibrationService:
+    """The service on its emulated bench (paper-bench, or the seeded truth), at speedup 0, in a database of its own."""
+    db = Path(tempfile.mkdtemp()) / db_name
+    settings = load_settings(
+        environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed}
+    )
+    return CalibrationService(settings)
+
+
 def run_sweep(svc, method: str, decoupling: bool) -> dict:
     t0 = time.perf_counter()
     sweep_id = svc.engine.submit_sweep(
@@ -68,6 +77,8 @@ def run_sweep(svc, method: str, decoupling: bool) -> dict:
     dishonest = sum(1 for r in rows if r["status"] == "ok" and (r["suppression_db"] or -1e9) < (r["target_db"] or 40.0))
     reasons = Counter(_reason_class(r["status"], r["error"] or "") for r in rows if r["status"] != "ok")
     return {
+        "sweep_id": sweep_id,
+        "rows": rows,
         "n": len(rows),
         "reached": reached,
         "statuses": statuses,
@@ -97,11 +108,7 @@ def main() -> None:
         f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}"
     )
     for seed in seeds:
-        db = Path(tempfile.mkdtemp()) / "sweeps.db"
-        settings = load_settings(
-            environ={}, overrides={"emulator.speedup": 0.0, "server.db_path": str(db), "emulator.seed": seed}
-        )
-        with CalibrationService(settings) as svc:
+        with sweep_service(seed, "sweeps.db") as svc:
             for method, decoupling in ((m, d) for d in args.decoupling.split(",") for m in args.methods.split(",")):
                 r = run_sweep(svc, method, decoupling == "on")
                 st = r["statuses"]

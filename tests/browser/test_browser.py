@@ -1262,6 +1262,8 @@ def test_runup_panel_draws_the_campbell_diagram_and_the_order_cut_before_and_aft
         }""")
         assert campbell["type"] == "heatmap" and campbell["y"] == [6, 12] and campbell["rows"] == 2
         assert campbell["bins"] == campbell["cols"] and campbell["bins"] >= 30  # 300 rpm in bins of 10 rpm
+        meta = page.inner_text('[data-testid="runup-meta"]')  # the orders to pick from, largest first
+        assert "orders 20 dB above the floor: " in meta and "6" in meta.split("floor: ")[1], meta
         before = _api(service, "GET", "/runups?limit=1")[0]
         assert before["request"]["injection"] == "off" and before["state"] == "done", before
         after = _api(

@@ -110,6 +110,27 @@ def test_grid_agrees_with_adaptive_within_half_a_step(service, adaptive):
     assert len(g["traces"]["grid"]) == 360
 
 
+def test_an_identification_of_several_orders_answers_every_order(service, adaptive):
+    """POST /identifications with method probe-orders and options.orders: the result carries `orders`, one
+    entry per order judged on its own (DESIGN section 6), beside the first order's own fields; a request
+    the drive cannot inject is refused naming the field."""
+    _, client, _ = service
+    body = {"operating_point": OP1, "method": "probe-orders", "options": {"orders": [6, 12]}}
+    r = client.post("/api/v1/identifications", json=body)
+    assert r.status_code == 202, r.text
+    job = _wait_job(client, r.json()["id"])
+    assert job["state"] == "done", job
+    result = job["result"]
+    orders = result["orders"]
+    assert [o["order"] for o in orders] == [6, 12]
+    assert result["status"] == orders[0]["status"] and result["theta_cos"] == orders[0]["theta_cos"]
+    assert all(o["status"] != "ok" or o["suppression_db"] >= o["target_db"] for o in orders)
+    assert orders[0]["status"] == "ok" and abs(orders[0]["gamma_deg"] - adaptive["gamma_deg"]) < 0.5
+    bad = {**body, "options": {"orders": [6, 12, 18, 24, 30]}}
+    r = client.post("/api/v1/identifications", json=bad)
+    assert r.status_code == 422 and "orders" in r.text, r.text
+
+
 def test_sweep_map_and_exports(service, tmp_path):
     _, client, db = service
     # 4 Nm at 2500 rpm (at most 2.9 Nm there at 12 V) is outside the envelope of the motor settings: 2200 rpm

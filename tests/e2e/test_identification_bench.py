@@ -15,6 +15,7 @@ from service.identification.session import MeasurementError
 from service.model.operating_point import OperatingPoint
 from service.runs.identify import identify_at, parse_options
 from service.settings import load_settings
+from tests.support.bench_rig import emulator_control
 from tests.support.operating_points import OP1_POINT as OP1
 
 pytestmark = pytest.mark.e2e
@@ -32,9 +33,9 @@ class GammaRecorder:
         self.sent_gamma_rad = []
         original = bench.drive.set_injection
 
-        def recording(theta_cos_rad, theta_sin_rad):
+        def recording(theta_cos_rad, theta_sin_rad, further=()):
             self.sent_gamma_rad.append(math.hypot(theta_cos_rad, theta_sin_rad))
-            return original(theta_cos_rad, theta_sin_rad)
+            return original(theta_cos_rad, theta_sin_rad, further)
 
         bench.drive.set_injection = recording
 
@@ -268,3 +269,32 @@ def test_every_setpoint_of_a_run_is_checked_on_its_one_way_down(paper):
         assert bench.setpoints_written() == written
         assert commands.theta is None and commands.torque_nm is None  # nothing was told
     assert bench.status()["drive"]["state"] != "OPERATION_ENABLED"
+
+
+def test_several_orders_are_cancelled_jointly_on_the_bench(paper):
+    """probe-orders at OP1 on paper-bench, whose 12th is its own: both orders ok at 40 dB, each judged on its
+    own; the drive took the 12th through 0x2002 (the control socket shows it in force during the run) and was
+    left with injection off and no further order after it; the cross-paths measured, not zero."""
+    seen = []
+    original = paper.bench.drive.set_injection
+
+    def recording(theta_cos_rad, theta_sin_rad, further=()):
+        seen.append(tuple(further))
+        return original(theta_cos_rad, theta_sin_rad, further)
+
+    paper.bench.drive.set_injection = recording
+    try:
+        result = _run(paper, "probe-orders", orders=[6, 12])
+    finally:
+        paper.bench.drive.set_injection = original
+    by_order = {o["order"]: o for o in result.details["orders"]}
+    assert list(by_order) == [6, 12]
+    for o in by_order.values():
+        assert o["status"] != "ok" or o["suppression_db"] >= o["target_db"], o  # never ok below its target
+    assert by_order[6]["status"] == "ok" and by_order[6]["suppression_db"] >= 40.0, by_order[6]
+    assert by_order[12]["suppression_db"] >= 30.0, by_order[12]  # measured 37-55 dB at OP1 (0.4 s windows)
+    assert result.status == by_order[6]["status"] and result.theta_cos == by_order[6]["theta_cos"]
+    assert any(f and f[0][0] == 12 for f in seen)  # the 12th went to the drive as a further order
+    assert max(abs(v) for row in result.details["cross_paths"]["12<-6"] for v in row) > 0
+    status = emulator_control(paper.emulator.endpoints, {"status": True})["faults"]
+    assert status["drive_injection_mode"] == 0 and status["drive_further_theta_rad"] == []

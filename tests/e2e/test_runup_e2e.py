@@ -39,6 +39,10 @@ def test_a_runup_is_an_order_analysis_that_matches_standing_measurements(live):
     assert len(result["amplitude"]) == 2 and all(len(row) == len(speeds) for row in result["amplitude"])
     assert len(result["phase_deg"][0]) == len(speeds) and len(result["noise_floor"]) == len(speeds)
     assert result["plant_time_s"] >= 2 * 6.0  # two legs of 6 s of ramp
+    # the orders to pick from: paper-bench's 6th and its 12th of its own, both well above the floor
+    listed = {p["order"]: p for p in result["orders_above"]}
+    assert set(listed) == {6, 12} and result["list_above_db"] == 20.0, result["orders_above"]
+    assert all(p["fraction_above"] >= 0.25 and p["median_above_floor_db"] >= 20.0 for p in listed.values())
     assert not service.bench.busy and service.bench.status()["drive"]["state"] != "OPERATION_ENABLED"
 
     # the same orders standing at three speeds, in one run of their own

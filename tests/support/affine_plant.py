@@ -43,6 +43,7 @@ class AffinePlantSession:
         self.sample = 0
         self._plant_samples = 0
         self.sent: list[complex] = []
+        self.whole_turns = False  # windows extended for precision stay whole electrical turns
 
     def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float) -> None:
         self.theta = complex(theta_cos_rad, -theta_sin_rad)
@@ -59,13 +60,13 @@ class AffinePlantSession:
             # the phasor of N white-noise samples has std noise * sqrt(2 / N) per component
             samples_needed = 2 * (self.noise_fs / max_noise_std_fs) ** 2
             periods_needed = math.ceil(samples_needed * self.harmonic_frequency_hz / self.sample_rate_hz)
+            if self.whole_turns:
+                periods_needed = self.harmonic_order * math.ceil(periods_needed / self.harmonic_order)
             periods = max(periods, min(periods_needed, max_periods or periods))
         n = int(math.ceil(periods * 2 * math.pi / (self.harmonic_order * self.omega_e) * self.sample_rate_hz)) + 4
         k = self.sample + np.arange(n)
         angle = (self.omega_e * k / self.sample_rate_hz) % (2 * math.pi)
-        total = self.theta_d + self.theta
-        a = self.s_true * total + self.r_conj * total.conjugate()
-        alpha = np.real(a * np.exp(1j * self.harmonic_order * angle)) + self.noise_fs * self.rng.standard_normal(n)
+        alpha = self.signal(angle) + self.noise_fs * self.rng.standard_normal(n)
         p = phasor(alpha, angle, self.harmonic_order, periods)
         self.sample += p.samples
         self._plant_samples += p.samples
@@ -77,8 +78,47 @@ class AffinePlantSession:
             self.noise_fs * math.sqrt(2.0 / p.samples),
         )
 
+    def signal(self, angle: np.ndarray) -> np.ndarray:
+        """alpha without noise at the electrical angles `angle`."""
+        total = self.theta_d + self.theta
+        a = self.s_true * total + self.r_conj * total.conjugate()
+        return np.real(a * np.exp(1j * self.harmonic_order * angle))
+
     @property
     def plant_time_s(self) -> float:
         return self._plant_samples / self.sample_rate_hz
 
     windows_discarded = 0
+
+
+class TwoOrderPlantSession(AffinePlantSession):
+    """Orders h and 2h with the cross-terms of one rotation by the summed angle (sec. 2.4, eq. 5-6), in the
+    phasor convention A = a_c - j a_s, Theta = theta_cos - j theta_sin:
+        A_h  = S_h (Theta_dh + Theta_h)   + S_y conj(Theta_h) Theta_2h
+        A_2h = S_2h (Theta_d2h + Theta_2h) + S_x Theta_h^2
+    (the gamma^2 term of the rotation puts Theta_h^2 on order 2h; the product of both angles feeds order h).
+    The further order's theta arrives through apply_theta's `further` as the drive takes it."""
+
+    def __init__(
+        self, s_h: complex, theta_dh: complex, s_2h: complex, theta_d2h: complex, s_x: complex, s_y: complex, **kw
+    ):
+        super().__init__(s_h, theta_dh, **kw)
+        self.s_2h, self.theta_d2h, self.s_x, self.s_y = s_2h, theta_d2h, s_x, s_y
+        self.theta_2h = 0j
+        self.whole_turns = True  # both orders whole in every window
+
+    def apply_theta(self, theta_cos_rad: float, theta_sin_rad: float, further=()) -> None:
+        super().apply_theta(theta_cos_rad, theta_sin_rad)
+        orders = {h: complex(c, -s) for h, c, s in further}
+        assert set(orders) <= {2 * self.harmonic_order}, orders
+        self.theta_2h = orders.get(2 * self.harmonic_order, 0j)
+
+    def phasors(self) -> tuple[complex, complex]:
+        a_h = self.s_true * (self.theta_d + self.theta) + self.s_y * self.theta.conjugate() * self.theta_2h
+        a_2h = self.s_2h * (self.theta_d2h + self.theta_2h) + self.s_x * self.theta**2
+        return a_h, a_2h
+
+    def signal(self, angle: np.ndarray) -> np.ndarray:
+        a_h, a_2h = self.phasors()
+        h = self.harmonic_order
+        return np.real(a_h * np.exp(1j * h * angle) + a_2h * np.exp(2j * h * angle))

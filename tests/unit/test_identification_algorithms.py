@@ -15,6 +15,8 @@ from service.identification import (
     identify_probe,
 )
 from service.identification.grid import effective_injection, gamma_from_effective
+from service.identification.result import IdentificationResult
+from service.model.harmonic import Phasor
 from tests.support.affine_plant import AffinePlantSession
 
 S_TRUE = 1.35 * cmath.exp(1j * math.radians(126.5))
@@ -170,3 +172,32 @@ def test_verdict_is_ok_only_with_confidence_and_says_what_is_confirmed():
     # a figure under the target says so plainly
     status, reason = verdict(20 * math.log10(1 / 0.02), 40.0, window(0.02, 0.0001), 1.0, None, False)
     assert status == "below_target" and reason.startswith("34.0 dB, below the 40 dB target: ")
+
+
+def test_second_harmonic_reports_what_cancelling_h_did_to_2h():
+    """order_2h: the 12th of the spectra before and after, its rise 20 log10(after / before), the final
+    window's noise as sqrt(2) sigma from noise_floor_db (closed forms); None without a 2h in the spectra."""
+    before = [0.0] * 24
+    after = [0.0] * 24
+    before[5], after[5] = 0.2, 0.002  # the 6th cancelled by 40 dB
+    before[11], after[11] = 0.01, 0.02  # the 12th doubled
+    result = IdentificationResult(
+        method="probe",
+        harmonic_order=6,
+        status="ok",
+        theta_cos=0.01,
+        theta_sin=0.05,
+        residual=Phasor(0.002, 0.0, 1000, 60),
+        uncompensated=Phasor(0.2, 0.0, 1000, 60),
+        plant_time_s=1.0,
+        windows_used=5,
+        noise_floor_db=-60.0,
+        traces={"spectrum_before": before, "spectrum_after": after},
+    )
+    got = result.second_harmonic()
+    assert got is not None and got["order"] == 12
+    assert got["uncompensated_fs"] == 0.01 and got["compensated_fs"] == 0.02
+    assert got["rise_db"] == pytest.approx(20 * math.log10(2.0))
+    assert got["noise_fs"] == pytest.approx(0.2e-3)  # 0.2 fs at -60 dB
+    result.harmonic_order = 13  # 26 is beyond the spectra
+    assert result.second_harmonic() is None

@@ -20,7 +20,7 @@ import pytest
 
 from service.model.demodulation import ResonanceMode
 from service.model.harmonic import phasor
-from service.model.order_tracking import contiguous_runs, track_orders, window_bounds
+from service.model.order_tracking import OrderTrack, contiguous_runs, prominent_orders, track_orders, window_bounds
 from tests.support import runup_ramp
 from tests.support.runup_ramp import POLE_PAIRS, RATE_HZ, ramp_angle, tone
 
@@ -198,3 +198,29 @@ def test_an_order_crossing_the_sensor_resonance_leaks_into_an_order_fitted_witho
     alone, surveyed = errors
     assert alone > 2.0 * 2.7e-4, errors  # fitted alone: off by more than twice the true 6th at the crossing
     assert surveyed < 0.5 * alone, errors  # measured 5.9 times smaller (3.4-6.0 over seeds and 12th levels)
+
+
+def test_orders_listed_are_those_above_the_floor_over_the_range() -> None:
+    """prominent_orders: at least level_db above the bin's floor in at least a quarter of the fitted bins,
+    largest first; a one-bin resonance crossing, an order under the level and an order never fitted are not."""
+    speed = np.arange(1000.0, 1100.0, 10.0)
+    floor = np.full(10, 1e-4)
+    amplitude = np.array(
+        [
+            np.full(10, 1e-2),  # order 6: 40 dB above everywhere
+            np.linspace(1e-3, 3e-3, 10),  # order 12: 20.0 .. 29.5 dB
+            np.full(10, 5e-4),  # order 18: 14 dB, under the level
+            np.where(np.arange(10) == 4, 1e-1, 1e-4),  # order 24: one bin (a resonance crossing)
+            np.full(10, np.nan),  # order 40: never fitted
+        ]
+    )
+    track = OrderTrack(speed, (6, 12, 18, 24, 40), amplitude, np.zeros_like(amplitude), floor, np.ones(10, int), 10.0)
+    listed = prominent_orders(track, level_db=20.0)
+    assert [p.order for p in listed] == [6, 12]
+    six, twelve = listed
+    assert six.median_above_floor_db == pytest.approx(40.0) and six.fraction_above == 1.0
+    assert twelve.max_amplitude_fs == pytest.approx(3e-3) and twelve.at_speed_rpm == 1090.0
+    assert twelve.median_above_floor_db == pytest.approx(np.median(20 * np.log10(amplitude[1] / 1e-4)))
+    # the level decides: at 10 dB the 18th is there too; at 45 dB nothing is
+    assert [p.order for p in prominent_orders(track, level_db=10.0)] == [6, 12, 18]
+    assert prominent_orders(track, level_db=45.0) == []

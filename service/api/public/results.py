@@ -40,6 +40,20 @@ class RecordingPublic(BaseModel):
     )
 
 
+class OrderResultPublic(BaseModel):
+    """One order of a result with several (DESIGN section 6): judged on its own against its own target."""
+
+    order: int
+    status: str = Field(description="ok (met target_db) | below_target | no_authority | failed")
+    theta_cos: float = Field(description="rad")
+    theta_sin: float = Field(description="rad")
+    gamma_deg: float
+    delta_deg: float
+    suppression_db: float
+    target_db: float
+    reason: str
+
+
 class ResultPublic(BaseModel):
     """One identification at one operating point, self-describing (statuses: docs/conventions.md, Statuses)."""
 
@@ -71,6 +85,11 @@ class ResultPublic(BaseModel):
     windows_discarded: int | None = None
     s_model: ComplexGain | None = None
     s_measured: ComplexGain | None = None
+    orders: list[OrderResultPublic] | None = Field(
+        None,
+        description="several orders cancelled jointly (method probe-orders): every order's own result, the "
+        "first the run's harmonic order (whose fields the result's own are); null for one order",
+    )
     details: dict[str, Any] | None = None
     options: dict[str, Any]
     bench_identity: str
@@ -107,6 +126,7 @@ def result_public(row: Mapping[str, Any], with_traces: bool = True) -> ResultPub
         windows_discarded=detail.get("windows_discarded"),
         s_model=detail.get("s_model"),
         s_measured=detail.get("s_measured"),
+        orders=_orders(detail.get("details")),
         details=detail.get("details"),
         options=row["options"],
         bench_identity=row["bench_identity"],
@@ -131,3 +151,10 @@ def _recording(row: Mapping[str, Any]) -> RecordingPublic | None:
         url=f"/api/v1/results/{row['id']}/recording?format={fmt}" if why is None else None,
         **{k: record.get(k) for k in ("bytes", "samples", "stale_samples", "setpoints", "sample_rate_hz")},
     )
+
+
+def _orders(details: Mapping[str, Any] | None) -> list[OrderResultPublic] | None:
+    orders = (details or {}).get("orders")
+    if not orders:
+        return None
+    return [OrderResultPublic.model_validate({k: o[k] for k in OrderResultPublic.model_fields}) for o in orders]

@@ -7,6 +7,16 @@ from typing import Any, Mapping
 from pydantic import BaseModel, Field
 
 
+class ProminentOrderPublic(BaseModel):
+    """An order above the noise over the range (service/model/order_tracking.py prominent_orders)."""
+
+    order: int
+    max_amplitude: float = Field(description="the largest bin amplitude over the range, sensor full scale")
+    at_speed_rpm: float = Field(description="the bin of that largest amplitude")
+    median_above_floor_db: float = Field(description="median over the fitted bins of the order over the floor, dB")
+    fraction_above: float = Field(description="of the fitted bins, the fraction at least list_above_db above")
+
+
 class RunupPublic(BaseModel):
     """Each tracked order's amplitude and phase per speed bin of a speed ramp at constant torque
     (service/runs/runup.py, service/model/order_tracking.py). null where an order was not fitted in a bin."""
@@ -23,6 +33,12 @@ class RunupPublic(BaseModel):
         default_factory=list, description="[bin], fs: the rms amplitude an order without a tone shows in the bin"
     )
     windows: list[int] = Field(default_factory=list, description="[bin]: whole-period windows averaged")
+    orders_above: list[ProminentOrderPublic] = Field(
+        default_factory=list,
+        description="the orders to pick for compensation, largest first: at least list_above_db above the bin's "
+        "noise floor in at least a quarter of the bins where they were fitted",
+    )
+    list_above_db: float | None = None
     bin_rpm: float | None = None
     harmonic_order: int | None = None
     torque_nm: float | None = None

@@ -103,8 +103,11 @@ function draw() {
     figures.purge("plot-order-cut");
     return;
   }
+  // the orders to pick for compensation (result.orders_above, largest first)
+  const above = (result.orders_above || []).map((p) => p.order).join(", ") || "none";
   setText("runup-meta", `run-up ${job.id} · ${shortTime(job.finished_at)} · ${result.speed_rpm.length} bins · ` +
-    `plant ${fmt(result.plant_time_s, 1)} s · torque actual ${fmt(result.torque_actual_nm, 2)} N·m`);
+    `plant ${fmt(result.plant_time_s, 1)} s · torque actual ${fmt(result.torque_actual_nm, 2)} N·m · ` +
+    `orders ${fmt(result.list_above_db, 0)} dB above the floor: ${above}`);
   if (!figures.plotlyLoaded()) return;
   figures.draw("plot-campbell", figures.campbell(result, `Campbell diagram — run-up ${job.id}`));
   const other = counterpart(job);

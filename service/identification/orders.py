@@ -1,0 +1,292 @@
+"""Several orders at one operating point, jointly (issue 28): the probe method (probe.py) on the stacked theta of
+every order, its Jacobian measured by probes with the cross-paths between orders in it.
+
+theta = [theta_cos, theta_sin] per order, stacked (rad); a = [a_c, a_s] per order, stacked (fs), every
+order's phasor from the same window (windows span whole electrical turns: every integer order is whole in
+them). The drive injects the orders' angles summed and rotates the voltage once by the sum (eq. 2-4, 0x2002),
+so near theta the plant is a(theta + d) = a(theta) + J d with J (2K x 2K, real): the diagonal blocks are each
+order's S_ss (eq. 15), the off-diagonal blocks the cross-paths. They are not zero: the rotation's gamma^2 term
+makes order 2h depend on Theta_h^2 (sec. 2.4, eq. 5-6), and the product of order h's and order 2h's angles
+feeds back into order h. So J is measured whole: a probe of one order's component moves every order's phasor,
+and that column of J is all of it.
+
+Steps: the reference at theta = 0 (every order's uncompensated phasor); 2K probes around it (J, column by
+column); Newton steps theta <- theta - J^-1 a on all orders at once, each step refining J by Broyden's update
+(as probe.py; the cross-path grows with theta_h, so the secant through the steps is what holds near theta*);
+the sum of the orders' |theta| kept at most gamma_max (the drive's own limit, 0x2000:5). It stops when every
+order meets its target with confidence and its margin, when a step no longer improves the worst order, or
+after max_newton_steps; the best theta is confirmed with the precision the smallest target needs.
+
+Every order is judged on its own (common.verdict with its own uncompensated phasor and target): the result's
+own fields are the first order's (the run's harmonic order), `details.orders` lists every order
+{order, status, theta_cos, theta_sin, gamma_deg, delta_deg, suppression_db, target_db, reason}, and
+`details.jacobian` the measured J (`cross_paths`: its off-diagonal blocks, fs/rad).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from service.identification.common import (
+    PRECISION_FOR_TARGET,
+    Conditions,
+    Prior,
+    noise_floor_db,
+    periods_for,
+    spectrum_traces,
+    target_amplitude,
+    verdict,
+)
+from service.identification.probe import ProbeOptions
+from service.identification.result import IdentificationResult
+from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.model.harmonic import Phasor, demodulate
+from service.model.secondary_path import gamma_delta
+
+MAX_ORDERS = 4  # the drive injects the run's order and up to 3 further ones (0x2002)
+MAX_ORDER = 48
+
+
+class OrdersOptions(ProbeOptions):
+    orders: list[int] = Field(
+        [6, 12],
+        min_length=1,
+        max_length=MAX_ORDERS,
+        description=f"electrical orders cancelled jointly (1..{MAX_ORDER}, at most {MAX_ORDERS}); the run's harmonic "
+        "order among them",
+    )
+
+    # the orders converge together: a step for one moves the others (the cross-paths), so more steps than one order's
+    max_newton_steps: int = Field(10, ge=1, le=50)
+
+    @field_validator("orders")
+    @classmethod
+    def _distinct_in_range(cls, orders: list[int]) -> list[int]:
+        bad = [h for h in orders if not 1 <= h <= MAX_ORDER]
+        if bad:
+            raise ValueError(f"orders {bad} outside 1..{MAX_ORDER}")
+        if len(set(orders)) != len(orders):
+            raise ValueError(f"orders {orders} name an order twice")
+        return orders
+
+    def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
+        """Worst case: the reference, 2 probes per order, the Newton steps, the confirmation."""
+        return (2 * len(self.orders) + self.max_newton_steps + 3) * (self.max_window_s + self.settle_s)
+
+
+def order_phasors(window: Window, main_order: int, orders: list[int]) -> np.ndarray:
+    """[a_c, a_s] of every order, stacked: the main order's from the window's fit (shaft mode as a nuisance),
+    the others demodulated over the window's whole electrical turns."""
+    turns = max(1, window.phasor.periods // main_order)
+    out = []
+    for h in orders:
+        p = window.phasor if h == main_order else demodulate(window.alpha_fs, window.angle_rad, h, turns * h)
+        out += [p.a_c, p.a_s]
+    return np.array(out)
+
+
+def _per_order(a: np.ndarray) -> np.ndarray:
+    """|a| of every order from the stacked [a_c, a_s, ...]."""
+    return np.asarray(np.hypot(a[0::2], a[1::2]), dtype=float)
+
+
+def _further(orders: list[int], theta: np.ndarray) -> tuple[tuple[int, float, float], ...]:
+    return tuple((h, float(theta[2 * k]), float(theta[2 * k + 1])) for k, h in enumerate(orders) if k)
+
+
+def _clamp_sum(theta: np.ndarray, gamma_max_rad: float) -> tuple[np.ndarray, bool]:
+    """Every order's theta scaled by one factor so that the sum of their |theta| is at most gamma_max (what the
+    drive does, 0x2000:5); (theta, limited)."""
+    total = float(np.sum(_per_order(theta)))
+    if total > gamma_max_rad:
+        return theta * (gamma_max_rad / total), True
+    return theta, False
+
+
+def identify_orders(
+    session: MeasurementSession,
+    s_hat: complex,
+    options: OrdersOptions,
+    gamma_max_rad: float,
+    *,
+    prior: Prior | None = None,
+    conditions: Conditions | None = None,
+    **_unused: Any,
+) -> IdentificationResult:
+    """Probe + Newton on every order of options.orders at once (module doc)."""
+    h = session.harmonic_order
+    if h not in options.orders:
+        raise MeasurementError(f"orders {options.orders} do not include the run's harmonic order {h}")
+    orders = [h] + [o for o in options.orders if o != h]
+    n = len(orders)
+    session.settle_after_theta_s = options.settle_s
+    min_periods = periods_for(session, options.window_s)
+    max_periods = max(min_periods, periods_for(session, options.max_window_s))
+    history: list[list[float]] = []
+
+    def measure(theta: np.ndarray, noise_limit_fs: float | None) -> tuple[Window, np.ndarray]:
+        session.apply_theta(float(theta[0]), float(theta[1]), _further(orders, theta))
+        w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=max_periods)
+        a = order_phasors(w, h, orders)
+        history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
+        return w, a
+
+    theta = np.zeros(2 * n)
+    # the reference: every order's phasor to 1 % of the smallest (+-0.1 dB on each suppression figure)
+    before, a0 = measure(theta, None)
+    precision_fs = 0.01 * float(np.min(_per_order(a0)))
+    if before.noise_std_fs > precision_fs:
+        before, a0 = measure(theta, precision_fs)
+    uncompensated = _per_order(a0)
+    if np.any(uncompensated <= 0):
+        raise MeasurementError("an order reads exactly zero without compensation: nothing to cancel")
+    limits = np.array([target_amplitude(u, options.target_db) for u in uncompensated])
+    stops = np.array([target_amplitude(u, options.target_db + (options.stop_margin_db or 0.0)) for u in uncompensated])
+
+    # the probes: each order's from the model's |theta*| of the main order, scaled by that order's amplitude
+    model_theta_rad = uncompensated[0] / abs(s_hat)
+    probe_rad = np.array(
+        [
+            min(
+                max(
+                    options.probe_fraction * model_theta_rad * u / uncompensated[0], math.radians(options.probe_min_deg)
+                ),
+                math.radians(options.probe_max_deg),
+                gamma_max_rad / (2 * n),
+            )
+            for u in uncompensated
+        ]
+    )
+    columns = []
+    for k in range(2 * n):
+        step = np.zeros(2 * n)
+        step[k] = probe_rad[k // 2]
+        # the probe's response (about probe_fraction of every order's amplitude) resolved to a fiftieth
+        _probe_window, a_k = measure(step, options.probe_fraction * float(np.min(uncompensated)) / 50.0)
+        columns.append((a_k - a0) / step[k])
+    jacobian = np.column_stack(columns)
+    probed = jacobian.copy()
+    if abs(np.linalg.det(jacobian)) < 1e-300:
+        raise MeasurementError("the probes do not move every order: the injection has no effect on one of them here")
+
+    def worst(a: np.ndarray) -> float:
+        return float(np.max(_per_order(a) / limits))
+
+    a = a0
+    best_theta, best_a = theta.copy(), a0
+    limited = False
+    failures, damping, steps = 0, 1.0, 0
+    final: tuple[Window, np.ndarray] | None = None
+    for steps in range(1, options.max_newton_steps + 1):
+        target, limited = _clamp_sum(theta - damping * np.linalg.solve(jacobian, a), gamma_max_rad)
+        try:
+            # every order resolved to what it needs: a twentieth of what it has now (a step is expected to leave
+            # a tenth), never finer than its target needs; one window, so the most demanding order decides
+            need = np.maximum(limits / PRECISION_FOR_TARGET, _per_order(a) / 20.0)
+            w, new_a = measure(target, float(np.min(need)))
+        except MeasurementError as exc:
+            if not exc.over_range:
+                raise
+            failures, damping = failures + 1, 0.5 * damping
+            continue
+        d_theta, d_a = target - theta, new_a - a
+        if float(d_theta @ d_theta) > 0:
+            broyden = jacobian + np.outer(d_a - jacobian @ d_theta, d_theta) / float(d_theta @ d_theta)
+            if abs(np.linalg.det(broyden)) > 1e-300:
+                jacobian = broyden
+        amplitudes = _per_order(new_a)
+        if np.all(amplitudes + 2.0 * w.noise_std_fs <= limits) and np.all(amplitudes <= stops):
+            final, best_theta = (w, new_a), target.copy()
+            break
+        improved = worst(new_a) < 0.8 * worst(best_a)
+        if worst(new_a) < worst(best_a):
+            best_theta, best_a = target.copy(), new_a
+        failures = 0 if improved else failures + 1
+        damping = 1.0 if improved else 0.5 * damping
+        if failures >= 2:
+            break  # the worst order stopped improving: noise floor or non-linearity
+        theta, a = (target, new_a) if improved else (best_theta.copy(), best_a)
+    if final is None:
+        final = measure(best_theta, float(np.min(limits)) / PRECISION_FOR_TARGET)
+    final_w, final_a = final
+
+    per_order = []
+    for k, order in enumerate(orders):
+        residual = Phasor(
+            float(final_a[2 * k]), float(final_a[2 * k + 1]), final_w.phasor.samples, final_w.phasor.periods
+        )
+        suppression = 20.0 * math.log10(uncompensated[k] / max(residual.amplitude, 1e-300))
+        status, reason = verdict(
+            suppression,
+            options.target_db,
+            replace(final_w, phasor=residual),
+            float(uncompensated[k]),
+            conditions if k == 0 else None,
+            limited,
+        )
+        gamma_rad, delta_rad = gamma_delta(float(best_theta[2 * k]), float(best_theta[2 * k + 1]))
+        per_order.append(
+            {
+                "order": order,
+                "status": status,
+                "theta_cos": float(best_theta[2 * k]),
+                "theta_sin": float(best_theta[2 * k + 1]),
+                "gamma_deg": math.degrees(gamma_rad),
+                "delta_deg": math.degrees(delta_rad),
+                "suppression_db": suppression,
+                "target_db": options.target_db,
+                "reason": reason,
+                "uncompensated": {
+                    "a_c": float(a0[2 * k]),
+                    "a_s": float(a0[2 * k + 1]),
+                    "amplitude": float(uncompensated[k]),
+                },
+                "residual": residual.as_dict(),
+            }
+        )
+    first_order = per_order[0]
+    others = "; ".join(f"order {o['order']}: {o['status']}, {o['suppression_db']:.1f} dB" for o in per_order[1:])
+    message = f"{first_order['reason']} ({steps} joint Newton step(s) over orders {orders}; {others})"
+    blocks = {
+        f"{orders[i]}<-{orders[j]}": probed[2 * i : 2 * i + 2, 2 * j : 2 * j + 2].tolist()
+        for i in range(n)
+        for j in range(n)
+        if i != j
+    }
+    return IdentificationResult(
+        method="probe-orders",
+        harmonic_order=h,
+        status=str(first_order["status"]),
+        message=message,
+        theta_cos=float(best_theta[0]),
+        theta_sin=float(best_theta[1]),
+        residual=Phasor(float(final_a[0]), float(final_a[1]), final_w.phasor.samples, final_w.phasor.periods),
+        uncompensated=before.phasor,
+        plant_time_s=session.plant_time_s,
+        windows_used=len(history),
+        windows_discarded=session.windows_discarded,
+        s_model=s_hat,
+        target_db=options.target_db,
+        noise_floor_db=noise_floor_db(final_w, float(uncompensated[0])),
+        details={
+            "orders": per_order,
+            "newton_steps": steps,
+            "probe_deg": [math.degrees(p) for p in probe_rad],
+            "jacobian": probed.tolist(),
+            "jacobian_refined": jacobian.tolist(),
+            "cross_paths": blocks,
+            "gamma_limited": limited,
+        },
+        traces={
+            "orders_history": history,
+            "orders_history_columns": ["plant_time_s"]
+            + [f"theta_{c}_{o}" for o in orders for c in ("cos", "sin")]
+            + [f"amplitude_fs_{o}" for o in orders],
+            **spectrum_traces(before, final_w),
+        },
+    )

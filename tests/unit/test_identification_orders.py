@@ -1,0 +1,95 @@
+"""Several orders jointly (service/identification/orders.py) against a two-order plant in closed form
+(tests/support/affine_plant.py TwoOrderPlantSession: orders 6 and 12 with the rotation's cross-terms): the
+joint theta* is solved here independently (scipy's fsolve on the plant's own equations), the method must land
+on it with every order at its target; a method that took the orders apart (the 12th's theta from its own
+path alone) would not."""
+
+from __future__ import annotations
+
+import cmath
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import fsolve
+
+from service.identification import METHODS
+from service.identification.orders import OrdersOptions, identify_orders
+from service.identification.session import MeasurementError
+from tests.support.affine_plant import TwoOrderPlantSession
+
+TRUTH = {
+    "s_h": 4.0 * cmath.exp(0.7j),  # fs/rad
+    "theta_dh": 0.05 * cmath.exp(1.2j),  # rad: the 6th wants gamma ~ 2.9 deg
+    "s_2h": 2.5 * cmath.exp(-0.4j),
+    "theta_d2h": 0.01 * cmath.exp(-2.0j),
+    "s_x": 1.25 * cmath.exp(-0.4j),  # the rotation's gamma^2 term: half the 2h path
+    "s_y": 2.0 * cmath.exp(0.7j),
+}
+
+
+def joint_optimum(t: dict) -> tuple[complex, complex]:
+    """Theta_h, Theta_2h with both orders' phasors zero (the plant's equations, solved numerically)."""
+
+    def equations(x):
+        th, t2 = complex(x[0], x[1]), complex(x[2], x[3])
+        a_h = t["s_h"] * (t["theta_dh"] + th) + t["s_y"] * th.conjugate() * t2
+        a_2h = t["s_2h"] * (t["theta_d2h"] + t2) + t["s_x"] * th**2
+        return [a_h.real, a_h.imag, a_2h.real, a_2h.imag]
+
+    x = fsolve(
+        equations, [-t["theta_dh"].real, -t["theta_dh"].imag, -t["theta_d2h"].real, -t["theta_d2h"].imag], xtol=1e-14
+    )
+    return complex(x[0], x[1]), complex(x[2], x[3])
+
+
+@pytest.mark.parametrize("noise_fs", [0.0, 1e-3])
+def test_both_orders_land_on_the_joint_optimum(noise_fs):
+    session = TwoOrderPlantSession(**TRUTH, noise_fs=noise_fs, seed=3)
+    result = identify_orders(session, TRUTH["s_h"], OrdersOptions(orders=[6, 12]), math.radians(15.0))
+    by_order = {o["order"]: o for o in result.details["orders"]}
+    assert list(by_order) == [6, 12]
+    want_h, want_2h = joint_optimum(TRUTH)
+    got_h = complex(by_order[6]["theta_cos"], -by_order[6]["theta_sin"])
+    got_2h = complex(by_order[12]["theta_cos"], -by_order[12]["theta_sin"])
+    # each order's theta within what its 40 dB (+ the 6 dB margin is not asked of one identification) allows
+    assert abs(got_h - want_h) < 0.01 * abs(want_h), (got_h, want_h)
+    assert abs(got_2h - want_2h) < 0.01 * abs(want_2h), (got_2h, want_2h)
+    for o in by_order.values():
+        assert o["status"] == "ok" and o["suppression_db"] >= 40.0, o
+    # the first order's own fields are the 6th's; the cross-paths are measured, not zero
+    assert result.status == "ok" and result.theta_cos == by_order[6]["theta_cos"]
+    assert np.abs(np.array(result.details["cross_paths"]["12<-6"])).max() > 0
+    # the 12th's theta taken on its own (cross-terms ignored) would leave it far above 40 dB down
+    naive_2h = -TRUTH["theta_d2h"]
+    session.apply_theta(got_h.real, -got_h.imag, ((12, naive_2h.real, -naive_2h.imag),))
+    _, a_2h = session.phasors()
+    assert 20 * math.log10(abs(a_2h) / abs(TRUTH["s_2h"] * TRUTH["theta_d2h"])) > -30.0
+
+
+def test_each_order_is_judged_on_its_own():
+    """A 12th the injection cannot reach within gamma_max: the 6th ok, the 12th no_authority, the sum of
+    |theta| held at gamma_max (the drive's own limit)."""
+    truth = {**TRUTH, "theta_d2h": 0.2 * cmath.exp(-2.0j)}  # the 12th would need 11.5 deg of its own
+    session = TwoOrderPlantSession(**truth, seed=1)
+    gamma_max = math.radians(8.0)
+    result = identify_orders(session, truth["s_h"], OrdersOptions(orders=[12, 6]), gamma_max)
+    by_order = {o["order"]: o for o in result.details["orders"]}
+    assert [o["order"] for o in result.details["orders"]] == [6, 12]  # the run's order first
+    assert by_order[12]["status"] != "ok" and by_order[12]["suppression_db"] < 40.0
+    total = sum(math.hypot(o["theta_cos"], o["theta_sin"]) for o in by_order.values())
+    assert total <= gamma_max * (1 + 1e-9)
+    assert all(o["status"] != "ok" or o["suppression_db"] >= o["target_db"] for o in by_order.values())
+
+
+def test_options_refuse_what_the_drive_cannot_inject():
+    with pytest.raises(ValueError, match="twice"):
+        OrdersOptions(orders=[6, 6])
+    with pytest.raises(ValueError):
+        OrdersOptions(orders=[6, 12, 18, 24, 30])  # the drive injects at most 4 orders
+    with pytest.raises(ValueError, match="outside"):
+        OrdersOptions(orders=[6, 60])
+    session = TwoOrderPlantSession(**TRUTH)
+    with pytest.raises(MeasurementError, match="do not include the run's harmonic order 6"):
+        identify_orders(session, TRUTH["s_h"], OrdersOptions(orders=[12]), math.radians(15.0))
+    assert "probe-orders" in METHODS
