@@ -178,7 +178,8 @@ def identify_orders(
         return float(np.max(_per_order(a) / limits))
 
     a = a0
-    best_theta, best_a = theta.copy(), a0
+    best_theta, best_a = theta.copy(), a0  # the point whose worst order (against its target) is least
+    lowest = _per_order(a0)  # each order's lowest amplitude so far: a step that lowers any order is progress
     limited = False
     failures, damping, steps = 0, 1.0, 0
     final: tuple[Window, np.ndarray] | None = None
@@ -195,7 +196,8 @@ def identify_orders(
             failures, damping = failures + 1, 0.5 * damping
             continue
         d_theta, d_a = target - theta, new_a - a
-        if float(d_theta @ d_theta) > 0:
+        # a step too small to move the phasors above their noise would teach J the noise (as probe.py)
+        if float(np.linalg.norm(jacobian @ d_theta)) > 20.0 * max(w.noise_std_fs, 1e-12) * math.sqrt(2 * n):
             broyden = jacobian + np.outer(d_a - jacobian @ d_theta, d_theta) / float(d_theta @ d_theta)
             if abs(np.linalg.det(broyden)) > 1e-300:
                 jacobian = broyden
@@ -203,13 +205,16 @@ def identify_orders(
         if np.all(amplitudes + 2.0 * w.noise_std_fs <= limits) and np.all(amplitudes <= stops):
             final, best_theta = (w, new_a), target.copy()
             break
-        improved = worst(new_a) < 0.8 * worst(best_a)
+        # progress: any order down by a fifth (the orders converge at their own pace: the smallest one near its
+        # noise must not stop the others)
+        improved = bool(np.any(amplitudes < 0.8 * lowest))
+        lowest = np.minimum(lowest, amplitudes)
         if worst(new_a) < worst(best_a):
             best_theta, best_a = target.copy(), new_a
         failures = 0 if improved else failures + 1
         damping = 1.0 if improved else 0.5 * damping
         if failures >= 2:
-            break  # the worst order stopped improving: noise floor or non-linearity
+            break  # no order improves any more: noise floor or non-linearity
         theta, a = (target, new_a) if improved else (best_theta.copy(), best_a)
     if final is None:
         final = measure(best_theta, float(np.min(limits)) / PRECISION_FOR_TARGET)
