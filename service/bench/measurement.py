@@ -31,8 +31,8 @@ from service.bench.plant_clock import PlantClock
 from service.bench.point_stream import PointStream
 from service.bench.setpoint_accounting import DaqCursor
 from service.identification.session import MeasurementError, Window
-from service.model.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker
-from service.model.harmonic import mechanical_speed_rpm, whole_period_samples
+from service.model.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker, fit_harmonic
+from service.model.harmonic import Phasor, mechanical_speed_rpm, whole_period_samples
 
 log = logging.getLogger(__name__)
 
@@ -232,6 +232,15 @@ class OperatingPointSession:
         if self.on_window is not None:
             self.on_window(window)
         return window
+
+    def phasor_at(self, window: Window, order: int) -> Phasor:
+        """Order `order`'s phasor over a window this session measured (whole electrical turns), demodulated as the
+        window's own order is: with the shaft mode as a nuisance (a further order near the resonance reads the ring
+        of every step otherwise)."""
+        turns = max(1, window.phasor.periods // self.harmonic_order)
+        return fit_harmonic(
+            window.alpha_fs, window.angle_rad, self.sample_rate_hz, order, turns * order, self.resonance.mode
+        ).phasor
 
     def _publish(self, **values: object) -> None:
         """Tell the observer what the run sees; the live view must never stop a measurement."""

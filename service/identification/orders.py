@@ -45,7 +45,7 @@ from service.identification.common import (
 from service.identification.probe import ProbeOptions
 from service.identification.result import IdentificationResult
 from service.identification.session import MeasurementError, MeasurementSession, Window
-from service.model.harmonic import Phasor, demodulate
+from service.model.harmonic import Phasor
 from service.model.secondary_path import gamma_delta
 
 MAX_ORDERS = 4  # the drive injects the run's order and up to 3 further ones (0x2002)
@@ -79,13 +79,12 @@ class OrdersOptions(ProbeOptions):
         return (2 * len(self.orders) + self.max_newton_steps + 3) * (self.max_window_s + self.settle_s)
 
 
-def order_phasors(window: Window, main_order: int, orders: list[int]) -> np.ndarray:
-    """[a_c, a_s] of every order, stacked: the main order's from the window's fit (shaft mode as a nuisance),
-    the others demodulated over the window's whole electrical turns."""
-    turns = max(1, window.phasor.periods // main_order)
+def order_phasors(session: MeasurementSession, window: Window, orders: list[int]) -> np.ndarray:
+    """[a_c, a_s] of every order, stacked: the session's own order from the window's fit, the others by the
+    session over the same window (with the shaft mode as a nuisance, as its own)."""
     out = []
     for h in orders:
-        p = window.phasor if h == main_order else demodulate(window.alpha_fs, window.angle_rad, h, turns * h)
+        p = window.phasor if h == session.harmonic_order else session.phasor_at(window, h)
         out += [p.a_c, p.a_s]
     return np.array(out)
 
@@ -132,7 +131,7 @@ def identify_orders(
     def measure(theta: np.ndarray, noise_limit_fs: float | None) -> tuple[Window, np.ndarray]:
         session.apply_theta(float(theta[0]), float(theta[1]), _further(orders, theta))
         w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=max_periods)
-        a = order_phasors(w, h, orders)
+        a = order_phasors(session, w, orders)
         history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
         return w, a
 

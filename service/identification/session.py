@@ -50,6 +50,9 @@ class MeasurementSession(Protocol):
         """Next valid window of `periods` whole harmonic periods (bad windows are re-measured); with
         `max_noise_std_fs`, extended up to `max_periods` until the phasor's noise std is at most that."""
 
+    def phasor_at(self, window: Window, order: int) -> Phasor:
+        """Another order's phasor over a window this session measured (windows span whole electrical turns)."""
+
     @property
     def plant_time_s(self) -> float:
         """Plant time spent so far (DAQ samples / rate, from each setpoint's effect)."""

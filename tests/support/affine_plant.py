@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from service.identification.session import Window
-from service.model.harmonic import phasor
+from service.model.harmonic import Phasor, demodulate, phasor
 
 
 class AffinePlantSession:
@@ -77,6 +77,10 @@ class AffinePlantSession:
             self._plant_samples / self.sample_rate_hz,
             self.noise_fs * math.sqrt(2.0 / p.samples),
         )
+
+    def phasor_at(self, window: Window, order: int) -> Phasor:
+        turns = window.phasor.periods // self.harmonic_order
+        return demodulate(window.alpha_fs, window.angle_rad, order, turns * order)
 
     def signal(self, angle: np.ndarray) -> np.ndarray:
         """alpha without noise at the electrical angles `angle`."""
