@@ -33,12 +33,14 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from service.identification.common import (
+    CONFIDENCE_SIGMAS,
     PRECISION_FOR_TARGET,
     Conditions,
     Prior,
     noise_floor_db,
     periods_for,
     spectrum_traces,
+    stop_amplitude,
     target_amplitude,
     verdict,
 )
@@ -145,7 +147,7 @@ def identify_orders(
     if np.any(uncompensated <= 0):
         raise MeasurementError("an order reads exactly zero without compensation: nothing to cancel")
     limits = np.array([target_amplitude(u, options.target_db) for u in uncompensated])
-    stops = np.array([target_amplitude(u, options.target_db + (options.stop_margin_db or 0.0)) for u in uncompensated])
+    stops = np.array([stop_amplitude(u, options) for u in uncompensated])
 
     # the probes: each order's from the model's |theta*| of the main order, scaled by that order's amplitude
     model_theta_rad = uncompensated[0] / abs(s_hat)
@@ -201,7 +203,8 @@ def identify_orders(
             if abs(np.linalg.det(broyden)) > 1e-300:
                 jacobian = broyden
         amplitudes = _per_order(new_a)
-        if np.all(amplitudes + 2.0 * w.noise_std_fs <= limits) and np.all(amplitudes <= stops):
+        # every order done as common.done judges one: its target met with confidence and its margin reached
+        if np.all(amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs <= limits) and np.all(amplitudes <= stops):
             final, best_theta = (w, new_a), target.copy()
             break
         # progress: any order down by a fifth (the orders converge at their own pace: the smallest one near its
