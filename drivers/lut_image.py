@@ -39,6 +39,16 @@ where both are flag 1, else 2. The drive's theta along that row is then exactly 
 b (cartesian: linear of linear; polar: gamma linear and delta on one unwrapped arc): each row has its own speed
 breakpoints, and a breakpoint costs a cell only in the rows that need it (the field-weakening turn moves with
 torque, measured: a shared axis spent most of 2048 bytes on cells that rows far from their turn interpolate).
+Version 8 (several orders, issue 28) carries one image per harmonic order the drive injects at once:
+    magic "RCL1" | u16 format_version = 8 | u8 n_orders (2 .. MAX_ORDERS) | u8 reserved = 0 | u32 map_id |
+    n_orders x (u32 length | a whole single-order image of version 3 to 7, its own header (its harmonic order, the
+        same map id), cells and CRC) |
+    u32 crc32 (zlib) of every byte before it.
+The first image is the map's own order (the drive's 0x2000:1); the orders are distinct. Each order interpolates
+its own image by its own mode (`Lut.theta`); the drive then scales every order's theta by one factor so that the
+sum of their |theta| is at most gamma_max (the injected angle is their sum, eq. 2-4). `decode` returns the first
+order's Lut with the others in `further` and the container's CRC; a single-order image decodes as before (no
+further orders).
 Version 4 is version 3 plus flag 3 (FLAG_OFF); version 2 is the same layout with byte 7 reserved (0) and
 u8 valid[...] (0/1) for the flags. The drive decodes all three: a version 2 image is flags = valid and
 cartesian interpolation. `encode` writes version 4 only when a cell carries FLAG_OFF, else version 3
@@ -77,7 +87,7 @@ from __future__ import annotations
 import math
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -88,7 +98,11 @@ FORMAT_VERSION_OFF = 4  # what encode writes when a cell carries FLAG_OFF
 FORMAT_VERSION_INT16 = 5  # what encode writes for cell_format "int16" (any flag)
 FORMAT_VERSION_INT11 = 6  # what encode writes for cell_format "int11" (any flag)
 FORMAT_VERSION_SPARSE = 7  # what encode writes for cell_format "int11-sparse" (stored cells and a bitmap)
-SUPPORTED_VERSIONS = (2, 3, 4, 5, 6, 7)  # what the drive decodes
+FORMAT_VERSION_ORDERS = 8  # several orders: one single-order image per order in a container
+SUPPORTED_VERSIONS = (2, 3, 4, 5, 6, 7, 8)  # what the drive decodes
+MAX_ORDERS = 4  # the drive injects its own order and up to 3 further ones (0x2002)
+ORDERS_HEADER = struct.Struct("<4sHBBI")  # magic, version 8, n_orders, reserved, map_id
+LENGTH = struct.Struct("<I")
 # theta per cell: f32 (versions 2-4), i16 (version 5) or packed 11-bit integers (version 6) times one quantum
 CELL_FORMATS = ("float32", "int16", "int11", "int11-sparse")
 # theta_cos, theta_sin and the flag (int11-sparse: a stored cell, plus one bit a cell for the bitmap)
@@ -146,6 +160,12 @@ class Lut:
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = FORMAT_VERSION
     stored: np.ndarray | None = None  # bool per cell (version 7): False where the drive derived it; None: all stored
+    further: tuple["Lut", ...] = ()  # version 8: the further orders' LUTs, each interpolated on its own
+
+    @property
+    def orders(self) -> tuple[int, ...]:
+        """The harmonic orders the image carries, its own first."""
+        return (self.harmonic_order, *(lut.harmonic_order for lut in self.further))
 
     @property
     def valid(self) -> np.ndarray:
@@ -425,14 +445,75 @@ def format_version_of(flags, cell_format: str = "float32") -> int:
     return FORMAT_VERSION_OFF if np.any(np.asarray(flags) == FLAG_OFF) else FORMAT_VERSION
 
 
+def encode_orders(images: list[bytes]) -> bytes:
+    """A version 8 image of several orders from their single-order images (`encode`'s, the map's own order first;
+    each of the same map id, the orders distinct). LutImageError says what does not fit."""
+    if not 2 <= len(images) <= MAX_ORDERS:
+        raise LutImageError(f"a several-order image carries 2 to {MAX_ORDERS} orders, not {len(images)}")
+    luts = [decode(image) for image in images]
+    _check_orders(luts)
+    body = ORDERS_HEADER.pack(MAGIC, FORMAT_VERSION_ORDERS, len(images), 0, luts[0].map_id)
+    for image in images:
+        body += LENGTH.pack(len(image)) + bytes(image)
+    return body + TRAILER.pack(_crc32(body))
+
+
+def _check_orders(luts: list[Lut]) -> None:
+    orders = [lut.harmonic_order for lut in luts]
+    if len(set(orders)) != len(orders):
+        raise LutImageError(f"orders {orders} name an order twice")
+    if any(lut.further for lut in luts):
+        raise LutImageError("an order's image is itself of several orders")
+    ids = {lut.map_id for lut in luts}
+    if len(ids) != 1:
+        raise LutImageError(f"the orders' images carry map ids {sorted(ids)}, not one")
+
+
+def _decode_orders(blob: bytes) -> Lut:
+    """A version 8 image: the first order's Lut with the others in `further` and the container's CRC."""
+    if len(blob) < ORDERS_HEADER.size + TRAILER.size:
+        raise LutImageError(f"image too short ({len(blob)} bytes)")
+    _magic, _version, n_orders, reserved, map_id = ORDERS_HEADER.unpack_from(blob, 0)
+    if not 2 <= n_orders <= MAX_ORDERS:
+        raise LutImageError(f"n_orders {n_orders} is not in 2 .. {MAX_ORDERS}")
+    if reserved != 0:
+        raise LutImageError(f"reserved header field is {reserved}, not 0")
+    (crc_stored,) = TRAILER.unpack_from(blob, len(blob) - TRAILER.size)
+    crc = image_crc(blob)
+    if crc != crc_stored:
+        raise LutImageError(f"CRC-32 mismatch: the trailer says {crc_hex(crc_stored)}, the image is {crc_hex(crc)}")
+    luts, off, end = [], ORDERS_HEADER.size, len(blob) - TRAILER.size
+    for k in range(n_orders):
+        if off + LENGTH.size > end:
+            raise LutImageError(f"image ends before order {k + 1} of {n_orders}")
+        (length,) = LENGTH.unpack_from(blob, off)
+        off += LENGTH.size
+        if off + length > end:
+            raise LutImageError(f"order {k + 1}'s image ({length} bytes) runs past the end")
+        part = blob[off : off + length]
+        try:
+            luts.append(decode(part))
+        except LutImageError as exc:
+            raise LutImageError(f"order {k + 1}'s image: {exc}") from None
+        off += length
+    if off != end:
+        raise LutImageError(f"{end - off} bytes after the last order's image")
+    _check_orders(luts)
+    if luts[0].map_id != map_id:
+        raise LutImageError(f"the header's map id {map_id} is not its orders' ({luts[0].map_id})")
+    return replace(luts[0], crc=crc, format_version=FORMAT_VERSION_ORDERS, further=tuple(luts[1:]))
+
+
 def decode(blob: bytes) -> Lut:
-    """Check and decode an image of format_version 2 to 7; LutImageError says what is wrong."""
+    """Check and decode an image of format_version 2 to 8; LutImageError says what is wrong."""
     blob = bytes(blob)
     if len(blob) < 6:
         raise LutImageError(f"image too short ({len(blob)} bytes)")
     magic, version = struct.unpack_from("<4sH", blob, 0)
     if magic != MAGIC:
         raise LutImageError(f"bad magic {magic!r}")
+    if version == FORMAT_VERSION_ORDERS:
+        return _decode_orders(blob)
     if version not in SUPPORTED_VERSIONS:  # before the length: another version has another header
         raise LutImageError(
             f"unsupported format_version {version}: this drive takes versions "

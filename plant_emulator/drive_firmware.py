@@ -161,10 +161,11 @@ class DriveFirmware(Cia402Device):
             self.lut_blob = blob
             self.lut_status = 1
             log.info(
-                "drive: LUT of map %d in force (format_version %d, %s interpolation, %d ok and %d filled "
+                "drive: LUT of map %d in force (format_version %d, orders %s, %s interpolation, %d ok and %d filled "
                 "entries, %d off of %d cells)",
                 lut.map_id,
                 lut.format_version,
+                list(lut.orders),
                 lut.interpolation,
                 int(lut.valid.sum()),
                 int(lut.filled.sum()),
@@ -254,28 +255,41 @@ class DriveFirmware(Cia402Device):
             c, s = self.lut.theta(self.torque_nm, self.speed_rpm, self.udc_v)
         else:
             return 0.0, 0.0
-        return self._clamped(c, s)
+        return self._clamped(c, s, self._further_unscaled(self.speed_rpm))
+
+    def _further_unscaled(self, speed_rpm: float) -> tuple[tuple[int, float, float], ...]:
+        """The further orders in force before the common scale: mode manual: 0x2002 as committed; mode LUT: each
+        further order's own LUT of a several-order image (version 8) at the operating point, `speed_rpm`
+        (drivers.lut_image.Lut.further); else none."""
+        if self.inj_mode == INJ_MANUAL:
+            return self.further
+        if self.inj_mode == INJ_LUT and self.lut is not None:
+            return tuple(
+                (lut.harmonic_order, *lut.theta(self.torque_nm, speed_rpm, self.udc_v)) for lut in self.lut.further
+            )
+        return ()
 
     def effective_further(self) -> tuple[tuple[int, float, float], ...]:
-        """The further orders the control loop injects (mode manual only: a LUT holds one order), each
+        """The further orders the control loop injects (manual: 0x2002; LUT: the image's further orders), each
         theta scaled by the same factor as the main order's (`_scale`)."""
-        if self.inj_mode != INJ_MANUAL:
-            return ()
-        k = self._scale(*self.theta)
-        return tuple((h, c * k, s * k) for h, c, s in self.further)
+        further = self._further_unscaled(self.speed_rpm)
+        if self.inj_mode == INJ_LUT and self.lut is not None:
+            main = self.lut.theta(self.torque_nm, self.speed_rpm, self.udc_v)
+        else:
+            main = self.theta
+        k = self._scale(*main, further)
+        return tuple((h, c * k, s * k) for h, c, s in further)
 
-    def _scale(self, c: float, s: float) -> float:
+    def _scale(self, c: float, s: float, further: tuple[tuple[int, float, float], ...] = ()) -> float:
         """The factor on every order's theta that keeps |v_inj| <= gamma_max (0x2000:5) at every angle:
-        the sum of the orders' |theta| (the main order's (c, s) and the further orders in force in manual
-        mode) clamped to gamma_max; with one order that is |theta| <= gamma_max."""
-        total = math.hypot(c, s)
-        if self.inj_mode == INJ_MANUAL:
-            total += sum(math.hypot(fc, fs) for _, fc, fs in self.further)
+        the sum of the orders' |theta| (the main order's (c, s) and the further orders in force) clamped to
+        gamma_max; with one order that is |theta| <= gamma_max."""
+        total = math.hypot(c, s) + sum(math.hypot(fc, fs) for _, fc, fs in further)
         return self.gamma_max_rad / total if total > self.gamma_max_rad and total > 0.0 else 1.0
 
-    def _clamped(self, c: float, s: float) -> tuple[float, float]:
+    def _clamped(self, c: float, s: float, further: tuple[tuple[int, float, float], ...] = ()) -> tuple[float, float]:
         """theta of the main order scaled by `_scale`, as the control loop takes it."""
-        k = self._scale(c, s)
+        k = self._scale(c, s, further)
         return c * k, s * k
 
     def theta_schedule(self) -> np.ndarray:
@@ -299,7 +313,11 @@ class DriveFirmware(Cia402Device):
             rows = np.empty((n, 3))
             for i in range(n):
                 speed_rpm = lo_rpm + i * step_rpm
-                rows[i] = (speed_rpm * RPM_TO_RAD_S, *self._clamped(*lut.theta(self.torque_nm, speed_rpm, udc_v)))
+                further = self._further_unscaled(speed_rpm)
+                rows[i] = (
+                    speed_rpm * RPM_TO_RAD_S,
+                    *self._clamped(*lut.theta(self.torque_nm, speed_rpm, udc_v), further),
+                )
             self._schedule_key, self._schedule = key, rows
             return rows
 

@@ -25,6 +25,7 @@ from service.model.harmonic import amplitude_spectrum
 SPECTRUM_MAX_ORDER = 24
 SNIPPET_SAMPLES = 800
 CONFIDENCE_SIGMAS = 2.0  # |a| + 2 sigma <= A_target counts as met
+AT_FLOOR_SIGMAS = 3.0  # |A| <= 3 sqrt(2) sigma: the residual is not resolved from the window's noise
 PRECISION_FOR_TARGET = 5.0  # a window meant to confirm the target has sigma <= A_target / 5
 MIN_PERIODS = 12  # two electrical turns at h = 6: every integer order but h averages out
 
@@ -78,10 +79,28 @@ class Prior:
     theta_sin: float
     s_matrix: tuple[tuple[float, float], tuple[float, float]] | None = None
     source: str = ""
+    # several orders (method probe-orders): the neighbour's theta of its further orders ((order, cos, sin), rad),
+    # and the whole J it measured (2K x 2K, fs/rad) over `jacobian_orders`, the stacked orders' [cos, sin]
+    further: tuple[tuple[int, float, float], ...] = ()
+    jacobian: tuple[tuple[float, ...], ...] | None = None
+    jacobian_orders: tuple[int, ...] = ()
 
     @property
     def theta(self) -> np.ndarray:
         return np.array([self.theta_cos, self.theta_sin])
+
+    def orders_theta(self, orders: list[int]) -> np.ndarray:
+        """theta stacked over `orders` (the first is this prior's own), 0 for an order it has none of."""
+        own = {h: (c, s) for h, c, s in self.further}
+        rest = [v for h in orders[1:] for v in own.get(h, (0.0, 0.0))]
+        return np.array([self.theta_cos, self.theta_sin, *rest])
+
+    def orders_jacobian(self, orders: list[int]) -> np.ndarray | None:
+        """The neighbour's J where it was measured over exactly `orders` (in that order), else None."""
+        if self.jacobian is None or list(self.jacobian_orders) != list(orders):
+            return None
+        j = np.array(self.jacobian, dtype=float)
+        return j if j.shape == (2 * len(orders), 2 * len(orders)) and abs(np.linalg.det(j)) > 1e-300 else None
 
     def s(self) -> np.ndarray | None:
         return None if self.s_matrix is None else np.array(self.s_matrix, dtype=float)
@@ -200,7 +219,7 @@ def verdict(
         )
     reasons = []
     floor = noise_floor_db(final, uncompensated_fs)
-    if floor is not None and final.phasor.amplitude <= 3.0 * math.sqrt(2.0) * final.noise_std_fs:
+    if floor is not None and final.phasor.amplitude <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * final.noise_std_fs:
         reasons.append(f"residual at the sensor noise floor, {floor:.0f} dB")
     if conditions is not None:
         if conditions.resonance_hz is not None:

@@ -33,6 +33,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from service.identification.common import (
+    AT_FLOOR_SIGMAS,
     CONFIDENCE_SIGMAS,
     PRECISION_FOR_TARGET,
     Conditions,
@@ -65,6 +66,13 @@ class OrdersOptions(ProbeOptions):
 
     # the orders converge together: a step for one moves the others (the cross-paths), so more steps than one order's
     max_newton_steps: int = Field(10, ge=1, le=50)
+    confirm_window_s: float = Field(
+        1.2,
+        gt=0,
+        le=5.0,
+        description="longest window of the confirmation where the steps ended with an order unresolved from its noise "
+        "(a smaller order, the 12th, near the sensor's noise needs a longer window than a step's), plant s",
+    )
 
     @field_validator("orders")
     @classmethod
@@ -77,8 +85,10 @@ class OrdersOptions(ProbeOptions):
         return orders
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
-        """Worst case: the reference, 2 probes per order, the Newton steps, the confirmation."""
-        return (2 * len(self.orders) + self.max_newton_steps + 3) * (self.max_window_s + self.settle_s)
+        """Worst case: the reference, 2 probes per order (twice: a neighbour's J that does not hold), the Newton
+        steps, the confirmation."""
+        windows = 4 * len(self.orders) + self.max_newton_steps + 3
+        return windows * (self.max_window_s + self.settle_s) + self.confirm_window_s + self.settle_s
 
 
 def order_phasors(session: MeasurementSession, window: Window, orders: list[int]) -> np.ndarray:
@@ -130,9 +140,11 @@ def identify_orders(
     max_periods = max(min_periods, periods_for(session, options.max_window_s))
     history: list[list[float]] = []
 
-    def measure(theta: np.ndarray, noise_limit_fs: float | None) -> tuple[Window, np.ndarray]:
+    def measure(
+        theta: np.ndarray, noise_limit_fs: float | None, longest: int = max_periods
+    ) -> tuple[Window, np.ndarray]:
         session.apply_theta(float(theta[0]), float(theta[1]), _further(orders, theta))
-        w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=max_periods)
+        w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=longest)
         a = order_phasors(session, w, orders)
         history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
         return w, a
@@ -163,24 +175,47 @@ def identify_orders(
             for u in uncompensated
         ]
     )
-    columns = []
-    for k in range(2 * n):
-        step = np.zeros(2 * n)
-        step[k] = probe_rad[k // 2]
-        # the probe's response (about probe_fraction of every order's amplitude) resolved to a fiftieth
-        _probe_window, a_k = measure(step, options.probe_fraction * float(np.min(uncompensated)) / 50.0)
-        columns.append((a_k - a0) / step[k])
-    jacobian = np.column_stack(columns)
-    probed = jacobian.copy()
-    if abs(np.linalg.det(jacobian)) < 1e-300:
-        raise MeasurementError("the probes do not move every order: the injection has no effect on one of them here")
+
+    def probe_jacobian() -> np.ndarray:
+        """J column by column: each component of each order probed around theta = 0 (a0)."""
+        columns = []
+        for k in range(2 * n):
+            step = np.zeros(2 * n)
+            step[k] = probe_rad[k // 2]
+            # the probe's response (about probe_fraction of every order's amplitude) resolved to a fiftieth
+            _probe_window, a_k = measure(step, options.probe_fraction * float(np.min(uncompensated)) / 50.0)
+            columns.append((a_k - a0) / step[k])
+        probed_j = np.column_stack(columns)
+        if abs(np.linalg.det(probed_j)) < 1e-300:
+            raise MeasurementError(
+                "the probes do not move every order: the injection has no effect on one of them here"
+            )
+        return probed_j
+
+    a = a0
+    use = prior if options.use_prior else None
+    start = None if use is None else use.orders_theta(orders)
+    prior_j = None if use is None else use.orders_jacobian(orders)
+    notes: list[str] = []
+    if start is not None and np.any(start):
+        # the neighbours' theta of every order: the first step starts some 20 dB down (as probe.py)
+        start, _ = _clamp_sum(start, gamma_max_rad)
+        _w, a_start = measure(start, float(np.min(uncompensated)) / 50.0)
+        if float(np.max(_per_order(a_start) / uncompensated)) < 1.0:
+            theta, a = start, a_start
+            notes.append(f"started from {use.source if use is not None else 'a prior'}")
+    if prior_j is not None:
+        jacobian, probed = prior_j, None  # the neighbour's J (same speed): probed again only if it does not hold
+        notes.append("J from the neighbour at the same speed")
+    else:
+        jacobian = probe_jacobian()
+        probed = jacobian.copy()
 
     def worst(a: np.ndarray) -> float:
         return float(np.max(_per_order(a) / limits))
 
-    a = a0
-    best_theta, best_a = theta.copy(), a0  # the point whose worst order (against its target) is least
-    lowest = _per_order(a0)  # each order's lowest amplitude so far: a step that lowers any order is progress
+    best_theta, best_a = theta.copy(), a  # the point whose worst order (against its target) is least
+    lowest = _per_order(a)  # each order's lowest amplitude so far: a step that lowers any order is progress
     limited = False
     failures, damping, steps = 0, 1.0, 0
     final: tuple[Window, np.ndarray] | None = None
@@ -204,22 +239,39 @@ def identify_orders(
                 jacobian = broyden
         amplitudes = _per_order(new_a)
         # every order done as common.done judges one: its target met with confidence and its margin reached
-        if np.all(amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs <= limits) and np.all(amplitudes <= stops):
+        open_orders = (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits) | (amplitudes > stops)
+        if not np.any(open_orders):
             final, best_theta = (w, new_a), target.copy()
             break
-        # progress: any order down by a fifth (the orders converge at their own pace: the smallest one near its
-        # noise must not stop the others)
-        improved = bool(np.any(amplitudes < 0.8 * lowest))
+        # an open order whose residual the longest window allowed no longer resolves from its noise has nothing
+        # left to steer by (a shorter window's noise says only that the window was short)
+        floor_fs = AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs if w.phasor.periods >= max_periods else 0.0
+        resolved = open_orders & (amplitudes > floor_fs)
+        # progress: any open order still resolved down by a fifth (the orders converge at their own pace: the
+        # smallest one near its noise must not stop the others, nor keep them stepping)
+        improved = bool(np.any((amplitudes < 0.8 * lowest) & resolved))
         lowest = np.minimum(lowest, amplitudes)
         if worst(new_a) < worst(best_a):
             best_theta, best_a = target.copy(), new_a
+        if not np.any(resolved):
+            break  # every open order at its noise floor: only a longer window (the confirmation's) tells more
         failures = 0 if improved else failures + 1
         damping = 1.0 if improved else 0.5 * damping
+        if failures >= 2 and probed is None:
+            # the neighbour's J does not hold here: measured by the probes, Newton from the best point so far
+            jacobian = probe_jacobian()
+            probed = jacobian.copy()
+            notes.append("the neighbour's J did not hold here: measured by probes")
+            failures, damping = 0, 1.0
+            theta, a = best_theta.copy(), best_a
+            continue
         if failures >= 2:
             break  # no order improves any more: noise floor or non-linearity
         theta, a = (target, new_a) if improved else (best_theta.copy(), best_a)
     if final is None:
-        final = measure(best_theta, float(np.min(limits)) / PRECISION_FOR_TARGET)
+        # the confirmation: as long as the smallest target needs, up to confirm_window_s
+        longest = max(max_periods, periods_for(session, options.confirm_window_s))
+        final = measure(best_theta, float(np.min(limits)) / PRECISION_FOR_TARGET, longest)
     final_w, final_a = final
 
     per_order = []
@@ -258,9 +310,11 @@ def identify_orders(
         )
     first_order = per_order[0]
     others = "; ".join(f"order {o['order']}: {o['status']}, {o['suppression_db']:.1f} dB" for o in per_order[1:])
-    message = f"{first_order['reason']} ({steps} joint Newton step(s) over orders {orders}; {others})"
+    started = "".join(f"; {note}" for note in notes)
+    message = f"{first_order['reason']} ({steps} joint Newton step(s) over orders {orders}{started}; {others})"
+    measured_j = probed if probed is not None else jacobian
     blocks = {
-        f"{orders[i]}<-{orders[j]}": probed[2 * i : 2 * i + 2, 2 * j : 2 * j + 2].tolist()
+        f"{orders[i]}<-{orders[j]}": measured_j[2 * i : 2 * i + 2, 2 * j : 2 * j + 2].tolist()
         for i in range(n)
         for j in range(n)
         if i != j
@@ -284,8 +338,11 @@ def identify_orders(
             "orders": per_order,
             "newton_steps": steps,
             "probe_deg": [math.degrees(p) for p in probe_rad],
-            "jacobian": probed.tolist(),
+            "jacobian": measured_j.tolist(),
+            "jacobian_probed": probed is not None,
             "jacobian_refined": jacobian.tolist(),
+            "order_list": orders,
+            "prior": None if use is None else use.source,
             "cross_paths": blocks,
             "gamma_limited": limited,
         },

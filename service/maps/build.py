@@ -74,7 +74,62 @@ def build_map(
         fills=fills,
         refined_from=refined_from,
         provenance=provenance,
+        further_orders=further_order_cells(keys, latest, harmonic_order, axes),
     )
+
+
+ORDER_CELL_FIELDS = ("status", "theta_cos", "theta_sin", "suppression_db", "target_db", "error")
+
+
+def _orders_of(row: Mapping[str, Any] | None) -> list[Mapping[str, Any]]:
+    """A result's orders (method probe-orders: details.orders), [] for a result of one order."""
+    return list((((row or {}).get("detail") or {}).get("details") or {}).get("orders") or [])
+
+
+def further_order_cells(
+    keys: Sequence[tuple[float, float, float]],
+    latest: Mapping[tuple[float, float, float], Mapping[str, Any]],
+    harmonic_order: int,
+    axes: dict[str, list[float]],
+) -> list[dict[str, Any]]:
+    """[{order, cells}] for every order the cells' results carry beside the map's own (in the order the results
+    name them), each cell in `keys` order as that order's result judged it (its own status, theta and figure,
+    issue 28), with the fill rule applied to that order's cells on their own (service/maps/fill.py); [] for a map
+    of one order. A cell whose result does not carry the order (not run, a failure before the identification) is
+    that result's status (failed where the result was ok without it), or missing."""
+    orders: dict[int, None] = {}
+    for k in keys:
+        for o in _orders_of(latest.get(k)):
+            if int(o["order"]) != harmonic_order:
+                orders[int(o["order"])] = None
+    further = []
+    for h in orders:
+        cells = []
+        for k in keys:
+            row = latest.get(k)
+            found = next((o for o in _orders_of(row) if int(o["order"]) == h), None)
+            if row is None:
+                cell: dict[str, Any] = {"status": "missing"}
+            elif found is None:
+                status = row["status"] if row["status"] != "ok" else "failed"
+                cell = {"status": status, "error": row.get("error") or f"the result carries no order {h}"}
+            else:
+                cell = {
+                    **{f: found.get(f) for f in ORDER_CELL_FIELDS if f != "error"},
+                    "error": None if found.get("status") == "ok" else found.get("reason"),
+                }
+            cells.append(cell)
+        fills = fill_cells(
+            [{"torque_nm": k[0], "speed_rpm": k[1], "udc_v": k[2], **c} for k, c in zip(keys, cells)],
+            axes,
+            lut_image.DEFAULT_INTERPOLATION,
+        )
+        for k, cell in zip(keys, cells):
+            fill = fills.get(k)
+            if fill is not None:
+                cell.update(fill_theta_cos=fill.theta_cos, fill_theta_sin=fill.theta_sin, fill_source=fill.source)
+        further.append({"order": h, "cells": cells})
+    return further
 
 
 def best_attempts(attempts: Sequence[Mapping[str, Any]]) -> dict[tuple[float, float, float], Mapping[str, Any]]:

@@ -32,9 +32,21 @@ import numpy as np
 from drivers import lut_image as lut_codec
 from service import __version__
 from service.maps import quality as map_quality
+from service.maps.view import order_map
 
-# 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`; 3: `injection_off` grid and cell field
-JSON_FORMAT_VERSION = 3
+# 2: `filled` grid and cell fields, `interpolation`, `lut_format_version`; 3: `injection_off` grid and cell field;
+# 4: `orders` and, for a map of several orders, `further_orders` (each order's grids, counts and cells)
+JSON_FORMAT_VERSION = 4
+
+
+def map_orders(m: dict[str, Any]) -> list[int]:
+    """The harmonic orders of a map (MapView.model_dump()), its own first."""
+    return list(m.get("orders") or [m["harmonic_order"]])
+
+
+def _order_maps(m: dict[str, Any]) -> list[dict[str, Any]]:
+    """The map as one map of one order per order (service/maps/view.py order_map), its own first."""
+    return [order_map(m, h) for h in map_orders(m)]
 
 
 def cell_flag(c: dict[str, Any] | None, fill: bool = True) -> int:
@@ -209,9 +221,17 @@ def _validation_text(m: dict[str, Any]) -> str:
 
 
 def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
+    """One row per cell; a map of several orders has one row per cell and order, and a last column
+    harmonic_order (a map of one order keeps the columns it always had)."""
     mode = lut_codec.check_interpolation(interpolation)
+    orders = map_orders(m)
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
+    if len(orders) > 1:
+        buf.write(
+            f"# several orders: {', '.join(str(h) for h in orders)}, each cell once per order (column harmonic_order);"
+            " the drive injects their sum, every theta scaled by one factor so that the sum of |theta| <= gamma_max\n"
+        )
     buf.write(f"# software version {__version__}, bench {m['bench_identity']}, created {m['created_at']}\n")
     buf.write(
         f"# axes: torque_nm = {m['axes']['torque_nm']}, speed_rpm = {m['axes']['speed_rpm']}, udc_v = {m['axes']['udc_v']}\n"
@@ -240,9 +260,10 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
             "filled",
             "fill_source",
             "injection_off",
+            *(["harmonic_order"] if len(orders) > 1 else []),
         ]
     )
-    for c in m["cells"]:
+    for h, c in ((om["harmonic_order"], c) for om in _order_maps(m) for c in om["cells"]):
         flag = cell_flag(c)
         entry = _has_theta(c, flag)
         gamma, delta = _gamma_delta_deg(c) if entry else ("", "")
@@ -260,6 +281,7 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
                 1 if flag == lut_codec.FLAG_FILLED else 0,
                 (c.get("fill_source") or "") if flag == lut_codec.FLAG_FILLED else "",
                 1 if flag == lut_codec.FLAG_OFF else 0,
+                *([h] if len(orders) > 1 else []),
             ]
         )
     return buf.getvalue()
@@ -299,9 +321,31 @@ def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
             ],
             "quality": _quality_json(m),
             "validation": m.get("validation"),
+            "orders": map_orders(m),
+            "further_orders": [_json_order(om) for om in _order_maps(m)[1:]],
         },
         indent=1,
     )
+
+
+def _json_order(m: dict[str, Any]) -> dict[str, Any]:
+    """A further order of a map (order_map): its grids, counts and cells as the map's own are exported."""
+    return {
+        "harmonic_order": m["harmonic_order"],
+        "theta_cos_rad": _grid_values(m, "theta_cos"),
+        "theta_sin_rad": _grid_values(m, "theta_sin"),
+        "valid": _grid_values(m, "valid"),
+        "filled": _grid_values(m, "filled"),
+        "status_counts": m.get("status_counts"),
+        "cells": [
+            {
+                **{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
+                "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
+                "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None,
+            }
+            for c in m["cells"]
+        ],
+    }
 
 
 def _c_nested(values: Any, leaf: Callable[[Any], str]) -> str:
@@ -327,13 +371,63 @@ def _c_float(value: float) -> str:
 
 
 def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
+    """The C header: the map's arrays and the reference interpolator (`ripplecal_lut_map<ID>_theta`); a map of
+    several orders has one such block per further order (names `ripplecal_lut_map<ID>_h<order>_*`), and
+    `ripplecal_lut_map<ID>_theta_orders` gives every order's theta as the drive injects them together."""
     mode = lut_codec.check_interpolation(interpolation)
+    maps = _order_maps(m)
+    blocks = [_c_order_header(om, mode, "" if k == 0 else f"_h{om['harmonic_order']}") for k, om in enumerate(maps)]
+    if len(maps) > 1:
+        blocks.append(_c_orders_function(int(m["id"]), [om["harmonic_order"] for om in maps]))
+    return "\n".join(blocks)
+
+
+def _c_orders_function(map_id: int, orders: list[int]) -> str:
+    """The drive's rule for several orders in C: each order's theta unclamped, then one factor on all of them so
+    that the sum of their |theta| is at most gamma_max (plant_emulator/drive_firmware.py _scale)."""
+    macro, array = f"RIPPLECAL_LUT_MAP{map_id}", f"ripplecal_lut_map{map_id}"
+    prefixes = [array] + [f"{array}_h{h}" for h in orders[1:]]
+    calls = "\n".join(
+        f"    {p}_theta(torque_nm, speed_rpm, udc_v, with_fill, HUGE_VALF, &theta_cos_rad[{k}], &theta_sin_rad[{k}]);"
+        for k, p in enumerate(prefixes)
+    )
+    return f"""#ifndef {macro}_ORDERS_H
+#define {macro}_ORDERS_H
+/* several orders: {macro}_N_ORDERS thetas, in the order of {array}_orders (the map's own first). The drive injects
+ * v_inj = sum_k theta_cos_k cos(h_k phi_e) + theta_sin_k sin(h_k phi_e) as one voltage-angle rotation, every theta
+ * scaled by one factor so that sum_k |theta_k| <= gamma_max_rad (HUGE_VALF: no clamp). */
+#define {macro}_N_ORDERS {len(orders)}u
+static const uint8_t {array}_orders[{len(orders)}] = {{{", ".join(f"{h}u" for h in orders)}}};
+
+static inline void {array}_theta_orders(float torque_nm, float speed_rpm, float udc_v, int with_fill,
+                                        float gamma_max_rad, float theta_cos_rad[{len(orders)}],
+                                        float theta_sin_rad[{len(orders)}])
+{{
+    float total = 0.0f;
+    unsigned k;
+{calls}
+    for (k = 0u; k < {macro}_N_ORDERS; k++) {{
+        total += hypotf(theta_cos_rad[k], theta_sin_rad[k]);
+    }}
+    if (total > gamma_max_rad && total > 0.0f) {{
+        for (k = 0u; k < {macro}_N_ORDERS; k++) {{
+            theta_cos_rad[k] *= gamma_max_rad / total;
+            theta_sin_rad[k] *= gamma_max_rad / total;
+        }}
+    }}
+}}
+#endif /* {macro}_ORDERS_H */
+"""
+
+
+def _c_order_header(m: dict[str, Any], mode: str, suffix: str = "") -> str:
+    """One order's guarded block: its arrays and its own interpolator, every name with the map id and `suffix`."""
     nt, nn, nu = (len(m["axes"][k]) for k in ("torque_nm", "speed_rpm", "udc_v"))
-    # every name carries the map id, so the headers of several maps go into one translation unit
-    macro, array = f"RIPPLECAL_LUT_MAP{int(m['id'])}", f"ripplecal_lut_map{int(m['id'])}"
+    # every name carries the map id (and a further order's, its order), so several go into one translation unit
+    macro, array = f"RIPPLECAL_LUT_MAP{int(m['id'])}{suffix.upper()}", f"ripplecal_lut_map{int(m['id'])}{suffix}"
     guard = f"{macro}_H"
     # a version 7 image's cells as the drive holds them (its derived cells interpolated along their rows)
-    held = lut_codec.decode(lut_image(m, interpolation=mode)) if cell_format(m) == lut_codec.SPARSE else None
+    held = lut_codec.decode(order_image(m, interpolation=mode)) if cell_format(m) == lut_codec.SPARSE else None
 
     def flag_array(key: str, flag: int) -> Any:
         return _grid_values(m, key) if held is None else (held.flags == flag).astype(int).tolist()
@@ -629,6 +723,19 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
         ("FILLED", "filled"),
         ("INJECTION_OFF", "injection_off"),
     )
+    if len(map_orders(m)) > 1:
+        out.insert(
+            -2,
+            f"* several orders: {', '.join(str(h) for h in map_orders(m))}, each its own KENNFELDER (RIPPLECAL_H<h>_*)",
+        )
+    for om in _order_maps(m):
+        out += _dcm_kennfelder(om, kennfelder, nt, nn)
+    return "\n".join(out)
+
+
+def _dcm_kennfelder(m: dict[str, Any], kennfelder: tuple[tuple[str, str], ...], nt: int, nn: int) -> list[str]:
+    """One order's KENNFELDER (its order in their names)."""
+    axes, out = m["axes"], []
     planes = {key: _grid_values(m, key) for _, key in kennfelder}
     for name, key in kennfelder:
         for k, udc in enumerate(axes["udc_v"]):
@@ -648,7 +755,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
                     "   WERT   " + "   ".join(f"{v:.9g}" if key.startswith("theta") else str(v) for v in values),
                 ]
             out += ["END", ""]
-    return "\n".join(out)
+    return out
 
 
 CELL_FORMATS = lut_codec.CELL_FORMATS
@@ -753,6 +860,15 @@ def sparse_bar_db(m: dict[str, Any]) -> float:
 
 
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
+    """The binary image the drive takes on 0x2001:1: a map of one order's (`order_image`), or for a map of several
+    orders the version 8 image of one such image per order, its own first (drivers/lut_image.py encode_orders)."""
+    maps = _order_maps(m)
+    if len(maps) == 1:
+        return order_image(m, fill, interpolation)
+    return lut_codec.encode_orders([order_image(om, fill, interpolation) for om in maps])
+
+
+def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1, carrying the map's id (docs/interfaces.md, "LUT
     image"; encoded by drivers.lut_image, the one definition the drive firmware decodes with). fill:
     filled cells go in as flag 2 (the drive injects their fill), else as flag 0 (no entry); cells with
@@ -856,11 +972,13 @@ class LutEntries:
     interpolation: str  # the header's mode
     injection_off: int = 0  # flag 3: chosen, so never a hole
     format_version: int = LUT_FORMAT_VERSION  # the image's (4 with an off cell)
+    orders: tuple[int, ...] = ()  # every order of the image, its own first
+    further_holes: int = 0  # a map of several orders: the further orders' cells without an entry
 
     @property
     def holes(self) -> int:
-        """Cells without an entry and not chosen off: the drive injects nothing there."""
-        return self.cells - self.ok - self.filled - self.injection_off
+        """Cells without an entry and not chosen off, of every order: the drive injects nothing there."""
+        return self.cells - self.ok - self.filled - self.injection_off + self.further_holes
 
 
 def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> LutEntries:
@@ -869,14 +987,20 @@ def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None 
     mode = lut_codec.check_interpolation(interpolation)
     flags = [cell_flag(c, fill) for c in m["cells"]]
     left_out = 0 if fill else sum(1 for c in m["cells"] if cell_flag(c, True) == lut_codec.FLAG_FILLED)
+    orders = tuple(map_orders(m))
+    further = [cell_flag(c, fill) for om in _order_maps(m)[1:] for c in om["cells"]]
     return LutEntries(
+        orders=orders,
+        further_holes=further.count(lut_codec.FLAG_NONE),
         cells=len(flags),
         ok=flags.count(lut_codec.FLAG_OK),
         filled=flags.count(lut_codec.FLAG_FILLED),
         fills_left_out=left_out,
         interpolation=mode,
         injection_off=flags.count(lut_codec.FLAG_OFF),
-        format_version=lut_codec.format_version_of(flags, cell_format(m)),
+        format_version=(
+            lut_codec.FORMAT_VERSION_ORDERS if len(orders) > 1 else lut_codec.format_version_of(flags, cell_format(m))
+        ),
     )
 
 

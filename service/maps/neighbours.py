@@ -64,6 +64,8 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict[str, Any]], axes: 
         source = f"its own earlier attempt ({own['status']}, {own['suppression_db']:.1f} dB)"
     same_line = [r for r in ok if r["speed_rpm"] == op.speed_rpm and r["udc_v"] == op.udc_v]
     s_matrix = None
+    jacobian: tuple[tuple[float, ...], ...] | None = None
+    jacobian_orders: tuple[int, ...] = ()
     if same_line:
         s_row = min(same_line, key=distance)
         details = (s_row.get("detail") or {}).get("details") or {}
@@ -71,7 +73,22 @@ def prior_from_neighbours(op: OperatingPoint, rows: list[dict[str, Any]], axes: 
         if matrix is not None:
             s_matrix = cast(S2x2, tuple(tuple(float(v) for v in row) for row in matrix))  # 2x2 as stored
             source += f", S from {s_row['torque_nm']:g} Nm"
-    return Prior(theta[0], theta[1], s_matrix, source)
+        # several orders: the whole J the neighbour ended with (probed, then refined by its steps)
+        if details.get("jacobian_refined") is not None and details.get("order_list"):
+            jacobian = tuple(tuple(float(v) for v in row) for row in details["jacobian_refined"])
+            jacobian_orders = tuple(int(h) for h in details["order_list"])
+            source += f", J from {s_row['torque_nm']:g} Nm"
+    return Prior(theta[0], theta[1], s_matrix, source, further_thetas(nearest), jacobian, jacobian_orders)
+
+
+def further_thetas(row: dict[str, Any]) -> tuple[tuple[int, float, float], ...]:
+    """A result's further orders' theta (method probe-orders), where that order beat its harmonic clearly."""
+    orders = ((row.get("detail") or {}).get("details") or {}).get("orders") or []
+    return tuple(
+        (int(o["order"]), float(o["theta_cos"]), float(o["theta_sin"]))
+        for o in orders[1:]
+        if o.get("theta_cos") is not None and (o.get("suppression_db") or -1e9) >= MEASURED_MIN_DB
+    )
 
 
 def _axes_with(axes: dict[str, list[float]], op: OperatingPoint) -> dict[str, list[float]]:

@@ -74,6 +74,16 @@ class MapQuality(BaseModel):
     )
 
 
+class OrderMap(BaseModel):
+    """A further order of a map of several orders (issue 28): its cells as that order's results judged them,
+    with the fill rule applied to that order on its own; the map's own order is the map's cells."""
+
+    order: int = Field(description="electrical order")
+    status_counts: dict[str, int]
+    filled_cells: int = 0
+    cells: list[MapCell]
+
+
 class MapView(BaseModel):
     """A stored map as every layer reads it: its cells (fill and quality applied), no validation."""
 
@@ -99,6 +109,88 @@ class MapView(BaseModel):
     provenance: dict[str, Any] | None = Field(
         None, description="how a refined map was made: refinement, rounds, cells added"
     )
+    orders: list[int] = Field(
+        default_factory=list, description="the harmonic orders the map compensates, its own (harmonic_order) first"
+    )
+    further_orders: list[OrderMap] = Field(
+        default_factory=list,
+        description="the orders after the first, each with its own cells (the first's are `cells`)",
+    )
+
+
+def _cell(record: dict[str, Any]) -> MapCell:
+    """A map cell from its stored record: ok cells carry their theta, others their fill where the rule gave one."""
+    status = record.get("status") or "missing"
+    ok = status == "ok"
+    theta = (record.get("theta_cos"), record.get("theta_sin")) if ok else (None, None)
+    cell = MapCell(
+        torque_nm=record["torque_nm"],
+        speed_rpm=record["speed_rpm"],
+        udc_v=record["udc_v"],
+        status=status,
+        result_id=record.get("result_id"),
+        theta_cos=theta[0],
+        theta_sin=theta[1],
+        suppression_db=record.get("suppression_db"),
+        target_db=record.get("target_db"),
+        noise_floor_db=record.get("noise_floor_db"),
+        error=record.get("error"),
+        injection_off=bool(record.get("injection_off")),
+    )
+    if not ok and record.get("fill_theta_cos") is not None:  # the fill rule's entry (service/maps/fill.py)
+        cell.theta_cos, cell.theta_sin = record["fill_theta_cos"], record["fill_theta_sin"]
+        cell.filled, cell.fill_source = True, record["fill_source"]
+    if ok and record.get("gamma_deg") is not None:  # as the result stored them
+        cell.gamma_deg, cell.delta_deg = record["gamma_deg"], record["delta_deg"]
+    elif cell.theta_cos is not None and cell.theta_sin is not None:
+        cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(cell.theta_cos, cell.theta_sin))
+    return cell
+
+
+def _status_counts(cells: list[MapCell]) -> dict[str, int]:
+    counts = {status: 0 for status in CELL_STATUSES}
+    for c in cells:
+        counts[c.status] = counts.get(c.status, 0) + 1
+    return counts
+
+
+def _further_orders(row: dict[str, Any]) -> list[OrderMap]:
+    """The further orders of a stored map (migrations/0013), each cell placed at its map cell's point."""
+    further = []
+    for entry in row.get("orders") or []:
+        cells = [
+            _cell({**{a: main[a] for a in ("torque_nm", "speed_rpm", "udc_v", "result_id")}, **cell})
+            for main, cell in zip(row["cells"], entry["cells"])
+        ]
+        further.append(
+            OrderMap(
+                order=entry["order"],
+                status_counts=_status_counts(cells),
+                filled_cells=sum(1 for c in cells if c.filled),
+                cells=cells,
+            )
+        )
+    return further
+
+
+def order_map(m: dict[str, Any], order: int) -> dict[str, Any]:
+    """The map (MapView.model_dump()) as a map of one order, `order`: its own order is the map itself; a further
+    order's is the map with that order's cells (every export and the LUT image of one order read it)."""
+    if order == m["harmonic_order"]:
+        return {**m, "orders": [order], "further_orders": []}
+    for entry in m.get("further_orders") or []:
+        if entry["order"] == order:
+            return {
+                **m,
+                "harmonic_order": order,
+                "cells": entry["cells"],
+                "status_counts": entry["status_counts"],
+                "filled_cells": entry["filled_cells"],
+                "injection_off_cells": 0,
+                "orders": [order],
+                "further_orders": [],
+            }
+    raise KeyError(f"map {m['id']} has no order {order}; its orders are {m.get('orders') or [m['harmonic_order']]}")
 
 
 def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | None:
@@ -107,35 +199,8 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
     row = storage.get_map(map_id)
     if row is None:
         return None
-    cells = []
-    for record in row["cells"]:
-        status = record["status"] or "missing"
-        ok = status == "ok"
-        cell = MapCell(
-            torque_nm=record["torque_nm"],
-            speed_rpm=record["speed_rpm"],
-            udc_v=record["udc_v"],
-            status=status,
-            result_id=record["result_id"],
-            gamma_deg=record["gamma_deg"] if ok else None,
-            delta_deg=record["delta_deg"] if ok else None,
-            theta_cos=record["theta_cos"] if ok else None,
-            theta_sin=record["theta_sin"] if ok else None,
-            suppression_db=record["suppression_db"],
-            target_db=record.get("target_db"),
-            noise_floor_db=record.get("noise_floor_db"),
-            error=record["error"],
-            injection_off=bool(record.get("injection_off")),
-        )
-        if not ok and record.get("fill_theta_cos") is not None:  # the fill rule's entry (service/maps/fill.py)
-            cell.theta_cos, cell.theta_sin = record["fill_theta_cos"], record["fill_theta_sin"]
-            theta = cast(tuple[float, float], (cell.theta_cos, cell.theta_sin))  # fill.py writes both or neither
-            cell.gamma_deg, cell.delta_deg = (math.degrees(v) for v in gamma_delta(*theta))
-            cell.filled, cell.fill_source = True, record["fill_source"]
-        cells.append(cell)
-    counts = {status: 0 for status in CELL_STATUSES}
-    for c in cells:
-        counts[c.status] = counts.get(c.status, 0) + 1
+    cells = [_cell(cast(dict[str, Any], record)) for record in row["cells"]]
+    counts = _status_counts(cells)
     axes = row["axes"]
     quality = map_quality.assess([c.model_dump() for c in cells], axes)
     smoothed = {}
@@ -183,4 +248,6 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
         provenance=row.get("provenance"),
         quality=summary,
         smoothed=smooth,
+        further_orders=(further := _further_orders(cast(dict[str, Any], row))),
+        orders=[row["harmonic_order"], *(o.order for o in further)],
     )

@@ -55,6 +55,9 @@ class LutDownload(BaseModel):
     )
     format_version: int = Field(3, description="LUT image format version (drivers/lut_image.py)")
     harmonic_order: int
+    orders: list[int] | None = Field(
+        None, description="a map of several orders: every order the drive now injects in LUT mode, its own first"
+    )
     forced: bool = Field(description="true when a map with holes (cells that inject nothing) went in on force=true")
 
 
@@ -99,6 +102,7 @@ class PreparedLut:
     interpolation: str = DEFAULT_INTERPOLATION
     format_version: int = LUT_FORMAT_VERSION
     injection_off_cells: int = 0  # cells with injection off (flag 3), chosen: never holes
+    orders: tuple[int, ...] = ()  # a map of several orders: all of them, its own first
 
     @property
     def holes(self) -> int:
@@ -113,6 +117,7 @@ class PreparedLut:
             "fill": self.fill,
             "interpolation": self.interpolation,
             "format_version": self.format_version,
+            "orders": list(self.orders) if len(self.orders) > 1 else None,
         }
 
 
@@ -159,6 +164,7 @@ def prepare(
         interpolation=entries.interpolation,
         format_version=entries.format_version,
         injection_off_cells=entries.injection_off,
+        orders=entries.orders,
     )
 
 

@@ -81,6 +81,11 @@ class RunupRequest(BaseModel):
     override_envelope_model: bool = Field(
         False, description="run where the envelope model of the motor settings refuses (never the hard limits)"
     )
+    decoupling: bool | None = Field(
+        None,
+        description="the drive's decoupling (0x2000:6) along the ramp: a LUT measured with it on holds only with it "
+        "on (its theta is another); null: the settings' identification.decoupling",
+    )
     # printable text as every name (service/names.py): a NUL or a newline is a 422, not a bench nobody serves
     bench: Annotated[str, AfterValidator(lambda v: check_name(v, "bench name"))] | None = Field(
         None,
@@ -250,6 +255,7 @@ def runup_in_run(
     """A run-up as a run of its own: the bench held, the interlocks armed, made safe at the end; the order analysis
     after it (the survey of 48 orders over a long ramp takes seconds: the bench is not held, nor its watchdog
     starved, meanwhile)."""
-    with bench.run(settings.identification.harmonic_order, cancel=cancel) as run:
+    decoupling = settings.identification.decoupling if req.decoupling is None else req.decoupling
+    with bench.run(settings.identification.harmonic_order, decoupling=decoupling, cancel=cancel) as run:
         record = record_runup(run, settings, req, recorder)
     return analyse_runup(record, settings, req)

@@ -39,9 +39,16 @@ from service.bench.measurement import RunCancelled
 from service.bench.run import BenchRun
 from service.bench.trips import InterlockTripped
 from service.errors import BenchRefused, Invalid
-from service.identification.common import MIN_PERIODS, measure_reference, noise_floor_db, periods_for
-from service.identification.session import MeasurementError, MeasurementSession
+from service.identification.common import (
+    AT_FLOOR_SIGMAS,
+    MIN_PERIODS,
+    measure_reference,
+    noise_floor_db,
+    periods_for,
+)
+from service.identification.session import MeasurementError, MeasurementSession, Window
 from service.maps.view import MapView, map_view
+from service.model.harmonic import Phasor
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
@@ -50,7 +57,6 @@ from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
 STORE_SPACING = 10.0  # a running validation spends at most ~1/10 of its wall time storing its progress
-AT_FLOOR_SIGMAS = 3.0  # |A_lut| <= 3 sqrt(2) sigma: the residual is not resolved (as in verdict())
 
 
 class ValidationOptions(BaseModel):
@@ -165,7 +171,7 @@ class ValidationRun:
     items_reused: int = 0  # points and run-up pairs taken from an earlier validation where the LUT is the same
 
     def summary(self) -> dict[str, Any]:
-        out = summarize(self.cells)
+        out = summarize(self.cells, self.harmonic_order)
         out["plant_time_s"] += self.runup_plant_time_s
         out["runup_plant_time_s"] = self.runup_plant_time_s
         out["runups_reused"] = self.runups_reused
@@ -188,9 +194,12 @@ def measured_decoupling(storage: Storage, m: MapView, settings: Settings) -> boo
     return used.pop() if used else settings.identification.decoupling
 
 
-def measure_point(run: BenchRun, op: OperatingPoint, options: ValidationOptions) -> dict[str, Any]:
+def measure_point(
+    run: BenchRun, op: OperatingPoint, options: ValidationOptions, further_orders: tuple[int, ...] = ()
+) -> dict[str, Any]:
     """One point of a validation run (service.bench.run.BenchRun): uncompensated (injection off),
-    then the drive's own LUT feedforward (module doc)."""
+    then the drive's own LUT feedforward (module doc). `further_orders`: a map of several orders' other orders,
+    each judged from the same two windows (whole electrical turns: every order is whole in them) in `orders`."""
     with run.operating_point(op) as session:
         session.settle_after_theta_s = options.settle_s
         # the bench's session is a MeasurementSession; the protocol declares harmonic_frequency_hz a settable
@@ -208,6 +217,12 @@ def measure_point(run: BenchRun, op: OperatingPoint, options: ValidationOptions)
         speed_rpm = session.speed_rpm_measured
         f_h = session.harmonic_frequency_hz
         torque_actual_nm, _ = run.torque_actual()  # the torque the point ran at, over its measurement
+        orders = [
+            _order_figures(
+                h, measurement.phasor_at(reference, h), measurement.phasor_at(residual, h), residual, options
+            )
+            for h in further_orders
+        ]
     departure = torque_departure(op.torque_nm, torque_actual_nm, run.bench.settings.safety)
     if departure is not None:
         raise MeasurementError(departure)  # a figure at a torque the motor did not run at is no figure of the map
@@ -229,6 +244,26 @@ def measure_point(run: BenchRun, op: OperatingPoint, options: ValidationOptions)
         "harmonic_frequency_hz": f_h,
         "torque_actual_nm": torque_actual_nm,
         "bench_time_s": run.timing.public(),
+        **({"orders": orders} if orders else {}),
+    }
+
+
+def _order_figures(
+    order: int, uncompensated: Phasor, residual: Phasor, window: Window, options: ValidationOptions
+) -> dict[str, Any]:
+    """A further order's figure at a validation point: its suppression from its own uncompensated and LUT-mode
+    phasors, judged against the validation's target as the map's own order is."""
+    a0, a = uncompensated.amplitude, residual.amplitude
+    suppression_db = 20.0 * math.log10(a0 / a) if a0 > 0 and a > 0 else None
+    floor_db = noise_floor_db(window, a0)
+    return {
+        "order": order,
+        "suppression_db": suppression_db,
+        "above_floor_db": -floor_db if floor_db is not None else None,
+        "holds": suppression_db is not None and suppression_db >= options.target_db,
+        "uncompensated": uncompensated.as_dict(),
+        "residual": residual.as_dict(),
+        "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * window.noise_std_fs,
     }
 
 
@@ -303,7 +338,7 @@ def run_validation(
                     **new_cell(item.op, item.kind),
                     "status": "measured",
                     "error": None,
-                    **measure_point(brun, item.op, options),
+                    **measure_point(brun, item.op, options, tuple(m.orders[1:])),
                 }
             ]
         assert item.speed_range is not None
@@ -419,9 +454,10 @@ def validation_items(
     return items
 
 
-def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
+def summarize(cells: list[dict[str, Any]], harmonic_order: int | None = None) -> dict[str, Any]:
     """Median and minimum suppression of the grid and of the midpoint cells measured, the worst cell,
-    and the counts (failed and not measured cells count apart, never as a number)."""
+    and the counts (failed and not measured cells count apart, never as a number); a map of several orders adds
+    `orders`, each order's figures (the first: `harmonic_order`, the map's own)."""
     out: dict[str, Any] = {}
     for kind in ("grid", "midpoint", "runup"):
         mine = [c for c in cells if c["kind"] == kind]
@@ -455,7 +491,30 @@ def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
     out["median_db"] = statistics.median(values) if values else None
     out["min_db"] = min(values) if values else None
     out["torques_run_up"] = sorted({c["operating_point"]["torque_nm"] for c in measured if c["kind"] == "runup"})
+    further = sorted({o["order"] for c in measured for o in c.get("orders") or []})
+    if further:  # a map of several orders: every order judged on its own (the first is the figures above)
+        out["orders"] = [
+            _order_summary(harmonic_order, measured, own=True),
+            *(
+                _order_summary(h, [o for c in measured for o in c.get("orders") or [] if o["order"] == h])
+                for h in further
+            ),
+        ]
     return out
+
+
+def _order_summary(order: int | None, figures: list[dict[str, Any]], own: bool = False) -> dict[str, Any]:
+    """An order's points, held, median and minimum over the judged figures (`own`: the map's own order, the cells'
+    top-level figures at the grid and midpoint points, where the further orders are judged too)."""
+    judged = [f for f in figures if f.get("suppression_db") is not None and not (own and f["kind"] == "runup")]
+    values = [f["suppression_db"] for f in judged]
+    return {
+        "order": order,
+        "points": len(judged),
+        "held": sum(1 for f in judged if f["holds"]),
+        "median_db": statistics.median(values) if values else None,
+        "min_db": min(values) if values else None,
+    }
 
 
 def store_validation(

@@ -121,6 +121,7 @@ class MapRecord(TypedDict):
     created_at: str
     refined_from: int | None
     provenance: dict[str, Any] | None
+    orders: list[dict[str, Any]] | None  # further orders [{order, cells}] (migrations/0013), None: one order
     cells: list[MapCellRecord]  # joined: the map_cells rows
 
 

@@ -857,6 +857,44 @@ def test_map_download_button_shows_the_crc_and_the_bench_shows_the_map_the_drive
         context.close()
 
 
+def test_a_map_of_two_orders_shows_a_heat_map_per_order(service, browser, tmp_path):
+    """Map panel, a map of orders 6 and 12 (issue 28): the order picker appears, the meta line names both orders
+    and the 12th's counts, and picking the 12th draws that order's cells (its gamma, its title)."""
+    from service.store.storage import Storage
+    from tests.support.stored_maps import stored_two_order_map
+
+    storage = Storage(service["log"].parent / "ripplecal.db")  # the service's own database (WAL)
+    map_id = stored_two_order_map(storage)
+    context, page, rec = _open(browser, service["base"])
+    try:
+        page.wait_for_selector('[data-testid="map-select"] option', state="attached", timeout=15_000)
+        page.select_option('[data-testid="map-select"]', str(map_id))
+        page.wait_for_function(
+            """() => document.querySelector('[data-testid="map-meta"]').textContent.includes('h = 6 + 12')""",
+            timeout=15_000,
+        )
+        assert page.is_visible('[data-testid="order-select"]')
+        meta = page.inner_text('[data-testid="map-meta"]')
+        assert "order 12: 3 ok of 4, 1 filled" in meta, meta
+
+        def gammas() -> list:
+            return page.evaluate(
+                "() => document.getElementById('plot-gamma').data[0].z.flat().filter((v) => v !== null)"
+            )
+
+        page.wait_for_function("() => (document.getElementById('plot-gamma').data || []).length > 0", timeout=15_000)
+        assert sorted(round(v, 3) for v in gammas()) == [1.0, 2.0, 3.0, 4.0]
+        page.select_option('[data-testid="order-select"]', "12")
+        page.wait_for_function(
+            """() => document.getElementById('plot-gamma').layout.title.text.startsWith('order 12')""", timeout=15_000
+        )
+        assert sorted(round(v, 3) for v in gammas()) == [0.5, 1.0, 1.5, 2.0]  # the fill shown as the others
+        page.screenshot(path=str(tmp_path / "two_orders.png"), full_page=True)
+        assert not rec["pageerrors"], rec["pageerrors"]
+    finally:
+        context.close()
+
+
 def test_map_compare_view_and_the_outliers_of_the_map_view(service, browser, tmp_path):
     """Two maps put into the service's database from stored results (no sweep: tests/support/maps.py):
     the Map panel rings map a's planted outlier and gives its reason; the Compare panel, with map b
@@ -1287,6 +1325,12 @@ def test_runup_panel_draws_the_campbell_diagram_and_the_order_cut_before_and_aft
         names = page.evaluate("() => document.getElementById('plot-order-cut').data.map((t) => t.name)")
         assert names[0].startswith("before (injection off") and names[2].startswith("after (injection theta"), names
         assert len(names) == 4 and "noise floor" in names[1] and "noise floor" in names[3], names
+        # the cut of another order the run-ups tracked (a LUT of several orders: each of them)
+        page.select_option('[data-testid="runup-cut-order"]', "12")
+        page.wait_for_function(
+            """() => document.getElementById('plot-order-cut').layout.yaxis.title.text === 'order 12 (dB FS)'""",
+            timeout=15_000,
+        )
         assert not rec["pageerrors"], f"JavaScript errors: {rec['pageerrors']}"
         page.screenshot(path=str(tmp_path / "runups.png"), full_page=True)
     finally:

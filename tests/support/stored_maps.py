@@ -40,3 +40,35 @@ def sweep_with_results(storage: Storage, failing=(), gamma_offset_deg: float = 0
 def stored_map(storage: Storage, failing=(), gamma_offset_deg: float = 0.0) -> int:
     """The id of a new map of a finished sweep over GRID (a running service shows it as any other)."""
     return make_map(storage, GRID, _theta(gamma_offset_deg), _failing(failing), s_measured=None)
+
+
+def stored_two_order_map(storage: Storage) -> int:
+    """A map of orders 6 and 12 over GRID: the 6th as stored_map's; the 12th's cell k has gamma = k / 2 deg and
+    delta = 30 k deg, ok but for cell 4 (below target, its theta kept as a fill)."""
+    sweep_id = sweep_with_results(storage)
+    rows = {(r["torque_nm"], r["speed_rpm"]): r for r in storage.sweep_results(sweep_id)}
+    twelfth = []
+    for k, (t, n) in enumerate(CELLS, start=1):
+        c, s = theta_of(k / 2, 30 * k)
+        ok = k < 4
+        twelfth.append(
+            {
+                "status": "ok" if ok else "below_target",
+                "theta_cos": c,
+                "theta_sin": s,
+                "suppression_db": 45.0 if ok else 31.0,
+                "target_db": 40.0,
+                "error": None if ok else "31.0 dB, below the 40 dB target",
+                **({} if ok else {"fill_theta_cos": c, "fill_theta_sin": s, "fill_source": "measured: its own theta"}),
+            }
+        )
+    return storage.create_map(
+        sweep_id,
+        6,
+        "probe-orders",
+        GRID,
+        [(rows[(t, n)]["id"], t, n, 12.0) for t, n in CELLS],
+        "test-bench",
+        "0",
+        further_orders=[{"order": 12, "cells": twelfth}],
+    )

@@ -14,6 +14,7 @@ import pytest
 from scipy.optimize import fsolve
 
 from service.identification import METHODS
+from service.identification.common import Prior
 from service.identification.orders import OrdersOptions, identify_orders
 from service.identification.session import MeasurementError
 from tests.support.affine_plant import TwoOrderPlantSession
@@ -93,3 +94,55 @@ def test_options_refuse_what_the_drive_cannot_inject():
     with pytest.raises(MeasurementError, match="do not include the run's harmonic order 6"):
         identify_orders(session, TRUTH["s_h"], OrdersOptions(orders=[12]), math.radians(15.0))
     assert "probe-orders" in METHODS
+
+
+def _jacobian_of(t: dict) -> np.ndarray:
+    """The plant's J at theta = 0 in closed form: the cross-terms vanish there (they grow with theta), so J is
+    blockdiag(S_ss(S_h), S_ss(S_2h)) with S_ss the real 2x2 form of A = S Theta (A = a_c - j a_s, Theta = theta_cos
+    - j theta_sin: d[a_c, a_s] / d[theta_cos, theta_sin] = [[Re S, Im S], [-Im S, Re S]])."""
+
+    def block(s: complex) -> np.ndarray:
+        return np.array([[s.real, s.imag], [-s.imag, s.real]])
+
+    j = np.zeros((4, 4))
+    j[0:2, 0:2], j[2:4, 2:4] = block(t["s_h"]), block(t["s_2h"])
+    return j
+
+
+def test_a_neighbours_jacobian_and_thetas_spare_the_probes():
+    """A sweep's neighbour (the same speed) gives every order's theta and its J over the same orders: the point
+    starts there, probes nothing, and lands on the joint optimum in fewer windows than probing."""
+    want_h, want_2h = joint_optimum(TRUTH)
+    near = Prior(
+        0.9 * want_h.real,
+        -0.9 * want_h.imag,
+        source="neighbour",
+        further=((12, 0.9 * want_2h.real, -0.9 * want_2h.imag),),
+        jacobian=tuple(tuple(row) for row in _jacobian_of(TRUTH)),
+        jacobian_orders=(6, 12),
+    )
+    probed = identify_orders(TwoOrderPlantSession(**TRUTH, seed=3), TRUTH["s_h"], OrdersOptions(), math.radians(15.0))
+    started = identify_orders(
+        TwoOrderPlantSession(**TRUTH, seed=3), TRUTH["s_h"], OrdersOptions(), math.radians(15.0), prior=near
+    )
+    assert started.details["jacobian_probed"] is False and probed.details["jacobian_probed"] is True
+    assert all(o["status"] == "ok" for o in started.details["orders"]), started.details["orders"]
+    assert started.windows_used < probed.windows_used
+    # a neighbour measured over other orders gives no J here: probed
+    other = Prior(0.0, 0.0, jacobian=near.jacobian, jacobian_orders=(6, 18))
+    assert other.orders_jacobian([6, 12]) is None
+    assert list(near.orders_theta([6, 12])) == pytest.approx([near.theta_cos, near.theta_sin, *near.further[0][1:]])
+
+
+def test_a_neighbours_jacobian_that_does_not_hold_is_probed_again():
+    """The neighbour's J with the 6th's path turned by 120 deg: the steps do not converge with it, the method
+    probes J here and still lands every order at its target."""
+    wrong = dict(TRUTH, s_h=TRUTH["s_h"] * cmath.exp(2.1j))
+    near = Prior(
+        0.0, 0.0, source="neighbour", jacobian=tuple(tuple(r) for r in _jacobian_of(wrong)), jacobian_orders=(6, 12)
+    )
+    result = identify_orders(
+        TwoOrderPlantSession(**TRUTH, seed=5), TRUTH["s_h"], OrdersOptions(), math.radians(15.0), prior=near
+    )
+    assert result.details["jacobian_probed"] is True and "did not hold" in result.message
+    assert all(o["status"] == "ok" for o in result.details["orders"]), result.details["orders"]

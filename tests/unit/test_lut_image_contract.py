@@ -81,7 +81,7 @@ def test_decode_refuses_another_format_version_and_map_id_0():
     image = bytearray(service_image(fixed_map()))
     struct.pack_into("<H", image, 4, 1)
     with pytest.raises(
-        lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2, 3, 4, 5, 6 and 7"
+        lut_image.LutImageError, match="unsupported format_version 1: this drive takes versions 2, 3, 4, 5, 6, 7 and 8"
     ):
         lut_image.decode(bytes(image))
     with pytest.raises(lut_image.LutImageError, match="map_id 0 is not in 1"):

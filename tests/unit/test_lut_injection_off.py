@@ -122,8 +122,8 @@ def test_flag_3_is_refused_in_a_version_3_image_and_version_4_is_what_the_drive_
     struct.pack_into("<H", blob, 4, 3)  # the same flags under a version 3 header
     with pytest.raises(lut_image.LutImageError, match="flags must be one of .* in a format_version 3 image"):
         lut_image.decode(bytes(blob) + struct.pack("<I", zlib.crc32(bytes(blob))))
-    struct.pack_into("<H", blob, 4, 8)
-    with pytest.raises(lut_image.LutImageError, match="takes versions 2, 3, 4, 5, 6 and 7"):
+    struct.pack_into("<H", blob, 4, 9)
+    with pytest.raises(lut_image.LutImageError, match="takes versions 2, 3, 4, 5, 6, 7 and 8"):
         lut_image.decode(bytes(blob) + struct.pack("<I", zlib.crc32(bytes(blob))))
 
 
@@ -185,7 +185,7 @@ def test_every_export_carries_the_off_cell(storage, tmp_path):
     assert float(by[OFF]["theta_cos_rad"]) == pytest.approx(theta(1.0, 1000.0)[0], abs=1e-15)  # the record
 
     doc = json.loads(export_map(m, "json"))
-    assert (doc["format_version"], doc["lut_format_version"]) == (3, 4)
+    assert (doc["format_version"], doc["lut_format_version"]) == (4, 4)
     assert doc["injection_off"] == [[[1, 0, 0], [0, 0, 0]]] and doc["valid"] == [[[0, 1, 1], [1, 1, 1]]]
     assert [(c["torque_nm"], c["speed_rpm"], c["udc_v"]) for c in doc["cells"] if c["injection_off"]] == [OFF]
 

@@ -203,7 +203,7 @@ def test_csv_has_filled_and_fill_source_columns():
 
 def test_json_carries_filled_apart_from_valid_and_the_interpolation_mode():
     doc = json.loads(export_map(refined_map(), "json", interpolation="polar"))
-    assert (doc["format_version"], doc["interpolation"], doc["lut_format_version"]) == (3, "polar", 3)
+    assert (doc["format_version"], doc["interpolation"], doc["lut_format_version"]) == (4, "polar", 3)
     assert sum(v for plane in doc["injection_off"] for row in plane for v in row) == 0
     assert json.loads(export_map(refined_map(), "json"))["interpolation"] == lut_image.DEFAULT_INTERPOLATION
     assert doc["axes"] == AXES and doc["index_order"] == ["udc_v", "speed_rpm", "torque_nm"]

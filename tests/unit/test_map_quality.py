@@ -177,7 +177,7 @@ def test_exports_keep_their_columns_and_keys_and_carry_quality_in_comments(stora
         "fill_source",
         "injection_off",
     }
-    assert doc["format_version"] == 3 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
+    assert doc["format_version"] == 4 and doc["quality"]["outliers"] == 1 and not doc["quality"]["smoothed_view"]
     assert doc["quality"]["cells"][0]["outlier_reason"].startswith("theta ")
     assert "quality: 1 outlier(s)" in export_map(m, "c") and "quality: 1 outlier(s)" in export_map(m, "dcm")
     # the smoothed export: same columns, one row changed, said in the header

@@ -153,7 +153,7 @@ export function mapHeatmap(slice, q) {
     range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false,
   });
   const layout = {
-    title: { text: `${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}${fillNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
+    title: { text: `${slice.orderLabel || ""}${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}${fillNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 },
     xaxis: axis("torque T* (N·m)", xs, xEdges),
     yaxis: axis("speed n (rpm)", ys, yEdges),

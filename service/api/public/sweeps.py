@@ -33,6 +33,10 @@ class SweepPublic(BaseModel):
     control_note: str | None = Field(None, description="a control request its bench's service refused, and why")
     method: str
     harmonic_order: int
+    orders: list[int] = Field(
+        default_factory=list,
+        description="the harmonic orders each point cancels (method probe-orders: options.orders), the run's first",
+    )
     grid: dict[str, Any]
     options: dict[str, Any]
     progress: dict[str, int] = Field(
@@ -51,6 +55,12 @@ class SweepPublic(BaseModel):
     kind: str = Field("sweep", description="sweep | refinement (a map refined on the drive: see `refinement`)")
     refinement: RefinementPublic | None = None
     points: list[SweepPointPublic] | None = None
+
+
+def sweep_orders(sweep: Mapping[str, Any]) -> list[int]:
+    """The orders a sweep cancels: its own harmonic order, then any further ones its method's options name."""
+    h = int(sweep["harmonic_order"])
+    return [h, *(int(o) for o in (sweep.get("options") or {}).get("orders") or [] if int(o) != h)]
 
 
 def sweep_public(
@@ -79,6 +89,7 @@ def sweep_public(
         control_note=sweep.get("control_note"),
         method=sweep["method"],
         harmonic_order=sweep["harmonic_order"],
+        orders=sweep_orders(sweep),
         grid=sweep["grid"],
         options=sweep["options"],
         progress={

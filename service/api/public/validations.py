@@ -10,6 +10,28 @@ from service.api.public.results import PhasorPublic
 from service.model.operating_point import OperatingPoint
 
 
+class OrderFigurePublic(BaseModel):
+    """A further order of a map of several orders at a validation point, judged from the point's own windows."""
+
+    order: int
+    suppression_db: float | None = None
+    above_floor_db: float | None = None
+    holds: bool | None = None
+    at_noise_floor: bool | None = None
+    uncompensated: PhasorPublic | None = None
+    residual: PhasorPublic | None = None
+
+
+class OrderSummaryPublic(BaseModel):
+    """An order's figures over a validation's grid and midpoint points (order null: the map's own)."""
+
+    order: int | None
+    points: int
+    held: int
+    median_db: float | None = None
+    min_db: float | None = None
+
+
 class ValidationCellPublic(BaseModel):
     """One point of a validation: a grid point or an untrained midpoint, measured in the drive's LUT mode."""
 
@@ -49,6 +71,9 @@ class ValidationCellPublic(BaseModel):
     bench_time_s: dict[str, float] | None = Field(
         None, description="wall seconds of the point by what they were spent on: move, accounting, settle, measurement"
     )
+    orders: list[OrderFigurePublic] | None = Field(
+        None, description="a map of several orders: every further order's figure at this point (the first's are above)"
+    )
 
 
 class ValidationSummaryPublic(BaseModel):
@@ -78,6 +103,9 @@ class ValidationSummaryPublic(BaseModel):
     runup_plant_time_s: float | None = Field(None, description="plant seconds of the run-up pairs (in plant_time_s)")
     runups_reused: int | None = Field(
         None, description="uncompensated run-ups reused from an earlier validation of the same refinement"
+    )
+    orders: list[OrderSummaryPublic] | None = Field(
+        None, description="a map of several orders: each order's points, held, median and minimum (grid and midpoints)"
     )
     items_reused: int | None = Field(
         None,

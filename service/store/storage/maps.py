@@ -24,15 +24,17 @@ class MapStore(Database):
         fills: dict[tuple[float, float, float], Any] | None = None,
         refined_from: int | None = None,
         provenance: dict[str, Any] | None = None,
+        further_orders: list[dict[str, Any]] | None = None,
     ) -> int:
         """A map of `cells` [(result_id, torque, speed, udc)]; `fills` {(torque, speed, udc): Fill} the
-        fill rule's entries for cells that are not ok (service/maps/fill.py)."""
+        fill rule's entries for cells that are not ok (service/maps/fill.py); `further_orders` [{order, cells}]
+        the further orders' cells of a map of several orders, in the order of `cells` (migrations/0013)."""
         fills = fills or {}
         with self.transaction() as conn:
             map_id = new_id(
                 conn.execute(
                     "INSERT INTO maps (sweep_id, harmonic_order, method, axes_json, bench_identity, software_version, "
-                    "created_at, refined_from, provenance_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    "created_at, refined_from, provenance_json, orders_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (
                         sweep_id,
                         harmonic_order,
@@ -43,6 +45,7 @@ class MapStore(Database):
                         now_iso(),
                         refined_from,
                         json.dumps(provenance) if provenance is not None else None,
+                        json.dumps(further_orders) if further_orders else None,
                     ),
                 )
             )

@@ -24,6 +24,7 @@ export function init({ openResultOf, onMapShown, shown }) {
   // another part of the map card asks for a map (e.g. a refinement's): detail = its id
   $("map-select").addEventListener("open-map", (e) => select(Number(e.detail)));
   $("udc-select").addEventListener("change", draw);
+  $("order-select").addEventListener("change", draw);
   if (!figures.plotlyLoaded()) {
     showMsg("map-note", ["Plotly.js did not load from /vendor/plotly.min.js — maps cannot be drawn."]);
   }
@@ -94,6 +95,10 @@ async function show(id) {
   const prev = usel.value;
   usel.replaceChildren(...udcs.map((u) => el("option", { value: String(u) }, `${u} V`)));
   if (udcs.some((u) => String(u) === prev)) usel.value = prev;
+  // a map of several orders: one heat map set per order, chosen here (the map's own order first)
+  const orders = m.orders && m.orders.length ? m.orders : [m.harmonic_order];
+  $("order-select").replaceChildren(...orders.map((h) => el("option", { value: String(h) }, `${h}th`)));
+  $("order-choice").hidden = orders.length < 2;
   const counts = {};
   for (const c of m.cells) counts[c.status] = (counts[c.status] || 0) + 1;
   const countText = Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(", ");
@@ -105,9 +110,11 @@ async function show(id) {
   const origin = m.refined_from ? `refined from ${m.refined_from} (refinement ${prov.refinement_id ?? m.sweep_id}, ` +
     `round ${prov.round ?? "—"}, ${prov.cells_added ?? "—"} cells added)` : `sweep ${m.sweep_id}`;
   $("map-meta").dataset.refinedFrom = m.refined_from ? String(m.refined_from) : "";
-  setText("map-meta", `h = ${m.harmonic_order} · method ${m.method || "—"} · ${origin} · ` +
+  const further = (m.further_orders || []).map((o) =>
+    ` · order ${o.order}: ${o.status_counts.ok || 0} ok of ${o.cells.length}, ${o.filled_cells} filled`).join("");
+  setText("map-meta", `h = ${orders.join(" + ")} · method ${m.method || "—"} · ${origin} · ` +
     `sw ${m.software_version || "—"} · ${m.cells.length} cells (${countText}) · ${filled} filled · ` +
-    `${q.outliers || 0} outlier(s)`);
+    `${q.outliers || 0} outlier(s)${further}`);
   // outliers (ringed in the plots) with the reason to act on
   const outliers = m.cells.filter((c) => c.quality === "outlier").map((c) =>
     `T* ${fmt(c.torque_nm)} N·m, n ${fmt(c.speed_rpm)} rpm, U_dc ${fmt(c.udc_v)} V: ${c.outlier_reason}`);
@@ -119,12 +126,21 @@ async function show(id) {
 function draw() {
   if (currentMap) onShown(currentMap, Number($("udc-select").value));
   if (!figures.plotlyLoaded() || !currentMap) return;
-  const slice = figures.mapSlice(currentMap, Number($("udc-select").value));
+  const slice = figures.mapSlice(orderShown(), Number($("udc-select").value));
+  // several orders: each heat map says whose it is
+  if ((currentMap.orders || []).length > 1) slice.orderLabel = `order ${$("order-select").value} · `;
   for (const q of figures.MAP_QUANTITIES) {
     const div = PLOT_DIV[q.key];
     figures.draw(div, figures.mapHeatmap(slice, q));
     figures.onClick(div, openCell);
   }
+}
+
+// the map as the chosen order's: a further order's cells in place of the map's own
+function orderShown() {
+  const order = Number($("order-select").value);
+  const further = (currentMap.further_orders || []).find((o) => o.order === order);
+  return further ? { ...currentMap, harmonic_order: order, cells: further.cells } : currentMap;
 }
 
 function openCell(pt) {

@@ -12,11 +12,16 @@ import { parseList } from "../grid-form.js";
 const LIST_LIMIT = 20;
 let runups = [];       // GET /runups, newest first
 let chosenId = null;   // the run-up drawn
+let cutOrder = null;   // the order whose cut is drawn (null: the run-up's harmonic order)
 
 export function init() {
   $("runup-form").addEventListener("submit", submit);
   $("runup-select").addEventListener("change", () => {
     chosenId = Number($("runup-select").value) || null;
+    draw();
+  });
+  $("runup-cut-order").addEventListener("change", () => {
+    cutOrder = Number($("runup-cut-order").value) || null;
     draw();
   });
 }
@@ -31,6 +36,7 @@ function request() {
     direction: v("runup-direction"),
     injection: v("runup-injection"),
   };
+  if (v("runup-decoupling") !== "") body.decoupling = v("runup-decoupling") === "on";
   if (v("runup-orders") !== "") {  // empty: the harmonic order and the survey of orders 1..48
     const orders = parseList(v("runup-orders"), "orders");
     if (orders.error) return { error: orders.error };
@@ -116,7 +122,12 @@ function draw() {
     return { label: `${before ? "before" : "after"} (injection ${j.request.injection}, run-up ${j.id})`,
       result: j.result, colour: figures.ORDER_CUT_COLOURS[before ? "before" : "after"], before };
   }).sort((a, b) => Number(b.before) - Number(a.before));
-  const order = result.harmonic_order;
+  // the order cut: the harmonic order unless another of the run-up's orders is chosen (each order of a LUT)
+  const orders = result.orders || [result.harmonic_order];
+  const order = orders.includes(cutOrder) ? cutOrder : result.harmonic_order;
+  const cutSelect = $("runup-cut-order");
+  cutSelect.replaceChildren(...orders.map((h) => el("option", { value: String(h) }, String(h))));
+  cutSelect.value = String(order);
   figures.draw("plot-order-cut", figures.orderCut(order, pair, `order ${order} along the ramp — before / after`));
   box.dataset.drawn = String(pair.length);
 }
