@@ -299,6 +299,8 @@ def identify_orders(
                 "delta_deg": math.degrees(delta_rad),
                 "suppression_db": suppression,
                 "target_db": options.target_db,
+                # the final window's noise against this order's uncompensated amplitude: how far 40 dB is resolvable
+                "noise_floor_db": noise_floor_db(final_w, float(uncompensated[k])),
                 "reason": reason,
                 "uncompensated": {
                     "a_c": float(a0[2 * k]),

@@ -691,6 +691,14 @@ def _c_interpolator(array: str, macro: str) -> str:
     return _C_INTERPOLATOR.replace("@A", array).replace("@M", macro)
 
 
+def export_cdfx(m: dict[str, Any], interpolation: str | None = None) -> str:
+    """ASAM CDF 2.0 (service/maps/cdfx.py), from the values every other export writes."""
+    from service.maps import cdfx  # it builds on this module's cell values: imported here, not at the top
+
+    mode = lut_codec.check_interpolation(interpolation)
+    return cdfx.export_cdfx(m, _order_maps(m), _grid_values, cell_flag, _interpolation_text(mode))
+
+
 def _dcm_number(x: float) -> str:
     """The shortest text that reads back as the same double (distinct breakpoints stay distinct)."""
     text = repr(float(x))
@@ -1022,6 +1030,7 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {
         ExportFormat("json", "JSON", "application/json", "json", export_json),
         ExportFormat("c", "C header", "text/x-csrc", "h", export_c),
         ExportFormat("dcm", "DCM (INCA / CANape)", "text/plain", "dcm", export_dcm),
+        ExportFormat("cdfx", "CDF 2.0 (CDFX: INCA / CANape / MATLAB)", "application/xml", "cdfx", export_cdfx),
     )
 }
 

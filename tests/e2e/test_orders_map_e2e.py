@@ -83,5 +83,11 @@ def test_every_export_of_the_two_order_map_names_both_orders(rig, two_order_map)
     assert "RIPPLECAL_H12_THETA_COS_U12V" in api.http.get(f"/maps/{map_id}/export", params={"format": "dcm"}).text
     header = api.http.get(f"/maps/{map_id}/export", params={"format": "c"}).text
     assert f"ripplecal_lut_map{map_id}_h12_theta(" in header and f"ripplecal_lut_map{map_id}_theta_orders(" in header
+    cdfx = api.http.get(f"/maps/{map_id}/export", params={"format": "cdfx"})
+    assert cdfx.headers["content-type"].startswith("application/xml")
+    assert (
+        "<SHORT-NAME>RIPPLECAL_H12_THETA_COS_U12V</SHORT-NAME>" in cdfx.text
+        and "<CATEGORY>CDF20</CATEGORY>" in cdfx.text
+    )
     rows = [line for line in api.http.get(f"/maps/{map_id}/export", params={"format": "csv"}).text.splitlines()]
     assert rows[[r.startswith("torque_nm") for r in rows].index(True)].endswith(",harmonic_order")

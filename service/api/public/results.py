@@ -51,6 +51,9 @@ class OrderResultPublic(BaseModel):
     delta_deg: float
     suppression_db: float
     target_db: float
+    noise_floor_db: float | None = Field(
+        None, description="the final window's noise against this order's uncompensated amplitude, dB"
+    )
     reason: str
 
 
@@ -157,4 +160,6 @@ def _orders(details: Mapping[str, Any] | None) -> list[OrderResultPublic] | None
     orders = (details or {}).get("orders")
     if not orders:
         return None
-    return [OrderResultPublic.model_validate({k: o[k] for k in OrderResultPublic.model_fields}) for o in orders]
+    return [
+        OrderResultPublic.model_validate({k: o[k] for k in OrderResultPublic.model_fields if k in o}) for o in orders
+    ]
