@@ -143,7 +143,7 @@ class CanBus:
         }
         for key in ("host", "port", "bitrate"):
             value = getattr(self, key)
-            if value is not None:
+            if value is not None and value != "":  # "" in a bench file: not set (TOML has no null)
                 kwargs[key] = value
         kwargs.update(self._extra_bus_kwargs)
         return kwargs

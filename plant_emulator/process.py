@@ -61,6 +61,7 @@ from .faults import ControlServer, FaultState
 from .load_machine import LoadMachineFirmware
 from .scope import Scope
 from .scpi_supply import DcSupply, ScpiServer
+from .slcan_server import SlcanServer
 from .socketcand_server import SocketcandServer
 
 log = logging.getLogger("plant_emulator")
@@ -105,6 +106,8 @@ class Emulator:
         self.scpi = ScpiServer(self.supply, port=supply_port)
         self.bus_channel = f"ripplecal-emulator-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self.can_server = SocketcandServer(self.bus_channel, port=can_port)
+        # the same bus as an slcan adapter (python-can's slcan interface over socket://): a second transport
+        self.slcan_server = SlcanServer(self.bus_channel)
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect(interface="virtual", channel=self.bus_channel, receive_own_messages=False)
@@ -123,6 +126,7 @@ class Emulator:
         self.faults = FaultState(self, sc.section("faults"), seed=sc.seed)
         self.control = ControlServer(self.faults, port=control_port)
         self.can_server.delay_for = self.faults.sdo_delay_for
+        self.slcan_server.delay_for = self.faults.sdo_delay_for
         self._threads: list[threading.Thread] = []
         self._closed = False
 
@@ -135,6 +139,8 @@ class Emulator:
                 "port": self.can_server.port,
                 "channel": self.can_server.channel,
             },
+            # the same bus for python-can's slcan interface: can.Bus(interface="slcan", channel=<this>)
+            "slcan": {"interface": "slcan", "channel": self.slcan_server.url},
             "daq": self.daq.link,  # stable path (symlink) that survives reconnects
             "daq_device": self.daq.name,
             "supply": self.scpi.url,
@@ -150,6 +156,7 @@ class Emulator:
     def start(self) -> "Emulator":
         warm_up()
         self.can_server.start()
+        self.slcan_server.start()
         self.scpi.start()
         self.control.start()
         self.drive.boot()
@@ -175,6 +182,7 @@ class Emulator:
             self.load.shutdown,
             self.network.disconnect,
             self.can_server.close,
+            self.slcan_server.close,
             self.scpi.close,
             self.control.close,
             self.daq.close,

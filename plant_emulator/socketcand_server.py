@@ -19,60 +19,18 @@ stops reading is dropped, never the server.
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import logging
 import socket
-import threading
 import time
 
 import can
 
-from .tcp_server import TcpServer
+from .can_bridge import BridgeClient, CanBridgeServer
 
 log = logging.getLogger(__name__)
 
 MAX_LINE_CHARS = 512
 RAW_GRACE_S = 0.2
-
-
-class _Client:
-    def __init__(self, sock: socket.socket, addr):
-        self.sock = sock
-        self.addr = addr
-        self.rx = ""
-        self.state = "hello"  # hello -> open -> raw
-        self.ready_at = 0.0
-        self.queued: list[str] = []
-        self.lock = threading.Lock()
-        self.dead = False
-
-    def send_text(self, text: str) -> None:
-        with self.lock:
-            self._send_locked(text)
-
-    def deliver(self, text: str | None, now: float) -> None:
-        """Send a frame line, or queue it while the handshake grace period runs."""
-        with self.lock:
-            if self.dead:
-                return
-            if now < self.ready_at:
-                if text is not None:
-                    self.queued.append(text)
-                return
-            out = "".join(self.queued) + (text or "")
-            self.queued.clear()
-            if out:
-                self._send_locked(out)
-
-    def _send_locked(self, text: str) -> None:
-        if self.dead:
-            return
-        try:
-            self.sock.sendall(text.encode("ascii"))
-        except OSError as exc:
-            log.info("socketcand client %s: send failed (%s), dropping", self.addr, exc)
-            self.dead = True
 
 
 def format_frame(msg: can.Message) -> str:
@@ -103,48 +61,25 @@ def parse_send(body: str) -> can.Message:
     return can.Message(arbitration_id=can_id, is_extended_id=extended, data=data, dlc=dlc)
 
 
-class SocketcandServer(TcpServer):
+class SocketcandServer(CanBridgeServer):
     """socketcand on host:port (port 0: pick a free one), bridged to virtual bus `bus_channel`."""
 
     log = log
 
     def __init__(self, bus_channel: str, host: str = "127.0.0.1", port: int = 0, channel: str = "can0"):
         self.channel = channel
-        self.bus = can.Bus(interface="virtual", channel=bus_channel, receive_own_messages=False)
-        super().__init__("socketcand-serve", host=host, port=port, backlog=8)
-        # fault hook: can_id -> seconds to hold a frame the emulator sends (0: none); held frames keep
-        # their order among themselves
-        self.delay_for = None
-        self._held: list[tuple[float, int, can.Message]] = []
-        self._held_seq = itertools.count()
-        self._threads.append(threading.Thread(target=self._pump, name="socketcand-pump", daemon=True))
+        super().__init__("socketcand-serve", bus_channel, host=host, port=port)
 
-    # -- lifecycle ---------------------------------------------------------------------------------
-    def close(self) -> None:
-        super().close()
-        self.bus.shutdown()
+    def format_frame(self, msg: can.Message) -> str:
+        return format_frame(msg)
 
-    @property
-    def client_count(self) -> int:
-        with self._clients_lock:
-            return len(self._clients)
-
-    # -- selector thread (TcpServer hooks) ---------------------------------------------------------
-    def on_accept(self, sock: socket.socket, addr) -> _Client:
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        client = _Client(sock, addr)
-        log.info("socketcand: client %s connected", addr)
+    def greeting(self, client: BridgeClient) -> None:
         client.send_text("< hi >")
-        return client
 
     def on_readable(self, sock: socket.socket) -> None:
-        client = self._clients.get(sock)
+        client = self.received(sock)
         if client is None:
             return
-        data = self.recv(sock)
-        if data is None:
-            return
-        client.rx += data.decode("ascii", errors="replace")
         while True:
             start = client.rx.find("<")
             if start < 0:
@@ -166,20 +101,7 @@ class SocketcandServer(TcpServer):
             client.rx = client.rx[end + 1 :]
             self._command(client, body)
 
-    def client_closed(self, sock: socket.socket) -> None:
-        client = self._clients.get(sock)
-        if client is not None:
-            log.info("socketcand: client %s disconnected", client.addr)
-        super().client_closed(sock)
-
-    def after_events(self) -> None:
-        self._reap()
-
-    def on_drop(self, sock: socket.socket, client: _Client | None) -> None:
-        if client is not None:
-            client.dead = True
-
-    def _command(self, client: _Client, body: str) -> None:
+    def _command(self, client: BridgeClient, body: str) -> None:
         word = body.split(" ", 1)[0] if body else ""
         if client.state == "hello":
             if word == "open":
@@ -196,6 +118,7 @@ class SocketcandServer(TcpServer):
             with client.lock:
                 client.ready_at = time.monotonic() + RAW_GRACE_S
                 client.state = "raw"
+                client.receiving = True
                 client._send_locked("< ok >")
             return
         if word == "echo":
@@ -210,45 +133,7 @@ class SocketcandServer(TcpServer):
             except ValueError as exc:
                 log.warning("socketcand: malformed %r from %s: %s", body, client.addr, exc)
                 return
-            msg.timestamp = time.time()
-            self.bus.send(msg)
-            self._broadcast(format_frame(msg), exclude=client)
+            self.from_client(client, msg)
             return
         # in raw mode an '< error ... >' reply would be parsed as an error frame: just drop
         log.warning("socketcand: unsupported command %r from %s, ignored", body, client.addr)
-
-    def _pump(self) -> None:
-        """Virtual bus -> all raw-mode clients; also releases frames queued during the grace period."""
-        while not self._stop.is_set():
-            now = time.monotonic()
-            while self._held and self._held[0][0] <= now:
-                self._broadcast(format_frame(heapq.heappop(self._held)[2]))
-            timeout = 0.05 if not self._held else max(0.0, min(0.05, self._held[0][0] - now))
-            try:
-                msg = self.bus.recv(timeout=timeout)
-            except Exception:
-                if self._stop.is_set():
-                    break
-                log.exception("socketcand: virtual bus receive failed")
-                continue
-            if msg is not None and not msg.is_error_frame and not msg.is_remote_frame:
-                delay = self.delay_for(msg.arbitration_id) if self.delay_for is not None else 0.0
-                if delay > 0.0:
-                    heapq.heappush(self._held, (time.monotonic() + delay, next(self._held_seq), msg))
-                else:
-                    self._broadcast(format_frame(msg))
-            else:
-                self._broadcast(None)
-
-    def _broadcast(self, text: str | None, exclude: _Client | None = None) -> None:
-        now = time.monotonic()
-        with self._clients_lock:
-            clients = [c for c in self._clients.values() if c.state == "raw" and c is not exclude]
-        for c in clients:
-            c.deliver(text, now)
-
-    def _reap(self) -> None:
-        with self._clients_lock:
-            dead = [s for s, c in self._clients.items() if c.dead]
-        for s in dead:
-            self.drop(s)

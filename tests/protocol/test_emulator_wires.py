@@ -195,3 +195,53 @@ def test_pty_offer_waits_while_read_and_gives_up_once_nobody_reads():
     finally:
         stop.set()
         pty.close()
+
+
+# -- slcan (plant_emulator/slcan_server.py), against python-can's own slcan interface ------------------
+
+
+def test_slcan_line_round_trip_and_refusals():
+    from plant_emulator.slcan_server import format_frame as slcan_line
+    from plant_emulator.slcan_server import parse_frame
+
+    msg = parse_frame("t70530A0BFF")
+    assert (msg.arbitration_id, bytes(msg.data), msg.is_extended_id) == (0x705, b"\x0a\x0b\xff", False)
+    assert slcan_line(msg) == "t70530A0BFF"
+    ext = parse_frame("T1ABCDEF120102")
+    assert (ext.arbitration_id, ext.is_extended_id, slcan_line(ext)) == (0x1ABCDEF1, True, "T1ABCDEF120102")
+    for bad in ("t7053010", "t80000", "t70590102030405060708090A", "t7"):
+        with pytest.raises(ValueError):
+            parse_frame(bad)
+
+
+def test_slcan_adapter_carries_frames_both_ways_and_refuses_bad_lines():
+    from plant_emulator.slcan_server import SlcanServer
+
+    channel = f"test-{uuid.uuid4().hex}"
+    srv = SlcanServer(channel).start()
+    internal = can.Bus(interface="virtual", channel=channel)
+    bus = can.Bus(interface="slcan", channel=srv.url, bitrate=500000, sleep_after_open=0)
+    try:
+        bus.send(can.Message(arbitration_id=0x605, data=b"\x40\x00\x10\x00\x00\x00\x00\x00", is_extended_id=False))
+        got = recv_until(internal, 0x605)
+        assert got is not None and bytes(got.data) == b"\x40\x00\x10\x00\x00\x00\x00\x00"
+        internal.send(can.Message(arbitration_id=0x585, data=b"\x43\x00\x10\x00\x92\x01\x02\x00", is_extended_id=False))
+        back = recv_until(bus, 0x585)
+        assert back is not None and bytes(back.data) == b"\x43\x00\x10\x00\x92\x01\x02\x00"
+        # a raw client: every command answered, a malformed frame or an unknown command refused with BEL
+        raw = socket.create_connection((srv.host, srv.port), timeout=2)
+        try:
+            replies = []
+            for line in (b"V\r", b"S6\r", b"t70512\r", b"O\r", b"t7051\r", b"Q\r", b"t7050\r"):
+                raw.sendall(line)
+                replies.append(raw.recv(64))
+            assert replies[0] == b"V1013\r" and replies[1] == b"\r"
+            assert replies[2] == b"\a"  # a frame before open
+            assert replies[3] == b"\r" and replies[4] == b"\a" and replies[5] == b"\a"
+            assert replies[6].startswith(b"z\r")
+        finally:
+            raw.close()
+    finally:
+        bus.shutdown()
+        internal.shutdown()
+        srv.close()

@@ -56,13 +56,23 @@ class EmulatorRig:
     def control(self, command: dict, timeout_s: float = 10.0) -> dict:
         return emulator_control(self.endpoints, command, timeout_s)
 
-    def bench_file(self, directory: Path, name: str = "emulated-bench") -> Path:
+    def bench_file(self, directory: Path, name: str = "emulated-bench", transport: str = "socketcand") -> Path:
+        """A bench file for the emulated bench; `transport` socketcand (its socketcand server) or slcan (the same
+        bus as an slcan adapter on socket://, opened by python-can's own slcan interface)."""
         ep, can = self.endpoints, self.endpoints["can"]
+        if transport == "slcan":
+            link = f'[can]\ninterface = "slcan"\nchannel = "{ep["slcan"]["channel"]}"\nbitrate = 500000\n'
+            options = "[can.options]\nsleep_after_open = 0\n"
+        else:
+            link = (
+                f'[can]\ninterface = "{can["interface"]}"\nchannel = "{can["channel"]}"\nhost = "{can["host"]}"\n'
+                f'port = {can["port"]}\n'
+            )
+            options = ""
         path = directory / f"{name}.toml"
         path.write_text(
             f'bench_name = "{name}"\n'
-            f'[can]\ninterface = "{can["interface"]}"\nchannel = "{can["channel"]}"\nhost = "{can["host"]}"\n'
-            f'port = {can["port"]}\ndrive_node = {ep["drive_node"]}\nload_node = {ep["load_node"]}\n'
+            f'{link}drive_node = {ep["drive_node"]}\nload_node = {ep["load_node"]}\n{options}'
             f'[daq]\nurl = "{ep["daq"]}"\nsample_rate_hz = {ep["sample_rate_hz"]}\n'
             f'[supply]\nurl = "{ep["supply"]}"\n'
         )
@@ -117,13 +127,14 @@ class Api:
 
 @contextlib.contextmanager
 def served_bench(
-    directory: Path, db_name: str, speedup: float = 0.0
+    directory: Path, db_name: str, speedup: float = 0.0, transport: str = "socketcand"
 ) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
     """An emulated bench and `ripplecal serve --bench` pointed at it, ready: (emulator, service, api, db);
-    both processes stopped on the way out. speedup > 0: the emulator paced (see EmulatorRig)."""
+    both processes stopped on the way out. speedup > 0: the emulator paced (see EmulatorRig); transport: the CAN
+    interface the service opens (EmulatorRig.bench_file)."""
     emu = EmulatorRig(speedup=speedup)
     db = directory / db_name
-    svc = ServiceProcess(db, "--bench", str(emu.bench_file(directory)))
+    svc = ServiceProcess(db, "--bench", str(emu.bench_file(directory, transport=transport)))
     try:
         svc.wait_ready()
         api = Api(svc, db)
