@@ -52,6 +52,7 @@ OD_ERROR_CODE = 0x603F
 OD_MODE_OF_OPERATION = 0x6060
 OD_MODE_DISPLAY = 0x6061
 OD_DEVICE_NAME = 0x1008
+OD_DEVICE_TYPE = 0x1000  # CiA 301: device profile in the low word
 OD_CONSUMER_HEARTBEAT = 0x1016
 OD_PRODUCER_HEARTBEAT = 0x1017
 OD_IDENTITY = 0x1018
@@ -178,6 +179,25 @@ class Cia402Master:
         the service letting go of the bus is not a lost heartbeat (no FAULT, no reset needed at the next
         start). Call it after disable(); arm_heartbeat_consumer (or connect()) arms it again."""
         self.write(OD_CONSUMER_HEARTBEAT, 1, 0)
+
+    def check_identity(self) -> str:
+        """The node's identity against our EDS, as connect() checks it (WrongDeviceError naming what answered),
+        and its device type (0x1000) too; a line saying what matched."""
+        self._check_identity()
+        entry = self.node.object_dictionary.get(OD_DEVICE_TYPE)
+        want = None if entry is None or getattr(entry, "default", None) is None else int(entry.default)
+        device_type = int(self.read(OD_DEVICE_TYPE))
+        if want is not None and device_type != want:
+            raise WrongDeviceError(
+                f"node {self.node_id} is not the {self.device_kind}: its device type (0x1000) is 0x{device_type:08X}, "
+                f"the {self.device_kind}'s EDS ({self.eds_path.name}) has 0x{want:08X}"
+            )
+        ids = ", ".join(
+            f"{label} 0x{int(self.read(OD_IDENTITY, sub)):X}"
+            for sub, label in IDENTITY_FIELDS
+            if self._eds_default(OD_IDENTITY, sub) is not None
+        )
+        return f"device type 0x{device_type:08X}, {ids}, as {self.eds_path.name}"
 
     def _check_identity(self) -> None:
         """The node answers with the vendor id and product code (0x1018:1, :2) of our EDS, else

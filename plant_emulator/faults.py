@@ -23,6 +23,10 @@ Control protocol: JSON lines; each command gets one reply line, `{"ok": true, ..
                                                  MEAS:VOLT? 0, the drive's power stage has no DC link:
                                                  drive_firmware.py's udc_min_v) and OUTP ON is refused
                                                  (SCPI error -221) until clear
+    {"fault": "miswire", "what": "angle_reversed"}   the bench wired wrong, for the bring-up check: angle_reversed
+                                                 (the encoder counts backwards), sync_absent (the sync line
+                                                 not wired: its flag never set), accel_disconnected (the
+                                                 accelerometer's input reads 0); "on": false undoes one
     {"fault": "clear"}                           rates 0, SDO delay 0, heartbeats produced again, the
                                                  supply's output follows its setpoint again (a tripped
                                                  output stays off until OUTP ON, as on a real supply; a
@@ -54,11 +58,14 @@ import time
 
 import numpy as np
 
+from drivers.daq_protocol import CRC_FIRST, CRC_STOP, FLAG_SYNC_INPUT, FRAME_BYTES, crc16_rows
+
 from .tcp_server import TcpServer
 
 log = logging.getLogger(__name__)
 
 MAX_LINE_BYTES = 4096
+MISWIRINGS = ("angle_reversed", "sync_absent", "accel_disconnected")
 
 
 class FaultState:
@@ -76,6 +83,7 @@ class FaultState:
         self.bytes_dropped = 0
         self.bytes_corrupted = 0
         self.events: list[dict] = []
+        self.miswired: set[str] = set()  # MISWIRINGS in force (the bring-up check's cases)
         config = config or {}
         self.drop_rate = float(config.get("daq_drop_bytes_rate", 0.0))
         self.corrupt_rate = float(config.get("daq_corrupt_rate", 0.0))
@@ -93,6 +101,21 @@ class FaultState:
             ev = self.events.pop(0)
             reply = self.command({k: v for k, v in ev.items() if k != "at_s"})
             log.info("timed fault %r at %.3f s: %r", ev, plant_time_s, reply)
+
+    def miswire(self, frames: np.ndarray) -> None:
+        """The DAQ frames (FRAME_DTYPE, in place) as a mis-wired bench delivers them (`miswired`), CRC made again:
+        the wire is fine, the wiring is not."""
+        wrong = self.miswired
+        if not wrong:
+            return
+        if "angle_reversed" in wrong:
+            frames["angle"] = (-frames["angle"].astype(np.int64)) & 0xFFFF
+        if "sync_absent" in wrong:
+            frames["flags"] &= ~np.uint16(FLAG_SYNC_INPUT)
+        if "accel_disconnected" in wrong:
+            frames["accel"] = 0
+        raw = frames.view(np.uint8).reshape(len(frames), FRAME_BYTES)
+        frames["crc"] = crc16_rows(raw[:, CRC_FIRST:CRC_STOP])
 
     def apply_daq(self, data: bytes) -> bytes:
         """The DAQ bytes as the wire delivers them under the current drop/corrupt rates."""
@@ -174,7 +197,16 @@ class FaultState:
             self.emu.supply.drift_to(float(cmd["volts"]))
         elif fault == "supply_output_off":
             self.emu.supply.trip_output()
+        elif fault == "miswire":
+            what = str(cmd.get("what"))
+            if what not in MISWIRINGS:
+                raise ValueError(f"miswire what {what!r}: one of {', '.join(MISWIRINGS)}")
+            if cmd.get("on", True):
+                self.miswired.add(what)
+            else:
+                self.miswired.discard(what)
         elif fault == "clear":
+            self.miswired.clear()
             self.drop_rate = self.corrupt_rate = self.sdo_delay_s = 0.0
             self.emu.supply.clear_faults()
             for dev in (self.emu.drive, self.emu.load):
@@ -192,6 +224,7 @@ class FaultState:
             "sdo_delay_s": self.sdo_delay_s,
             "heartbeat_stopped": sorted(self.heartbeat_stopped),
             "daq_disconnected": self.daq_disconnected,
+            "miswired": sorted(self.miswired),
             "bytes_dropped": self.bytes_dropped,
             "bytes_corrupted": self.bytes_corrupted,
             "pending_events": len(self.events),

@@ -52,6 +52,7 @@ import numpy as np
 
 from drivers import DRIVE_EDS, LOAD_EDS
 from drivers.blas_threads import one_blas_thread
+from drivers.daq_protocol import FRAME_DTYPE
 
 from . import physics as ph
 from . import scenario as scn
@@ -286,6 +287,7 @@ class Emulator:
             math.hypot(float(self.plant.x[ph.X_ID]), float(self.plant.x[ph.X_IQ])),  # |i_dq| at the piece's end
         )
         self.load.publish(speed_rpm, float(last[ph.Y_LOAD_TORQUE_SUM]) / last_count)
+        self.faults.miswire(frames.view(FRAME_DTYPE))  # in place: a view of the bytes as frames
         return self.faults.apply_daq(frames.tobytes())
 
     # -- the two disciplines -------------------------------------------------------------------------

@@ -238,6 +238,16 @@ class CalibrationService:
         """An interlock tripped (monitor/CAN thread): tell the dashboard at once."""
         self.broker.publish("bench.interlock", trip.public())
 
+    def bench_check(self, spin: bool = False) -> dict:
+        """The bring-up check (service/bench/bringup.py): {ok, checks: [{name, ok, detail, fix}]}. Conflict while a
+        run holds the bench (its reads would interleave with the run's)."""
+        from service.bench.bringup import check_bench
+
+        if self.bench.busy:
+            raise Conflict("the bench is busy with a run: check it when the run has ended")
+        checks = [c.as_dict() for c in check_bench(self.bench, self.settings, spin)]
+        return {"ok": all(c["ok"] for c in checks), "spin": spin, "checks": checks}
+
     def fault_reset(self) -> dict:
         """A person acknowledges a drive/load fault (POST /bench/fault-reset). Conflict: the bench is busy or
         a device is still braking (try again); BenchFailed: an SDO timeout, the drive stayed in FAULT."""

@@ -110,6 +110,25 @@ def _path_without_query(record: logging.LogRecord) -> bool:
     return True
 
 
+def cmd_bench_check(args) -> int:
+    """The bring-up check (service/bench/bringup.py): one line per check on stdout; 0 only when every one passed."""
+    from service.calibration_service import CalibrationService
+
+    settings = settings_from(args)
+    storage = open_database(settings)
+    output.starting_bench(args.bench)
+    with CalibrationService(settings, storage=storage) as service:
+        report = service.bench_check(spin=args.spin)
+    if args.json:
+        print(json.dumps(report, indent=1))
+    else:
+        for c in report["checks"]:
+            mark = "ok  " if c["ok"] else "FAIL"
+            print(f"{mark} {c['name']}: {c['detail']}" + ("" if c["ok"] or not c["fix"] else f"\n     fix: {c['fix']}"))
+        print("all checks passed" if report["ok"] else "some checks failed: fix them before a run")
+    return 0 if report["ok"] else 1
+
+
 def cmd_identify(args) -> int:
     """One operating point; its states and accepted windows on stderr as the engine publishes them."""
     from service.api.public.results import result_public

@@ -8,6 +8,7 @@ import sys
 from drivers.lut_image import DEFAULT_INTERPOLATION, INTERPOLATIONS
 from service import __version__
 from service.cli.handlers import (
+    cmd_bench_check,
     cmd_export,
     cmd_identify,
     cmd_maps,
@@ -201,6 +202,25 @@ def _parser_sweeps(sub) -> None:
     p.set_defaults(func=cmd_sweeps, bench=None)
 
 
+def _parser_bench(sub) -> None:
+    p = sub.add_parser("bench", help="the bench itself: the bring-up check")
+    bsub = p.add_subparsers(dest="bench_cmd", required=True)
+    c = bsub.add_parser(
+        "check",
+        help="check the bench before a night: one line per check with what was found and the fix; exit 0 only "
+        "when all pass",
+    )
+    _add_bench_args(c)
+    c.add_argument(
+        "--spin",
+        action="store_true",
+        help="turn the shaft slowly without torque for the angle, "
+        "accelerometer and sync-line checks (interlocked, safe at the end)",
+    )
+    c.add_argument("--json", action="store_true", help="print the checks as JSON")
+    c.set_defaults(func=cmd_bench_check)
+
+
 def _parser_paper(sub) -> None:
     p = sub.add_parser(
         "paper", help="reproduce the paper's Fig. 8-12 on the emulated bench (report.html, results.json)"
@@ -220,6 +240,7 @@ COMMANDS = (
     _parser_maps,
     _parser_sweeps,
     _parser_paper,
+    _parser_bench,
 )
 
 
