@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -136,3 +137,55 @@ def test_wrong_pole_pairs_are_named_with_the_right_number(tmp_path):
 def test_the_cli_check_of_the_emulated_bench_passes(tmp_path):
     code, report = _cli_check(tmp_path, "--emulate")
     assert code == 0 and report["ok"], report
+
+
+def _bench_file_with(emu: EmulatorRig, directory, name: str) -> Path:
+    """The emulated bench's file with one thing wrong, as a lab writes it by mistake."""
+    ep = emu.endpoints
+    text = emu.bench_file(directory).read_text()
+    wrong = {
+        "can_channel": text.replace('interface = "socketcand"', 'interface = "slcan"').replace(
+            f'channel = "{ep["can"]["channel"]}"', 'channel = "/dev/ttyNOPE0"'
+        ),
+        "daq_regular_file": text.replace(ep["daq"], str(directory / "regular.txt")),
+        "nodes_swapped": text.replace("drive_node = 5", "drive_node = 6").replace("load_node = 6", "load_node = 5"),
+        # the socketcand port answers, but not SCPI: garbage to *IDN?
+        "supply_garbage": text.replace(ep["supply"], f"socket://127.0.0.1:{ep['can']['port']}"),
+    }[name]
+    (directory / "regular.txt").write_text("not a serial port\n")
+    path = directory / f"{name}.toml"
+    path.write_text(wrong)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("case", "device", "fix"),
+    [
+        ("can_channel", "links: CAN bus", "can.interface/channel/host/port name it"),
+        ("daq_regular_file", "links: DAQ", "daq.url names the DAQ's serial port"),
+        ("nodes_swapped", "links: drive (node 6)", "are can.drive_node and can.load_node swapped?"),
+        ("supply_garbage", "links: DC supply", "supply.url names its port"),
+    ],
+)
+def test_a_bad_bench_file_starts_the_service_with_the_bench_unavailable_and_one_line(tmp_path, case, device, fix):
+    """Issue 29 step 4: the service starts (no traceback, no exit), the bench status says unavailable, and the check
+    names the device, what it found and the fix."""
+    emu = EmulatorRig()
+    try:
+        svc = ServiceProcess(tmp_path / "b.db", "--bench", str(_bench_file_with(emu, tmp_path, case)))
+        try:
+            svc.wait_ready(60, connected=False)
+            api = Api(svc, tmp_path / "b.db")
+            try:
+                status = api.wait(lambda: (s := api.get("/bench/status"))["error"] and s, 30, "the bench's error")
+                assert not status["connected"] and "Traceback" not in status["error"], status
+                report = api.get("/bench/check")
+                assert not report["ok"] and len(report["checks"]) == 1, report
+                (line,) = report["checks"]
+                assert line["name"] == device and fix in line["fix"], line
+            finally:
+                api.close()
+        finally:
+            svc.stop()
+    finally:
+        emu.stop()
