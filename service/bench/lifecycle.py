@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 from typing import Callable, Iterator
@@ -35,6 +36,8 @@ from service.model.operating_point import OperatingPoint
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+
+MAX_BRAKE_PLANT_S = 60.0  # a shaft still braking after this long is stuck, whatever its progress
 
 
 class RunLifecycle:
@@ -239,16 +242,23 @@ class RunLifecycle:
     def _wait_standstill(
         self, accounting: SetpointAccounting, load: LoadClient, timeout_plant_s: float, below_rpm: float = 20.0
     ) -> None:
-        """Consume the DAQ until the encoder shows the shaft below `below_rpm` (bounded on the DAQ
-        clock); without a DAQ, poll the load machine's velocity actual instead (wall clock, same bound)."""
+        """Consume the DAQ until the encoder shows the shaft below `below_rpm`, bounded on the DAQ clock: the
+        bound counts from the last time the shaft had slowed by a fifth (a load braking from 3200 rpm at its own
+        ramp takes longer than the bound, and is braking, not stuck), never past MAX_BRAKE_PLANT_S; without a DAQ,
+        poll the load machine's velocity actual instead (wall clock, the bound alone)."""
         rate = self.settings.daq.sample_rate_hz
         block = int(0.02 * rate)
         cursor = accounting.cursor
         try:
             start = None
-            while start is None or cursor.last_index - start < timeout_plant_s * rate:
+            slowed_at, slowest_rpm = 0, math.inf
+            while start is None or (
+                cursor.last_index - slowed_at < timeout_plant_s * rate
+                and cursor.last_index - start < MAX_BRAKE_PLANT_S * rate
+            ):
                 chunk = cursor.read(block).samples
-                start = int(chunk.index[0]) if start is None else start
+                if start is None:
+                    start = slowed_at = int(chunk.index[0])
                 try:  # over the block's contiguous runs: the angle's step across a DAQ gap is unknown
                     speed_rpm = mechanical_speed_rpm(
                         chunk.angle_rad, rate, self.settings.motor.pole_pairs, chunk.gap_before
@@ -257,6 +267,8 @@ class RunLifecycle:
                     continue
                 if abs(speed_rpm) < below_rpm:
                     return
+                if abs(speed_rpm) < 0.8 * slowest_rpm:  # still braking: the bound counts from here
+                    slowed_at, slowest_rpm = int(chunk.index[-1]), abs(speed_rpm)
         except DaqError as exc:
             log.warning("standstill judged on the load's speed: DAQ unavailable (%s)", exc)
             accounting.doubt("the DAQ was unavailable at the end of a run")
@@ -267,5 +279,6 @@ class RunLifecycle:
                     return
                 time.sleep(0.02)
         raise BenchError(
-            f"shaft still turning {timeout_plant_s:g} s (plant time, DAQ sample clock) after the stop command"
+            f"shaft still turning {timeout_plant_s:g} s (plant time, DAQ sample clock) after it last slowed, after "
+            "the stop command"
         )

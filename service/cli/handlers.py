@@ -352,10 +352,15 @@ def _download_map(args) -> int:
             output.error(f"drive refused the LUT: {exc}")
             return 1
         identity = service.bench.identity
+    # without --bench the LUT went into an emulator of this command's own, gone with it: say so, never the name of
+    # a bench (a `serve` elsewhere may hold another map in its emulated drive)
+    throwaway = args.bench is None
     if args.json:
-        output.as_json({**receipt.model_dump(), **lut.receipt_fields(), "bench": identity})
+        output.as_json(
+            {**receipt.model_dump(), **lut.receipt_fields(), "bench": identity, "throwaway_emulator": throwaway}
+        )
     else:
-        output.lut_downloaded(receipt, lut, identity)
+        output.lut_downloaded(receipt, lut, identity, throwaway)
     return 0
 
 

@@ -187,14 +187,20 @@ def maps(rows: list) -> None:
         )
 
 
-def lut_downloaded(receipt, lut, identity: str) -> None:
+def lut_downloaded(receipt, lut, identity: str, throwaway: bool = False) -> None:
     filled = f", {lut.filled_cells} filled" if lut.fill else ", fill left out"
     if lut.injection_off_cells:
         filled += f", {lut.injection_off_cells} injection off"
+    where = (
+        "in the drive of an emulated bench of this command's own (gone now: give --bench FILE to load a bench's "
+        "drive; a running `ripplecal serve` downloads with POST /api/v1/maps/{id}/download)"
+        if throwaway
+        else f"in the drive of {identity}"
+    )
     print(
         f"map {receipt.map_id}: {receipt.bytes} bytes ({receipt.valid_cells} of {receipt.cells} cells ok{filled}, "
         f"{lut.interpolation} interpolation, h = {receipt.harmonic_order}{', forced' if receipt.forced else ''}) "
-        f"in the drive of {identity}; CRC-32 read back {receipt.crc32}"
+        f"{where}; CRC-32 read back {receipt.crc32}"
     )
 
 

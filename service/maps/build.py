@@ -14,11 +14,18 @@ from service.maps.fill import fill_cells
 from service.store.storage import Storage
 
 
-def build_map_from_sweep(storage: Storage, sweep_id: int) -> int:
-    """The sweep's map: the current result of every grid cell, and the fill of those that are not ok."""
+def build_map_from_sweep(storage: Storage, sweep_id: int, cancelled: bool = False) -> int:
+    """The sweep's map: the current result of every grid cell, and the fill of those that are not ok. `cancelled`:
+    the sweep was cancelled before its end, and the map says it is partial (provenance `partial`)."""
     sweep = storage.get_sweep(sweep_id)
     if sweep is None:
         raise KeyError(f"sweep {sweep_id} does not exist")
+    provenance = None
+    if cancelled:
+        provenance = {
+            "partial": f"sweep {sweep_id} was cancelled after {sweep['done_points']} of {sweep['total_points']} "
+            "points: the cells not measured are missing (or filled from their neighbours)"
+        }
     grid = sweep["grid"]
     axes = {"torque_nm": grid["torque_nm"], "speed_rpm": grid["speed_rpm"], "udc_v": grid["udc_v"]}
     return build_map(
@@ -29,6 +36,7 @@ def build_map_from_sweep(storage: Storage, sweep_id: int) -> int:
         sweep["harmonic_order"],
         sweep["method"],
         sweep["bench_identity"],
+        provenance=provenance,
         attempts=storage.sweep_result_history(sweep_id),
     )
 

@@ -227,6 +227,8 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
     orders = map_orders(m)
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
+    if m.get("partial"):
+        buf.write(f"# PARTIAL: {m['partial']}\n")
     if len(orders) > 1:
         buf.write(
             f"# several orders: {', '.join(str(h) for h in orders)}, each cell once per order (column harmonic_order);"

@@ -109,6 +109,9 @@ class MapView(BaseModel):
     provenance: dict[str, Any] | None = Field(
         None, description="how a refined map was made: refinement, rounds, cells added"
     )
+    partial: str | None = Field(
+        None, description="a map of a sweep cancelled before its end: what was measured (the rest is missing or filled)"
+    )
     orders: list[int] = Field(
         default_factory=list, description="the harmonic orders the map compensates, its own (harmonic_order) first"
     )
@@ -248,6 +251,7 @@ def map_view(storage: Storage, map_id: int, smooth: bool = False) -> MapView | N
         provenance=row.get("provenance"),
         quality=summary,
         smoothed=smooth,
+        partial=(row.get("provenance") or {}).get("partial"),
         further_orders=(further := _further_orders(cast(dict[str, Any], row))),
         orders=[row["harmonic_order"], *(o.order for o in further)],
     )

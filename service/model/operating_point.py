@@ -28,9 +28,16 @@ class OperatingPoint(BaseModel):
 
     # NaN / inf never reach a limit check or the drive: NaN compares False with every limit
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    torque_nm: float = Field(..., ge=-50, le=50, description="torque command T* in Nm")
-    speed_rpm: float = Field(..., gt=0, le=30000, description="mechanical speed in rpm (> 0)")
-    udc_v: float = Field(12.0, gt=0, le=1000, description="DC-link voltage in V")
+    # no upper bounds here (a speed or a voltage is > 0, whatever the bench): the bench's own limits (safety.*, service/model/limits.py check_limits) judge every value
+    # before anything is queued or sent, and name the limit that applies to this bench (a bound here answered
+    # first, with a library's words and a limit that was not the bench's)
+    torque_nm: float = Field(..., description="torque command T* in Nm (within safety.max_torque_nm)")
+    speed_rpm: float = Field(
+        ..., gt=0, description="mechanical speed in rpm, > 0 (within safety.min_speed_rpm .. safety.max_speed_rpm)"
+    )
+    udc_v: float = Field(
+        12.0, gt=0, description="DC-link voltage in V, > 0 (within safety.min_udc_v .. safety.max_udc_v)"
+    )
 
     def electrical_speed_rad_s(self, pole_pairs: int) -> float:
         return self.speed_rpm * 2.0 * math.pi / 60.0 * pole_pairs

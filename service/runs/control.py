@@ -134,7 +134,7 @@ class Controls:
                     # paused with its job parked: nothing runs it, so it ends here with what it measured
                     job_id, ctl.parked_job = ctl.parked_job, None
                     map_id = (
-                        build_map_from_sweep(self.host.storage, sweep_id)
+                        build_map_from_sweep(self.host.storage, sweep_id, cancelled=True)
                         if sweep["started_at"]
                         and sweep.get("kind", "sweep") == "sweep"
                         and self.host.storage.sweep_results(sweep_id)

@@ -29,6 +29,7 @@ from service.model.limits import (
     check_any_inside,
     check_limits,
     outside_envelope,
+    setpoint_problem,
 )
 from service.model.operating_point import OperatingPoint, field_weakening_onset
 from service.runs.identify import PlantTimeError, check_plant_time, plant_time_bound_s
@@ -121,6 +122,19 @@ class SweepPlan:
             raise LimitError(
                 f"{len(problems)} point(s) outside the bench limits: " + " | ".join(problems[:10]), per_field
             )
+
+
+def check_grid_limits(grid: Grid, settings: Settings) -> None:
+    """LimitError naming, per axis (its field in the grid), every value outside the bench's hard limits, in the words
+    and with the limits of this bench (service/model/limits.py setpoint_problem), before a point is made of them."""
+    problems = []
+    for field in ("torque_nm", "speed_rpm", "udc_v"):
+        found = [p for v in getattr(grid, field) if (p := setpoint_problem(field, v, settings.safety)) is not None]
+        if found:
+            more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
+            problems.append((field, " | ".join(found[:5]) + more))
+    if problems:
+        raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
 
 
 def _named(op: OperatingPoint, msg: str) -> str:

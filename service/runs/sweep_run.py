@@ -110,7 +110,7 @@ class SweepRunner:
                 "points are stored",
             )
             return
-        map_id = build_map_from_sweep(self.storage, sweep_id)
+        map_id = build_map_from_sweep(self.storage, sweep_id, cancelled=ctl.cancel.is_set())
         final = SweepState.CANCELLED if ctl.cancel.is_set() else SweepState.DONE
         self.host.set_sweep(sweep_id, final, finished_at=now_iso(), map_id=map_id)
 

@@ -136,6 +136,14 @@ def test_a_paused_sweep_cancelled_ends_with_what_it_measured(svc):
     sweep = svc.storage.get_sweep(sweep_id)
     assert sweep["state"] == "cancelled" and sweep["map_id"] is not None
     assert next(j for j in svc.storage.list_jobs() if j["sweep_id"] == sweep_id)["state"] == "cancelled"
+    # the map says it is partial (issue 30: a cancelled sweep's map looked whole), and its CSV says so too
+    from service.maps.lut_export import export_map
+    from service.maps.view import map_view
+
+    m = map_view(svc.storage, sweep["map_id"])
+    assert m is not None and m.partial is not None and "cancelled after" in m.partial, m
+    assert f"of {sweep['total_points']} points" in m.partial
+    assert "# PARTIAL: " in export_map(m.model_dump(), "csv")
 
 
 def test_corrupted_windows_are_refused_then_measured_again(svc):

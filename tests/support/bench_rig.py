@@ -79,7 +79,13 @@ class EmulatorRig:
         return path
 
     def stop(self) -> None:
+        """An orderly stop, said first (plant_emulator/process.py STOP_LINE: no warning of a parent gone)."""
         if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("stop\n")
+                self.proc.stdin.flush()
+            except (BrokenPipeError, OSError):
+                pass
             self.proc.stdin.close()
             self.proc.terminate()
             try:

@@ -45,7 +45,7 @@ def bench_check(service: ServiceDep) -> dict:
     return service.bench_check(spin=False)
 
 
-@router.post("/bench/check", response_model=BenchCheckPublic, responses=error_responses(401, 403, 409))
+@router.post("/bench/check", response_model=BenchCheckPublic, responses=error_responses(400, 401, 403, 409, 413))
 def bench_check_spin(body: BenchCheckCreate, service: ServiceDep, _: OperatorDep) -> dict:
     """The bring-up check with a slow spin (operator: the shaft turns): also the angle's sign and rate against
     velocity actual and pole pairs, the accelerometer, the sync line."""

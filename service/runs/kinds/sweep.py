@@ -11,7 +11,7 @@ from service import __version__
 from service.identification.common import MethodOptions
 from service.runs.identify import check_plant_time
 from service.runs.kinds.host import JobHost, JobKind
-from service.runs.plans import Grid, PlannedGrid, RegimePlacement, SweepPlan, plan_grid
+from service.runs.plans import Grid, PlannedGrid, RegimePlacement, SweepPlan, check_grid_limits, plan_grid
 from service.runs.sweep_run import job_sweep_id, stored_plan, stored_sweep
 from service.store.records import JobRecord, SweepRecord
 
@@ -35,6 +35,7 @@ def submit(
     machine: refused here)."""
     own = host.is_own(bench)
     if own:
+        check_grid_limits(grid, host.settings)  # each value against this bench's limits, named by its axis
         host.bench.check_reachable()
         grid = (planned or plan_grid(grid, regime, host.settings)).grid
     elif regime is not None:

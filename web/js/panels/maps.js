@@ -119,6 +119,8 @@ async function show(id) {
   const outliers = m.cells.filter((c) => c.quality === "outlier").map((c) =>
     `T* ${fmt(c.torque_nm)} N·m, n ${fmt(c.speed_rpm)} rpm, U_dc ${fmt(c.udc_v)} V: ${c.outlier_reason}`);
   showMsg("map-quality", outliers.length ? outliers : null, outliers.length ? "Outliers against their neighbours" : undefined);
+  // a cancelled sweep's map: say it is partial, before anyone downloads it
+  if (m.partial) showMsg("map-note", [m.partial], "Partial map");
   draw();
   mapShown(id);
 }
