@@ -13,6 +13,11 @@ from service.calibration_service import CalibrationService
 
 ROLE_RANK = {"viewer": 0, "operator": 1, "admin": 2}
 _bearer = HTTPBearer(auto_error=False)
+# where a 401 sends a person: the dashboard's token field, the header for a client, and how a token is made
+HOW_TO_GET_A_TOKEN = (
+    "enter an operator token in the dashboard's \"API token\" field (in its header) or send 'Authorization: Bearer <token>'; "
+    "create one on the service's machine with `ripplecal token create --role operator`"
+)
 
 
 def get_service(request: Request) -> CalibrationService:
@@ -39,7 +44,7 @@ def require_role(minimum: str):
         if credentials is None or credentials.scheme.lower() != "bearer":
             raise HTTPException(
                 status.HTTP_401_UNAUTHORIZED,
-                "a bearer token is required for this route",
+                f"a bearer token is required for this route: {HOW_TO_GET_A_TOKEN}",
                 headers={"WWW-Authenticate": "Bearer"},
             )
         client = request.client.host if request.client else "unknown"
@@ -55,7 +60,9 @@ def require_role(minimum: str):
         if role is None:
             throttle.failed(client)
             raise HTTPException(
-                status.HTTP_401_UNAUTHORIZED, "token unknown or revoked", headers={"WWW-Authenticate": "Bearer"}
+                status.HTTP_401_UNAUTHORIZED,
+                f"token unknown or revoked: {HOW_TO_GET_A_TOKEN}",
+                headers={"WWW-Authenticate": "Bearer"},
             )
         if ROLE_RANK[role] < ROLE_RANK[minimum]:
             raise HTTPException(status.HTTP_403_FORBIDDEN, f"role {role} may not do this; {minimum} or higher needed")

@@ -75,6 +75,19 @@ def check_timezone(name: str) -> ZoneInfo:
     return ZoneInfo(name)
 
 
+# what each field of a cron expression takes (Debian cron), for the refusal of a bad one
+CRON_FIELDS = {
+    "minute": "0-59",
+    "hour": "0-23",
+    "day-of-month": "1-31",
+    "day of month": "1-31",
+    "month": "1-12 or jan-dec",
+    "day-of-week": "0-7 or sun-sat",
+    "day of week": "0-7 or sun-sat",
+}
+CRON_RANGES = "minute 0-59, hour 0-23, day-of-month 1-31, month 1-12, day-of-week 0-7; * , - / allowed"
+
+
 def check_cron(expr: str) -> str:
     """A 5-field cron expression (minute hour day-of-month month day-of-week) that fires at some time;
     returned with single spaces."""
@@ -85,7 +98,10 @@ def check_cron(expr: str) -> str:
     try:
         next(CronSim(normal, datetime(2000, 1, 1, tzinfo=UTC)))
     except CronSimError as exc:
-        raise ValueError(f"cron {normal!r}: {exc}") from None
+        # cronsim names the field ("Bad minute"); say what that field takes
+        field = next((f for f in CRON_FIELDS if f in str(exc).lower()), None)
+        takes = f" ({field} takes {CRON_FIELDS[field]})" if field else f" (the fields take {CRON_RANGES})"
+        raise ValueError(f"cron {normal!r}: {exc}{takes}") from None
     except StopIteration:
         raise ValueError(f"cron {normal!r} never fires") from None
     return normal

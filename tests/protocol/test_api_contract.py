@@ -32,7 +32,7 @@ def test_state_changing_routes_need_a_token(api, method, path, body):
     client, _ = api
     r = getattr(client, method)(path, json=body)
     assert r.status_code == 401
-    assert "token" in r.json()["detail"]
+    assert "token" in r.json()["detail"] and "ripplecal token create --role operator" in r.json()["detail"]
     r = getattr(client, method)(path, json=body, headers={"Authorization": "Bearer not-a-token"})
     assert r.status_code == 401
 

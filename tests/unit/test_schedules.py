@@ -50,7 +50,8 @@ def test_preview_names_the_times_debian_cron_runs_on_the_change_days():
     [
         ("* * * *", "5 fields"),
         ("* * * * * *", "5 fields"),
-        ("61 * * * *", "minute"),
+        ("61 * * * *", "minute takes 0-59"),  # the range, not only the field (issue 30)
+        ("* 25 * * *", "hour takes 0-23"),
         ("0 0 30 2 *", "day-of-month"),
         ("a b c d e", "minute"),
         ("", "5 fields"),
