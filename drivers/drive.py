@@ -203,6 +203,15 @@ class DriveClient(Cia402Master):
             )
         tpdo.add_callback(self._on_actuals_pdo)
 
+    def actuals_mapping(self) -> tuple[list[int], list[int]]:
+        """(the device's, the EDS's) mapping entries of the actuals TPDO (0x1A00 + n - 1: index << 16 | sub << 8 |
+        bits each), the device's read by SDO: the bring-up check compares them."""
+        index = 0x1A00 + ACTUALS_TPDO - 1
+        device = [int(self.read(index, k)) for k in range(1, int(self.read(index, 0)) + 1)]
+        eds = self.node.object_dictionary[index]
+        count = int(eds[0].default or 0)  # type: ignore[index]
+        return device, [int(eds[k].default or 0) for k in range(1, count + 1)]  # type: ignore[index]
+
     def _on_actuals_pdo(self, pdo_map) -> None:
         values = {var.index: var.raw for var in pdo_map.map}
         actuals = DriveActuals(

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.drive import ACTUALS_OBJECTS, ACTUALS_TPDO
 from service.bench.bench import Bench
 from service.bench.point_stream import PointStream
 from service.identification.session import MeasurementError
@@ -53,6 +54,7 @@ def check_bench(bench: Bench, settings: Settings, spin: bool = False) -> list[Ch
         return [_unreachable(bench)]
     lines = [Check("links", True, _links_text(settings))]
     lines += _nodes(bench, settings)
+    lines.append(_actuals_pdo(bench))
     lines.append(_daq_line(bench))
     lines.append(_supply(bench))
     lines += (
@@ -133,6 +135,31 @@ def _nodes(bench: Bench, settings: Settings) -> list[Check]:
             )
         )
     return lines
+
+
+def _actuals_pdo(bench: Bench) -> Check:
+    """The drive's TPDO of the actuals mapped as the service expects: the device's mapping (0x1A00 + n - 1, read by
+    SDO) against the EDS the service reads it with, and the torque, velocity and current actual in it."""
+    drive = bench.drive
+    if drive is None:
+        return Check("drive TPDO mapping", False, "no drive", "can.drive_node names the drive")
+    index = 0x1A00 + ACTUALS_TPDO - 1
+    try:
+        device, expected = drive.actuals_mapping()
+    except Exception as exc:  # noqa: BLE001 - what it answered is the finding
+        return Check("drive TPDO mapping", False, f"0x{index:04X} not readable: {exc}", "check the drive's EDS")
+    text = ", ".join(f"0x{m >> 16:04X}" for m in device)
+    objects = {m >> 16 for m in device}
+    if device != expected or not set(ACTUALS_OBJECTS) <= objects:
+        return Check(
+            "drive TPDO mapping",
+            False,
+            f"TPDO{ACTUALS_TPDO} maps {text or 'nothing'}; the EDS the service reads it with maps "
+            + ", ".join(f"0x{m >> 16:04X}" for m in expected),
+            f"map the drive's TPDO{ACTUALS_TPDO} as its EDS (0x{index:04X}: torque 0x6077, velocity 0x606C, current "
+            "0x6078), or give the service the drive's own EDS",
+        )
+    return Check("drive TPDO mapping", True, f"TPDO{ACTUALS_TPDO} maps {text}, as the EDS")
 
 
 def _daq_line(bench: Bench) -> Check:

@@ -2,9 +2,9 @@
 Lawicel ASCII protocol of many USB-CAN adapters), here over pyserial's socket:// to the emulator's slcan adapter on
 the same bus as its socketcand server. One emulated bench, two services after one another (each leaves the drive
 safe and its heartbeat consumers disarmed, so the next needs no fault reset): over socketcand, then over slcan.
-An identification gives the same theta over both within what its 40 dB allows (at 40 dB the residual is 1 % of
-the harmonic: each theta within ~1 % of theta*, the test allows 5 %); a sweep, its LUT download and a validation
-run over slcan."""
+An identification and a sweep give the same theta over both within what their 40 dB allows (at 40 dB the residual
+is 1 % of the harmonic: each theta within ~1 % of theta*, the test allows 5 %); the sweep's LUT download and a
+validation run over slcan."""
 
 from __future__ import annotations
 
@@ -30,19 +30,20 @@ def _served(emu: EmulatorRig, directory, transport: str) -> tuple[ServiceProcess
 def test_slcan_runs_the_bench_as_socketcand_does(tmp_path):
     emu = EmulatorRig()
     try:
-        results = {}
+        results, maps = {}, {}
         for transport in ("socketcand", "slcan"):
             svc, api = _served(emu, tmp_path, transport)
             try:
                 job = api.identify(OP, "probe")
                 assert job["state"] == "done" and job["result"]["status"] == "ok", job
                 results[transport] = job["result"]
+                r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
+                assert r.status_code == 202, r.text
+                sweep = api.sweep_finished(r.json()["id"], 300)
+                assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
+                assert sweep["progress"]["ok"] >= 3, sweep["progress"]
+                maps[transport] = api.get(f"/maps/{sweep['map_id']}")
                 if transport == "slcan":
-                    r = api.post("/sweeps", {"grid": GRID, "method": "probe"})
-                    assert r.status_code == 202, r.text
-                    sweep = api.sweep_finished(r.json()["id"], 300)
-                    assert sweep["state"] == "done" and sweep["map_id"] is not None, sweep
-                    assert sweep["progress"]["ok"] >= 3, sweep["progress"]
                     r = api.post(f"/maps/{sweep['map_id']}/validate", {"force": True})
                     assert r.status_code == 202, r.text
                     job = api.job_finished(r.json()["id"], 300)
@@ -56,6 +57,15 @@ def test_slcan_runs_the_bench_as_socketcand_does(tmp_path):
                 svc.stop()
         a, b = (complex(results[t]["theta_cos"], results[t]["theta_sin"]) for t in ("socketcand", "slcan"))
         assert abs(a - b) <= 0.05 * abs(a), (a, b, math.degrees(abs(a - b)))
+        # the sweep too: every cell ok over both transports lands on the same theta
+        compared = 0
+        for x, y in zip(maps["socketcand"]["cells"], maps["slcan"]["cells"]):
+            assert (x["torque_nm"], x["speed_rpm"]) == (y["torque_nm"], y["speed_rpm"])
+            if x["status"] == y["status"] == "ok":
+                ta, tb = complex(x["theta_cos"], x["theta_sin"]), complex(y["theta_cos"], y["theta_sin"])
+                assert abs(ta - tb) <= 0.05 * abs(ta), (x, y)
+                compared += 1
+        assert compared >= 3, (maps["socketcand"]["cells"], maps["slcan"]["cells"])
         faults = emu.control({"status": True})["faults"]
         assert faults["drive_injection_mode"] == 0 and faults["drive_torque_nm"] == 0.0, faults
     finally:
