@@ -446,8 +446,8 @@ def preview_sweep(
             problems.append(_problem(["body", "options"], str(exc), "value_error.plant_time"))
         # the hard limits, then the envelope model: refused only when no point is inside it (check_any_inside
         # words that refusal, judging the points again, only then)
-        try:
-            SweepPlan(points).check_limits(settings)
+        try:  # each grid value against the bench's limits, as POST /sweeps checks them first
+            check_grid_limits(planned.grid, settings)
         except LimitError as exc:
             problems += _limit_problems(exc)
         if not inside:

@@ -62,6 +62,29 @@ def test_malformed_identification_gets_422_naming_the_field(api, body, field):
     assert r.status_code == 422
     locs = [e["loc"] for e in r.json()["detail"]]
     assert any(field in loc for loc in locs), locs
+    # in the service's words, naming the field: never the library's (issue 30)
+    for e in r.json()["detail"]:
+        assert not any(w in e["msg"] for w in ("Input should", "Field required", "Extra inputs", "pydantic")), e
+        assert field in e["msg"] or e["loc"][-1] in e["msg"], e
+
+
+@pytest.mark.parametrize(
+    ("body", "said"),
+    [
+        ({"operating_point": {"torque_nm": 2.5, "speed_rpm": -5}}, "operating_point.speed_rpm must be greater than 0"),
+        ({"operating_point": {"torque_nm": "lots", "speed_rpm": 2000}}, "operating_point.torque_nm must be a number"),
+        ({"operating_point": {"torque_nm": 2.5}}, "operating_point.speed_rpm is required"),
+        (
+            {"operating_point": {"torque_nm": 2.5, "speed_rpm": 2000}, "bogus": 1},
+            "bogus is not a field of this request",
+        ),
+    ],
+)
+def test_a_refusal_at_parsing_is_said_in_our_words(api, body, said):
+    client, service = api
+    _, token = service.storage.create_token("operator")
+    r = client.post("/api/v1/identifications", json=body, headers={"Authorization": f"Bearer {token}"})
+    assert r.status_code == 422 and said in [e["msg"] for e in r.json()["detail"]], r.json()
 
 
 def test_malformed_sweep_grid_gets_422(api):
