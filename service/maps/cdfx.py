@@ -18,18 +18,17 @@ calibration engineer sees per instance which cells are measured, filled or not o
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any
 from xml.sax.saxutils import escape
 
 from drivers import lut_image as lut_codec
 from service import __version__
+from service.maps.lut_export import cell_flag, grid_values, interpolation_text, order_maps, shortest_number
 
 DOCTYPE = (
     '<!DOCTYPE MSRSW PUBLIC "-//ASAM//DTD CALIBRATION DATA FORMAT:V2.0.0:LAI:IAI:XML:CDF200.XSD//EN" '
     '"cdf_v2.0.0.sl.dtd">'
 )
-GridValues = Callable[[dict[str, Any], str], list[list[list[float]]]]  # lut_export._grid_values
-CellFlag = Callable[[dict[str, Any]], int]  # lut_export.cell_flag
 KINDS = (
     ("THETA_COS", "theta_cos", "rad"),
     ("THETA_SIN", "theta_sin", "rad"),
@@ -46,13 +45,7 @@ def instance_name(order: int, kind: str, udc_v: float) -> str:
     return f"RIPPLECAL_H{order}_{kind}_U{udc_v:g}V".replace(".", "P")
 
 
-def _number(x: float) -> str:
-    """The shortest text that reads back as the same double."""
-    text = repr(float(x))
-    return text[:-2] if text.endswith(".0") else text
-
-
-def _values(m: dict[str, Any], key: str, grid_values: GridValues) -> list[list[list[float]]]:
+def _values(m: dict[str, Any], key: str) -> list[list[list[float]]]:
     """[udc][speed][torque] values of a characteristic; gamma and delta (deg) from the theta the cells carry."""
     if key not in ("gamma_deg", "delta_deg"):
         return grid_values(m, key)
@@ -77,16 +70,11 @@ def _state(counts: dict[str, int]) -> str:
     return "preliminary" if counts["filled"] else "measured"
 
 
-def export_cdfx(
-    m: dict[str, Any],
-    order_maps: list[dict[str, Any]],
-    grid_values: GridValues,
-    cell_flag: CellFlag,
-    interpolation_text: str,
-) -> str:
-    """The map (MapView.model_dump()) as a CDF 2.0 document; `order_maps`: the map as one map per order (its own
-    first); `grid_values(map, key)` the [udc][speed][torque] values every export writes and `cell_flag(cell)` the
-    LUT flag of a cell (service/maps/lut_export.py), so CDFX says what the other exports and the LUT image say."""
+def export_cdfx(m: dict[str, Any], interpolation: str | None = None) -> str:
+    """The map (MapView.model_dump()) as a CDF 2.0 document, from the cell values and LUT flags every other export
+    writes (service/maps/lut_export.py grid_values, cell_flag): CDFX says what they and the LUT image say."""
+    maps = order_maps(m)
+    mode_text = interpolation_text(lut_codec.check_interpolation(interpolation))
     axes = m["axes"]
     torque, speed = axes["torque_nm"], axes["speed_rpm"]
     date = str(m.get("created_at") or "")[:10]
@@ -102,10 +90,10 @@ def export_cdfx(
         "      <SW-INSTANCE-SPEC>",
         "        <SW-INSTANCE-TREE>",
         f"          <SHORT-NAME>MAP{int(m['id'])}</SHORT-NAME>",
-        f"          <LONG-NAME>{escape(_long_name(m, order_maps, interpolation_text))}</LONG-NAME>",
+        f"          <LONG-NAME>{escape(_long_name(m, maps, mode_text))}</LONG-NAME>",
         "          <CATEGORY>NO_VCD</CATEGORY>",
     ]
-    for om in order_maps:
+    for om in maps:
         flags = [cell_flag(c) for c in om["cells"]]
         counts = {
             "ok": flags.count(lut_codec.FLAG_OK),
@@ -114,7 +102,7 @@ def export_cdfx(
             "none": flags.count(lut_codec.FLAG_NONE),
         }
         for kind, key, unit in KINDS:
-            values = _values(om, key, grid_values)
+            values = _values(om, key)
             for k, udc in enumerate(axes["udc_v"]):
                 out += _instance(om["harmonic_order"], kind, unit, udc, torque, speed, values[k], counts, date)
     out += [
@@ -152,7 +140,7 @@ def _instance(
     integer = unit == "-"
 
     def value(v: float) -> str:
-        return str(int(v)) if integer else _number(v)
+        return str(int(v)) if integer else shortest_number(v)
 
     groups = [
         "                <VG>" + "".join(f"<V>{value(plane[j][i])}</V>" for j in range(len(speed))) + "</VG>"
@@ -188,7 +176,9 @@ def _instance(
         *(
             "              <SW-AXIS-CONT><CATEGORY>STD_AXIS</CATEGORY>"
             f"<UNIT-DISPLAY-NAME>{axis_unit}</UNIT-DISPLAY-NAME><SW-ARRAYSIZE><V>{len(points)}</V></SW-ARRAYSIZE>"
-            "<SW-VALUES-PHYS>" + "".join(f"<V>{_number(p)}</V>" for p in points) + "</SW-VALUES-PHYS></SW-AXIS-CONT>"
+            "<SW-VALUES-PHYS>"
+            + "".join(f"<V>{shortest_number(p)}</V>" for p in points)
+            + "</SW-VALUES-PHYS></SW-AXIS-CONT>"
             for axis_unit, points in (("Nm", torque), ("rpm", speed))
         ),
         "            </SW-AXIS-CONTS>",

@@ -44,7 +44,7 @@ def map_orders(m: dict[str, Any]) -> list[int]:
     return list(m.get("orders") or [m["harmonic_order"]])
 
 
-def _order_maps(m: dict[str, Any]) -> list[dict[str, Any]]:
+def order_maps(m: dict[str, Any]) -> list[dict[str, Any]]:
     """The map as one map of one order per order (service/maps/view.py order_map), its own first."""
     return [order_map(m, h) for h in map_orders(m)]
 
@@ -64,7 +64,7 @@ def cell_flag(c: dict[str, Any] | None, fill: bool = True) -> int:
     return lut_codec.FLAG_NONE
 
 
-def _grid_values(m: dict[str, Any], key: str, fill: bool = True) -> list[list[list[float]]]:
+def grid_values(m: dict[str, Any], key: str, fill: bool = True) -> list[list[list[float]]]:
     """[udc][speed][torque] array of a cell field, or of its flag: key "flag" (0..3), "valid" (1 only
     for ok), "filled" (1 only where a fill is carried), "injection_off" (1 only where injection is off);
     theta is 0 where the cell has no entry (an off cell carries its theta where it has one)."""
@@ -113,7 +113,7 @@ def _gamma_delta_deg(c: dict[str, Any]) -> tuple[float, float]:
     return math.degrees(math.hypot(tc, ts)), math.degrees(-math.atan2(ts, tc)) % 360.0
 
 
-def _interpolation_text(interpolation: str) -> str:
+def interpolation_text(interpolation: str) -> str:
     return {
         "cartesian": "cartesian: theta_cos and theta_sin multilinear",
         "polar": "polar: gamma multilinear, delta multilinear along the shortest arc",
@@ -243,7 +243,7 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"# cells: {_counts_text(m)}; ok cells carry their theta (valid), filled cells their fill "
         f"(filled = 1, not valid), the others 0; {_filled_text(m)}; {_off_text(m)}\n"
     )
-    buf.write(f"# LUT interpolation: {_interpolation_text(mode)} (LUT image format_version {lut_format_version(m)})\n")
+    buf.write(f"# LUT interpolation: {interpolation_text(mode)} (LUT image format_version {lut_format_version(m)})\n")
     buf.write(f"# {_quality_text(m)}\n")
     buf.write(f"# {_validation_text(m)}\n")
     w = csv.writer(buf, lineterminator="\n")
@@ -265,7 +265,7 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
             *(["harmonic_order"] if len(orders) > 1 else []),
         ]
     )
-    for h, c in ((om["harmonic_order"], c) for om in _order_maps(m) for c in om["cells"]):
+    for h, c in ((om["harmonic_order"], c) for om in order_maps(m) for c in om["cells"]):
         flag = cell_flag(c)
         entry = _has_theta(c, flag)
         gamma, delta = _gamma_delta_deg(c) if entry else ("", "")
@@ -306,25 +306,11 @@ def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
             "index_order": ["udc_v", "speed_rpm", "torque_nm"],
             "interpolation": mode,
             "lut_format_version": lut_format_version(m),
-            "theta_cos_rad": _grid_values(m, "theta_cos"),
-            "theta_sin_rad": _grid_values(m, "theta_sin"),
-            "valid": _grid_values(m, "valid"),
-            "filled": _grid_values(m, "filled"),
-            "injection_off": _grid_values(m, "injection_off"),
-            "status_counts": m.get("status_counts"),
-            "cells": [
-                {
-                    **{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
-                    "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
-                    "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None,
-                    "injection_off": cell_flag(c) == lut_codec.FLAG_OFF,
-                }
-                for c in m["cells"]
-            ],
+            **_json_cells(m),
             "quality": _quality_json(m),
             "validation": m.get("validation"),
             "orders": map_orders(m),
-            "further_orders": [_json_order(om) for om in _order_maps(m)[1:]],
+            "further_orders": [_json_order(om) for om in order_maps(m)[1:]],
         },
         indent=1,
     )
@@ -332,18 +318,24 @@ def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
 
 def _json_order(m: dict[str, Any]) -> dict[str, Any]:
     """A further order of a map (order_map): its grids, counts and cells as the map's own are exported."""
+    return {"harmonic_order": m["harmonic_order"], **_json_cells(m)}
+
+
+def _json_cells(m: dict[str, Any]) -> dict[str, Any]:
+    """One order's grids ([udc][speed][torque]), status counts and cells, as the JSON export writes them."""
     return {
-        "harmonic_order": m["harmonic_order"],
-        "theta_cos_rad": _grid_values(m, "theta_cos"),
-        "theta_sin_rad": _grid_values(m, "theta_sin"),
-        "valid": _grid_values(m, "valid"),
-        "filled": _grid_values(m, "filled"),
+        "theta_cos_rad": grid_values(m, "theta_cos"),
+        "theta_sin_rad": grid_values(m, "theta_sin"),
+        "valid": grid_values(m, "valid"),
+        "filled": grid_values(m, "filled"),
+        "injection_off": grid_values(m, "injection_off"),
         "status_counts": m.get("status_counts"),
         "cells": [
             {
                 **{k: v for k, v in c.items() if k not in map_quality.CELL_FIELDS},
                 "filled": cell_flag(c) == lut_codec.FLAG_FILLED,
                 "fill_source": c.get("fill_source") if cell_flag(c) == lut_codec.FLAG_FILLED else None,
+                "injection_off": cell_flag(c) == lut_codec.FLAG_OFF,
             }
             for c in m["cells"]
         ],
@@ -377,7 +369,7 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
     several orders has one such block per further order (names `ripplecal_lut_map<ID>_h<order>_*`), and
     `ripplecal_lut_map<ID>_theta_orders` gives every order's theta as the drive injects them together."""
     mode = lut_codec.check_interpolation(interpolation)
-    maps = _order_maps(m)
+    maps = order_maps(m)
     blocks = [_c_order_header(om, mode, "" if k == 0 else f"_h{om['harmonic_order']}") for k, om in enumerate(maps)]
     if len(maps) > 1:
         blocks.append(_c_orders_function(int(m["id"]), [om["harmonic_order"] for om in maps]))
@@ -432,7 +424,7 @@ def _c_order_header(m: dict[str, Any], mode: str, suffix: str = "") -> str:
     held = lut_codec.decode(order_image(m, interpolation=mode)) if cell_format(m) == lut_codec.SPARSE else None
 
     def flag_array(key: str, flag: int) -> Any:
-        return _grid_values(m, key) if held is None else (held.flags == flag).astype(int).tolist()
+        return grid_values(m, key) if held is None else (held.flags == flag).astype(int).tolist()
 
     version = re.sub(r"[^0-9A-Za-z.+-]", "", __version__)
     lines = [
@@ -445,7 +437,7 @@ def _c_order_header(m: dict[str, Any], mode: str, suffix: str = "") -> str:
         " * its target: inject there only if the fill is wanted); injection_off == 1: inject NOTHING (theta 0)",
         " * wherever a corner of non-zero weight has it (its theta is kept for the record; LUT image flag 3);",
         " * all three 0: theta 0, no injection.",
-        f" * Interpolation ({macro}_INTERPOLATION): {_interpolation_text(mode)}.",
+        f" * Interpolation ({macro}_INTERPOLATION): {interpolation_text(mode)}.",
         f" * Cells: {_counts_text(m)}; {_filled_text(m)}; {_off_text(m)}.",
         f" * Names carry the map id ({macro}_*, {array}_*).",
         f" * {_quality_text(m)}.",
@@ -657,7 +649,7 @@ def _c_theta_arrays(
     nu, nn, nt = shape
     dims = f"[{nu}][{nn}][{nt}]"
     what = "(ok, filled and injection-off cells; 0 elsewhere)"
-    tc, ts = _grid_values(m, "theta_cos"), _grid_values(m, "theta_sin")
+    tc, ts = grid_values(m, "theta_cos"), grid_values(m, "theta_sin")
     cells = cell_format(m)
     if held is not None:  # version 7: every cell as the drive holds it, f32 (the header is the firmware's full grid)
         stored = int(np.count_nonzero(held.stored)) if held.stored is not None else held.flags.size
@@ -695,13 +687,12 @@ def _c_interpolator(array: str, macro: str) -> str:
 
 def export_cdfx(m: dict[str, Any], interpolation: str | None = None) -> str:
     """ASAM CDF 2.0 (service/maps/cdfx.py), from the values every other export writes."""
-    from service.maps import cdfx  # it builds on this module's cell values: imported here, not at the top
+    from service.maps import cdfx  # it imports this module's cell values: imported here, not at the top
 
-    mode = lut_codec.check_interpolation(interpolation)
-    return cdfx.export_cdfx(m, _order_maps(m), _grid_values, cell_flag, _interpolation_text(mode))
+    return cdfx.export_cdfx(m, interpolation)
 
 
-def _dcm_number(x: float) -> str:
+def shortest_number(x: float) -> str:
     """The shortest text that reads back as the same double (distinct breakpoints stay distinct)."""
     text = repr(float(x))
     return text[:-2] if text.endswith(".0") else text
@@ -720,7 +711,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
         f"* cells: {_counts_text(m)}; VALID = 1 only where the result met its target (ok); "
         f"FILLED = 1 where a cell not ok carries a fill (THETA holds it); {_filled_text(m)}",
         f"* INJECTION_OFF = 1: no injection in any interval with this cell as a corner of non-zero weight; {_off_text(m)}",
-        f"* LUT interpolation: {_interpolation_text(mode)}",
+        f"* LUT interpolation: {interpolation_text(mode)}",
         f"* {_quality_text(m)}",
         f"* {_validation_text(m)}",
         "KONSERVIERUNG_FORMAT 2.0",
@@ -738,7 +729,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
             -2,
             f"* several orders: {', '.join(str(h) for h in map_orders(m))}, each its own KENNFELDER (RIPPLECAL_H<h>_*)",
         )
-    for om in _order_maps(m):
+    for om in order_maps(m):
         out += _dcm_kennfelder(om, kennfelder, nt, nn)
     return "\n".join(out)
 
@@ -746,7 +737,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
 def _dcm_kennfelder(m: dict[str, Any], kennfelder: tuple[tuple[str, str], ...], nt: int, nn: int) -> list[str]:
     """One order's KENNFELDER (its order in their names)."""
     axes, out = m["axes"], []
-    planes = {key: _grid_values(m, key) for _, key in kennfelder}
+    planes = {key: grid_values(m, key) for _, key in kennfelder}
     for name, key in kennfelder:
         for k, udc in enumerate(axes["udc_v"]):
             plane = planes[key][k]
@@ -756,12 +747,12 @@ def _dcm_kennfelder(m: dict[str, Any], kennfelder: tuple[tuple[str, str], ...], 
                 '   EINHEIT_X "Nm"',
                 '   EINHEIT_Y "rpm"',
                 f'   EINHEIT_W "{"rad" if key.startswith("theta") else "-"}"',
-                "   ST/X   " + "   ".join(_dcm_number(t) for t in axes["torque_nm"]),
+                "   ST/X   " + "   ".join(shortest_number(t) for t in axes["torque_nm"]),
             ]
             for j, speed in enumerate(axes["speed_rpm"]):
                 values = plane[j] if key.startswith("theta") else [int(v) for v in plane[j]]
                 out += [
-                    f"   ST/Y   {_dcm_number(speed)}",
+                    f"   ST/Y   {shortest_number(speed)}",
                     "   WERT   " + "   ".join(f"{v:.9g}" if key.startswith("theta") else str(v) for v in values),
                 ]
             out += ["END", ""]
@@ -872,7 +863,7 @@ def sparse_bar_db(m: dict[str, Any]) -> float:
 def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
     """The binary image the drive takes on 0x2001:1: a map of one order's (`order_image`), or for a map of several
     orders the version 8 image of one such image per order, its own first (drivers/lut_image.py encode_orders)."""
-    maps = _order_maps(m)
+    maps = order_maps(m)
     if len(maps) == 1:
         return order_image(m, fill, interpolation)
     return lut_codec.encode_orders([order_image(om, fill, interpolation) for om in maps])
@@ -890,7 +881,7 @@ def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None 
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
     cells = cell_format(m)
-    tc, ts, flags = (_grid_values(m, key, fill) for key in ("theta_cos", "theta_sin", "flag"))
+    tc, ts, flags = (grid_values(m, key, fill) for key in ("theta_cos", "theta_sin", "flag"))
     stored = None
     if cells == lut_codec.SPARSE:
         mode = lut_codec.check_interpolation(interpolation)
@@ -960,7 +951,7 @@ def _theta_quantum(m: dict[str, Any]) -> float:
     if cells not in lut_codec.FULL_SCALE:
         return 0.0
     return lut_codec.theta_quantum(
-        np.asarray(_grid_values(m, "theta_cos")), np.asarray(_grid_values(m, "theta_sin")), cells
+        np.asarray(grid_values(m, "theta_cos")), np.asarray(grid_values(m, "theta_sin")), cells
     )
 
 
@@ -998,7 +989,7 @@ def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None 
     flags = [cell_flag(c, fill) for c in m["cells"]]
     left_out = 0 if fill else sum(1 for c in m["cells"] if cell_flag(c, True) == lut_codec.FLAG_FILLED)
     orders = tuple(map_orders(m))
-    further = [cell_flag(c, fill) for om in _order_maps(m)[1:] for c in om["cells"]]
+    further = [cell_flag(c, fill) for om in order_maps(m)[1:] for c in om["cells"]]
     return LutEntries(
         orders=orders,
         further_holes=further.count(lut_codec.FLAG_NONE),

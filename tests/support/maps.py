@@ -103,18 +103,24 @@ def make_map(
     return map_id
 
 
-def map_dict(map_id: int, axes: dict[str, list[float]], cells: list[MapCell], status_counts: dict[str, int]) -> dict:
+def map_dict(
+    map_id: int, axes: dict[str, list[float]], cells: list[MapCell], status_counts: dict[str, int], **fields
+) -> dict:
     """A map as GET /maps/{id} gives it (MapView.model_dump(), no validation), built from its cells without
-    storage: harmonic order 6, adaptive, bench "test-bench"."""
+    storage: harmonic order 6, adaptive, bench "test-bench" unless `fields` say otherwise (e.g. method, orders,
+    further_orders)."""
     return MapView(
-        id=map_id,
-        sweep_id=3,
-        harmonic_order=6,
-        method="adaptive",
-        bench_identity="test-bench",
-        software_version="0",
-        created_at="2026-01-01T00:00:00Z",
-        axes=axes,
-        status_counts=status_counts,
-        cells=cells,
+        **{
+            "id": map_id,
+            "sweep_id": 3,
+            "harmonic_order": 6,
+            "method": "adaptive",
+            "bench_identity": "test-bench",
+            "software_version": "0",
+            "created_at": "2026-01-01T00:00:00Z",
+            "axes": axes,
+            "status_counts": status_counts,
+            "cells": cells,
+            **fields,
+        }
     ).model_dump()

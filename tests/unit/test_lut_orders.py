@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import logging
 import math
 import struct
 import zlib
@@ -27,8 +26,10 @@ from plant_emulator import physics as ph
 from plant_emulator.drive_firmware import INJ_LUT, DriveFirmware
 from service.maps.lut_export import export_map
 from service.maps.lut_export import lut_image as service_image
-from service.maps.view import MapCell, MapView, OrderMap, order_map
+from service.maps.view import MapCell, OrderMap, order_map
 from tests.support.c_lut import build, f32, needs_gcc
+from tests.support.dcm_read import read_dcm
+from tests.support.maps import map_dict
 
 AXES = {"torque_nm": [1.0, 2.0, 4.0], "speed_rpm": [1000.0, 1500.0, 2600.0], "udc_v": [12.0]}
 MAP_ID = 52
@@ -72,21 +73,16 @@ def _cells(order: int) -> list[MapCell]:
 
 def two_order_map() -> dict:
     """The map as GET /maps/{id} gives it (MapView.model_dump())."""
-    further = _cells(12)
-    return MapView(
-        id=MAP_ID,
-        sweep_id=3,
-        harmonic_order=6,
+    further = OrderMap(order=12, status_counts={"ok": 8, "below_target": 1}, filled_cells=1, cells=_cells(12))
+    return map_dict(
+        MAP_ID,
+        AXES,
+        _cells(6),
+        {"ok": 8, "failed": 1},
         method="probe-orders",
-        bench_identity="test-bench",
-        software_version="0",
-        created_at="2026-01-01T00:00:00Z",
-        axes=AXES,
-        status_counts={"ok": 8, "failed": 1},
-        cells=_cells(6),
         orders=[6, 12],
-        further_orders=[OrderMap(order=12, status_counts={"ok": 8, "below_target": 1}, filled_cells=1, cells=further)],
-    ).model_dump()
+        further_orders=[further],
+    )
 
 
 POINTS = [(1.0, 1000.0, 12.0), (1.5, 1250.0, 12.0), (3.0, 2000.0, 12.0), (2.0, 1500.0, 12.0), (0.5, 3000.0, 12.0)]
@@ -225,15 +221,7 @@ def test_c_header_of_two_orders_compiles_and_gives_the_drives_thetas(tmp_path):
 
 
 def test_dcm_of_two_orders_reads_in_dcmreader_each_order_its_own(tmp_path, caplog):
-    from dcmReader.dcm_reader import DcmReader
-
-    path = tmp_path / "lut.dcm"
-    path.write_text(export_map(two_order_map(), "dcm"))
-    reader = DcmReader()
-    with caplog.at_level(logging.WARNING, logger="dcmReader"):
-        reader.read(str(path))
-    assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text
-    maps = {k.name: k for k in reader.get_characteristic_maps()}
+    maps = read_dcm(tmp_path, export_map(two_order_map(), "dcm"), caplog)
     assert set(maps) == {
         f"RIPPLECAL_H{h}_{kind}_U12V"
         for h in (6, 12)

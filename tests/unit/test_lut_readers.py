@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import logging
 import math
 import subprocess
 
@@ -24,6 +23,7 @@ from service.maps.lut_export import export_map
 from service.maps.lut_export import lut_image as service_image
 from service.maps.view import MapCell
 from tests.support.c_lut import HeaderTheta, build, needs_gcc
+from tests.support.dcm_read import read_dcm
 from tests.support.maps import map_dict
 
 AXES = {"torque_nm": [1.0, 2.0, 4.0], "speed_rpm": [1000.0, 1500.0, 1800.0, 2000.0, 2600.0], "udc_v": [12.0, 24.0]}
@@ -146,15 +146,7 @@ def test_c_header_compiles_and_its_own_function_interpolates_it_by_position(tmp_
 
 
 def test_dcm_reads_in_dcmreader_with_the_refined_axis_points_valid_and_filled(tmp_path, caplog):
-    from dcmReader.dcm_reader import DcmReader
-
-    path = tmp_path / "lut.dcm"
-    path.write_text(export_map(refined_map(), "dcm"))
-    reader = DcmReader()
-    with caplog.at_level(logging.WARNING, logger="dcmReader"):
-        reader.read(str(path))
-    assert not [r for r in caplog.records if r.name.startswith("dcmReader")], caplog.text
-    maps = {k.name: k for k in reader.get_characteristic_maps()}
+    maps = read_dcm(tmp_path, export_map(refined_map(), "dcm"), caplog)
     assert set(maps) == {
         f"RIPPLECAL_H6_{kind}_U{u}V"
         for kind in ("THETA_COS", "THETA_SIN", "VALID", "FILLED", "INJECTION_OFF")
