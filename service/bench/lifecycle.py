@@ -17,6 +17,7 @@ import threading
 import time
 from typing import Callable, Iterator
 
+from drivers.cia402 import State402
 from drivers.errors import DaqError
 from drivers.load_machine import LoadClient
 from service.bench.connections import BenchLinks
@@ -27,6 +28,7 @@ from service.bench.measurement import OperatingPointSession, RunCancelled
 from service.bench.run import BenchRun, gamma_max_for_run
 from service.bench.run_commands import RunCommands
 from service.bench.setpoint_accounting import AccountingError, SetpointAccounting
+from service.bench.standstill import StandstillJudge
 from service.bench.trips import InterlockTripped
 from service.bench.watchdog import BenchWatchdog
 from service.identification.session import Window
@@ -239,16 +241,18 @@ class RunLifecycle:
         if errors:
             raise BenchError(f"bench may not be safe: {errors[0]}") from errors[0]
 
-    def _wait_standstill(
-        self, accounting: SetpointAccounting, load: LoadClient, timeout_plant_s: float, below_rpm: float = 20.0
-    ) -> None:
-        """Consume the DAQ until the encoder shows the shaft below `below_rpm`, bounded on the DAQ clock: the
-        bound counts from the last time the shaft had slowed by a fifth (a load braking from 3200 rpm at its own
-        ramp takes longer than the bound, and is braking, not stuck), never past MAX_BRAKE_PLANT_S; without a DAQ,
-        poll the load machine's velocity actual instead (wall clock, the bound alone)."""
+    def _wait_standstill(self, accounting: SetpointAccounting, load: LoadClient, timeout_plant_s: float) -> None:
+        """Consume the DAQ until the encoder shows the shaft at standstill (service/bench/standstill.py: below
+        20 rpm for 0.25 s, not the speed loop's overshoot through zero), bounded on the DAQ clock: while the load
+        brakes on its speed loop the bound counts from the last time the shaft had slowed by a fifth (a load
+        braking from 3200 rpm at its own ramp takes longer than the bound, and is braking, not stuck), never past
+        MAX_BRAKE_PLANT_S; a load that is not enabled does not brake (the shaft coasts), so the bound alone.
+        Without a DAQ, poll the load machine's velocity actual instead (wall clock, the bound alone)."""
         rate = self.settings.daq.sample_rate_hz
         block = int(0.02 * rate)
         cursor = accounting.cursor
+        judge = StandstillJudge()
+        extend = _braking(load)
         try:
             start = None
             slowed_at, slowest_rpm = 0, math.inf
@@ -265,20 +269,28 @@ class RunLifecycle:
                     )
                 except ValueError:
                     continue
-                if abs(speed_rpm) < below_rpm:
+                if judge.update(int(chunk.index[-1]) / rate, speed_rpm):
                     return
-                if abs(speed_rpm) < 0.8 * slowest_rpm:  # still braking: the bound counts from here
+                if extend and abs(speed_rpm) < 0.8 * slowest_rpm:  # still braking: the bound counts from here
                     slowed_at, slowest_rpm = int(chunk.index[-1]), abs(speed_rpm)
         except DaqError as exc:
             log.warning("standstill judged on the load's speed: DAQ unavailable (%s)", exc)
             accounting.doubt("the DAQ was unavailable at the end of a run")
-            deadline = time.monotonic() + timeout_plant_s
+            deadline, judge = time.monotonic() + timeout_plant_s, StandstillJudge()  # its clock: wall time
             while time.monotonic() < deadline:
-                speed_rpm = load.read_status().speed_rpm
-                if abs(speed_rpm) < below_rpm:
+                if judge.update(time.monotonic(), load.read_status().speed_rpm):
                     return
                 time.sleep(0.02)
         raise BenchError(
             f"shaft still turning {timeout_plant_s:g} s (plant time, DAQ sample clock) after it last slowed, after "
             "the stop command"
         )
+
+
+def _braking(load: LoadClient) -> bool:
+    """Whether the load brakes the shaft on its speed loop (enabled); unreadable counts as not (the bound
+    alone then, never the extension)."""
+    try:
+        return load.state() == State402.OPERATION_ENABLED
+    except Exception:  # noqa: BLE001 - the wait is bounded either way
+        return False

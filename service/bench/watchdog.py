@@ -29,6 +29,7 @@ from typing import Callable
 
 from drivers.drive import DriveClient
 from drivers.load_machine import LoadClient
+from service.bench.standstill import StandstillJudge
 from service.bench.trips import Trip
 
 log = logging.getLogger(__name__)
@@ -36,8 +37,7 @@ log = logging.getLogger(__name__)
 _OUR_CODE = str(Path(__file__).resolve().parents[2])  # a stall names the innermost frame of the project's code
 
 PERIOD_S = 0.05  # how often the watchdog looks at the run's last kick
-STANDSTILL_RPM = 20.0  # the load is disabled once its own speed reading is below this ...
-STANDSTILL_TIMEOUT_S = 3.0  # ... or after this long braking (wall clock): it is disabled either way
+STANDSTILL_TIMEOUT_S = 3.0  # the load is disabled at standstill or after this long braking (wall clock)
 
 
 class BenchWatchdog:
@@ -233,9 +233,9 @@ class BenchWatchdog:
             return failed
         try:
             load.brake_to_standstill()
-            deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
-            while time.monotonic() < deadline and abs(load.read_status().speed_rpm) >= STANDSTILL_RPM:
-                time.sleep(0.05)
+            deadline, judge = time.monotonic() + STANDSTILL_TIMEOUT_S, StandstillJudge()
+            while time.monotonic() < deadline and not judge.update(time.monotonic(), load.read_status().speed_rpm):
+                time.sleep(0.02)
         except Exception as exc:  # noqa: BLE001 - disabled below either way
             failed.append(f"load braking: {exc}")
         try:

@@ -37,9 +37,9 @@ def emulator_control(endpoints: dict, command: dict, timeout_s: float = 10.0) ->
 class EmulatorRig:
     """`python -m plant_emulator` as its own process (stdin pipe held here: it dies with the test)."""
 
-    def __init__(self, speedup: float = 0.0, timeout_s: float = 120.0):
+    def __init__(self, speedup: float = 0.0, timeout_s: float = 120.0, args: tuple[str, ...] = ()):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "plant_emulator", "--speedup", str(speedup), "--exit-on-stdin-eof"],
+            [sys.executable, "-m", "plant_emulator", "--speedup", str(speedup), "--exit-on-stdin-eof", *args],
             cwd=REPO,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -133,12 +133,16 @@ class Api:
 
 @contextlib.contextmanager
 def served_bench(
-    directory: Path, db_name: str, speedup: float = 0.0, transport: str = "socketcand"
+    directory: Path,
+    db_name: str,
+    speedup: float = 0.0,
+    transport: str = "socketcand",
+    emulator_args: tuple[str, ...] = (),
 ) -> Iterator[tuple[EmulatorRig, ServiceProcess, "Api", Path]]:
     """An emulated bench and `ripplecal serve --bench` pointed at it, ready: (emulator, service, api, db);
     both processes stopped on the way out. speedup > 0: the emulator paced (see EmulatorRig); transport: the CAN
-    interface the service opens (EmulatorRig.bench_file)."""
-    emu = EmulatorRig(speedup=speedup)
+    interface the service opens (EmulatorRig.bench_file); emulator_args: e.g. ("--scenario", path)."""
+    emu = EmulatorRig(speedup=speedup, args=emulator_args)
     db = directory / db_name
     svc = ServiceProcess(db, "--bench", str(emu.bench_file(directory, transport=transport)))
     try:
