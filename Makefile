@@ -43,7 +43,7 @@ run: $(STAMP)
 	$(VENV)/bin/ripplecal serve --emulate --host $(HOST) --port $(PORT)
 
 test: $(STAMP) chromium postgresql faketime lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=30
 
 # ruff: lint and format check; mypy: the type checker, strict on the packages pyproject.toml names
 # (config of both in pyproject.toml); `make format` applies the formatter
