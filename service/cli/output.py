@@ -206,12 +206,19 @@ def lut_downloaded(receipt, lut, identity: str, throwaway: bool = False) -> None
 
 def sweep_details(sw) -> None:
     p = sw.progress
-    print(f"sweep {sw.id}: {sw.state}, {sw.method}, h = {sw.harmonic_order}, bench {sw.bench_identity}")
+    title = f"refinement {sw.id} of map {sw.source_map_id}" if sw.kind == "refinement" else f"sweep {sw.id}"
+    print(f"{title}: {sw.state}, {sw.method}, h = {sw.harmonic_order}, bench {sw.bench_identity}")
     print(f"grid      torque {sw.grid['torque_nm']} Nm, speed {sw.grid['speed_rpm']} rpm, udc {sw.grid['udc_v']} V")
     print(
-        f"progress  {p['done']}/{p['total']} points: {p['ok']} ok, {p['below_target']} below target, "
-        f"{p['no_authority']} no authority, {p['failed']} failed; plant time {sw.plant_time_s:.1f} s"
+        f"progress  {p['done']}/{p['total']} {'cells' if sw.refinement else 'points'}: {p['ok']} ok, "
+        f"{p['below_target']} below target, {p['no_authority']} no authority, {p['failed']} failed; plant time "
+        f"{sw.plant_time_s:.1f} s"
     )
+    if (ref := sw.refinement) is not None:
+        print(
+            f"refining  round {len(ref.rounds)}, {ref.phase}; {ref.cells_added} of max {ref.max_cells} cells "
+            "identified (new and re-measured)" + (f"; stopped: {ref.stopped}" if ref.stopped else "")
+        )
     print(f"map       {sw.map_id if sw.map_id is not None else '-'}")
     if sw.pause_reason:
         print(f"paused    {sw.pause_reason}")
@@ -234,12 +241,18 @@ def sweeps(rows: list) -> None:
     if not rows:
         print("no sweeps yet")
         return
-    print(f"{'id':>5}  {'state':<11}  {'method':<8}  {'points':>9}  {'failed':>6}  {'map':>5}  created")
+    print(f"{'id':>5}  {'kind':<20}  {'state':<11}  {'method':<8}  {'cells':>9}  {'failed':>6}  {'map':>5}  created")
     for sw in rows:
         print(
-            f"{sw.id:>5}  {sw.state:<11}  {sw.method:<8}  {sw.progress['done']:>4}/{sw.progress['total']:<4}  "
-            f"{sw.progress['failed']:>6}  {sw.map_id if sw.map_id is not None else '-':>5}  {sw.created_at}"
+            f"{sw.id:>5}  {sweep_kind(sw):<20}  {sw.state:<11}  {sw.method:<8}  "
+            f"{sw.progress['done']:>4}/{sw.progress['total']:<4}  {sw.progress['failed']:>6}  "
+            f"{sw.map_id if sw.map_id is not None else '-':>5}  {sw.created_at}"
         )
+
+
+def sweep_kind(sw) -> str:
+    """ "sweep", or "refinement of map 4": what the run is, as the user started it."""
+    return f"refinement of map {sw.source_map_id}" if sw.kind == "refinement" else "sweep"
 
 
 # --- paper -------------------------------------------------------------------------------------------------

@@ -126,7 +126,8 @@ class RefinementState(TypedDict):
     pending: list[list[float]]  # the round's cells to identify, [torque_nm, speed_rpm, udc_v] each
     cells_added: int  # cells identified in the rounds so far (the budget spent)
     rounds: list[dict[str, Any]]  # each round's validation figures
-    stopped: str | None  # why it stopped short of the target (None: it holds, or it goes on)
+    stopped: str | None  # why it stopped short of the target (None: it holds, or it goes on), in one line
+    stopped_details: NotRequired[list[str]]  # each candidate the last plan left out, and why
     max_bytes: NotRequired[int]  # (a state saved before budgets in bytes and bench time has neither)
     max_bench_s: NotRequired[float | None]
     plant_time_s: NotRequired[float]  # plant seconds spent in all rounds so far
@@ -146,11 +147,40 @@ class RoundPlan:
     remeasure: list[Cell] = field(default_factory=list)
     new_cells: list[Cell] = field(default_factory=list)
     failing: int = 0
-    reasons: list[str] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)  # each candidate left out, and why (one line each)
+    # the same grouped, for a verdict a person reads in one line: axis -> values left out
+    over_cells: dict[str, list[float]] = field(default_factory=dict)  # needing more cells than were left
+    cells_left: int | None = None  # ... the fewest cells left when one was
+    over_bytes: dict[str, list[float]] = field(default_factory=dict)  # making the LUT larger than max_bytes
+    crossings_over: bool = False
 
     @property
     def cells(self) -> list[Cell]:
         return self.remeasure + self.new_cells
+
+    def why_nothing_fits(self, max_bytes: int | None) -> str:
+        """Why the plan inserts nothing more, in one short clause per cause."""
+        causes = []
+        if self.over_cells:
+            causes.append(
+                f"inserting {_values_listed(self.over_cells)} needs more cells than the {self.cells_left} left"
+            )
+        if self.over_bytes:
+            causes.append(
+                f"inserting {_values_listed(self.over_bytes)} makes the LUT larger than max_bytes = {max_bytes}"
+            )
+        if self.crossings_over:
+            causes.append("the crossings of the inserted values exceed the budget")
+        return "; ".join(causes) or "nothing left to insert"
+
+
+def _values_listed(values: dict[str, list[float]], most: int = 3) -> str:
+    """{"speed_rpm": [2290, 2350, 2410, 2470]} -> "speed_rpm 2290, 2350, 2410 (and 1 more)"."""
+    parts = []
+    for axis, vals in values.items():
+        shown = ", ".join(f"{v:g}" for v in sorted(vals)[:most])
+        parts.append(f"{axis} {shown}" + (f" (and {len(vals) - most} more)" if len(vals) > most else ""))
+    return " and ".join(parts)
 
 
 @dataclass(frozen=True)
@@ -308,6 +338,8 @@ def plan_round(
         cost = math.prod(len(chosen_axes[a]) for a in AXES if a != axis)
         if cost > left:
             plan.reasons.append(f"inserting {axis} = {value:g} needs {cost} cells, {left} left in the budget")
+            plan.over_cells.setdefault(axis, []).append(value)
+            plan.cells_left = left if plan.cells_left is None else min(plan.cells_left, left)
             continue
         grown = {**chosen_axes, axis: sorted(set(chosen_axes[axis]) | {value})}
         if lut_cells == SPARSE:
@@ -321,6 +353,7 @@ def plan_round(
             plan.reasons.append(
                 f"inserting {axis} = {value:g} makes the LUT {size} bytes, over max_bytes = {max_bytes}"
             )
+            plan.over_bytes.setdefault(axis, []).append(value)
             continue
         chosen_axes[axis] = grown[axis]
         sparse_bytes = size if lut_cells == SPARSE else 0
@@ -335,6 +368,7 @@ def plan_round(
     ]
     if len(plan.new_cells) + len(plan.remeasure) > budget_cells:  # crossings of two insertions
         plan.reasons.append("the crossings of the inserted values exceed the budget")
+        plan.crossings_over = True
         plan.inserted, plan.new_cells = {}, []
     for axis in plan.inserted:
         plan.inserted[axis].sort()

@@ -135,7 +135,7 @@ def test_sweep_then_list_show_and_download_its_map(home):
 
     listed = run("sweeps", "list", env=env, cwd=cwd)
     row = next(line.split() for line in listed.stdout.splitlines() if line.split()[:1] == [str(sweep_id)])
-    assert row[1] == "done" and row[3] == "2/2" and row[5] == str(map_id), listed.stdout
+    assert row[1] == "sweep" and row[2] == "done" and row[4] == "2/2" and row[6] == str(map_id), listed.stdout
 
     shown = run("sweeps", "show", str(sweep_id), env=env, cwd=cwd)
     assert shown.returncode == 0 and f"sweep {sweep_id}: done" in shown.stdout and f"map       {map_id}" in shown.stdout

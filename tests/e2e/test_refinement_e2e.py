@@ -12,7 +12,7 @@ import signal
 import pytest
 
 from tests.support.bench_rig import Api, EmulatorRig
-from tests.support.service_process import ServiceProcess
+from tests.support.service_process import ServiceProcess, cli
 from tests.support.sweep_checks import results_per_point
 
 pytestmark = pytest.mark.e2e
@@ -80,6 +80,18 @@ def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu
         assert len(result["rounds"]) < 2 or reused, result["rounds"]
         sweep = api.get(f"/sweeps/{result['refinement_id']}")
         assert sweep["kind"] == "refinement" and sweep["state"] == "done" and sweep["map_id"] == result["map_id"]
+        # listed and counted as what it is (issue 30): the map it refines; done = total in cells, whatever
+        # the rounds measured again; a verdict that reads in one line, the details apart
+        listed = {s["id"]: s for s in api.get("/sweeps")}[result["refinement_id"]]
+        assert listed["kind"] == "refinement" and listed["source_map_id"] == source, listed
+        assert listed["progress"]["done"] == listed["progress"]["total"], listed["progress"]
+        assert result["stopped"] is None or len(result["stopped"]) <= 300, result["stopped"]
+        listed = cli("sweeps", "list", "--db", str(db)).stdout
+        assert f"refinement of map {source}" in next(
+            line for line in listed.splitlines() if line.split()[:1] == [str(result["refinement_id"])]
+        ), listed
+        shown = cli("sweeps", "show", str(result["refinement_id"]), "--db", str(db)).stdout
+        assert shown.startswith(f"refinement {result['refinement_id']} of map {source}: done"), shown
         # each cell the refinement identified, once
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}
         assert not api.get("/bench/status")["busy"]

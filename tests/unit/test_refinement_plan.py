@@ -93,6 +93,8 @@ def test_the_budget_decides_what_fits_and_says_what_did_not():
     plan = plan_round(AXES, map_cells(lambda t, n: (0.01, 0.02 * (n == 3000.0))), validation(row), 30.0, 2)
     assert plan.inserted == {} and plan.new_cells == []
     assert any("needs 3 cells, 2 left" in r for r in plan.reasons)
+    # the verdict a person reads: one clause, the values grouped per axis (issue 30: no run-on)
+    assert plan.why_nothing_fits(None) == "inserting speed_rpm 2500 needs more cells than the 2 left"
 
 
 def test_points_served_per_cell_come_first_and_weak_candidates_wait():
@@ -153,6 +155,17 @@ def test_max_bytes_refuses_an_insertion_that_would_not_fit_the_firmware_memory()
     assert plan_round(AXES, map_cells(lambda t, n: (0.0, 0.0001 * n)), cells, 30.0, 100, max_bytes=164).inserted
     plan = plan_round(AXES, map_cells(lambda t, n: (0.0, 0.0001 * n)), cells, 30.0, 100, max_bytes=163)
     assert not plan.inserted and "164 bytes, over max_bytes = 163" in plan.reasons[0]
+    assert plan.why_nothing_fits(163) == "inserting speed_rpm 1500 makes the LUT larger than max_bytes = 163"
+
+
+def test_the_verdict_lists_a_few_values_per_axis_and_counts_the_rest():
+    from service.runs.refinement import RoundPlan
+
+    plan = RoundPlan(over_cells={"speed_rpm": [2470.0, 2290.0, 2410.0, 2350.0], "torque_nm": [2.9]}, cells_left=3)
+    assert plan.why_nothing_fits(None) == (
+        "inserting speed_rpm 2290, 2350, 2410 (and 1 more) and torque_nm 2.9 needs more cells than the 3 left"
+    )
+    assert RoundPlan().why_nothing_fits(None) == "nothing left to insert"
 
 
 def test_image_bytes_is_the_size_of_the_image_the_drive_takes():

@@ -66,7 +66,10 @@ class RefinementPublic(BaseModel):
     plant_time_s: float | None = Field(None, description="bench time spent in all rounds, plant seconds")
     cells_added: int = Field(description="cells identified by the refinement (new and re-measured)")
     holds: bool = Field(description="every point of the latest validation reached target_db")
-    stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds)")
+    stopped: str | None = Field(None, description="why it ended before every point held (budget, rounds), one line")
+    stopped_details: list[str] = Field(
+        default_factory=list, description="each insertion the last round's plan left out, and why (one line each)"
+    )
     placement: list[PlacementRoundPublic] = Field(
         default_factory=list, description="the placement rounds from curves, before the first validation"
     )
@@ -94,6 +97,7 @@ def refinement_public(records: Records, sweep: Mapping[str, Any]) -> RefinementP
         cells_added=state["cells_added"],
         holds=holds,
         stopped=state.get("stopped"),
+        stopped_details=state.get("stopped_details", []),
         placement=[PlacementRoundPublic(**r) for r in state.get("placement_rounds", [])],
         rounds=rounds,
         validation=validation_summary_public(latest) if latest else None,

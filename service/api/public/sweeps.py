@@ -53,6 +53,7 @@ class SweepPublic(BaseModel):
     finished_at: str | None = None
     schedule_id: int | None = Field(None, description="the schedule that submitted this sweep (none: started by hand)")
     kind: str = Field("sweep", description="sweep | refinement (a map refined on the drive: see `refinement`)")
+    source_map_id: int | None = Field(None, description="kind refinement: the map it refines")
     refinement: RefinementPublic | None = None
     points: list[SweepPointPublic] | None = None
 
@@ -110,5 +111,6 @@ def sweep_public(
         schedule_id=sweep.get("schedule_id"),
         points=points,
         kind=sweep.get("kind") or "sweep",
+        source_map_id=sweep.get("source_map_id"),
         refinement=refinement_public(records, sweep) if sweep.get("kind") == "refinement" else None,
     )

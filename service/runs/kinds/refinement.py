@@ -411,7 +411,8 @@ class RefinementRun:
         elif (stalled := no_progress(state["rounds"])) is not None:
             ending, stopped = True, stalled
         elif not plan.cells:
-            ending, stopped = True, "; ".join(plan.reasons) or "nothing left to insert"
+            ending, stopped = True, plan.why_nothing_fits(state.get("max_bytes"))
+            state["stopped_details"] = plan.reasons
         elif max_bench_s is not None and state["plant_time_s"] >= max_bench_s:
             ending = True
             stopped = (
@@ -478,8 +479,12 @@ class RefinementRun:
         state["phase"] = "validate"
 
     def _save_refinement(self, sweep_id: int, state: RefinementState) -> None:
-        # total: the cells planned so far (those measured, and the round's pending ones)
-        total = state["cells_added"] + (len(state["pending"]) if state["phase"] == "measure" else 0)
+        # total in the unit of done_points (the sweep's current results: one per cell, a cell measured again
+        # counted once): the cells measured so far and the round's pending ones, so done = total at the end
+        cells = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in self.storage.sweep_results(sweep_id)}
+        if state["phase"] == "measure":
+            cells |= {(t, n, u) for t, n, u in state["pending"]}
+        total = len(cells)
         self.storage.update_sweep(
             sweep_id, refinement=state, grid=state["axes"], map_id=state["current_map_id"], total_points=total
         )

@@ -2,7 +2,7 @@
 // "Refine on drive" (operator) refines the shown map (POST /maps/{id}/refine: validate it in the drive's
 // LUT mode, insert axis values where a point misses the target, identify the new cells, validate again).
 // While it runs: the round, its phase (measuring N cells / validating map M: k of n points) and the
-// cells added of the budget, from SSE (refinement.progress, job.progress, sweep.point, sweep.progress)
+// cells identified of the budget, from SSE (refinement.progress, job.progress, sweep.point, sweep.progress)
 // and GET /jobs/{id} at 1 Hz so a lost event never stalls it. Then the outcome, a table of the rounds,
 // and the source map's validation beside the refined map's (same colour scale, real axis positions).
 import * as api from "../api.js";
@@ -90,8 +90,9 @@ async function start() {
     const job = await api.post(`/maps/${source}/refine`, benchChoice.withBench(body));
     const r = fresh(job.sweep_id, job.id);
     take(r, job.result, job.state === "queued" ? "queued" : (job.result || {}).state, job.error);
-    showMsg("refine-note", [`Refinement ${job.sweep_id} of map ${source} queued (job ${job.id}): target ` +
-      `${fmt(target)} dB at every grid point and midpoint, at most ${maxCells} cell(s).`]);
+    // "submitted", not "queued": the line below says its state as it changes (queued, running, done)
+    showMsg("refine-note", [`Refinement ${job.sweep_id} of map ${source} submitted (job ${job.id}): target ` +
+      `${fmt(target)} dB at every grid point and midpoint, at most ${maxCells} cell(s) identified (new and re-measured).`]);
     r.queuedNote = true;
     follow(r);
   } catch (e) {
@@ -309,7 +310,7 @@ function renderProgress() {
   p.dataset.round = round === null || round === undefined ? "" : String(round);
   p.dataset.state = run.state;
   setText("refine-progress", `refinement ${run.sweepId}` + (ref ? ` of map ${ref.source_map_id}` : "") +
-    ` · round ${round ?? "—"} · ${doing} · cells added ${added} of ${maxCells}${state}`);
+    ` · round ${round ?? "—"} · ${doing} · ${added} of max ${maxCells} cells identified${state}`);
 }
 
 // the round in progress: the rounds validated so far (round k is validated k-th); the last one when done
@@ -333,15 +334,15 @@ function renderOutcome() {
   if (ref.state === "done" && ref.holds) {
     level = "ok";
     text = `Holds: all ${last.points} points of map ${ref.map_id} reach ${fmt(ref.target_db)} dB in the drive's LUT mode ` +
-      `(${ref.cells_added} of ${ref.max_cells} cells added, ${ref.rounds.length} round(s)).`;
+      `(${ref.cells_added} of max ${ref.max_cells} cells identified, ${ref.rounds.length} round(s)).`;
   } else if (ref.state === "done") {
     level = "warn";
     text = `Stopped: ${ref.stopped || "ended before every point held"} — map ${ref.map_id}, ` +
-      `${ref.cells_added} of ${ref.max_cells} cells added, ${ref.rounds.length} round(s).`;
+      `${ref.cells_added} of max ${ref.max_cells} cells identified, ${ref.rounds.length} round(s).`;
   } else {
     level = ref.state === "cancelled" ? "warn" : "error";
     text = `Refinement ${ref.state}${run.error ? ": " + run.error : ""} — latest map ${ref.map_id}, ` +
-      `${ref.cells_added} cell(s) added.`;
+      `${ref.cells_added} cell(s) identified.`;
   }
   const placed = ref.placement || [];
   if (placed.length) {        // placement from curves came before the first validation

@@ -188,7 +188,12 @@ function row(s) {
   tr.appendChild(el("td", { class: "num" }, String(s.id)));
   tr.appendChild(el("td", null)).appendChild(el("span", { class: "badge", "data-level": runLevel(s.state),
     "data-testid": "sweep-state" }, s.state));
-  tr.appendChild(el("td", null, s.method || "—"));
+  // a refinement is listed as what the user started (refine on the map panel), its cells' method beneath
+  const kindTd = tr.appendChild(el("td", { "data-testid": "sweep-kind", "data-kind": s.kind || "sweep" }));
+  if (s.kind === "refinement") {
+    kindTd.appendChild(el("div", null, `refinement of map ${s.source_map_id ?? "—"}`));
+    kindTd.appendChild(el("div", { class: "row-note" }, `cells by ${s.method || "—"}`));
+  } else kindTd.textContent = s.method || "—";
   tr.appendChild(el("td", { class: "grid-cell", title: gridFull(s.grid) }, gridSummary(s.grid)));
   tr.appendChild(progressCell(s));
 
@@ -232,8 +237,13 @@ function progressCell(s) {
   const fill = el("div", { class: "fill" });
   fill.style.width = total ? `${Math.min(100, (100 * done) / total).toFixed(1)}%` : "0%";
   bar.appendChild(fill);
-  bar.appendChild(el("span", { class: "bar-text" }, `${done} / ${total}`));
+  bar.appendChild(el("span", { class: "bar-text" }, `${done} / ${total}` + (s.refinement ? " cells" : "")));
   td.appendChild(bar);
+  if (s.refinement) {  // its cells are planned round by round: the bar counts those planned so far
+    const ref = s.refinement;
+    td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-refinement" },
+      `round ${ref.rounds.length} · ${ref.phase} · ${ref.cells_added} of max ${ref.max_cells} cells identified`));
+  }
   // outcomes apart: only ok cells go into a LUT
   const outcome = ["ok", "below_target", "no_authority", "failed"]
     .filter((k) => Number(prog[k]) > 0).map((k) => `${prog[k]} ${k.replace("_", " ")}`);
