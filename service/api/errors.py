@@ -21,6 +21,7 @@ from service.api.refusals import location
 from service.api.schemas import ErrorPublic
 from service.errors import BenchFailed, Conflict, Invalid, NotFound, ServiceError, Unavailable
 from service.identification.registry import METHODS
+from service.validation_words import in_our_words
 
 log = logging.getLogger(__name__)
 
@@ -95,52 +96,6 @@ def _json_safe(value: Any) -> bool:
     return isinstance(value, str) and len(value) <= 200
 
 
-def in_our_words(e: dict[str, Any], loc: list[str | int]) -> str:
-    """A request-validation item said in the service's words (issue 30: no library text reaches a user), naming
-    the field and the bound that applies; a kind not listed keeps its message."""
-    field = ".".join(str(p) for p in loc[1:]) or "the body"
-    ctx = e.get("ctx") or {}
-    kind = e.get("type", "")
-    bounds = {
-        "greater_than": ("greater than", "gt"),
-        "greater_than_equal": ("at least", "ge"),
-        "less_than": ("less than", "lt"),
-        "less_than_equal": ("at most", "le"),
-    }
-    if kind in bounds:
-        words, key = bounds[kind]
-        bound = ctx.get(key)
-        return f"{field} must be {words} {bound:g}" if isinstance(bound, float) else f"{field} must be {words} {bound}"
-    if kind in ("too_long", "string_too_long"):
-        return f"{field} is too long: at most {ctx.get('max_length')}"
-    if kind in ("too_short", "string_too_short"):
-        return f"{field} is too short: at least {ctx.get('min_length')}"
-    fixed = {
-        "missing": f"{field} is required",
-        "extra_forbidden": f"{field} is not a field of this request",
-        "float_parsing": f"{field} must be a number",
-        "float_type": f"{field} must be a number",
-        "int_parsing": f"{field} must be a whole number",
-        "int_type": f"{field} must be a whole number",
-        "int_from_float": f"{field} must be a whole number",
-        "bool_parsing": f"{field} must be true or false",
-        "bool_type": f"{field} must be true or false",
-        "finite_number": f"{field} must be a finite number",
-        "string_type": f"{field} must be text",
-        "list_type": f"{field} must be a list",
-        "dict_type": f"{field} must be an object",
-        "model_type": f"{field} must be an object",
-    }
-    if kind in fixed:
-        return fixed[kind]
-    if kind == "literal_error":
-        return f"{field} must be one of {ctx.get('expected')}"
-    if kind == "json_invalid":
-        return f"the body is not valid JSON: {ctx.get('error')}"
-    msg = str(e.get("msg", ""))
-    return msg.removeprefix("Value error, ")  # our own validators' messages, without pydantic's prefix
-
-
 async def request_validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     detail = []
     for e in exc.errors():
@@ -152,6 +107,14 @@ async def request_validation_error(request: Request, exc: RequestValidationError
             del loc[at]
         elif loc in (["body"], ["body", "sweep"]) and e["type"] == "union_tag_invalid":
             loc = [*loc, "method"]  # an unknown method
+        if e["type"] == "json_invalid":  # the body as a whole; its loc's second part is a character position
+            at_char = f" at character {loc[1]}" if len(loc) > 1 else ""
+            detail.append(
+                validation_error(
+                    ["body"], f"the body is not valid JSON{at_char}: {(e.get('ctx') or {}).get('error')}", e["type"]
+                )
+            )
+            continue
         item = validation_error(loc, in_our_words(e, loc), e["type"])
         if "input" in e and _json_safe(e["input"]):
             item["input"] = e["input"]
@@ -187,8 +150,12 @@ async def value_error(request: Request, exc: ValueError) -> JSONResponse:
     if where is None:
         raise exc
     options_at = location(request, "method_options", default=None)
-    if isinstance(exc, ValidationError) and options_at is not None:
-        items = [validation_error([*options_at, *map(str, e["loc"])], e["msg"]) for e in exc.errors()]
+    if isinstance(exc, ValidationError):  # a model built inside the route: each field at its path, in our words
+        at = options_at if options_at is not None else where
+        items = []
+        for e in exc.errors():
+            loc = [*at, *map(str, e["loc"])]
+            items.append(validation_error(loc, in_our_words(e, loc), e["type"]))
     else:
         items = [validation_error(where, str(exc))]
     return JSONResponse({"detail": items}, status_code=422)

@@ -16,11 +16,14 @@ from __future__ import annotations
 import logging
 import sys
 
+from pydantic import ValidationError
+
 from service.bench.errors import BenchUnreachable  # light: not the bench's drivers
 from service.cli.parser import build_parser
 from service.cli.startup import StartError, resolve_db_path
 from service.settings import SettingsError
 from service.store.storage import StorageError
+from service.validation_words import in_our_words
 
 __all__ = ["main", "build_parser", "StartError", "resolve_db_path"]
 
@@ -39,6 +42,10 @@ def main(argv: list[str] | None = None) -> int:
         StorageError,
     ) as exc:  # StorageError: e.g. the database locked by another process
         print(f"ripplecal: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:  # a value a model refused (an operating point's speed <= 0): said as ours
+        for e in exc.errors():
+            print(f"ripplecal: {in_our_words(dict(e), ['option', *e['loc']])}", file=sys.stderr)
         return 2
     except (ValueError, TimeoutError) as exc:
         print(f"ripplecal: {exc}", file=sys.stderr)

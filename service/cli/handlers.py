@@ -258,6 +258,7 @@ def cmd_schedule(args) -> int:
         next_runs,
         utc_now,
     )
+    from service.validation_words import in_our_words
 
     settings = settings_from(args)
     if args.schedule_cmd == "preview":
@@ -279,9 +280,7 @@ def cmd_schedule(args) -> int:
                 }
             )
         except ValidationError as exc:
-            raise ValueError(
-                "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
-            ) from None
+            raise ValueError("; ".join(in_our_words(dict(e), ["option", *e["loc"]]) for e in exc.errors())) from None
         schedule_id = create_schedule(
             storage, settings, now, args.name, args.cron, args.timezone, sweep, enabled=not args.disabled
         )

@@ -129,12 +129,23 @@ def check_grid_limits(grid: Grid, settings: Settings) -> None:
     and with the limits of this bench (service/model/limits.py setpoint_problem), before a point is made of them."""
     problems = []
     for field in ("torque_nm", "speed_rpm", "udc_v"):
-        found = [p for v in getattr(grid, field) if (p := setpoint_problem(field, v, settings.safety)) is not None]
+        found = [p for v in getattr(grid, field) if (p := _grid_value_problem(field, v, settings)) is not None]
         if found:
             more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
             problems.append((field, " | ".join(found[:5]) + more))
     if problems:
         raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
+
+
+def _grid_value_problem(field: str, value: float, settings: Settings) -> str | None:
+    """setpoint_problem, and a grid speed is a magnitude (the limits take |speed|: a setpoint may turn either way;
+    an operating point's speed is > 0): a speed <= 0 is named with the bench's minimum as any speed below it."""
+    if field == "speed_rpm" and value <= 0:
+        return (
+            f"speed_rpm {value:g} is below the minimum of {settings.safety.min_speed_rpm:g} rpm (safety.min_speed_rpm): "
+            "a grid's speeds are magnitudes, > 0"
+        )
+    return setpoint_problem(field, value, settings.safety)
 
 
 def _named(op: OperatingPoint, msg: str) -> str:
@@ -424,11 +435,15 @@ def preview_sweep(
         problems.append(_problem(["body", "grid"], str(exc)))
     points: tuple[OperatingPoint, ...] = ()
     override = options.override_envelope_model
-    if planned.grid.size() <= MAX_GRID_POINTS:
-        try:
-            points = SweepPlan.from_grid(planned.grid).points
-        except ValueError as exc:  # a value no operating point can take (e.g. speed 0)
-            problems.append(_problem(["body", "grid"], str(exc)))
+    try:  # each grid value against the bench's limits, as POST /sweeps checks them first
+        check_grid_limits(planned.grid, settings)
+        within_limits = True
+    except LimitError as exc:
+        problems += _limit_problems(exc)
+        within_limits = False
+    # points only of values within the limits (a speed <= 0 makes no operating point; named above)
+    if planned.grid.size() <= MAX_GRID_POINTS and within_limits:
+        points = SweepPlan.from_grid(planned.grid).points
     # the envelope model (unless the request overrides it) judges each point once: the points outside it are
     # listed apart (not run), the rest are what the sweep runs
     inside: list[OperatingPoint] = []
@@ -444,12 +459,8 @@ def preview_sweep(
             check_plant_time(planned.grid.speed_rpm, method, options, settings)
         except PlantTimeError as exc:
             problems.append(_problem(["body", "options"], str(exc), "value_error.plant_time"))
-        # the hard limits, then the envelope model: refused only when no point is inside it (check_any_inside
-        # words that refusal, judging the points again, only then)
-        try:  # each grid value against the bench's limits, as POST /sweeps checks them first
-            check_grid_limits(planned.grid, settings)
-        except LimitError as exc:
-            problems += _limit_problems(exc)
+        # the envelope model: refused only when no point is inside it (check_any_inside words that refusal,
+        # judging the points again, only then)
         if not inside:
             try:
                 check_any_inside(list(points), settings, override)

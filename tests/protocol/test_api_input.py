@@ -101,6 +101,18 @@ def test_speed_below_the_minimum_is_refused_before_queueing(live, speed_rpm):
     assert all(j["request"]["operating_point"]["speed_rpm"] >= 100 for j in live[1].get("/api/v1/jobs").json())
 
 
+@pytest.mark.parametrize("path", ["/api/v1/sweeps", "/api/v1/sweeps/preview"])
+@pytest.mark.parametrize("speed_rpm", [-2.7e16, 0.0])
+def test_a_speed_no_operating_point_can_take_is_named_with_the_bench_minimum(live, path, speed_rpm):
+    """Found by the suite's schemathesis pass (issue 30): a negative speed reached OperatingPoint before the bench's
+    limits and was answered with the library's text at body.grid."""
+    r = _post(live, path, json.dumps({"grid": {"torque_nm": [1], "speed_rpm": [speed_rpm, 2000]}}))
+    items = r.json()["detail"] if r.status_code == 422 else r.json()["problems"]
+    assert [tuple(e["loc"]) for e in items] == [("body", "grid", "speed_rpm")], r.text
+    assert f"speed_rpm {speed_rpm:g} is below the minimum of 100 rpm" in items[0]["msg"], items
+    assert "pydantic" not in r.text and "validation error" not in r.text, r.text
+
+
 def test_sweep_dry_run_names_the_grid_field_and_the_values(live):
     """Each grid value outside this bench's limits, named by its axis with the limit that applies here (issue 30:
     a speed of 1e9 was answered with the library's text, at body.grid, with a limit that was not the bench's)."""

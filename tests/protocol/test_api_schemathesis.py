@@ -14,6 +14,7 @@ test_api_input.
 Figures: .venv/bin/python -m pytest -q -s tests/protocol/test_api_schemathesis.py  (prints requests and 5xx)
 """
 
+import json
 from collections import Counter
 
 import pytest
@@ -98,6 +99,8 @@ def test_no_server_errors(live, mode):
             TALLY[f"status {response.status_code // 100}xx"] += 1  # counted before the checks can fail
             TALLY[f"{operation.label} {response.status_code}"] += 1
             case.validate_response(response, checks=CHECKS, headers=operator)
+            if 400 <= response.status_code < 500:
+                assert_refusal_in_our_words(response)
             if response.status_code == 201 and case.path == "/api/v1/schedules":
                 # a schedule was made: delete it before it fires (every-minute crons are generated too)
                 TALLY["schedules created and deleted"] += 1
@@ -116,3 +119,27 @@ def test_no_server_errors(live, mode):
         except Exception as exc:  # keep going: one report naming every operation that failed
             failures.append(f"{operation.label}: {exc}")
     assert not failures, "\n\n".join(failures)
+
+
+LIBRARY_WORDS = ("pydantic", "validation error for", "input should", "type=", "input_value", "further information")
+
+
+def assert_refusal_in_our_words(response) -> None:
+    """Issue 30: a 4xx says what was wrong in the service's words; a request-validation item names its field
+    (`loc`, its JSON path inside the body, query or path) in its message, and no library's text or URL."""
+    try:
+        body = response.json()
+    except ValueError:
+        raise AssertionError(f"a {response.status_code} without a JSON body: {response.text[:200]!r}") from None
+    detail = body.get("detail") if isinstance(body, dict) else None
+    assert detail, f"a {response.status_code} that says nothing: {body!r}"
+    items = detail if isinstance(detail, list) else [{"msg": detail}]
+    for item in items:
+        said = json.dumps({k: v for k, v in item.items() if k != "input"})  # the echoed input is the caller's own
+        assert "https://" not in said and "http://" not in said, said
+        assert not any(w in said.lower() for w in LIBRARY_WORDS), said
+        if response.status_code == 422 and isinstance(detail, list):
+            loc = item.get("loc")
+            assert isinstance(loc, list) and loc and loc[0] in ("body", "query", "path", "header"), item
+            field = ".".join(str(p) for p in loc[1:])
+            assert not field or field in item["msg"] or str(loc[-1]) in item["msg"], item

@@ -234,7 +234,8 @@ def test_preview_lists_every_problem_post_sweeps_would_refuse():
     assert preview_sweep(big, AROUND, "probe", parse_options("probe", {}), True, SETTINGS).accepted
     # a grid no operating point can take: named, no points, no estimate, no exception
     p = preview_sweep(Grid(torque_nm=[1], speed_rpm=[0]), AROUND, "probe", parse_options("probe", {}), False, SETTINGS)
-    assert p.points == [] and p.estimate is None and p.problems[0]["loc"] == ["body", "grid"]
+    assert p.points == [] and p.estimate is None and p.problems[0]["loc"] == ["body", "grid", "speed_rpm"]
+    assert "speed_rpm 0 is below the minimum of" in p.problems[0]["msg"], p.problems
 
 
 class _Bench:

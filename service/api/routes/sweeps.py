@@ -12,7 +12,7 @@ from service.api.public.sweeps import SweepPublic, sweep_public
 from service.api.refusals import refusals_at
 from service.api.schemas import SweepCreate
 from service.runs.lab import is_own_bench
-from service.runs.plans import SweepPreview, check_sweep_size, plan_grid, preview_sweep
+from service.runs.plans import SweepPreview, check_grid_limits, check_sweep_size, plan_grid, preview_sweep
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 
@@ -28,6 +28,8 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
     # the size that counts is the planned grid's (speeds placed around the onset included; another
     # bench's grid as given: its placement needs that bench's machine)
     own = is_own_bench(body.bench, service.settings.bench_name)
+    if own:  # first: a value outside this bench's limits is named with the limit, before anything is made of it
+        check_grid_limits(body.grid, service.settings)
     planned = plan_grid(body.grid, body.regime, service.settings) if own else None  # the one plan: it travels
     check_sweep_size(planned.grid if planned else body.grid, body.confirm_large, service.settings.safety)
     sweep_id = service.engine.submit_sweep(

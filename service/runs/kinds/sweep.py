@@ -11,7 +11,15 @@ from service import __version__
 from service.identification.common import MethodOptions
 from service.runs.identify import check_plant_time
 from service.runs.kinds.host import JobHost, JobKind
-from service.runs.plans import Grid, PlannedGrid, RegimePlacement, SweepPlan, check_grid_limits, plan_grid
+from service.runs.plans import (
+    Grid,
+    PlannedGrid,
+    RegimeError,
+    RegimePlacement,
+    SweepPlan,
+    check_grid_limits,
+    plan_grid,
+)
 from service.runs.sweep_run import job_sweep_id, stored_plan, stored_sweep
 from service.store.records import JobRecord, SweepRecord
 
@@ -39,7 +47,7 @@ def submit(
         host.bench.check_reachable()
         grid = (planned or plan_grid(grid, regime, host.settings)).grid
     elif regime is not None:
-        raise ValueError(f"regime placement needs bench {bench}'s machine settings: post it to its service")
+        raise RegimeError(f"regime placement needs bench {bench}'s machine settings: post it to its service")
     plan = SweepPlan.from_grid(grid)
     if own:
         check_plant_time(grid.speed_rpm, method, options, host.settings)
