@@ -13,12 +13,181 @@ export function plotlyLoaded() {
   return Boolean(window.Plotly);
 }
 
+// Draws `figure` into the div, then fits it to the size Plotly gave it (fit) and again whenever the figure is
+// laid out anew (the window resized, a zoom).
 export function draw(divId, figure) {
   window.Plotly.react(divId, figure.data, figure.layout, figure.config);
+  const gd = document.getElementById(divId);
+  fit(gd, figure);
+  if (refits.has(divId)) gd.removeListener("plotly_relayout", refits.get(divId));
+  const refit = () => fit(gd, figure);
+  refits.set(divId, refit);
+  gd.on("plotly_relayout", refit);
 }
 
 export function purge(divId) {
+  refits.delete(divId);  // Plotly.purge drops the div's listeners
   if (window.Plotly) window.Plotly.purge(divId);
+}
+
+// ------------------------------------------------------------------ a drawn figure fitted to its size
+// Measured once Plotly has laid a figure out, never guessed from the data: a title wider than the figure wraps at
+// its " · " parts; a heat map (figure.heat) draws a cell's number only where it fits inside the cell, keeps the
+// axis tick labels that clear the ones kept before them, and shrinks its grid-point marks to their cells (a
+// refined map's non-uniform axes have cells a few pixels wide: the colour and the hover still say every value).
+const refits = new Map();            // div id -> its plotly_relayout handler
+const LINE_SPACING = 1.3;            // Plotly's, between the lines of a title
+const LABEL_FONT_PX = [11, 9];       // a cell's number: the first size it fits at, else none
+const LABEL_PAD_PX = 2;              // around a cell's number, inside its cell
+const TICK_GAP_PX = 6;               // between two tick labels
+const MARK_MAX_PX = 30;              // a grid-point mark in a cell at least that large
+const MARK_MIN_PX = 6;               // smaller, a mark is a dot that hides its cell's colour: none
+let measureCtx = null;
+
+function textBox(text, px) {
+  measureCtx = measureCtx || document.createElement("canvas").getContext("2d");
+  measureCtx.font = `${px}px ${FONT.family}`;
+  const m = measureCtx.measureText(String(text).replace(/<[^>]*>/g, ""));
+  return { w: m.width, h: m.fontBoundingBoxAscent + m.fontBoundingBoxDescent };
+}
+
+// Draws the fitted figure; again while that moves the plot area (a wrapped title takes a line of its height).
+function fit(gd, figure) {
+  for (let pass = 0; pass < 3 && gd._fullLayout; pass++) {
+    const area = plotArea(gd);
+    const { width, height } = gd._fullLayout;
+    const layout = Object.assign({}, figure.layout, wrappedTitle(figure.layout, width, height));
+    const { data, axes } = figure.heat ? fittedHeatmap(gd, figure) : { data: figure.data, axes: {} };
+    window.Plotly.react(gd, data, Object.assign(layout, axes), figure.config);
+    if (plotArea(gd) === area) return;
+  }
+}
+
+function plotArea(gd) {
+  const fl = gd._fullLayout;
+  return fl.xaxis ? `${fl.width}x${fl.height} ${fl.xaxis._length}x${fl.yaxis._length}` : `${fl.width}x${fl.height}`;
+}
+
+// The title in lines no wider than the figure (its " · " parts kept whole where they fit), centred in a top margin
+// that holds them (Plotly centres the lines of a title on its anchor).
+function wrappedTitle(layout, width, height) {
+  const title = layout.title;
+  if (!title || !title.text) return {};
+  const px = (title.font && title.font.size) || FONT.size;
+  const room = width * (1 - (title.x ?? 0.02)) - 8;
+  const fits = (t) => textBox(t, px).w <= room;
+  const lines = [];
+  String(title.text).split(" · ").forEach((part, n) => {
+    if (n > 0 && fits(`${lines[lines.length - 1]} · ${part}`)) {
+      lines[lines.length - 1] += ` · ${part}`;
+      return;
+    }
+    let line = n > 0 ? "·" : "";             // a continued line starts with the separator it was broken at
+    for (const word of part.split(" ")) {    // a part wider than the figure: at its spaces
+      if (line && line !== "·" && !fits(`${line} ${word}`)) {
+        lines.push(line);
+        line = word;
+      } else line = line ? `${line} ${word}` : word;
+    }
+    lines.push(line);
+  });
+  const top = 8;
+  const lineHeight = px * LINE_SPACING;
+  const margin = Object.assign({}, layout.margin);
+  margin.t = Math.max(margin.t || 0, Math.ceil(top + lines.length * lineHeight + 8));
+  const centre = top + (lines.length * lineHeight) / 2;
+  return {
+    title: Object.assign({}, title,
+      { text: lines.join("<br>"), yref: "container", y: 1 - centre / height, yanchor: "middle" }),
+    margin,
+  };
+}
+
+// figure.heat: {xs, ys, xEdges, yEdges, z, digits, marks (the index of its grid-point mark trace, or null),
+// xTicks, yTicks (tick values, the ones to keep first first)}; the heat map is the figure's first trace.
+function fittedHeatmap(gd, figure) {
+  const h = figure.heat;
+  const xa = gd._fullLayout.xaxis;
+  const ya = gd._fullLayout.yaxis;
+  // the room centred on each breakpoint inside its cell (a cell of a non-uniform axis reaches halfway to either
+  // neighbour: its breakpoint is off its middle) and inside the plot area (a zoom cuts the edge cells): px, 0 if none
+  const room = (values, edges, axis) => values.map((v, k) => {
+    const at = axis.l2p(v);
+    const [a, b] = edges[k].map((e) => Math.min(axis._length, Math.max(0, axis.l2p(e))));
+    const half = Math.min(Math.abs(at - a), Math.abs(b - at));
+    return at < 0 || at > axis._length ? 0 : 2 * half - 1;  // the heat map's 1 px gap
+  });
+  const widths = room(h.xs, h.xEdges, xa);
+  const heights = room(h.ys, h.yEdges, ya);
+  const colourOf = cellColour(gd._fullData[0]);
+  const labels = { x: [], y: [], text: [], size: [], colour: [] };
+  h.z.forEach((row, i) => row.forEach((v, j) => {
+    if (v === null || v === undefined) return;
+    const text = Number(v).toFixed(h.digits);
+    const px = LABEL_FONT_PX.find((f) => {
+      const box = textBox(text, f);
+      return box.w + 2 * LABEL_PAD_PX <= widths[j] && box.h <= heights[i];
+    });
+    if (px === undefined) return;
+    labels.x.push(h.xs[j]);
+    labels.y.push(h.ys[i]);
+    labels.text.push(text);
+    labels.size.push(px);
+    labels.colour.push(colourOf(v));
+  }));
+  const data = figure.data.map((trace, k) => {
+    if (k !== h.marks) return trace;
+    const cell = trace.x.map((x, n) => Math.min(widths[h.xs.indexOf(x)], heights[h.ys.indexOf(trace.y[n])]));
+    return Object.assign({}, trace, { marker: Object.assign({}, trace.marker,
+      { size: cell.map((c) => (c - 2 < MARK_MIN_PX ? 0 : Math.min(MARK_MAX_PX, c - 2))) }) });
+  });
+  data.push({ type: "scatter", mode: "text", x: labels.x, y: labels.y, text: labels.text,
+    textfont: { family: FONT.family, size: labels.size, color: labels.colour }, hoverinfo: "skip", showlegend: false,
+    name: "cell values" });
+  const ticks = (values, axis, along) => {
+    const kept = [];
+    for (const v of values) {
+      const at = axis.l2p(v);
+      if (at < 0 || at > axis._length) continue;  // outside a zoom
+      const half = textBox(fmt(v), FONT.size)[along] / 2;
+      if (kept.every((k) => Math.abs(k.at - at) >= k.half + half + TICK_GAP_PX)) kept.push({ v, at, half });
+    }
+    const vals = kept.map((k) => k.v).sort((a, b) => a - b);
+    return { tickvals: vals, ticktext: vals.map((v) => fmt(v)) };
+  };
+  const zoom = (axis) => ({ range: axis.range.slice() });   // a zoom the reader made stays
+  return {
+    data,
+    axes: {
+      xaxis: Object.assign({}, figure.layout.xaxis, zoom(xa), ticks(h.xTicks, xa, "w")),
+      yaxis: Object.assign({}, figure.layout.yaxis, zoom(ya), ticks(h.yTicks, ya, "h")),
+    },
+  };
+}
+
+// The text colour for a cell's number: dark on a light cell, white on a dark one (the heat map trace as Plotly
+// resolved it: its colour scale's stops and z range).
+function cellColour(trace) {
+  const stops = (trace.colorscale || []).map(([at, c]) => [at, rgbOf(c)]);
+  const span = trace.zmax - trace.zmin || 1;
+  return (v) => {
+    const t = Math.min(1, Math.max(0, (v - trace.zmin) / span));
+    const k = Math.max(1, stops.findIndex(([at]) => at >= t));
+    const [a0, c0] = stops[k - 1];
+    const [a1, c1] = stops[k];
+    const f = a1 > a0 ? (t - a0) / (a1 - a0) : 0;
+    const [r, g, b] = c0.map((x, n) => x + f * (c1[n] - x));
+    return (r * 299 + g * 587 + b * 114) / 1000 > 128 ? "#1d2430" : "#ffffff";
+  };
+}
+
+function rgbOf(colour) {
+  const c = String(colour).trim();
+  if (c.startsWith("#")) {
+    const hex = c.length === 4 ? [...c.slice(1)].map((d) => d + d).join("") : c.slice(1, 7);
+    return [0, 2, 4].map((i) => parseInt(hex.slice(i, i + 2), 16));
+  }
+  return (c.match(/[\d.]+/g) || [0, 0, 0]).slice(0, 3).map(Number);
 }
 
 // fn(point) on a click on a drawn figure; bound once per div.
@@ -120,12 +289,10 @@ export function mapHeatmap(slice, q) {
       text[i][j] = head + `<b>status: ${escapeHtml(String(c.status))}</b> (no value)` + fillText + click;
     }
   }
-  // every cell carries its number (a map is read, not only looked at)
   const trace = {
     type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>",
     hoverongaps: true, colorscale: q.scale,
     xgap: 1, ygap: 1,
-    texttemplate: `%{z:.${q.digits}f}`, textfont: { size: xs.length > 8 ? 9 : 11 },
     colorbar: { title: { text: q.cbar, side: "right" }, thickness: 12, len: 0.9 },
   };
   const finite = z.flat().filter((v) => v !== null);
@@ -147,10 +314,10 @@ export function mapHeatmap(slice, q) {
   const xEdges = cellEdges(xs);
   const yEdges = cellEdges(ys);
   const fillNote = filledAt.length ? ` · hatched: ${filledAt.length} filled` : "";
-  // numeric axes, ticks at the breakpoints; the cells span halfway to their neighbours
+  // numeric axes, ticks at the breakpoints (those that fit: fit()); the cells span halfway to their neighbours
   const axis = (title, values, edges) => ({
     title: { text: title }, type: "linear", tickmode: "array", tickvals: values, ticktext: values.map((v) => fmt(v)),
-    range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false,
+    range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false, tickangle: 0, automargin: true,
   });
   const layout = {
     title: { text: `${slice.orderLabel || ""}${q.title} (${q.unit}) @ U<sub>dc</sub> = ${udc} V${rangeNote}${fillNote}`, font: { size: 13 }, x: 0.02, xanchor: "left" },
@@ -186,7 +353,9 @@ export function mapHeatmap(slice, q) {
       hoverinfo: "skip", showlegend: false, name: "outlier",
     });
   }
-  return { data, layout, config: CONFIG };
+  // every cell carries its number where it fits (a map is read, not only looked at)
+  const heat = { xs, ys, xEdges, yEdges, z, digits: q.digits, marks: null, xTicks: xs, yTicks: ys };
+  return { data, layout, config: CONFIG, heat };
 }
 
 // ------------------------------------------------------------------ one result (paper Fig. 8, 9, 10)
@@ -412,28 +581,32 @@ export function validationHeatmap(cells, udc, opts) {
   }
   const heat = {
     type: "heatmap", x: xs, y: ys, z, text, hovertemplate: "%{text}<extra></extra>", hoverongaps: true,
-    colorscale: "Cividis", zmin: 0, zmax: 60, xgap: 1, ygap: 1, texttemplate: "%{z:.1f}", textfont: { size: 11 },
+    colorscale: "Cividis", zmin: 0, zmax: 60, xgap: 1, ygap: 1,
     colorbar: { title: { text: "dB (fixed 0…60)", side: "right" }, thickness: 12, len: 0.9 }, name: "suppression",
   };
   const marks = {
     type: "scatter", mode: "markers", x: grid.x, y: grid.y, name: "grid point (trained)", hoverinfo: "skip",
     marker: { symbol: "square-open", size: 30, color: "#d1495b", line: { width: 2 } },
   };
-  const numericAxis = (title, values) => {
-    const edges = values.length ? cellEdges(values) : [[0, 1]];
-    return { title: { text: title }, type: "linear", tickmode: "array", tickvals: values, ticktext: values.map((v) => fmt(v)),
-      range: [edges[0][0], edges[edges.length - 1][1]], zeroline: false, showgrid: false };
-  };
+  const numericAxis = (title, values, edges) => ({ title: { text: title }, type: "linear", tickmode: "array",
+    tickvals: values, ticktext: values.map((v) => fmt(v)), range: [edges[0][0], edges[edges.length - 1][1]],
+    zeroline: false, showgrid: false, tickangle: 0, automargin: true });
+  const xEdges = xs.length ? cellEdges(xs) : [[0, 1]];
+  const yEdges = ys.length ? cellEdges(ys) : [[0, 1]];
   const title = (opts && opts.title) ||
     `suppression in the drive's LUT mode (dB) @ U<sub>dc</sub> = ${udc} V · ◻ grid point, else midpoint`;
   const layout = {
     title: { text: title, font: { size: 13 }, x: 0.02, xanchor: "left" },
     margin: { l: 58, r: 10, t: 36, b: 44 }, showlegend: false,
-    xaxis: numericAxis("torque T* (N·m)", xs),
-    yaxis: numericAxis("speed n (rpm)", ys),
+    xaxis: numericAxis("torque T* (N·m)", xs, xEdges),
+    yaxis: numericAxis("speed n (rpm)", ys, yEdges),
     font: FONT, paper_bgcolor: "rgba(0,0,0,0)", plot_bgcolor: "#eceff3",
   };
-  return { data: [heat, marks], layout, config: CONFIG };
+  // numbers where they fit, grid values' ticks kept before the midpoints' (fit())
+  const gridFirst = (values, on) => [...values.filter((v) => on.has(v)), ...values.filter((v) => !on.has(v))];
+  const fitting = { xs, ys, xEdges, yEdges, z, digits: 1, marks: 1,
+    xTicks: gridFirst(xs, new Set(grid.x)), yTicks: gridFirst(ys, new Set(grid.y)) };
+  return { data: [heat, marks], layout, config: CONFIG, heat: fitting };
 }
 
 // ------------------------------------------------------------------ run-ups (order analysis)

@@ -68,12 +68,15 @@ export async function select(id) {
   await show(id);
 }
 
-// SSE sweep.progress: a finished sweep brings its map to the front.
+// SSE sweep.progress: a finished sweep brings its map to the front; a refinement (a sweep of kind refinement,
+// started from this panel) is named as what it is, with the map it refined.
 export async function onSweepProgress(p) {
   if (p.state !== "done" || p.map_id === null || p.map_id === undefined) return;
   await reload(false);
   select(p.map_id);  // clears the note at once, then fetches; the note below stays
-  showMsg("map-note", [`Sweep ${p.sweep_id} finished — showing its map ${p.map_id}.`]);
+  showMsg("map-note", [p.kind === "refinement" ?
+    `Refinement ${p.sweep_id} finished — showing its refined map ${p.map_id}.` :
+    `Sweep ${p.sweep_id} finished — showing its map ${p.map_id}.`]);
 }
 
 async function show(id) {
@@ -108,7 +111,7 @@ async function show(id) {
   $("map-meta").dataset.filled = String(filled);
   const prov = m.provenance || {};
   const origin = m.refined_from ? `refined from ${m.refined_from} (refinement ${prov.refinement_id ?? m.sweep_id}, ` +
-    `round ${prov.round ?? "—"}, ${prov.cells_added ?? "—"} cells added)` : `sweep ${m.sweep_id}`;
+    `round ${prov.round ?? "—"}, ${prov.cells_added ?? "—"} cells identified)` : `sweep ${m.sweep_id}`;
   $("map-meta").dataset.refinedFrom = m.refined_from ? String(m.refined_from) : "";
   const further = (m.further_orders || []).map((o) =>
     ` · order ${o.order}: ${o.status_counts.ok || 0} ok of ${o.cells.length}, ${o.filled_cells} filled`).join("");

@@ -1,0 +1,1 @@
+"""A package: the browser test modules import what conftest.py shares."""
