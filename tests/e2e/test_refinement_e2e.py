@@ -109,6 +109,10 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         job_id = api.post(f"/maps/{source}/refine", {"max_cells": 4}).json()["id"]
         sweep_id = api.get(f"/jobs/{job_id}")["sweep_id"]
         api.wait(lambda: api.get(f"/sweeps/{sweep_id}")["state"] == "running", 60, "refinement running")
+        # the lab lists what the bench runs as what it is (issue 30), not as a sweep
+        api.wait(
+            lambda: f"refinement {sweep_id}" in [b["running"] for b in api.get("/benches")], 30, "the lab's running"
+        )
         assert api.post(f"/sweeps/{sweep_id}/cancel").status_code == 200
         assert api.job_finished(job_id, 300)["state"] == "cancelled"
         assert api.get(f"/sweeps/{sweep_id}")["state"] == "cancelled" and not api.get("/bench/status")["busy"]
