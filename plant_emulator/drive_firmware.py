@@ -54,6 +54,7 @@ from canopen.sdo import SdoAbortedError
 
 from drivers import lut_image
 from drivers.cia402 import State402
+from drivers.injection_limit import injection_scale
 
 from . import physics as ph
 from .cia402_device import ABORT_VALUE_RANGE, Cia402Device
@@ -284,8 +285,7 @@ class DriveFirmware(Cia402Device):
         """The factor on every order's theta that keeps |v_inj| <= gamma_max (0x2000:5) at every angle:
         the sum of the orders' |theta| (the main order's (c, s) and the further orders in force) clamped to
         gamma_max; with one order that is |theta| <= gamma_max."""
-        total = math.hypot(c, s) + sum(math.hypot(fc, fs) for _, fc, fs in further)
-        return self.gamma_max_rad / total if total > self.gamma_max_rad and total > 0.0 else 1.0
+        return injection_scale([math.hypot(c, s), *(math.hypot(fc, fs) for _, fc, fs in further)], self.gamma_max_rad)
 
     def _clamped(self, c: float, s: float, further: tuple[tuple[int, float, float], ...] = ()) -> tuple[float, float]:
         """theta of the main order scaled by `_scale`, as the control loop takes it."""

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, field_validator
 
+from drivers.injection_limit import injection_scale
 from service.identification.common import (
     AT_FLOOR_SIGMAS,
     CONFIDENCE_SIGMAS,
@@ -113,10 +114,8 @@ def _further(orders: list[int], theta: np.ndarray) -> tuple[tuple[int, float, fl
 def _clamp_sum(theta: np.ndarray, gamma_max_rad: float) -> tuple[np.ndarray, bool]:
     """Every order's theta scaled by one factor so that the sum of their |theta| is at most gamma_max (what the
     drive does, 0x2000:5); (theta, limited)."""
-    total = float(np.sum(_per_order(theta)))
-    if total > gamma_max_rad:
-        return theta * (gamma_max_rad / total), True
-    return theta, False
+    k = injection_scale(_per_order(theta).tolist(), gamma_max_rad)
+    return (theta * k, True) if k < 1.0 else (theta, False)
 
 
 def identify_orders(

@@ -335,8 +335,8 @@ class Engine:
         if job["sweep_id"] is not None:  # taken from the database: its controls live in this process now
             self.controls.jobs[job_id] = self.controls.control(job["sweep_id"]).cancel
         # what it is, as the lab lists it: "sweep 4", "refinement 5" (a sweep's id), "runup job 7"
-        kind = job["kind"]
-        self.running = f"{kind} {job['sweep_id']}" if job["sweep_id"] is not None else f"{kind} job {job_id}"
+        what = job["kind"]
+        self.running = f"{what} {job['sweep_id']}" if job["sweep_id"] is not None else f"{what} job {job_id}"
         self.running_job = (job_id, job["sweep_id"])
         cancel = self.controls.jobs.setdefault(job_id, threading.Event())
         if self._shutdown.is_set():

@@ -255,3 +255,13 @@ def test_csv_and_json_of_two_orders_carry_each_order():
         for i, t in enumerate(AXES["torque_nm"]):
             assert grid[0][j][i] == pytest.approx(theta(12, t, n, 12.0)[0], abs=1e-15)
     assert doc["further_orders"][0]["filled"][0][1][1] == 1
+
+
+def test_the_drives_limit_scales_every_order_by_one_factor_to_a_sum_of_gamma_max():
+    from drivers.injection_limit import injection_scale
+
+    # |theta_6| = 0.02, |theta_12| = 0.01 rad against gamma_max 0.02: the peak sum_k gamma_k = 0.03 -> 0.02
+    assert injection_scale([0.02, 0.01], 0.02) == pytest.approx(2.0 / 3.0, rel=1e-12)
+    assert injection_scale([0.015, 0.005], 0.02) == 1.0  # at the limit: untouched
+    assert injection_scale([0.0, 0.0], 0.02) == 1.0
+    assert injection_scale([0.05], 0.02) == pytest.approx(0.4, rel=1e-12)  # one order: |theta| <= gamma_max
