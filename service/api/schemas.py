@@ -9,8 +9,19 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Discriminator, Field, Tag, create_model, field_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
+from service.identification.orders import MAX_ORDER, MAX_ORDERS
 from service.identification.registry import METHODS
 from service.model.operating_point import OperatingPoint
 from service.names import MAX_NAME_LENGTH, check_name
@@ -44,24 +55,79 @@ ScheduleName = Annotated[
 ]
 
 
+# the methods that cancel several orders at once (their options carry `orders`); the first is the one a request
+# naming several orders and no method gets
+SEVERAL_ORDERS_METHODS = [name for name, m in METHODS.items() if "orders" in m.options_model.model_fields]
+ORDERS_DESCRIPTION = (
+    f"harmonic orders cancelled at each point (DESIGN section 6; 1..{MAX_ORDER}, at most {MAX_ORDERS}, this bench's "
+    "harmonic order among them); default that order alone. Several need a method that cancels several at once "
+    f"({', '.join(SEVERAL_ORDERS_METHODS)}: the method when none is named); for it, the same as options.orders"
+)
+
+
 def _method_of(value: Any) -> str:
-    """The union's tag: the `method` of a request body (or model), "adaptive" when it is left out."""
+    """The union's tag: the `method` of a request body (or model); left out, "adaptive", or the method of several
+    orders when the body names several."""
     if isinstance(value, dict):
-        return value.get("method", DEFAULT_METHOD)
+        orders = value.get("orders")
+        several = isinstance(orders, list) and len(orders) > 1 and SEVERAL_ORDERS_METHODS
+        return value.get("method", SEVERAL_ORDERS_METHODS[0] if several else DEFAULT_METHOD)
     return getattr(value, "method", DEFAULT_METHOD)
 
 
+def _orders_checked(method: str) -> Any:
+    """The `orders` field's validator of one method's variant: distinct, and one order for a method of one."""
+
+    def check(orders: list[int] | None) -> list[int] | None:
+        if orders is None:
+            return None
+        if len(set(orders)) != len(orders):
+            raise ValueError(f"orders {orders} name an order twice")
+        if len(orders) > 1 and method not in SEVERAL_ORDERS_METHODS:
+            raise ValueError(
+                f"orders {orders}: method {method} cancels one order; {' or '.join(SEVERAL_ORDERS_METHODS)} cancels "
+                "several at once"
+            )
+        return orders
+
+    return field_validator("orders")(lambda cls, orders: check(orders))
+
+
+def _orders_into_options(self: Any) -> Any:
+    """A method of several orders takes the request's `orders` as its options.orders (one statement of them)."""
+    if self.orders is not None and "orders" in type(self.options).model_fields:
+        if "orders" in self.options.model_fields_set and self.options.orders != self.orders:
+            raise ValueError(f"orders {self.orders} and options.orders {self.options.orders} differ: give one")
+        self.options = self.options.model_copy(update={"orders": list(self.orders)})
+    return self
+
+
 def _per_method(kind: str, fields: dict[str, Any], example: dict) -> Any:
-    """Annotated union of one model per registered method: `{kind}` fields + method + its options."""
+    """Annotated union of one model per registered method: `{kind}` fields + orders + method + its options."""
     variants = []
     for name, method in METHODS.items():
         model = create_model(
             f"{name.capitalize()}{kind}Create",
             __config__=ConfigDict(extra="forbid", json_schema_extra={"examples": [{**example, "method": name}]}),
             __doc__=f"{kind} with the {method.display_name} method: {method.summary}.",
+            __validators__={
+                "orders_checked": _orders_checked(name),
+                "orders_into_options": model_validator(mode="after")(_orders_into_options),
+            },
             **fields,
-            # required but for the default method: a body without it is then one variant, as documented
-            method=(Literal[name], Field(name if name == DEFAULT_METHOD else ..., description=method.display_name)),
+            orders=(
+                list[Annotated[int, Field(ge=1, le=MAX_ORDER)]] | None,
+                Field(None, min_length=1, max_length=MAX_ORDERS, description=ORDERS_DESCRIPTION),
+            ),
+            # required but for the default method and that of several orders: a body without it is one of these
+            # two variants (_method_of), as documented
+            method=(
+                Literal[name],
+                Field(
+                    name if name in (DEFAULT_METHOD, SEVERAL_ORDERS_METHODS[0]) else ...,
+                    description=method.display_name,
+                ),
+            ),
             options=(method.options_model, Field(default_factory=method.options_model)),
         )
         variants.append(Annotated[model, Tag(name)])

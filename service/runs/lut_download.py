@@ -55,8 +55,9 @@ class LutDownload(BaseModel):
     )
     format_version: int = Field(3, description="LUT image format version (drivers/lut_image.py)")
     harmonic_order: int
-    orders: list[int] | None = Field(
-        None, description="a map of several orders: every order the drive now injects in LUT mode, its own first"
+    orders: list[int] = Field(
+        default_factory=list,
+        description="every order the drive now injects in LUT mode, the map's own first ([6] for a map of one)",
     )
     forced: bool = Field(description="true when a map with holes (cells that inject nothing) went in on force=true")
 
@@ -117,7 +118,7 @@ class PreparedLut:
             "fill": self.fill,
             "interpolation": self.interpolation,
             "format_version": self.format_version,
-            "orders": list(self.orders) if len(self.orders) > 1 else None,
+            "orders": list(self.orders) or [self.harmonic_order],
         }
 
 

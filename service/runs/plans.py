@@ -137,6 +137,21 @@ def check_grid_limits(grid: Grid, settings: Settings) -> None:
         raise LimitError("; ".join(msg for _, msg in problems), tuple(problems))
 
 
+class OrdersError(Invalid, ValueError):
+    """A request's `orders` without this bench's harmonic order (each point cancels it, the others with it)."""
+
+    at = "orders"
+
+
+def check_orders(orders: list[int] | None, harmonic_order: int) -> None:
+    """OrdersError unless `orders` (a request's, None: the harmonic order alone) includes `harmonic_order`."""
+    if orders is not None and harmonic_order not in orders:
+        raise OrdersError(
+            f"orders {orders} do not include this bench's harmonic order {harmonic_order} "
+            "(identification.harmonic_order): each point cancels it, the others with it"
+        )
+
+
 def _grid_value_problem(field: str, value: float, settings: Settings) -> str | None:
     """setpoint_problem, and a grid speed is a magnitude (the limits take |speed|: a setpoint may turn either way;
     an operating point's speed is > 0): a speed <= 0 is named with the bench's minimum as any speed below it."""
@@ -416,12 +431,17 @@ def preview_sweep(
     options: MethodOptions,
     confirm_large: bool,
     settings: Settings,
+    orders: list[int] | None = None,
 ) -> SweepPreview:
     """The plan POST /sweeps would queue for this request (plan_grid, then SweepPlan.from_grid, the same
     steps Engine.submit_sweep takes) and every check it would make, answered as a list: the grid's size
     (confirm_large), the options' plant time, the dry run against the bench limits and (unless the options
     override it) the envelope model of the motor settings. Moves nothing."""
     problems: list[dict[str, Any]] = []
+    try:
+        check_orders(orders, settings.identification.harmonic_order)
+    except OrdersError as exc:
+        problems.append(_problem(["body", "orders"], str(exc)))
     try:
         planned = plan_grid(grid, regime, settings)
     except RegimeError as exc:

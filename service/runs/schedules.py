@@ -30,7 +30,7 @@ from service.names import check_name
 from service.runs.events import EventBroker
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.lab import is_own_bench
-from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_sweep_size, plan_grid
+from service.runs.plans import Grid, RegimePlacement, SweepPlan, check_orders, check_sweep_size, plan_grid
 from service.settings import Settings
 from service.store.records import ScheduleRecord
 from service.store.storage import Storage, StorageUnavailable
@@ -176,6 +176,8 @@ class SweepRequest(Protocol):
     @property
     def method(self) -> str: ...
     @property
+    def orders(self) -> list[int] | None: ...
+    @property
     def options(self) -> MethodOptions: ...
     def model_dump(self, *, mode: str = "python") -> dict[str, Any]: ...
 
@@ -196,6 +198,7 @@ class SweepSubmitter(Protocol):
 def check_sweep(settings: Settings, sweep: SweepRequest) -> None:
     """The checks POST /sweeps makes before queueing (size, bench limits of every setpoint, plant time),
     made when the schedule is created, so a schedule cannot fail at 3 am on a request refused at 5 pm."""
+    check_orders(sweep.orders, settings.identification.harmonic_order)
     grid = plan_grid(sweep.grid, sweep.regime, settings).grid  # the grid the sweep will measure
     check_sweep_size(grid, sweep.confirm_large, settings.safety)
     SweepPlan.from_grid(grid).dry_run(settings, sweep.options.override_envelope_model)

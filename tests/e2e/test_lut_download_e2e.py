@@ -76,7 +76,7 @@ def test_download_rules_crc_and_the_map_the_drive_holds(bench):
         "interpolation": DEFAULT_INTERPOLATION,
         "format_version": 3,
         "harmonic_order": 6,
-        "orders": None,  # a map of one order
+        "orders": [6],  # a map of one order: its own
         "forced": True,
     }
     r = client.post(f"/maps/{maps['partial']}/download")  # with its fill (the default): no hole, no force

@@ -59,7 +59,7 @@ def test_with_fill_only_the_cell_without_a_fill_is_a_hole(serve_map):
         "fill": True,
         "interpolation": lut_image.DEFAULT_INTERPOLATION,
         "format_version": 3,
-        "orders": None,  # a map of one order
+        "orders": [6],  # a map of one order: its own
     }
     decoded = lut_image.decode(lut.image)
     assert int((decoded.flags == 2).sum()) == 2 and int((decoded.flags == 0).sum()) == 1

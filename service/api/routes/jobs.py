@@ -9,6 +9,7 @@ from service.api.errors import error_responses
 from service.api.public.jobs import JobPublic, job_public
 from service.api.refusals import refusals_at
 from service.api.schemas import IdentificationCreate
+from service.runs.plans import check_orders
 
 router = APIRouter(prefix="/api/v1", tags=["identifications"])
 
@@ -18,9 +19,10 @@ router = APIRouter(prefix="/api/v1", tags=["identifications"])
     status_code=status.HTTP_202_ACCEPTED,
     response_model=JobPublic,
     responses=error_responses(400, 401, 403, 409, 413),
-    dependencies=[refusals_at(["body", "operating_point"])],
+    dependencies=[refusals_at(["body", "operating_point"], orders=["body", "orders"])],
 )
 def create_identification(body: IdentificationCreate, service: ServiceDep, _: OperatorDep) -> JobPublic:
+    check_orders(body.orders, service.settings.identification.harmonic_order)
     job_id = service.engine.submit_identification(body.operating_point, body.method, body.options, bench=body.bench)
     return job_public(service.records, service.records.get_job(job_id), service)
 

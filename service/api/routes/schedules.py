@@ -18,7 +18,10 @@ router = APIRouter(prefix="/api/v1", tags=["schedules"])
 
 # a schedule's sweep is refused as POST /sweeps refuses it, at body.sweep...; a taken name is a 409
 _REFUSED = refusals_at(
-    ["body", "sweep", "grid"], options=("body", "sweep", "options"), confirm_large=["body", "sweep", "confirm_large"]
+    ["body", "sweep", "grid"],
+    options=("body", "sweep", "options"),
+    confirm_large=["body", "sweep", "confirm_large"],
+    orders=["body", "sweep", "orders"],
 )
 
 

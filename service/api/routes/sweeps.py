@@ -12,7 +12,14 @@ from service.api.public.sweeps import SweepPublic, sweep_public
 from service.api.refusals import refusals_at
 from service.api.schemas import SweepCreate
 from service.runs.lab import is_own_bench
-from service.runs.plans import SweepPreview, check_grid_limits, check_sweep_size, plan_grid, preview_sweep
+from service.runs.plans import (
+    SweepPreview,
+    check_grid_limits,
+    check_orders,
+    check_sweep_size,
+    plan_grid,
+    preview_sweep,
+)
 
 router = APIRouter(prefix="/api/v1", tags=["sweeps"])
 
@@ -22,13 +29,21 @@ router = APIRouter(prefix="/api/v1", tags=["sweeps"])
     status_code=status.HTTP_202_ACCEPTED,
     response_model=SweepPublic,
     responses=error_responses(400, 401, 403, 409, 413),
-    dependencies=[refusals_at(["body", "grid"], regime=["body", "regime"], confirm_large=["body", "confirm_large"])],
+    dependencies=[
+        refusals_at(
+            ["body", "grid"],
+            regime=["body", "regime"],
+            confirm_large=["body", "confirm_large"],
+            orders=["body", "orders"],
+        )
+    ],
 )
 def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> SweepPublic:
     # the size that counts is the planned grid's (speeds placed around the onset included; another
     # bench's grid as given: its placement needs that bench's machine)
     own = is_own_bench(body.bench, service.settings.bench_name)
     if own:  # first: a value outside this bench's limits is named with the limit, before anything is made of it
+        check_orders(body.orders, service.settings.identification.harmonic_order)
         check_grid_limits(body.grid, service.settings)
     planned = plan_grid(body.grid, body.regime, service.settings) if own else None  # the one plan: it travels
     check_sweep_size(planned.grid if planned else body.grid, body.confirm_large, service.settings.safety)
@@ -44,7 +59,9 @@ def preview_sweep_plan(body: SweepCreate, service: ServiceDep) -> SweepPreview:
     the points in measuring order, the planned speed axis (values placed around the predicted
     field-weakening onset and why), the onset per torque and U_dc, what POST /sweeps would refuse (as a
     list, `accepted` false), and an estimate of the bench time."""
-    return preview_sweep(body.grid, body.regime, body.method, body.options, body.confirm_large, service.settings)
+    return preview_sweep(
+        body.grid, body.regime, body.method, body.options, body.confirm_large, service.settings, orders=body.orders
+    )
 
 
 @router.get("/sweeps", response_model=list[SweepPublic])
