@@ -31,6 +31,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 from service.bench.run import BenchRun
 from service.bench.speed_ramp import ramp_through
 from service.errors import Invalid
+from service.identification.orders import MAX_ORDERS
 from service.model.demodulation import ResonanceMode
 from service.model.limits import check_limits, check_point
 from service.model.operating_point import OperatingPoint
@@ -45,11 +46,28 @@ ENVELOPE_STEP_RPM = 50.0  # the envelope model is checked along the range at thi
 
 
 class ThetaSetpoint(BaseModel):
-    """A fixed injection for the whole run-up (manual mode), rad."""
+    """A fixed injection of one order for the whole run-up (manual mode), rad."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    order: int | None = Field(
+        None, ge=1, le=MAX_ORDER, description="the order this theta is for; null: the bench's harmonic order"
+    )
     theta_cos: float = Field(..., ge=-1.0, le=1.0)
     theta_sin: float = Field(..., ge=-1.0, le=1.0)
+
+
+def injected_thetas(
+    theta: ThetaSetpoint | list[ThetaSetpoint], harmonic_order: int
+) -> tuple[tuple[float, float], tuple[tuple[int, float, float], ...]]:
+    """A run-up's `theta` as the drive takes it (0x2000 and 0x2002): the harmonic order's (0 if not given) and the
+    further orders' (order, theta_cos, theta_sin)."""
+    main, further = (0.0, 0.0), []
+    for t in theta if isinstance(theta, list) else [theta]:
+        if t.order is None or t.order == harmonic_order:
+            main = (t.theta_cos, t.theta_sin)
+        else:
+            further.append((t.order, t.theta_cos, t.theta_sin))
+    return main, tuple(further)
 
 
 class RunupRequest(BaseModel):
@@ -64,7 +82,11 @@ class RunupRequest(BaseModel):
     injection: Literal["off", "lut", "theta"] = Field(
         "off", description="off; lut: the LUT in the drive; theta: a fixed theta (field `theta`)"
     )
-    theta: ThetaSetpoint | None = Field(None, description="with injection = theta: the theta applied throughout")
+    theta: ThetaSetpoint | Annotated[list[ThetaSetpoint], Field(min_length=1, max_length=MAX_ORDERS)] | None = Field(
+        None,
+        description="with injection = theta: the theta applied throughout, {theta_cos, theta_sin} of the harmonic "
+        f"order, or per order a list of {{order, theta_cos, theta_sin}} (up to {MAX_ORDERS}, injected summed)",
+    )
     orders: list[int] | None = Field(
         None,
         min_length=1,
@@ -113,6 +135,10 @@ class RunupRequest(BaseModel):
             raise ValueError("injection 'theta' needs the field theta {theta_cos, theta_sin}")
         if self.injection != "theta" and self.theta is not None:
             raise ValueError(f"theta is given but injection is {self.injection!r} (use injection 'theta')")
+        if isinstance(self.theta, list):
+            named = [t.order for t in self.theta]
+            if len(set(named)) != len(named):
+                raise ValueError(f"theta names an order twice ({named}; null is the harmonic order)")
         return self
 
     def ramp_s(self) -> float:
@@ -168,7 +194,8 @@ def record_runup(run: BenchRun, settings: Settings, req: RunupRequest, recorder:
         if req.injection == "lut":
             session.apply_injection_mode("lut")
         elif req.injection == "theta" and req.theta is not None:
-            session.apply_theta(req.theta.theta_cos, req.theta.theta_sin)
+            main, further = injected_thetas(req.theta, session.harmonic_order)
+            session.apply_theta(*main, further)
         else:
             session.apply_injection_mode("off")
         session.recorder = recorder

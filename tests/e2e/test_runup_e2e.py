@@ -95,3 +95,31 @@ def test_a_cancelled_runup_leaves_the_bench_safe(live):
     assert status["drive"]["state"] != "OPERATION_ENABLED", status
     # the load's speed as the status reads it next (its live values refresh on their own period)
     wait_until(lambda: abs(service.bench.status()["load"]["speed_rpm"]) < 20, 10, "the load at standstill")
+
+
+def test_a_runup_with_a_theta_per_order_injects_every_order(live):
+    """`theta` per order (DESIGN section 6): the thetas a two-order identification found at 1500 rpm, injected
+    summed along a short run-up through that speed, lower both orders' cut there against the same run-up with
+    injection off (each order's own theta, not only the harmonic order's)."""
+    _, client, auth = live
+    op = {"torque_nm": 2.5, "speed_rpm": 1500, "udc_v": 12}
+    r = client.post("/api/v1/identifications", json={"operating_point": op, "orders": [6, 12]}, headers=auth)
+    assert r.status_code == 202, r.text
+    found = wait_finished(client, f"/api/v1/jobs/{r.json()['id']}", 300)["result"]["orders"]
+    assert [o["status"] for o in found] == ["ok", "ok"], found
+    theta = [{"order": o["order"], "theta_cos": o["theta_cos"], "theta_sin": o["theta_sin"]} for o in found]
+    short = {**RUNUP, "speed_rpm": [1450, 1550], "rate_rpm_per_s": 50}
+    cuts = {}
+    for injection in ("off", "theta"):
+        body = {**short, "injection": injection, **({"theta": theta} if injection == "theta" else {})}
+        r = client.post("/api/v1/runups", json=body, headers=auth)
+        assert r.status_code == 202, r.text
+        result = wait_finished(client, f"/api/v1/runups/{r.json()['id']}")["result"]
+        i = result["speed_rpm"].index(1500.0)
+        cuts[injection] = {h: result["amplitude"][k][i] for k, h in enumerate(result["orders"])}
+    for h in (6, 12):  # identified at 40 dB standing; along a slow ramp through the same speed well over 10 dB
+        assert _db(cuts["off"][h]) - _db(cuts["theta"][h]) > 10.0, (h, cuts)
+    # the same order twice is refused naming theta
+    twice = {**short, "injection": "theta", "theta": [theta[0], theta[0]]}
+    refused = client.post("/api/v1/runups", json=twice, headers=auth)
+    assert refused.status_code == 422 and "theta names an order twice" in refused.text, refused.text
