@@ -113,7 +113,7 @@ def test_readme_examples_work_on_a_database_with_other_rows(served, tmp_path):
         assert int(cli["SWEEP"]) == int(api["SWEEP"]) + 1 and int(cli["MAP"]) == int(api["MAP"]) + 1
         cli_sweep = client.get(f"/sweeps/{cli['SWEEP']}").json()
         assert cli_sweep["state"] == "done" and cli_sweep["map_id"] == int(cli["MAP"])
-        assert re.search(rf"^ +{cli['SWEEP']} +done +adaptive +9/9 ", cli_out, re.M)  # sweeps list
+        assert re.search(rf"^ +{cli['SWEEP']} +sweep +done +adaptive +9/9 ", cli_out, re.M)  # sweeps list
         assert f"sweep {cli['SWEEP']}: done" in cli_out  # sweeps show
         assert re.search(rf"^ +{cli['MAP']} +{cli['SWEEP']} +adaptive ", cli_out, re.M)  # maps list
         assert "wrote ripplecal_lut.h" in cli_out
