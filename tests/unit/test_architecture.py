@@ -23,9 +23,11 @@ DRIVER_CONTRACTS = (
     "drivers.daq_protocol",
     "drivers.lut_image",
     "drivers.blas_threads",
+    "drivers.injection_limit",
 )
-# floor 0 of the service that every floor above it may import: the version, bench names, the error root
-SERVICE_BASE = ("service", "service.names", "service.errors")
+# floor 0 of the service that every floor above it may import: the version, bench names, the error root, the
+# words a validation item is said in
+SERVICE_BASE = ("service", "service.names", "service.errors", "service.validation_words")
 BELOW_API = (
     "service.calibration_service",
     "service.runs",
@@ -73,9 +75,10 @@ FLOORS = (
     Floor("service/__init__.py", ()),
     Floor("service/names.py", ()),
     Floor("service/errors.py", ()),
+    Floor("service/validation_words.py", ()),
     Floor("service/settings.py", ("service.names",)),
     Floor("service/model/", (*SERVICE_BASE, "service.settings")),
-    Floor("service/identification/", (*SERVICE_BASE, "service.model")),
+    Floor("service/identification/", (*SERVICE_BASE, "service.model", "drivers.injection_limit")),
     Floor(
         "service/store/",
         (
