@@ -8,8 +8,9 @@ from typing import Any
 
 
 def in_our_words(e: dict[str, Any], loc: list[str | int]) -> str:
-    """A request-validation item said in the service's words (issue 30: no library text reaches a user), naming
-    the field and the bound that applies; a kind not listed keeps its message."""
+    """`e` (one item of a pydantic ValidationError) at `loc` (body, query or path first) in the service's words
+    (module doc); a kind not listed: the library's "Input should ..." as "must ...", any other message (our own
+    validators') after its field where it does not name it."""
     field = ".".join(str(p) for p in loc[1:]) or "the body"
     ctx = e.get("ctx") or {}
     kind = e.get("type", "")

@@ -21,7 +21,7 @@ from pydantic import (
     model_validator,
 )
 
-from service.identification.orders import MAX_ORDER, MAX_ORDERS
+from service.identification.orders import MAX_ORDER, MAX_ORDERS, distinct_orders
 from service.identification.registry import METHODS
 from service.model.operating_point import OperatingPoint
 from service.names import MAX_NAME_LENGTH, check_name
@@ -81,8 +81,7 @@ def _orders_checked(method: str) -> Any:
     def check(orders: list[int] | None) -> list[int] | None:
         if orders is None:
             return None
-        if len(set(orders)) != len(orders):
-            raise ValueError(f"orders {orders} name an order twice")
+        distinct_orders(orders)
         if len(orders) > 1 and method not in SEVERAL_ORDERS_METHODS:
             raise ValueError(
                 f"orders {orders}: method {method} cancels one order; {' or '.join(SEVERAL_ORDERS_METHODS)} cancels "

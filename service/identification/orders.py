@@ -81,15 +81,20 @@ class OrdersOptions(ProbeOptions):
         bad = [h for h in orders if not 1 <= h <= MAX_ORDER]
         if bad:
             raise ValueError(f"orders {bad} outside 1..{MAX_ORDER}")
-        if len(set(orders)) != len(orders):
-            raise ValueError(f"orders {orders} name an order twice")
-        return orders
+        return distinct_orders(orders)
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
         """Worst case: the reference, 2 probes per order (twice: a neighbour's J that does not hold), the Newton
         steps, the confirmation."""
         windows = 4 * len(self.orders) + self.max_newton_steps + 3
         return windows * (self.max_window_s + self.settle_s) + self.confirm_window_s + self.settle_s
+
+
+def distinct_orders(orders: list[int]) -> list[int]:
+    """`orders` as given; ValueError if one is named twice (the options' and a request's `orders` alike)."""
+    if len(set(orders)) != len(orders):
+        raise ValueError(f"orders {orders} name an order twice")
+    return orders
 
 
 def order_phasors(session: MeasurementSession, window: Window, orders: list[int]) -> np.ndarray:

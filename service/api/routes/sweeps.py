@@ -14,7 +14,6 @@ from service.api.schemas import SweepCreate
 from service.runs.lab import is_own_bench
 from service.runs.plans import (
     SweepPreview,
-    check_grid_limits,
     check_orders,
     check_sweep_size,
     plan_grid,
@@ -42,9 +41,8 @@ def create_sweep(body: SweepCreate, service: ServiceDep, _: OperatorDep) -> Swee
     # the size that counts is the planned grid's (speeds placed around the onset included; another
     # bench's grid as given: its placement needs that bench's machine)
     own = is_own_bench(body.bench, service.settings.bench_name)
-    if own:  # first: a value outside this bench's limits is named with the limit, before anything is made of it
+    if own:  # the grid's values against this bench's limits: the engine's submit, first of all it checks
         check_orders(body.orders, service.settings.identification.harmonic_order)
-        check_grid_limits(body.grid, service.settings)
     planned = plan_grid(body.grid, body.regime, service.settings) if own else None  # the one plan: it travels
     check_sweep_size(planned.grid if planned else body.grid, body.confirm_large, service.settings.safety)
     sweep_id = service.engine.submit_sweep(
