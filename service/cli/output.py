@@ -216,7 +216,7 @@ def sweep_details(sw) -> None:
     )
     if (ref := sw.refinement) is not None:
         print(
-            f"refining  round {len(ref.rounds)}, {ref.phase}; {ref.cells_added} of max {ref.max_cells} cells "
+            f"refining  {len(ref.rounds)} round(s) validated, {ref.phase}; {ref.cells_added} of max {ref.max_cells} cells "
             "identified (new and re-measured)" + (f"; stopped: {ref.stopped}" if ref.stopped else "")
         )
     print(f"map       {sw.map_id if sw.map_id is not None else '-'}")

@@ -242,7 +242,7 @@ function progressCell(s) {
   if (s.refinement) {  // its cells are planned round by round: the bar counts those planned so far
     const ref = s.refinement;
     td.appendChild(el("div", { class: "row-note", "data-testid": "sweep-refinement" },
-      `round ${ref.rounds.length} · ${ref.phase} · ${ref.cells_added} of max ${ref.max_cells} cells identified`));
+      `${ref.rounds.length} round(s) validated · ${ref.phase} · ${ref.cells_added} of max ${ref.max_cells} cells identified`));
   }
   // outcomes apart: only ok cells go into a LUT
   const outcome = ["ok", "below_target", "no_authority", "failed"]
