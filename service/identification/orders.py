@@ -54,6 +54,9 @@ from service.model.secondary_path import gamma_delta
 
 MAX_ORDERS = 4  # the drive injects the run's order and up to 3 further ones (0x2002)
 MAX_ORDER = 48
+# an order's target is confirmable when the residual may sit a sigma below it and still be confirmed with
+# CONFIDENCE_SIGMAS (common.meets) in the longest window: limit >= (CONFIDENCE_SIGMAS + 1) sigma
+CONFIRMABLE_SIGMAS = CONFIDENCE_SIGMAS + 1.0
 
 
 class OrdersOptions(ProbeOptions):
@@ -88,6 +91,13 @@ class OrdersOptions(ProbeOptions):
         steps, the confirmation."""
         windows = 4 * len(self.orders) + self.max_newton_steps + 3
         return windows * (self.max_window_s + self.settle_s) + self.confirm_window_s + self.settle_s
+
+
+def noise_at(window: Window, session: MeasurementSession, periods: int) -> float:
+    """The noise std of each phasor component a window of `periods` would have, from `window`'s (fs): white
+    sensor noise, so sigma ~ 1/sqrt(samples)."""
+    samples = periods / session.harmonic_frequency_hz * session.sample_rate_hz
+    return window.noise_std_fs * math.sqrt(window.phasor.samples / max(samples, 1.0))
 
 
 def distinct_orders(orders: list[int]) -> list[int]:
@@ -143,6 +153,7 @@ def identify_orders(
     min_periods = periods_for(session, options.window_s)
     max_periods = max(min_periods, periods_for(session, options.max_window_s))
     history: list[list[float]] = []
+    noise_of_last = [0.0]  # the last window's noise std (fs)
 
     def measure(
         theta: np.ndarray, noise_limit_fs: float | None, longest: int = max_periods
@@ -151,19 +162,33 @@ def identify_orders(
         w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=longest)
         a = order_phasors(session, w, orders)
         history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
+        noise_of_last[0] = w.noise_std_fs
         return w, a
 
+    # an order whose target lies within the noise of the longest window cannot be confirmed at any window this
+    # run may take: it is still cancelled while a window resolves it, but no window is sized for its target
+    longest_periods = max(max_periods, periods_for(session, options.confirm_window_s))
+
+    def confirmable_in(window: Window, amplitudes: np.ndarray) -> np.ndarray:
+        limits = np.array([target_amplitude(u, options.target_db) for u in amplitudes])
+        return np.asarray(limits >= CONFIRMABLE_SIGMAS * noise_at(window, session, longest_periods))
+
     theta = np.zeros(2 * n)
-    # the reference: every order's phasor to 1 % of the smallest (+-0.1 dB on each suppression figure)
+    # the reference: every confirmable order's phasor to 1 % of the smallest (+-0.1 dB on each suppression figure)
     before, a0 = measure(theta, None)
-    precision_fs = 0.01 * float(np.min(_per_order(a0)))
-    if before.noise_std_fs > precision_fs:
-        before, a0 = measure(theta, precision_fs)
+    first = _per_order(a0)
+    confirmable = confirmable_in(before, first)
+    if np.any(confirmable) and before.noise_std_fs > 0.01 * float(np.min(first[confirmable])):
+        before, a0 = measure(theta, 0.01 * float(np.min(first[confirmable])))
     uncompensated = _per_order(a0)
     if np.any(uncompensated <= 0):
         raise MeasurementError("an order reads exactly zero without compensation: nothing to cancel")
     limits = np.array([target_amplitude(u, options.target_db) for u in uncompensated])
     stops = np.array([stop_amplitude(u, options) for u in uncompensated])
+    confirmable = confirmable_in(before, uncompensated)
+    longest_noise_fs = noise_at(before, session, longest_periods)
+    # the smallest amplitude any window is sized to resolve (an order not confirmable here sizes none)
+    smallest_fs = float(np.min(uncompensated[confirmable] if np.any(confirmable) else uncompensated))
 
     # the probes: each order's from the model's |theta*| of the main order, scaled by that order's amplitude
     model_theta_rad = uncompensated[0] / abs(s_hat)
@@ -187,7 +212,7 @@ def identify_orders(
             step = np.zeros(2 * n)
             step[k] = probe_rad[k // 2]
             # the probe's response (about probe_fraction of every order's amplitude) resolved to a fiftieth
-            _probe_window, a_k = measure(step, options.probe_fraction * float(np.min(uncompensated)) / 50.0)
+            _probe_window, a_k = measure(step, options.probe_fraction * smallest_fs / 50.0)
             columns.append((a_k - a0) / step[k])
         probed_j = np.column_stack(columns)
         if abs(np.linalg.det(probed_j)) < 1e-300:
@@ -204,7 +229,7 @@ def identify_orders(
     if start is not None and np.any(start):
         # the neighbours' theta of every order: the first step starts some 20 dB down (as probe.py)
         start, _ = _clamp_sum(start, gamma_max_rad)
-        _w, a_start = measure(start, float(np.min(uncompensated)) / 50.0)
+        _w, a_start = measure(start, smallest_fs / 50.0)
         if float(np.max(_per_order(a_start) / uncompensated)) < 1.0:
             theta, a = start, a_start
             notes.append(f"started from {use.source if use is not None else 'a prior'}")
@@ -215,21 +240,35 @@ def identify_orders(
         jacobian = probe_jacobian()
         probed = jacobian.copy()
 
+    # each order against what can be confirmed of it here: its target, or for an order not confirmable here the
+    # least amplitude the longest window confirms (else its tiny target would make it the worst at every point)
+    scales = np.maximum(limits, CONFIRMABLE_SIGMAS * longest_noise_fs)
+
     def worst(a: np.ndarray) -> float:
-        return float(np.max(_per_order(a) / limits))
+        return float(np.max(_per_order(a) / scales))
 
     best_theta, best_a = theta.copy(), a  # the point whose worst order (against its target) is least
-    lowest = _per_order(a)  # each order's lowest amplitude so far: a step that lowers any order is progress
     limited = False
     failures, damping, steps = 0, 1.0, 0
     final: tuple[Window, np.ndarray] | None = None
     for steps in range(1, options.max_newton_steps + 1):
-        target, limited = _clamp_sum(theta - damping * np.linalg.solve(jacobian, a), gamma_max_rad)
+        # an order not confirmable here steps only while the last window resolved it from its noise: a step on
+        # its noise would inject a 12th of the noise's size, larger than the order itself
+        resolved_now = _per_order(a) > AT_FLOOR_SIGMAS * math.sqrt(2.0) * noise_of_last[0]
+        free = np.repeat(confirmable | resolved_now, 2)
+        if not np.any(free):
+            break
+        d_theta = np.zeros(2 * n)
+        d_theta[free] = np.linalg.solve(jacobian[np.ix_(free, free)], a[free])
+        target, limited = _clamp_sum(theta - damping * d_theta, gamma_max_rad)
         try:
             # every order resolved to what it needs: a twentieth of what it has now (a step is expected to leave
             # a tenth), never finer than its target needs; one window, so the most demanding order decides
-            need = np.maximum(limits / PRECISION_FOR_TARGET, _per_order(a) / 20.0)
-            w, new_a = measure(target, float(np.min(need)))
+            # (an order not confirmable here: a fifth of what it has, while a window resolves it)
+            need = np.where(
+                confirmable, np.maximum(limits / PRECISION_FOR_TARGET, _per_order(a) / 20.0), _per_order(a) / 5.0
+            )
+            w, new_a = measure(target, float(np.min(need[free[0::2]])))
         except MeasurementError as exc:
             if not exc.over_range:
                 raise
@@ -244,6 +283,9 @@ def identify_orders(
         amplitudes = _per_order(new_a)
         # every order done as common.done judges one: its target met with confidence and its margin reached
         open_orders = (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits) | (amplitudes > stops)
+        # an order not confirmable here stays open while this window resolves it (the others' injection raises
+        # it: the rotation's gamma^2 term puts order h's angle squared on order 2h, sec. 2.4)
+        open_orders &= confirmable | (amplitudes > AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs)
         if not np.any(open_orders):
             final, best_theta = (w, new_a), target.copy()
             break
@@ -251,10 +293,10 @@ def identify_orders(
         # left to steer by (a shorter window's noise says only that the window was short)
         floor_fs = AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs if w.phasor.periods >= max_periods else 0.0
         resolved = open_orders & (amplitudes > floor_fs)
-        # progress: any open order still resolved down by a fifth (the orders converge at their own pace: the
-        # smallest one near its noise must not stop the others, nor keep them stepping)
-        improved = bool(np.any((amplitudes < 0.8 * lowest) & resolved))
-        lowest = np.minimum(lowest, amplitudes)
+        # progress: any open order still resolved down by a fifth from the point stepped from, the worst order no
+        # worse (the orders converge at their own pace: the smallest one near its noise must not stop the others,
+        # nor keep them stepping; not each order's lowest so far: the 6th's injection raises the 12th on the way)
+        improved = bool(np.any((amplitudes < 0.8 * _per_order(a)) & resolved)) and worst(new_a) < worst(a)
         if worst(new_a) < worst(best_a):
             best_theta, best_a = target.copy(), new_a
         if not np.any(resolved):
@@ -273,9 +315,23 @@ def identify_orders(
             break  # no order improves any more: noise floor or non-linearity
         theta, a = (target, new_a) if improved else (best_theta.copy(), best_a)
     if final is None:
-        # the confirmation: as long as the smallest target needs, up to confirm_window_s
-        longest = max(max_periods, periods_for(session, options.confirm_window_s))
-        final = measure(best_theta, float(np.min(limits)) / PRECISION_FOR_TARGET, longest)
+        # the confirmation: as long as the smallest confirmable target needs, up to confirm_window_s
+        if np.any(confirmable):
+            confirm_fs = float(np.min(limits[confirmable])) / PRECISION_FOR_TARGET
+            final = measure(best_theta, confirm_fs, longest_periods)
+            # the confirmation resolved an order the steps' windows could not and found it short of its target:
+            # one more joint step from this precise window, confirmed by a window as long (kept if no order lost)
+            w, a = final
+            amplitudes = _per_order(a)
+            short = confirmable & (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits)
+            if np.any(short & (amplitudes > AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs)):
+                stepped, stepped_limited = _clamp_sum(best_theta - np.linalg.solve(jacobian, a), gamma_max_rad)
+                again = measure(stepped, confirm_fs, longest_periods)
+                if worst(again[1]) < worst(a):
+                    final, best_theta, limited = again, stepped, stepped_limited
+                    notes.append("one more step after the confirmation")
+        else:
+            final = measure(best_theta, None, max_periods)
     final_w, final_a = final
 
     per_order = []
@@ -292,6 +348,12 @@ def identify_orders(
             conditions if k == 0 else None,
             limited,
         )
+        if status != "ok" and not confirmable[k]:
+            standing_db = 20.0 * math.log10(uncompensated[k] / (CONFIRMABLE_SIGMAS * longest_noise_fs))
+            reason += (
+                f"; not confirmable here: the order stands {standing_db:.1f} dB above {CONFIRMABLE_SIGMAS:g} sigma of "
+                f"the longest window's noise ({options.confirm_window_s:g} s), {options.target_db:g} dB asked"
+            )
         gamma_rad, delta_rad = gamma_delta(float(best_theta[2 * k]), float(best_theta[2 * k + 1]))
         per_order.append(
             {

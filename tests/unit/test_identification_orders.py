@@ -15,7 +15,7 @@ from scipy.optimize import fsolve
 
 from service.identification import METHODS
 from service.identification.common import Prior
-from service.identification.orders import OrdersOptions, identify_orders
+from service.identification.orders import OrdersOptions, identify_orders, noise_at
 from service.identification.session import MeasurementError
 from tests.support.affine_plant import TwoOrderPlantSession
 
@@ -146,3 +146,38 @@ def test_a_neighbours_jacobian_that_does_not_hold_is_probed_again():
     )
     assert result.details["jacobian_probed"] is True and "did not hold" in result.message
     assert all(o["status"] == "ok" for o in result.details["orders"]), result.details["orders"]
+
+
+def test_an_order_within_the_longest_windows_noise_is_said_so_and_left_unharmed():
+    """A 12th 16 dB under what 40 dB can be confirmed at (its target within 3 sigma of the noise of the longest
+    window, 1.2 s: sigma = noise * sqrt(2 / N)): the 6th ok; the 12th below_target saying why, no window sized for
+    its target (that would take 125 s), and the 12th's theta never the noise's size: its true residual stays
+    below what it was."""
+    truth = {**TRUTH, "theta_d2h": 2e-4 * cmath.exp(-2.0j)}  # |A_2h| = 5e-4 fs
+    noise_fs = 1e-3
+    session = TwoOrderPlantSession(**truth, noise_fs=noise_fs, seed=5)
+    options = OrdersOptions(orders=[6, 12])
+    sigma_longest = noise_fs * math.sqrt(2.0 / (options.confirm_window_s * session.sample_rate_hz))
+    assert 0.01 * abs(truth["s_2h"] * truth["theta_d2h"]) < 3 * sigma_longest / 5  # 5e-6 fs against 3.1e-5
+    result = identify_orders(session, truth["s_h"], options, math.radians(15.0))
+    by_order = {o["order"]: o for o in result.details["orders"]}
+    assert by_order[6]["status"] == "ok", by_order[6]
+    assert by_order[12]["status"] == "below_target"
+    assert "not confirmable here" in by_order[12]["reason"], by_order[12]["reason"]
+    assert result.plant_time_s < options.confirm_window_s
+    session.apply_theta(
+        by_order[6]["theta_cos"],
+        by_order[6]["theta_sin"],
+        ((12, by_order[12]["theta_cos"], by_order[12]["theta_sin"]),),
+    )
+    _, a_2h = session.phasors()
+    assert abs(a_2h) < abs(truth["s_2h"] * truth["theta_d2h"])
+
+
+def test_noise_at_scales_a_windows_noise_with_its_samples():
+    """noise_at: the phasor noise of N white samples is noise * sqrt(2 / N) per component (closed form)."""
+    session = TwoOrderPlantSession(**TRUTH, noise_fs=1e-3, seed=2)
+    w = session.measure(12)
+    periods = 600
+    samples = periods / session.harmonic_frequency_hz * session.sample_rate_hz
+    assert noise_at(w, session, periods) == pytest.approx(1e-3 * math.sqrt(2.0 / samples), rel=1e-9)
