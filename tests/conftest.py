@@ -19,11 +19,41 @@ emulators when their stdin pipe closes (tests/e2e/test_session_cleanup_e2e.py pr
 
 from __future__ import annotations
 
+import gc
 import os
+import time
 
 import pytest
 
 os.environ.setdefault("RIPPLECAL_EMULATOR__SPEEDUP", "0")
+
+# The in-process services of the suite produce their CAN heartbeat from a thread of this process: a garbage
+# collection pause longer than the drive's consumer time (500 ms) reads to the emulated drive as a silent service
+# (EMCY 0x8130, a fault only a person resets). The heap of a whole collected suite is frozen out of the collector's
+# scans, and the longest pause is said at the end, so a lost heartbeat can be told from a stalled process.
+_gc_pause = {"started": 0.0, "longest_s": 0.0, "generation": -1}
+
+
+def _time_gc(phase: str, info: dict) -> None:
+    if phase == "start":
+        _gc_pause["started"] = time.perf_counter()
+        return
+    pause_s = time.perf_counter() - _gc_pause["started"]
+    if pause_s > _gc_pause["longest_s"]:
+        _gc_pause["longest_s"], _gc_pause["generation"] = pause_s, info.get("generation", -1)
+
+
+def pytest_collection_finish(session) -> None:
+    gc.collect()
+    gc.freeze()  # what collection built lives for the session: not scanned by every later full collection
+    gc.callbacks.append(_time_gc)
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    terminalreporter.write_line(
+        f"longest garbage-collection pause of the test process: {_gc_pause['longest_s'] * 1000:.0f} ms "
+        f"(generation {_gc_pause['generation']}); the drives' heartbeat consumer time is 500 ms"
+    )
 
 
 @pytest.fixture(scope="module")

@@ -126,15 +126,59 @@ def _seconds(started_at: str, finished_at: str) -> float:
 TIMING_GRID = Grid(torque_nm=[1.0, 1.75, 2.5, 3.25, 4.0], speed_rpm=[800, 1250, 1700, 2150, 2600], udc_v=[12])
 
 
+# Two windows at least: the one a last step is taken from and the one that confirms. With white sensor noise a
+# window's sigma^2 ~ 1/T; a step from a window of sigma_1 lands at a residual of about sqrt(2) sigma_1, and the
+# confirmation needs that residual + 2 sigma_2 <= L (common.meets). The least T_1 + T_2 under that constraint is at
+# sigma_1 ~ 0.30 L, sigma_2 ~ 0.29 L: T_1 + T_2 = (11.1 + 12.1) / L^2 in units of a window of sigma 1 (closed form,
+# minimised numerically below), the smallest confirmable L of the point deciding.
+def _least_two_windows() -> float:
+    best = math.inf
+    for i in range(1, 700):
+        sigma_1 = i / 1000.0  # in units of L
+        sigma_2 = (1.0 - math.sqrt(2.0) * sigma_1) / 2.0
+        if sigma_2 > 0:
+            best = min(best, 1.0 / sigma_1**2 + 1.0 / sigma_2**2)
+    return best
+
+
+def ideal_plant_s(row: dict, target_db: float = 40.0) -> float | None:
+    """The plant seconds an ideal method of two windows needs at this point of a probe-orders sweep: the sensor's
+    noise taken from its final window (sigma over its duration, from the orders' history: end time minus the one
+    before minus the settle), the smallest target L among its orders not said 'not confirmable here'."""
+    orders = (row["detail"].get("details") or {}).get("orders") or []
+    history = (row.get("traces") or {}).get("orders_history") or []
+    if len(history) < 2 or not orders:
+        return None
+    settle_s = float((row.get("options") or {}).get("settle_s", 0.005))
+    final_s = history[-1][0] - history[-2][0] - settle_s
+    levels = [
+        o["uncompensated"]["amplitude"] * 10.0 ** (-target_db / 20.0)
+        for o in orders
+        if "not confirmable here" not in (o["reason"] or "")
+    ]
+    sigma_fs = orders[0]["uncompensated"]["amplitude"] * 10.0 ** ((orders[0]["noise_floor_db"] or 0.0) / 20.0)
+    sigma_fs /= math.sqrt(2.0)  # noise_floor_db is sqrt(2) sigma against the uncompensated amplitude
+    if final_s <= 0 or not levels:
+        return None
+    return final_s * sigma_fs**2 * _least_two_windows() / min(levels) ** 2
+
+
 def timing(seed: int | None) -> None:
     """Bench seconds per point (the sweep's wall time over its points, moves included) of the 5 x 5 map at speedup 1,
-    the 6th alone (probe) against the 6th and 12th (probe-orders); and plant seconds per point."""
-    per_point = {}
+    the 6th alone (probe) against the 6th and 12th (probe-orders); and plant seconds per point. Then the floor the
+    sensor's noise sets: an ideal method's plant time per point (ideal_plant_s, never less than the single order's
+    own at that point) with the single order's overhead per point (bench time less plant time), against the same
+    single-order figure."""
+    per_point, plant, overhead_s = {}, {}, 0.0
     for method in ("probe", "probe-orders"):
         with tempfile.TemporaryDirectory() as tmp, _service(seed, Path(tmp), speedup=1.0) as svc:
             _map_id, f = sweep_orders(svc, method, TIMING_GRID)
             n = f["reachable"]
             per_point[method] = f["wall_s"] / n
+            rows = [r for r in svc.storage.sweep_results(1) if not (r["error"] or "").startswith("not run")]
+            plant[method] = {(r["torque_nm"], r["speed_rpm"]): r for r in rows}
+            if method == "probe":
+                overhead_s = per_point[method] - statistics.mean(f["plant_s"])
             print(
                 f"  {method:12s} 5 x 5 at speedup 1: {n} points run, {f['wall_s']:.0f} s bench time = "
                 f"{per_point[method]:.2f} s a point; plant median {statistics.median(f['plant_s']):.2f} s, "
@@ -144,6 +188,19 @@ def timing(seed: int | None) -> None:
     print(
         f"  two orders / one order: {per_point['probe-orders'] / per_point['probe']:.2f} x bench time a point (target <= 1.6 x)"
     )
+    ideal = []
+    for key, row in plant["probe-orders"].items():
+        single = plant["probe"].get(key)
+        floor_s = ideal_plant_s(row)
+        if single is not None and floor_s is not None:
+            ideal.append(max(floor_s, single["plant_time_s"]))
+    if ideal:
+        floor_ratio = (overhead_s + statistics.mean(ideal)) / per_point["probe"]
+        print(
+            f"  the sensor's floor: an ideal two-window method needs {statistics.mean(ideal):.2f} s plant a point "
+            f"(mean over {len(ideal)} points); with the single order's {overhead_s:.2f} s of overhead a point, "
+            f"{floor_ratio:.2f} x bench time at best"
+        )
 
 
 def validate(svc: CalibrationService, map_id: int) -> dict:
