@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from service.bench.errors import BenchUnreachable  # light: not the bench's drivers
 from service.cli.parser import build_parser
 from service.cli.startup import StartError, resolve_db_path
+from service.model.limits import LimitError
 from service.settings import SettingsError
 from service.store.storage import StorageError
 from service.validation_words import in_our_words
@@ -46,6 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValidationError as exc:  # a value a model refused (an operating point's speed <= 0): said as ours
         for e in exc.errors():
             print(f"ripplecal: {in_our_words(dict(e), ['option', *e['loc']])}", file=sys.stderr)
+        return 2
+    except LimitError as exc:  # every field at fault on a line of its own, as the API's 422 lists them
+        for line in [msg for _field, msg in exc.problems] or [str(exc)]:
+            print(f"ripplecal: {line}", file=sys.stderr)
         return 2
     except (ValueError, TimeoutError) as exc:
         print(f"ripplecal: {exc}", file=sys.stderr)

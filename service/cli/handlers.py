@@ -245,7 +245,7 @@ def cmd_token(args) -> int:
 def cmd_schedule(args) -> int:
     """Schedules live in the database: a running `serve` on the same --db picks up a new one on its
     next pass (schedules.tick_s), as it reads tokens made by `token create`."""
-    from pydantic import TypeAdapter, ValidationError
+    from pydantic import TypeAdapter
 
     from service.api.public.schedules import schedule_public
     from service.api.schemas import SweepCreate
@@ -258,7 +258,6 @@ def cmd_schedule(args) -> int:
         next_runs,
         utc_now,
     )
-    from service.validation_words import in_our_words
 
     settings = settings_from(args)
     if args.schedule_cmd == "preview":
@@ -270,17 +269,15 @@ def cmd_schedule(args) -> int:
     storage = open_database(settings)
     now = utc_now()
     if args.schedule_cmd == "add":
-        try:
-            sweep = TypeAdapter(SweepCreate).validate_python(
-                {
-                    "grid": {"torque_nm": args.torque, "speed_rpm": args.speed, "udc_v": args.udc},
-                    "method": args.method,
-                    "options": json.loads(args.options) if args.options else {},
-                    "confirm_large": args.confirm_large,
-                }
-            )
-        except ValidationError as exc:
-            raise ValueError("; ".join(in_our_words(dict(e), ["option", *e["loc"]]) for e in exc.errors())) from None
+        # a refusal (ValidationError, LimitError) is said by main, one line per field at fault
+        sweep = TypeAdapter(SweepCreate).validate_python(
+            {
+                "grid": {"torque_nm": args.torque, "speed_rpm": args.speed, "udc_v": args.udc},
+                "method": args.method,
+                "options": json.loads(args.options) if args.options else {},
+                "confirm_large": args.confirm_large,
+            }
+        )
         schedule_id = create_schedule(
             storage, settings, now, args.name, args.cron, args.timezone, sweep, enabled=not args.disabled
         )

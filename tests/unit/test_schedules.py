@@ -214,13 +214,18 @@ def test_cli_schedule_add_list_preview_rm(tmp_path, capsys):
                 "9",
                 "--speed",
                 "2000",
+                "--udc",
+                "99",
                 "--db",
                 db,
             ]
         )
         == 2
     )
-    assert "outside the bench limits" in capsys.readouterr().err
+    # each field at fault on a line of its own, with this bench's limit
+    refusal = [line for line in capsys.readouterr().err.splitlines() if line.startswith("ripplecal: 1 point(s)")]
+    assert len(refusal) == 2, refusal
+    assert "torque_nm 9 exceeds the limit of 5 Nm" in refusal[0] and "udc_v 99 outside 6..60 V" in refusal[1]
     assert main(["schedule", "list", "--db", db]) == 0
     listed = capsys.readouterr().out
     assert "nightly" in listed and "never fired" in listed and "too much" not in listed
