@@ -54,6 +54,11 @@ from service.model.secondary_path import gamma_delta
 
 MAX_ORDERS = 4  # the drive injects the run's order and up to 3 further ones (0x2002)
 MAX_ORDER = 48
+# a step's window resolves each order to a third of its target: the step from it lands near 0.3-0.5 of the target
+# and the next window confirms (an ideal pair of windows has sigma ~ 0.3 L each: bench_two_order_map's floor);
+# a fifth (PRECISION_FOR_TARGET, the confirmation's) in every step cost more windows than it saved (measured, the
+# 10 x 10 map on four machines: the same orders ok, 15 % more plant time)
+STEP_PRECISION = 3.0
 # an order's target is confirmable when the residual may sit a sigma below it and still be confirmed with
 # CONFIDENCE_SIGMAS (common.meets) in the longest window: limit >= (CONFIDENCE_SIGMAS + 1) sigma
 CONFIRMABLE_SIGMAS = CONFIDENCE_SIGMAS + 1.0
@@ -87,10 +92,13 @@ class OrdersOptions(ProbeOptions):
         return distinct_orders(orders)
 
     def plant_time_bound_s(self, harmonic_frequency_hz: float) -> float:
-        """Worst case: the reference, 2 probes per order (twice: a neighbour's J that does not hold), the Newton
-        steps, the confirmation."""
-        windows = 4 * len(self.orders) + self.max_newton_steps + 3
-        return windows * (self.max_window_s + self.settle_s) + self.confirm_window_s + self.settle_s
+        """Worst case: the reference (twice), the prior's start, 2 probes per order (twice: a neighbour's J that does
+        not hold) at max_window_s; the Newton steps, the confirmation and the step after it at confirm_window_s."""
+        short = 4 * len(self.orders) + 3
+        long = self.max_newton_steps + 2
+        return short * (self.max_window_s + self.settle_s) + long * (
+            max(self.confirm_window_s, self.max_window_s) + self.settle_s
+        )
 
 
 def noise_at(window: Window, session: MeasurementSession, periods: int) -> float:
@@ -265,10 +273,10 @@ def identify_orders(
             # every order resolved to what it needs: a twentieth of what it has now (a step is expected to leave
             # a tenth), never finer than its target needs; one window, so the most demanding order decides
             # (an order not confirmable here: a fifth of what it has, while a window resolves it)
-            need = np.where(
-                confirmable, np.maximum(limits / PRECISION_FOR_TARGET, _per_order(a) / 20.0), _per_order(a) / 5.0
-            )
-            w, new_a = measure(target, float(np.min(need[free[0::2]])))
+            need = np.where(confirmable, np.maximum(limits / STEP_PRECISION, _per_order(a) / 20.0), _per_order(a) / 5.0)
+            # up to the longest window: an order the step windows of max_window_s no longer resolve to a third of its
+            # target would only walk on their noise, each step a window lost
+            w, new_a = measure(target, float(np.min(need[free[0::2]])), longest_periods)
         except MeasurementError as exc:
             if not exc.over_range:
                 raise
@@ -291,7 +299,7 @@ def identify_orders(
             break
         # an open order whose residual the longest window allowed no longer resolves from its noise has nothing
         # left to steer by (a shorter window's noise says only that the window was short)
-        floor_fs = AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs if w.phasor.periods >= max_periods else 0.0
+        floor_fs = AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs if w.phasor.periods >= longest_periods else 0.0
         resolved = open_orders & (amplitudes > floor_fs)
         # progress: any open order still resolved down by a fifth from the point stepped from, the worst order no
         # worse (the orders converge at their own pace: the smallest one near its noise must not stop the others,
