@@ -13,9 +13,13 @@ and that column of J is all of it.
 Steps: the reference at theta = 0 (every order's uncompensated phasor); 2K probes around it (J, column by
 column); Newton steps theta <- theta - J^-1 a on all orders at once, each step refining J by Broyden's update
 (as probe.py; the cross-path grows with theta_h, so the secant through the steps is what holds near theta*);
-the sum of the orders' |theta| kept at most gamma_max (the drive's own limit, 0x2000:5). It stops when every
-order meets its target with confidence and its margin, when a step no longer improves the worst order, or
-after max_newton_steps; the best theta is confirmed with the precision the smallest target needs.
+the sum of the orders' |theta| kept at most gamma_max (the drive's own limit, 0x2000:5). A step's window resolves
+each order to a third of its target (up to the longest window, confirm_window_s). It stops when every order meets
+its target with confidence and its margin, when a step no longer improves the worst order, or after
+max_newton_steps; the best theta is confirmed with the precision the smallest target needs (and stepped once more
+from that window if it resolved an order short of its target). An order whose target lies within 3 sigma of the
+longest window's noise (judged from the reference, sigma ~ 1/sqrt(samples)) is said not confirmable here: no
+window is sized for it, and it is stepped only while a window resolves it.
 
 Every order is judged on its own (common.verdict with its own uncompensated phasor and target): the result's
 own fields are the first order's (the run's harmonic order), `details.orders` lists every order
