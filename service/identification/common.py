@@ -30,6 +30,11 @@ PRECISION_FOR_TARGET = 5.0  # a window meant to confirm the target has sigma <= 
 MIN_PERIODS = 12  # two electrical turns at h = 6: every integer order but h averages out
 
 
+def floor_amplitude(noise_std_fs: float) -> float:
+    """The amplitude at and below which a phasor is not resolved from a window's noise (AT_FLOOR_SIGMAS), fs."""
+    return AT_FLOOR_SIGMAS * math.sqrt(2.0) * noise_std_fs
+
+
 class MethodOptions(BaseModel):
     """Options every method has: the target, the injection limit, the window bounds. Finite numbers
     only, every field bounded (no request can ask for unbounded plant time or memory)."""
@@ -219,7 +224,7 @@ def verdict(
         )
     reasons = []
     floor = noise_floor_db(final, uncompensated_fs)
-    if floor is not None and final.phasor.amplitude <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * final.noise_std_fs:
+    if floor is not None and final.phasor.amplitude <= floor_amplitude(final.noise_std_fs):
         reasons.append(f"residual at the sensor noise floor, {floor:.0f} dB")
     if conditions is not None:
         if conditions.resonance_hz is not None:

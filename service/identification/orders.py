@@ -38,11 +38,11 @@ from pydantic import Field, field_validator
 
 from drivers.injection_limit import injection_scale
 from service.identification.common import (
-    AT_FLOOR_SIGMAS,
     CONFIDENCE_SIGMAS,
     PRECISION_FOR_TARGET,
     Conditions,
     Prior,
+    floor_amplitude,
     noise_floor_db,
     periods_for,
     spectrum_traces,
@@ -61,11 +61,12 @@ MAX_ORDER = 48
 # a step's window resolves each order to a third of its target: the step from it lands near 0.3-0.5 of the target
 # and the next window confirms (an ideal pair of windows has sigma ~ 0.3 L each: bench_two_order_map's floor);
 # a fifth (PRECISION_FOR_TARGET, the confirmation's) in every step cost more windows than it saved (measured, the
-# 10 x 10 map on four machines: the same orders ok, 15 % more plant time)
+# 10 x 10 map on four machines: the same orders ok, 16 % more plant time)
 STEP_PRECISION = 3.0
 # an order's target is confirmable when the residual may sit a sigma below it and still be confirmed with
 # CONFIDENCE_SIGMAS (common.meets) in the longest window: limit >= (CONFIDENCE_SIGMAS + 1) sigma
 CONFIRMABLE_SIGMAS = CONFIDENCE_SIGMAS + 1.0
+NOT_CONFIRMABLE = "not confirmable here"  # the reason's words for such an order (bench_two_order_map counts them)
 
 
 class OrdersOptions(ProbeOptions):
@@ -181,23 +182,25 @@ def identify_orders(
     # run may take: it is still cancelled while a window resolves it, but no window is sized for its target
     longest_periods = max(max_periods, periods_for(session, options.confirm_window_s))
 
-    def confirmable_in(window: Window, amplitudes: np.ndarray) -> np.ndarray:
-        limits = np.array([target_amplitude(u, options.target_db) for u in amplitudes])
+    def limits_of(amplitudes: np.ndarray) -> np.ndarray:
+        return np.array([target_amplitude(u, options.target_db) for u in amplitudes])
+
+    def confirmable_in(window: Window, limits: np.ndarray) -> np.ndarray:
         return np.asarray(limits >= CONFIRMABLE_SIGMAS * noise_at(window, session, longest_periods))
 
     theta = np.zeros(2 * n)
     # the reference: every confirmable order's phasor to 1 % of the smallest (+-0.1 dB on each suppression figure)
     before, a0 = measure(theta, None)
     first = _per_order(a0)
-    confirmable = confirmable_in(before, first)
+    confirmable = confirmable_in(before, limits_of(first))
     if np.any(confirmable) and before.noise_std_fs > 0.01 * float(np.min(first[confirmable])):
         before, a0 = measure(theta, 0.01 * float(np.min(first[confirmable])))
     uncompensated = _per_order(a0)
     if np.any(uncompensated <= 0):
         raise MeasurementError("an order reads exactly zero without compensation: nothing to cancel")
-    limits = np.array([target_amplitude(u, options.target_db) for u in uncompensated])
+    limits = limits_of(uncompensated)
     stops = np.array([stop_amplitude(u, options) for u in uncompensated])
-    confirmable = confirmable_in(before, uncompensated)
+    confirmable = confirmable_in(before, limits)
     longest_noise_fs = noise_at(before, session, longest_periods)
     # the smallest amplitude any window is sized to resolve (an order not confirmable here sizes none)
     smallest_fs = float(np.min(uncompensated[confirmable] if np.any(confirmable) else uncompensated))
@@ -266,7 +269,7 @@ def identify_orders(
     for steps in range(1, options.max_newton_steps + 1):
         # an order not confirmable here steps only while the last window resolved it from its noise: a step on
         # its noise would inject a 12th of the noise's size, larger than the order itself
-        resolved_now = _per_order(a) > AT_FLOOR_SIGMAS * math.sqrt(2.0) * noise_of_last[0]
+        resolved_now = _per_order(a) > floor_amplitude(noise_of_last[0])
         free = np.repeat(confirmable | resolved_now, 2)
         if not np.any(free):
             break
@@ -297,13 +300,13 @@ def identify_orders(
         open_orders = (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits) | (amplitudes > stops)
         # an order not confirmable here stays open while this window resolves it (the others' injection raises
         # it: the rotation's gamma^2 term puts order h's angle squared on order 2h, sec. 2.4)
-        open_orders &= confirmable | (amplitudes > AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs)
+        open_orders &= confirmable | (amplitudes > floor_amplitude(w.noise_std_fs))
         if not np.any(open_orders):
             final, best_theta = (w, new_a), target.copy()
             break
         # an open order whose residual the longest window allowed no longer resolves from its noise has nothing
         # left to steer by (a shorter window's noise says only that the window was short)
-        floor_fs = AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs if w.phasor.periods >= longest_periods else 0.0
+        floor_fs = floor_amplitude(w.noise_std_fs) if w.phasor.periods >= longest_periods else 0.0
         resolved = open_orders & (amplitudes > floor_fs)
         # progress: any open order still resolved down by a fifth from the point stepped from, the worst order no
         # worse (the orders converge at their own pace: the smallest one near its noise must not stop the others,
@@ -336,7 +339,7 @@ def identify_orders(
             w, a = final
             amplitudes = _per_order(a)
             short = confirmable & (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits)
-            if np.any(short & (amplitudes > AT_FLOOR_SIGMAS * math.sqrt(2.0) * w.noise_std_fs)):
+            if np.any(short & (amplitudes > floor_amplitude(w.noise_std_fs))):
                 stepped, stepped_limited = _clamp_sum(best_theta - np.linalg.solve(jacobian, a), gamma_max_rad)
                 again = measure(stepped, confirm_fs, longest_periods)
                 if worst(again[1]) < worst(a):
@@ -363,7 +366,7 @@ def identify_orders(
         if status != "ok" and not confirmable[k]:
             standing_db = 20.0 * math.log10(uncompensated[k] / (CONFIRMABLE_SIGMAS * longest_noise_fs))
             reason += (
-                f"; not confirmable here: the order stands {standing_db:.1f} dB above {CONFIRMABLE_SIGMAS:g} sigma of "
+                f"; {NOT_CONFIRMABLE}: the order stands {standing_db:.1f} dB above {CONFIRMABLE_SIGMAS:g} sigma of "
                 f"the longest window's noise ({options.confirm_window_s:g} s), {options.target_db:g} dB asked"
             )
         gamma_rad, delta_rad = gamma_delta(float(best_theta[2 * k]), float(best_theta[2 * k + 1]))

@@ -40,8 +40,8 @@ from service.bench.run import BenchRun
 from service.bench.trips import InterlockTripped
 from service.errors import BenchRefused, Invalid
 from service.identification.common import (
-    AT_FLOOR_SIGMAS,
     MIN_PERIODS,
+    floor_amplitude,
     measure_reference,
     noise_floor_db,
     periods_for,
@@ -238,7 +238,7 @@ def measure_point(
         "uncompensated": reference.phasor.as_dict(),
         "residual": residual.phasor.as_dict(),
         "noise_floor_db": floor_db,
-        "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * residual.noise_std_fs,
+        "at_noise_floor": a <= floor_amplitude(residual.noise_std_fs),
         "plant_time_s": plant_time_s,
         "speed_rpm_measured": speed_rpm,
         "harmonic_frequency_hz": f_h,
@@ -263,7 +263,7 @@ def _order_figures(
         "holds": suppression_db is not None and suppression_db >= options.target_db,
         "uncompensated": uncompensated.as_dict(),
         "residual": residual.as_dict(),
-        "at_noise_floor": a <= AT_FLOOR_SIGMAS * math.sqrt(2.0) * window.noise_std_fs,
+        "at_noise_floor": a <= floor_amplitude(window.noise_std_fs),
     }
 
 

@@ -28,6 +28,7 @@ from collections import Counter
 from pathlib import Path
 
 from service.calibration_service import CalibrationService
+from service.identification.orders import NOT_CONFIRMABLE
 from service.runs.identify import parse_options
 from service.runs.plans import Grid
 from service.runs.runup import RunupRequest, runup_in_run
@@ -95,7 +96,7 @@ def sweep_orders(svc: CalibrationService, method: str = "probe-orders", grid: Gr
                 resolvable += 1
                 resolvable_ok += o["status"] == "ok"
             # the method's own judgement from its reference: 40 dB within the noise of the longest window
-            unconfirmable += "not confirmable here" in (o["reason"] or "")
+            unconfirmable += NOT_CONFIRMABLE in (o["reason"] or "")
             # worse than no compensation where the order stands >= 20 dB above the final window's noise
             harmed += floor is not None and floor <= -20.0 and (o["suppression_db"] or 0.0) < 0.0
             ge40 += (o["suppression_db"] or -1e9) >= 40.0
@@ -128,9 +129,9 @@ TIMING_GRID = Grid(torque_nm=[1.0, 1.75, 2.5, 3.25, 4.0], speed_rpm=[800, 1250, 
 
 # Two windows at least: the one a last step is taken from and the one that confirms. With white sensor noise a
 # window's sigma^2 ~ 1/T; a step from a window of sigma_1 lands at a residual of about sqrt(2) sigma_1, and the
-# confirmation needs that residual + 2 sigma_2 <= L (common.meets). The least T_1 + T_2 under that constraint is at
-# sigma_1 ~ 0.30 L, sigma_2 ~ 0.29 L: T_1 + T_2 = (11.1 + 12.1) / L^2 in units of a window of sigma 1 (closed form,
-# minimised numerically below), the smallest confirmable L of the point deciding.
+# confirmation needs that residual + 2 sigma_2 <= L (common.meets). The least T_1 + T_2 under that constraint, found
+# numerically below, is at sigma_1 ~ 0.31 L, sigma_2 ~ 0.28 L: T_1 + T_2 = (10.2 + 12.9) / L^2 in units of a window
+# of sigma 1, the smallest confirmable L of the point deciding.
 def _least_two_windows() -> float:
     best = math.inf
     for i in range(1, 700):
@@ -139,6 +140,9 @@ def _least_two_windows() -> float:
         if sigma_2 > 0:
             best = min(best, 1.0 / sigma_1**2 + 1.0 / sigma_2**2)
     return best
+
+
+LEAST_TWO_WINDOWS = _least_two_windows()
 
 
 def ideal_plant_s(row: dict, target_db: float = 40.0) -> float | None:
@@ -154,13 +158,13 @@ def ideal_plant_s(row: dict, target_db: float = 40.0) -> float | None:
     levels = [
         o["uncompensated"]["amplitude"] * 10.0 ** (-target_db / 20.0)
         for o in orders
-        if "not confirmable here" not in (o["reason"] or "")
+        if NOT_CONFIRMABLE not in (o["reason"] or "")
     ]
     sigma_fs = orders[0]["uncompensated"]["amplitude"] * 10.0 ** ((orders[0]["noise_floor_db"] or 0.0) / 20.0)
     sigma_fs /= math.sqrt(2.0)  # noise_floor_db is sqrt(2) sigma against the uncompensated amplitude
     if final_s <= 0 or not levels:
         return None
-    return final_s * sigma_fs**2 * _least_two_windows() / min(levels) ** 2
+    return final_s * sigma_fs**2 * LEAST_TWO_WINDOWS / min(levels) ** 2
 
 
 def timing(seed: int | None) -> None:
