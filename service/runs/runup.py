@@ -156,6 +156,14 @@ class RunupRequest(BaseModel):
 
 def check_runup(req: RunupRequest, settings: Settings) -> None:
     """Refuse (Invalid / LimitError / EnvelopeError naming the field) a run-up this bench may not run (module doc)."""
+    if isinstance(req.theta, list):
+        # what the request alone cannot tell (it refuses [6, 6]): null is this bench's harmonic order, so on a
+        # bench of the 6th [null, 6] names it twice, and one would silently replace the other
+        h = settings.identification.harmonic_order
+        named = [h if t.order is None else t.order for t in req.theta]
+        if len(set(named)) != len(named):
+            why = f"theta names an order twice ({named}; null is the harmonic order {h})"
+            raise Invalid(why, (("theta", why),))
     lo, hi = req.speed_rpm
     for speed_rpm in (lo, hi):
         check_limits(OperatingPoint(torque_nm=req.torque_nm, speed_rpm=speed_rpm, udc_v=req.udc_v), settings)

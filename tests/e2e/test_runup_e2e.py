@@ -123,3 +123,8 @@ def test_a_runup_with_a_theta_per_order_injects_every_order(live):
     twice = {**short, "injection": "theta", "theta": [theta[0], theta[0]]}
     refused = client.post("/api/v1/runups", json=twice, headers=auth)
     assert refused.status_code == 422 and "theta names an order twice" in refused.text, refused.text
+    # null is the harmonic order: null and 6 name the 6th twice (one would silently replace the other)
+    main = next(t for t in theta if t["order"] == 6)
+    twice = {**short, "injection": "theta", "theta": [{**main, "order": None}, main]}
+    refused = client.post("/api/v1/runups", json=twice, headers=auth)
+    assert refused.status_code == 422 and "theta names an order twice" in refused.text, refused.text
