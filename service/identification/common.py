@@ -134,7 +134,13 @@ def done(window: Window, target_fs: float, stop_fs: float) -> bool:
 
 def meets(window: Window, amplitude_limit_fs: float) -> bool:
     """The residual is below the limit with confidence (module doc)."""
-    return window.phasor.amplitude + CONFIDENCE_SIGMAS * window.noise_std_fs <= amplitude_limit_fs
+    return not bool(short_of(window.phasor.amplitude, window.noise_std_fs, amplitude_limit_fs))
+
+
+def short_of(amplitude_fs: Any, noise_std_fs: float, amplitude_limit_fs: Any) -> Any:
+    """Not below the limit with confidence: |a| + CONFIDENCE_SIGMAS sigma > limit; element-wise over arrays of
+    amplitudes and limits (several orders measured in one window, orders.py)."""
+    return amplitude_fs + CONFIDENCE_SIGMAS * noise_std_fs > amplitude_limit_fs
 
 
 def periods_for(session: MeasurementSession, seconds: float) -> int:

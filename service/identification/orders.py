@@ -45,6 +45,7 @@ from service.identification.common import (
     floor_amplitude,
     noise_floor_db,
     periods_for,
+    short_of,
     spectrum_traces,
     stop_amplitude,
     target_amplitude,
@@ -166,7 +167,6 @@ def identify_orders(
     min_periods = periods_for(session, options.window_s)
     max_periods = max(min_periods, periods_for(session, options.max_window_s))
     history: list[list[float]] = []
-    noise_of_last = [0.0]  # the last window's noise std (fs)
 
     def measure(
         theta: np.ndarray, noise_limit_fs: float | None, longest: int = max_periods
@@ -175,7 +175,6 @@ def identify_orders(
         w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=longest)
         a = order_phasors(session, w, orders)
         history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
-        noise_of_last[0] = w.noise_std_fs
         return w, a
 
     # an order whose target lies within the noise of the longest window cannot be confirmed at any window this
@@ -236,7 +235,9 @@ def identify_orders(
             )
         return probed_j
 
-    a = a0
+    # a, the phasors stepped from, and the noise std of the window that measured them (fs): whether a step may
+    # use an order's phasor is judged by its own window's noise, not by the last window's (a probe's, a step's)
+    a, a_noise_fs = a0, before.noise_std_fs
     use = prior if options.use_prior else None
     start = None if use is None else use.orders_theta(orders)
     prior_j = None if use is None else use.orders_jacobian(orders)
@@ -244,9 +245,9 @@ def identify_orders(
     if start is not None and np.any(start):
         # the neighbours' theta of every order: the first step starts some 20 dB down (as probe.py)
         start, _ = _clamp_sum(start, gamma_max_rad)
-        _w, a_start = measure(start, smallest_fs / 50.0)
+        start_w, a_start = measure(start, smallest_fs / 50.0)
         if float(np.max(_per_order(a_start) / uncompensated)) < 1.0:
-            theta, a = start, a_start
+            theta, a, a_noise_fs = start, a_start, start_w.noise_std_fs
             notes.append(f"started from {use.source if use is not None else 'a prior'}")
     if prior_j is not None:
         jacobian, probed = prior_j, None  # the neighbour's J (same speed): probed again only if it does not hold
@@ -262,14 +263,14 @@ def identify_orders(
     def worst(a: np.ndarray) -> float:
         return float(np.max(_per_order(a) / scales))
 
-    best_theta, best_a = theta.copy(), a  # the point whose worst order (against its target) is least
+    best_theta, best_a, best_noise_fs = theta.copy(), a, a_noise_fs  # the point whose worst order is least
     limited = False
     failures, damping, steps = 0, 1.0, 0
     final: tuple[Window, np.ndarray] | None = None
     for steps in range(1, options.max_newton_steps + 1):
-        # an order not confirmable here steps only while the last window resolved it from its noise: a step on
-        # its noise would inject a 12th of the noise's size, larger than the order itself
-        resolved_now = _per_order(a) > floor_amplitude(noise_of_last[0])
+        # an order not confirmable here steps only while the window that measured it resolved it from its noise: a
+        # step on its noise would inject a 12th of the noise's size, larger than the order itself
+        resolved_now = _per_order(a) > floor_amplitude(a_noise_fs)
         free = np.repeat(confirmable | resolved_now, 2)
         if not np.any(free):
             break
@@ -297,7 +298,7 @@ def identify_orders(
                 jacobian = broyden
         amplitudes = _per_order(new_a)
         # every order done as common.done judges one: its target met with confidence and its margin reached
-        open_orders = (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits) | (amplitudes > stops)
+        open_orders = short_of(amplitudes, w.noise_std_fs, limits) | (amplitudes > stops)
         # an order not confirmable here stays open while this window resolves it (the others' injection raises
         # it: the rotation's gamma^2 term puts order h's angle squared on order 2h, sec. 2.4)
         open_orders &= confirmable | (amplitudes > floor_amplitude(w.noise_std_fs))
@@ -313,7 +314,7 @@ def identify_orders(
         # nor keep them stepping; not each order's lowest so far: the 6th's injection raises the 12th on the way)
         improved = bool(np.any((amplitudes < 0.8 * _per_order(a)) & resolved)) and worst(new_a) < worst(a)
         if worst(new_a) < worst(best_a):
-            best_theta, best_a = target.copy(), new_a
+            best_theta, best_a, best_noise_fs = target.copy(), new_a, w.noise_std_fs
         if not np.any(resolved):
             break  # every open order at its noise floor: only a longer window (the confirmation's) tells more
         failures = 0 if improved else failures + 1
@@ -324,11 +325,13 @@ def identify_orders(
             probed = jacobian.copy()
             notes.append("the neighbour's J did not hold here: measured by probes")
             failures, damping = 0, 1.0
-            theta, a = best_theta.copy(), best_a
+            theta, a, a_noise_fs = best_theta.copy(), best_a, best_noise_fs
             continue
         if failures >= 2:
             break  # no order improves any more: noise floor or non-linearity
-        theta, a = (target, new_a) if improved else (best_theta.copy(), best_a)
+        theta, a, a_noise_fs = (
+            (target, new_a, w.noise_std_fs) if improved else (best_theta.copy(), best_a, best_noise_fs)
+        )
     if final is None:
         # the confirmation: as long as the smallest confirmable target needs, up to confirm_window_s
         if np.any(confirmable):
@@ -338,7 +341,7 @@ def identify_orders(
             # one more joint step from this precise window, confirmed by a window as long (kept if no order lost)
             w, a = final
             amplitudes = _per_order(a)
-            short = confirmable & (amplitudes + CONFIDENCE_SIGMAS * w.noise_std_fs > limits)
+            short = confirmable & short_of(amplitudes, w.noise_std_fs, limits)
             if np.any(short & (amplitudes > floor_amplitude(w.noise_std_fs))):
                 stepped, stepped_limited = _clamp_sum(best_theta - np.linalg.solve(jacobian, a), gamma_max_rad)
                 again = measure(stepped, confirm_fs, longest_periods)
