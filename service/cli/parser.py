@@ -181,7 +181,7 @@ def _parser_maps(sub) -> None:
         "--interpolation",
         choices=list(INTERPOLATIONS),
         default=None,
-        help=f"what the drive interpolates between cells (default {DEFAULT_INTERPOLATION})",
+        help=f"what the drive interpolates between cells (default: the map's own, else {DEFAULT_INTERPOLATION})",
     )
     t.add_argument("--json", action="store_true")
     _add_bench_args(t)

@@ -11,6 +11,7 @@ from typing import Any, Mapping, Sequence
 from drivers import lut_image
 from service import __version__
 from service.maps.fill import fill_cells
+from service.maps.lut_export import map_interpolation
 from service.store.storage import Storage
 
 
@@ -63,13 +64,14 @@ def build_map(
     best = best_attempts(attempts or [])
     keys = [(t, n, u) for u in axes["udc_v"] for n in axes["speed_rpm"] for t in axes["torque_nm"]]
     cells = [(latest[k]["id"] if k in latest else None, *k) for k in keys]
+    interpolation = map_interpolation({"provenance": provenance})  # a refinement's own, else the drive's default
     fills = fill_cells(
         [
             {"torque_nm": k[0], "speed_rpm": k[1], "udc_v": k[2], **_cell_fields(latest.get(k), best.get(k))}
             for k in keys
         ],
         axes,
-        lut_image.DEFAULT_INTERPOLATION,
+        interpolation,
     )
     return storage.create_map(
         sweep_id,
@@ -82,7 +84,7 @@ def build_map(
         fills=fills,
         refined_from=refined_from,
         provenance=provenance,
-        further_orders=further_order_cells(keys, latest, harmonic_order, axes),
+        further_orders=further_order_cells(keys, latest, harmonic_order, axes, interpolation),
     )
 
 
@@ -99,6 +101,7 @@ def further_order_cells(
     latest: Mapping[tuple[float, float, float], Mapping[str, Any]],
     harmonic_order: int,
     axes: dict[str, list[float]],
+    interpolation: str = lut_image.DEFAULT_INTERPOLATION,
 ) -> list[dict[str, Any]]:
     """[{order, cells}] for every order the cells' results carry beside the map's own (in the order the results
     name them), each cell in `keys` order as that order's result judged it (its own status, theta and figure,
@@ -130,7 +133,7 @@ def further_order_cells(
         fills = fill_cells(
             [{"torque_nm": k[0], "speed_rpm": k[1], "udc_v": k[2], **c} for k, c in zip(keys, cells)],
             axes,
-            lut_image.DEFAULT_INTERPOLATION,
+            interpolation,
         )
         for k, cell in zip(keys, cells):
             fill = fills.get(k)

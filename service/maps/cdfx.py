@@ -23,7 +23,14 @@ from xml.sax.saxutils import escape
 
 from drivers import lut_image as lut_codec
 from service import __version__
-from service.maps.lut_export import cell_flag, grid_values, interpolation_text, order_maps, shortest_number
+from service.maps.lut_export import (
+    cell_flag,
+    grid_values,
+    interpolation_text,
+    map_interpolation,
+    order_maps,
+    shortest_number,
+)
 
 DOCTYPE = (
     '<!DOCTYPE MSRSW PUBLIC "-//ASAM//DTD CALIBRATION DATA FORMAT:V2.0.0:LAI:IAI:XML:CDF200.XSD//EN" '
@@ -74,7 +81,7 @@ def export_cdfx(m: dict[str, Any], interpolation: str | None = None) -> str:
     """The map (MapView.model_dump()) as a CDF 2.0 document, from the cell values and LUT flags every other export
     writes (service/maps/lut_export.py grid_values, cell_flag): CDFX says what they and the LUT image say."""
     maps = order_maps(m)
-    mode_text = interpolation_text(lut_codec.check_interpolation(interpolation))
+    mode_text = interpolation_text(map_interpolation(m, interpolation))
     axes = m["axes"]
     torque, speed = axes["torque_nm"], axes["speed_rpm"]
     date = str(m.get("created_at") or "")[:10]

@@ -113,6 +113,15 @@ def _gamma_delta_deg(c: dict[str, Any]) -> tuple[float, float]:
     return math.degrees(math.hypot(tc, ts)), math.degrees(-math.atan2(ts, tc)) % 360.0
 
 
+def map_interpolation(m: dict[str, Any], interpolation: str | None = None) -> str:
+    """The interpolation between cells a map's LUT is for: the one named, else the one the map was placed and
+    validated in (a refinement records it in the map's provenance: a map refined in cartesian interpolation is
+    downloaded and exported so, as its validation judged it), else the drive's default. LutImageError (a
+    ValueError) for a name the drive does not know."""
+    named = interpolation if interpolation is not None else (m.get("provenance") or {}).get("interpolation")
+    return lut_codec.check_interpolation(named)
+
+
 def interpolation_text(interpolation: str) -> str:
     return {
         "cartesian": "cartesian: theta_cos and theta_sin multilinear",
@@ -223,7 +232,7 @@ def _validation_text(m: dict[str, Any]) -> str:
 def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
     """One row per cell; a map of several orders has one row per cell and order, and a last column
     harmonic_order (a map of one order keeps the columns it always had)."""
-    mode = lut_codec.check_interpolation(interpolation)
+    mode = map_interpolation(m, interpolation)
     orders = map_orders(m)
     buf = io.StringIO()
     buf.write(f"# ripplecal LUT, map {m['id']}, harmonic order h = {m['harmonic_order']}, method {m['method']}\n")
@@ -290,7 +299,7 @@ def export_csv(m: dict[str, Any], interpolation: str | None = None) -> str:
 
 
 def export_json(m: dict[str, Any], interpolation: str | None = None) -> str:
-    mode = lut_codec.check_interpolation(interpolation)
+    mode = map_interpolation(m, interpolation)
     return json.dumps(
         {
             "format": "ripplecal-lut",
@@ -368,7 +377,7 @@ def export_c(m: dict[str, Any], interpolation: str | None = None) -> str:
     """The C header: the map's arrays and the reference interpolator (`ripplecal_lut_map<ID>_theta`); a map of
     several orders has one such block per further order (names `ripplecal_lut_map<ID>_h<order>_*`), and
     `ripplecal_lut_map<ID>_theta_orders` gives every order's theta as the drive injects them together."""
-    mode = lut_codec.check_interpolation(interpolation)
+    mode = map_interpolation(m, interpolation)
     maps = order_maps(m)
     blocks = [_c_order_header(om, mode, "" if k == 0 else f"_h{om['harmonic_order']}") for k, om in enumerate(maps)]
     if len(maps) > 1:
@@ -702,7 +711,7 @@ def export_dcm(m: dict[str, Any], interpolation: str | None = None) -> str:
     """DCM 2.0 (calibration data exchange format read by INCA / CANape): one KENNFELD per U_dc and
     theta component, VALID, FILLED and INJECTION_OFF, x = torque (Nm), y = speed (rpm), each with its axis points
     (ST/X, ST/Y: the map's own breakpoints, non-uniform as they are)."""
-    mode = lut_codec.check_interpolation(interpolation)
+    mode = map_interpolation(m, interpolation)
     axes = m["axes"]
     nt, nn = len(axes["torque_nm"]), len(axes["speed_rpm"])
     out = [
@@ -864,9 +873,10 @@ def lut_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = 
     """The binary image the drive takes on 0x2001:1: a map of one order's (`order_image`), or for a map of several
     orders the version 8 image of one such image per order, its own first (drivers/lut_image.py encode_orders)."""
     maps = order_maps(m)
+    mode = map_interpolation(m, interpolation)
     if len(maps) == 1:
-        return order_image(m, fill, interpolation)
-    return lut_codec.encode_orders([order_image(om, fill, interpolation) for om in maps])
+        return order_image(m, fill, mode)
+    return lut_codec.encode_orders([order_image(om, fill, mode) for om in maps])
 
 
 def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> bytes:
@@ -877,14 +887,14 @@ def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None 
     int11 or int11-sparse cells, `cell_format`, is version 5, 6 or 7: version 7 stores the cells `stored_mask`
     keeps at `sparse_bar_db`, judged on the values the image carries; with a budget, the map's `lut_max_bytes`, the
     highest bar whose image fits it);
-    interpolation: the mode in the header (None: drivers.lut_image.DEFAULT_INTERPOLATION). Raises
+    interpolation: the mode in the header (None: the map's own, `map_interpolation`). Raises
     ValueError if the map cannot become an image (too many cells, an axis not strictly increasing)."""
     axes = m["axes"]
     cells = cell_format(m)
+    mode = map_interpolation(m, interpolation)
     tc, ts, flags = (grid_values(m, key, fill) for key in ("theta_cos", "theta_sin", "flag"))
     stored = None
     if cells == lut_codec.SPARSE:
-        mode = lut_codec.check_interpolation(interpolation)
         quantum = lut_codec.theta_quantum(np.asarray(tc), np.asarray(ts), cells)
         carried_cos, carried_sin = (lut_codec.quantized(v, quantum, cells) * quantum for v in (tc, ts))
         budget = (m.get("provenance") or {}).get("lut_max_bytes")
@@ -914,7 +924,7 @@ def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None 
         ts,
         flags,
         map_id=m["id"],
-        interpolation=interpolation,
+        interpolation=mode,
         cell_format=cells,
         stored=stored,
     )
@@ -958,7 +968,9 @@ def _theta_quantum(m: dict[str, Any]) -> float:
 # -- what the layers above see of a map's LUT image (service/runs/lut_download.py: the download rules and
 # the receipt), so that they never import the wire codec (drivers/lut_image.py) themselves
 LUT_FORMAT_VERSION = lut_codec.FORMAT_VERSION  # what lut_image writes for a map without injection-off cells
-DEFAULT_INTERPOLATION = lut_codec.DEFAULT_INTERPOLATION  # the drive's mode when a download names none
+DEFAULT_INTERPOLATION = (
+    lut_codec.DEFAULT_INTERPOLATION
+)  # the drive's mode when neither a download nor the map names one
 crc_hex = lut_codec.crc_hex  # a CRC as the service shows it everywhere: 0x and 8 hex digits
 
 
@@ -985,7 +997,7 @@ class LutEntries:
 def lut_entries(m: dict[str, Any], fill: bool = True, interpolation: str | None = None) -> LutEntries:
     """The entries of the image `lut_image(m, fill, interpolation)` would carry, without building it.
     Raises ValueError for an interpolation the drive does not know (the message names the ones it does)."""
-    mode = lut_codec.check_interpolation(interpolation)
+    mode = map_interpolation(m, interpolation)
     flags = [cell_flag(c, fill) for c in m["cells"]]
     left_out = 0 if fill else sum(1 for c in m["cells"] if cell_flag(c, True) == lut_codec.FLAG_FILLED)
     orders = tuple(map_orders(m))
@@ -1030,7 +1042,7 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {
 
 def export_map(m: dict[str, Any], fmt: str, interpolation: str | None = None) -> str:
     """The map (MapPublic.model_dump()) as a file of format `fmt`; `interpolation`: the LUT mode the
-    export names (None: drivers.lut_image.DEFAULT_INTERPOLATION)."""
+    export names (None: the map's own, `map_interpolation`)."""
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"format {fmt!r} is not supported; choose one of {sorted(EXPORT_FORMATS)}")
     return EXPORT_FORMATS[fmt].render(m, interpolation=interpolation)

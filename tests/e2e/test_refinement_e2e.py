@@ -154,18 +154,21 @@ def test_a_refinement_is_cancelled_and_resumed_after_a_crash_as_a_sweep(emu, tmp
         svc.stop()
 
 
-@pytest.mark.parametrize("lut_cells", ["int11", "int11-sparse"])
-def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tmp_path, lut_cells):
+@pytest.mark.parametrize(("lut_cells", "interpolation"), [("int11", None), ("int11-sparse", "cartesian")])
+def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tmp_path, lut_cells, interpolation):
     """placement curves (service/maps/placement.py): lines of candidate cells identified at the midpoints, kept
     where the drive's interpolation of their neighbours misses, bisected again; then one map, validated, its LUT
-    in int11 cells (image version 6), or int11-sparse (version 7: per-row speed breakpoints)."""
+    in int11 cells (image version 6), or int11-sparse (version 7: per-row speed breakpoints). Placed and validated
+    in the drive's default interpolation, or in the one the validation names: the refined map records it, and its
+    validation's download (which names none) puts it in the drive, as every later download and export would."""
     db = tmp_path / "curves.db"
     svc, api = start(emu, db)
     try:
         source = swept_map(api)
-        r = api.post(
-            f"/maps/{source}/refine", {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": lut_cells}
-        )
+        body = {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": lut_cells}
+        if interpolation is not None:
+            body["validation"] = {"interpolation": interpolation}
+        r = api.post(f"/maps/{source}/refine", body)
         assert r.status_code == 202, r.text
         job = api.job_finished(r.json()["id"], 900)
         assert job["state"] == "done", job
@@ -194,6 +197,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
             final_round = [r for r in result["rounds"] if r["map_id"] == result["map_id"]]
             assert final_round and final_round[-1]["bytes"] == receipt["bytes"], (result["rounds"], receipt)
         assert refined["provenance"]["lut_cells"] == lut_cells
+        assert refined["provenance"]["interpolation"] == receipt["interpolation"] == (interpolation or "polar")
         # the first validation judges the placed map, every identified cell once, all within the budget
         assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 24
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}

@@ -248,3 +248,22 @@ def test_image_round_trip_both_modes_with_and_without_fill():
     polar0 = lut_image.decode(service_image(m, fill=False, interpolation="polar"))
     g, d = gamma_delta_deg(*polar0.theta(2.0, 1575.0, 12.0))
     assert g == pytest.approx(0.75 * ga, rel=1e-6) and d == pytest.approx(da, abs=1e-5)
+
+
+def test_a_map_placed_in_cartesian_interpolation_is_imaged_and_exported_so_unless_another_is_named():
+    """A refinement records the interpolation it placed and validated the map in (provenance): the LUT image's
+    header, the C header's mode and the JSON, DCM and CDFX exports say it without being asked, as its validation
+    judged it; a mode named still wins; a map without one keeps the drive's default."""
+    plain = refined_map()
+    placed = {**plain, "provenance": {**(plain.get("provenance") or {}), "interpolation": "cartesian"}}
+    assert lut_image.DEFAULT_INTERPOLATION == "polar"  # (else this case proves nothing)
+    assert lut_image.decode(service_image(placed)).interpolation == "cartesian"
+    assert lut_image.decode(service_image(placed, interpolation="polar")).interpolation == "polar"
+    assert lut_image.decode(service_image(plain)).interpolation == "polar"
+    assert json.loads(export_map(placed, "json"))["interpolation"] == "cartesian"
+    assert json.loads(export_map(plain, "json"))["interpolation"] == "polar"
+    macro = f"RIPPLECAL_LUT_MAP{MAP_ID}"
+    assert f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_CARTESIAN" in export_map(placed, "c")
+    assert f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_POLAR" in export_map(placed, "c", "polar")
+    for fmt in ("dcm", "cdfx"):
+        assert export_map(placed, fmt) == export_map(plain, fmt, "cartesian")

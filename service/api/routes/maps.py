@@ -107,8 +107,8 @@ def download_map(
     ),
     interpolation: Literal["cartesian", "polar"] | None = Query(
         None,
-        description="what the drive interpolates between cells (default: the service's, "
-        "drivers/lut_image.DEFAULT_INTERPOLATION)",
+        description="what the drive interpolates between cells (default: the map's own, the one a refinement "
+        "placed and validated it in, else the service's, drivers/lut_image.DEFAULT_INTERPOLATION)",
     ),
 ) -> lut_download.LutDownload:
     """The map's LUT image into the drive (0x2001, segmented SDO), its CRC-32 and map id read back.

@@ -11,7 +11,7 @@ from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import DEFAULT_INTERPOLATION, cell_count, injection_unchanged, lut_image
+from service.maps.lut_export import cell_count, injection_unchanged, lut_image, map_interpolation
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     axes_with,
@@ -137,6 +137,13 @@ def saved_state(sweep: SweepRecord) -> RefinementState:
     return cast(RefinementState, state)  # the JSON column as submit and _save_refinement wrote it
 
 
+def _interpolation(state: RefinementState, source: MapRecord) -> str:
+    """The drive's interpolation the refinement places and validates in: its validation's, else the source map's
+    own (lut_export.map_interpolation: a refined map's, else the drive's default)."""
+    named = ValidationOptions.model_validate(state["validation"]).interpolation
+    return map_interpolation(dict(source), named)
+
+
 class RefinementRun:
     """A refinement's rounds, measured through a sweep's runner."""
 
@@ -251,7 +258,7 @@ class RefinementRun:
             if r["status"] == "ok" and tc is not None and ts is not None:
                 thetas[(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"]))] = complex(tc, ts)
         candidates = state.get("candidates") or {}
-        interpolation = ValidationOptions.model_validate(state["validation"]).interpolation or DEFAULT_INTERPOLATION
+        interpolation = _interpolation(state, source)
         judged = judge_candidates(state["axes"], candidates, thetas, interpolation)
         cells_format = state.get("lut_cells", "float32")
         kept, following, reasons = place(
@@ -321,6 +328,8 @@ class RefinementRun:
                 "cells_added": state["cells_added"],
                 "lut_cells": state.get("lut_cells", "float32"),
                 "lut_max_bytes": state.get("max_bytes"),  # a version 7 image is made to fit (lut_export.lut_image)
+                # placed and validated in it: its downloads and exports use it unless they name another
+                "interpolation": _interpolation(state, source),
                 **provenance,
             },
         )
