@@ -1,14 +1,16 @@
 """A LUT judged and refined along run-ups (issue 27), per machine: sweep -> validation -> refinement -> validation.
 
 Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 100]
+     [--interpolation cartesian|polar]
 
 On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
 1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
 then a refinement (POST /maps/{id}/refine: placement from curves, then the same validation), within max_cells and
-max_bytes 2048 (int11 cells: 3 bytes a cell; --lut-cells int16 for 5, float32 for 9). Printed per round: the
-LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB, median and
-minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells given
-injection off by the guard, and the round's plant seconds; then the totals.
+max_bytes 2048 (int11 cells: 3 bytes a cell; --lut-cells int16 for 5, float32 for 9), in the drive's default
+interpolation between cells unless --interpolation names one (placement, validation and the LUT alike). Printed
+per round: the LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB,
+median and minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells
+given injection off by the guard, and the round's plant seconds; then the totals.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ def machine(
     runup_torques: int,
     lut_cells: str,
     dump_dir: str | None = None,
+    interpolation: str | None = None,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
@@ -52,7 +55,10 @@ def machine(
             sweep = wait_run_finished(lambda: svc.storage.get_sweep(sweep_id), 3600.0, f"sweep {sweep_id}")
             sweep_plant_s = sum(float(r.get("plant_time_s") or 0.0) for r in svc.storage.sweep_results(sweep_id))
             options = ValidationOptions(
-                runups=True, runup_rate_rpm_per_s=rate_rpm_per_s, runup_torques_max=runup_torques
+                runups=True,
+                runup_rate_rpm_per_s=rate_rpm_per_s,
+                runup_torques_max=runup_torques,
+                interpolation=interpolation,
             )
             # the sweep's map as it is, judged the same way (the "before"; not part of the calibration's bench time)
             job_id = svc.engine.submit("validation", sweep["map_id"], True, options)
@@ -127,6 +133,9 @@ def main() -> None:
         choices=("int11", "int11-sparse", "int16", "float32"),
         help="the LUT's cell format",
     )
+    parser.add_argument(
+        "--interpolation", default=None, choices=("cartesian", "polar"), help="the drive's (default: the drive's own)"
+    )
     args = parser.parse_args()
     for text in args.seeds.split(","):
         machine(
@@ -137,6 +146,7 @@ def main() -> None:
             args.runup_torques,
             args.lut_cells,
             args.dump,
+            args.interpolation,
         )
 
 
