@@ -968,9 +968,8 @@ def _theta_quantum(m: dict[str, Any]) -> float:
 # -- what the layers above see of a map's LUT image (service/runs/lut_download.py: the download rules and
 # the receipt), so that they never import the wire codec (drivers/lut_image.py) themselves
 LUT_FORMAT_VERSION = lut_codec.FORMAT_VERSION  # what lut_image writes for a map without injection-off cells
-DEFAULT_INTERPOLATION = (
-    lut_codec.DEFAULT_INTERPOLATION
-)  # the drive's mode when neither a download nor the map names one
+# the drive's mode when neither a download nor the map names one (map_interpolation)
+DEFAULT_INTERPOLATION = lut_codec.DEFAULT_INTERPOLATION
 crc_hex = lut_codec.crc_hex  # a CRC as the service shows it everywhere: 0x and 8 hex digits
 
 

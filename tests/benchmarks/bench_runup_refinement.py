@@ -21,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from drivers.lut_image import DEFAULT_INTERPOLATION, INTERPOLATIONS
 from service.calibration_service import CalibrationService
 from service.maps.view import map_view
 from service.runs.identify import parse_options
@@ -134,7 +135,10 @@ def main() -> None:
         help="the LUT's cell format",
     )
     parser.add_argument(
-        "--interpolation", default=None, choices=("cartesian", "polar"), help="the drive's (default: the drive's own)"
+        "--interpolation",
+        default=None,
+        choices=list(INTERPOLATIONS),
+        help=f"what the drive interpolates between cells (default {DEFAULT_INTERPOLATION})",
     )
     args = parser.parse_args()
     for text in args.seeds.split(","):
