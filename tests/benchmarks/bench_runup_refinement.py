@@ -1,7 +1,7 @@
 """A LUT judged and refined along run-ups (issue 27), per machine: sweep -> validation -> refinement -> validation.
 
 Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 100]
-     [--interpolation cartesian|polar]
+     [--interpolation cartesian|polar] [--lut-cells int11-sparse] [--floor-db 45] [--dump DIR]
 
 On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
 1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
@@ -10,7 +10,8 @@ max_bytes 2048 (int11 cells: 3 bytes a cell; --lut-cells int16 for 5, float32 fo
 interpolation between cells unless --interpolation names one (placement, validation and the LUT alike). Printed
 per round: the LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB,
 median and minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells
-given injection off by the guard, and the round's plant seconds; then the totals.
+given injection off by the guard, and the round's plant seconds; then the totals, and the points that still fail by
+kind (grid, midpoint, run-up bin): the share held depends on how many points the grid has to judge.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import argparse
 import json
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 from drivers.lut_image import DEFAULT_INTERPOLATION, INTERPOLATIONS
@@ -44,6 +46,7 @@ def machine(
     lut_cells: str,
     dump_dir: str | None = None,
     interpolation: str | None = None,
+    floor_db: float | None = None,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
@@ -60,6 +63,7 @@ def machine(
                 runup_rate_rpm_per_s=rate_rpm_per_s,
                 runup_torques_max=runup_torques,
                 interpolation=interpolation,
+                **({"floor_db": floor_db} if floor_db is not None else {}),
             )
             # the sweep's map as it is, judged the same way (the "before"; not part of the calibration's bench time)
             job_id = svc.engine.submit("validation", sweep["map_id"], True, options)
@@ -116,6 +120,18 @@ def machine(
                 f"refinement {sweep_plant_s + state.get('plant_time_s', 0.0):.0f} plant s"
             )
             print(f"  total plant {state.get('plant_time_s', 0.0):.0f} s; stopped: {state['stopped']}")
+            # the share held depends on how many points a grid has to judge (a denser grid has more midpoints away
+            # from the turn): the points that fail, by kind, are the figure that compares calibrations
+            judged = [
+                c
+                for c in (svc.storage.latest_validation(state["current_map_id"]) or {}).get("cells") or []
+                if c["status"] == "measured" and c.get("holds") is not None
+            ]
+            failing = Counter(c["kind"] for c in judged if not c["holds"])
+            print(
+                f"  failing after refinement: {sum(failing.values())} of {len(judged)} judged points "
+                f"({', '.join(f'{kind} {n}' for kind, n in sorted(failing.items())) or 'none'})"
+            )
 
 
 def main() -> None:
@@ -140,6 +156,12 @@ def main() -> None:
         choices=list(INTERPOLATIONS),
         help=f"what the drive interpolates between cells (default {DEFAULT_INTERPOLATION})",
     )
+    parser.add_argument(
+        "--floor-db",
+        type=float,
+        default=None,
+        help="the validations' noise floor below the uncompensated order, dB (default the service's)",
+    )
     args = parser.parse_args()
     for text in args.seeds.split(","):
         machine(
@@ -151,6 +173,7 @@ def main() -> None:
             args.lut_cells,
             args.dump,
             args.interpolation,
+            args.floor_db,
         )
 
 
