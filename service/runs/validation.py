@@ -454,6 +454,12 @@ def validation_items(
     return items
 
 
+def judged_points(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every judged point (grid, midpoints, run-up bins) against the validation's target (DESIGN section 6): measured,
+    with a verdict (`holds`); a summary's `points`, of which `held` hold."""
+    return [c for c in cells if c["status"] == "measured" and c.get("holds") is not None]
+
+
 def summarize(cells: list[dict[str, Any]], harmonic_order: int | None = None) -> dict[str, Any]:
     """Median and minimum suppression of the grid and of the midpoint cells measured, the worst cell,
     and the counts (failed and not measured cells count apart, never as a number); a map of several orders adds
@@ -483,8 +489,7 @@ def summarize(cells: list[dict[str, Any]], harmonic_order: int | None = None) ->
         }
     )
     out["plant_time_s"] = sum(c.get("plant_time_s") or 0.0 for c in measured)
-    # every judged point (grid, midpoints, run-up bins) against the validation's target (DESIGN section 6)
-    judged = [c for c in measured if c.get("holds") is not None]
+    judged = judged_points(cells)
     values = [c["suppression_db"] for c in judged]
     out["points"] = len(judged)
     out["held"] = sum(1 for c in judged if c["holds"])

@@ -29,11 +29,12 @@ from service.maps.view import map_view
 from service.runs.identify import parse_options
 from service.runs.plans import Grid
 from service.runs.refinement import RefineRequest
-from service.runs.validation import ValidationOptions
+from service.runs.validation import ValidationOptions, judged_points
 from service.settings import load_settings
 from tests.support.waiting import wait_run_finished
 
 GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
+FLOOR_DB = ValidationOptions.model_fields["floor_db"].default
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
 
 
@@ -46,7 +47,7 @@ def machine(
     lut_cells: str,
     dump_dir: str | None = None,
     interpolation: str | None = None,
-    floor_db: float | None = None,
+    floor_db: float = FLOOR_DB,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
@@ -63,7 +64,7 @@ def machine(
                 runup_rate_rpm_per_s=rate_rpm_per_s,
                 runup_torques_max=runup_torques,
                 interpolation=interpolation,
-                **({"floor_db": floor_db} if floor_db is not None else {}),
+                floor_db=floor_db,
             )
             # the sweep's map as it is, judged the same way (the "before"; not part of the calibration's bench time)
             job_id = svc.engine.submit("validation", sweep["map_id"], True, options)
@@ -100,8 +101,8 @@ def machine(
                     f"{k} {r[k]:.1f}" if isinstance(r.get(k), float) else f"{k} {r.get(k)}" for k in ROUND_KEYS
                 )
                 print(f"  {figures}, plant {r.get('plant_time_s', 0.0):.0f} s")
+            final_validation = svc.storage.latest_validation(state["current_map_id"])
             if dump_dir is not None:  # the final map and its validation, for a closer look
-                final_validation = svc.storage.latest_validation(state["current_map_id"])
                 view = map_view(svc.storage, state["current_map_id"])
                 (Path(dump_dir) / f"{'paper-bench' if seed is None else f'seed-{seed}'}.json").write_text(
                     json.dumps(
@@ -122,11 +123,7 @@ def machine(
             print(f"  total plant {state.get('plant_time_s', 0.0):.0f} s; stopped: {state['stopped']}")
             # the share held depends on how many points a grid has to judge (a denser grid has more midpoints away
             # from the turn): the points that fail, by kind, are the figure that compares calibrations
-            judged = [
-                c
-                for c in (svc.storage.latest_validation(state["current_map_id"]) or {}).get("cells") or []
-                if c["status"] == "measured" and c.get("holds") is not None
-            ]
+            judged = judged_points((final_validation or {}).get("cells") or [])
             failing = Counter(c["kind"] for c in judged if not c["holds"])
             print(
                 f"  failing after refinement: {sum(failing.values())} of {len(judged)} judged points "
@@ -159,8 +156,8 @@ def main() -> None:
     parser.add_argument(
         "--floor-db",
         type=float,
-        default=None,
-        help="the validations' noise floor below the uncompensated order, dB (default the service's)",
+        default=FLOOR_DB,
+        help=f"the validations' noise floor below the uncompensated order, dB (default the service's, {FLOOR_DB:g})",
     )
     args = parser.parse_args()
     for text in args.seeds.split(","):
