@@ -130,8 +130,8 @@ class RefinementState(TypedDict):
     stopped_details: NotRequired[list[str]]  # each candidate the last plan left out, and why
     max_bytes: NotRequired[int]  # (a state saved before budgets in bytes and bench time has neither)
     max_bench_s: NotRequired[float | None]
-    plant_time_s: NotRequired[float]  # plant seconds spent in all rounds so far
-    round_plant_s: NotRequired[float]  # of the round in progress: its cells' measurements
+    plant_time_s: NotRequired[float]  # bench seconds spent in all rounds so far (plant time, each point's settling too)
+    round_plant_s: NotRequired[float]  # of the round in progress: its cells' settling and measurements
     guard_off: NotRequired[list[list[float]]]  # cells given injection off where the LUT made things worse
     guard_rounds: NotRequired[int]
     candidates: NotRequired[dict[str, list[float]]]  # placement from curves: the round's candidate values per axis
@@ -451,7 +451,7 @@ def reuse_where(
             return None
         if not same(op, item.kind == "runup"):
             return None
-        return [{**c, "plant_time_s": 0.0, "reused": True} for c in cells]
+        return [{**c, "plant_time_s": 0.0, "settle_plant_s": 0.0, "reused": True} for c in cells]
 
     return reuse
 

@@ -52,6 +52,7 @@ from service.model.harmonic import Phasor
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
+from service.runs.plans import settling_order
 from service.runs.runup_validation import measure_runup_pair, runup_range, runup_torques
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
@@ -123,14 +124,15 @@ def finer_axis(values: list[float]) -> list[tuple[float, bool]]:
 
 
 def validation_points(axes: dict[str, list[float]]) -> list[tuple[OperatingPoint, str]]:
-    """Every point of the finer grid, in the order measured (U_dc, then speed, then torque, so the
-    load machine moves least), with its kind: grid | midpoint."""
-    points = []
-    for (u, ug), (n, ng), (t, tg) in product(
-        finer_axis(axes["udc_v"]), finer_axis(axes["speed_rpm"]), finer_axis(axes["torque_nm"])
-    ):
-        points.append((OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u), "grid" if ug and ng and tg else "midpoint"))
-    return points
+    """Every point of the finer grid, in the order measured (service.runs.plans.settling_order: speed innermost),
+    with its kind: grid | midpoint."""
+    kinds = {
+        OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u): "grid" if ug and ng and tg else "midpoint"
+        for (u, ug), (n, ng), (t, tg) in product(
+            finer_axis(axes["udc_v"]), finer_axis(axes["speed_rpm"]), finer_axis(axes["torque_nm"])
+        )
+    }
+    return [(op, kinds[op]) for op in settling_order(list(kinds))]
 
 
 def check_validatable(storage: Storage, map_id: int, force: bool, fill: bool = True) -> None:
@@ -214,6 +216,7 @@ def measure_point(
         sigma_fs = a0 * 10.0 ** (-options.floor_db / 20.0) / math.sqrt(2.0)
         residual = session.measure(MIN_PERIODS, max_noise_std_fs=sigma_fs, max_periods=max_periods)
         plant_time_s = session.plant_time_s
+        settle_plant_s = session.op_settle_plant_s
         speed_rpm = session.speed_rpm_measured
         f_h = session.harmonic_frequency_hz
         torque_actual_nm, _ = run.torque_actual()  # the torque the point ran at, over its measurement
@@ -240,6 +243,7 @@ def measure_point(
         "noise_floor_db": floor_db,
         "at_noise_floor": a <= floor_amplitude(residual.noise_std_fs),
         "plant_time_s": plant_time_s,
+        "settle_plant_s": settle_plant_s,
         "speed_rpm_measured": speed_rpm,
         "harmonic_frequency_hz": f_h,
         "torque_actual_nm": torque_actual_nm,
@@ -488,7 +492,9 @@ def summarize(cells: list[dict[str, Any]], harmonic_order: int | None = None) ->
             "suppression_db": worst["suppression_db"],
         }
     )
-    out["plant_time_s"] = sum(c.get("plant_time_s") or 0.0 for c in measured)
+    # bench seconds: each point's settling and measurement (plant time; a failed point's cost is not known here)
+    out["settle_plant_s"] = sum(c.get("settle_plant_s") or 0.0 for c in measured)
+    out["plant_time_s"] = out["settle_plant_s"] + sum(c.get("plant_time_s") or 0.0 for c in measured)
     judged = judged_points(cells)
     values = [c["suppression_db"] for c in judged]
     out["points"] = len(judged)

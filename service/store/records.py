@@ -88,6 +88,14 @@ class ResultRecord(TypedDict):
     torque_actual_nm: float | None  # the drive's torque actual, mean over the measurement (schema 10)
 
 
+def bench_plant_s(row: ResultRecord) -> float:
+    """Plant seconds a result held the bench, on the DAQ clock: the settling at its operating point (from the move's
+    effect to steady, details.op_settle_plant_s) and its method's measurement (plant_time_s). What a bench pays at
+    speedup 1 (the commands between them take milliseconds): a budget in bench time counts both."""
+    details = (row.get("detail") or {}).get("details") or {}
+    return float(row.get("plant_time_s") or 0.0) + float(details.get("op_settle_plant_s") or 0.0)
+
+
 class MapCellRecord(TypedDict):
     """A map_cells row joined with its result's columns (Storage.get_map)."""
 

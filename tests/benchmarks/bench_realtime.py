@@ -9,7 +9,8 @@ would, timing from the POST to the job's (or sweep's) end:
 - the grid (the paper's 360 points) at OP1: wall against plant time;
 - a 10 x 10 probe map over 0.5..5 Nm x 500..3200 rpm at 12 V: wall, cells at 40 dB, cells ok below
   their target (must be 0);
-- a 3 x 3 map (1 / 2.5 / 4 Nm x 1000 / 1400 / 1800 rpm) validated in the drive's LUT mode (25 points);
+- a 3 x 3 map (1 / 2.5 / 4 Nm x 1000 / 1400 / 1800 rpm) validated in the drive's LUT mode (25 points), and a
+  4 x 13 map at 25 rpm steps through the field-weakening turn (175 points): wall against bench time on the DAQ clock;
 and for every point the split of its wall time (each result's and cell's `bench_time_s`): move
 (commands until the last setpoint is written), accounting (the setpoint count re-established, only
 when in doubt), settle (to speed and a steady harmonic), measurement (the method's own windows and
@@ -40,6 +41,8 @@ MAP10 = {
     "udc_v": [12],
 }
 MAP3 = {"torque_nm": [1.0, 2.5, 4.0], "speed_rpm": [1000, 1400, 1800], "udc_v": [12]}
+# a refined map's stretch: breakpoints 25 rpm apart through the field-weakening turn (validated at 12.5 rpm steps)
+MAP_FINE = {"torque_nm": [1.0, 2.0, 3.0, 4.0], "speed_rpm": list(range(2000, 2301, 25)), "udc_v": [12]}
 PARTS = ("move_s", "accounting_s", "settle_s", "measurement_s")
 
 
@@ -171,8 +174,10 @@ def map10(api: Api, ends: JobEnds) -> None:
     )
 
 
-def validation3(api: Api, ends: JobEnds) -> None:
-    sweep, sweep_wall = timed_sweep(api, ends, MAP3)
+def validation(api: Api, ends: JobEnds, name: str, grid: dict) -> None:
+    """A map swept, then validated in LUT mode: its wall time against its bench time on the DAQ clock (the summary's
+    plant_time_s: every point's settling and measurements), which the refinement's budget counts."""
+    sweep, sweep_wall = timed_sweep(api, ends, grid)
     m = api.get(f"/maps/{sweep['map_id']}")
     not_ok = sum(c["status"] != "ok" for c in m["cells"])
     job, wall = timed_job(api, ends, f"/maps/{m['id']}/validate", {"force": not_ok > 0})
@@ -180,8 +185,9 @@ def validation3(api: Api, ends: JobEnds) -> None:
     cells = v["cells"]
     splits = [c.get("bench_time_s") or {} for c in cells if c["status"] == "measured"]
     print(
-        f"3 x 3 map (sweep {sweep_wall:.1f} s) validated in LUT mode: {len(cells)} points in {wall:.1f} s wall "
-        f"({wall / len(cells):.2f} s a point) for {v['plant_time_s']:.1f} s of plant time; grid median "
+        f"{name} map (sweep {sweep_wall:.1f} s) validated in LUT mode: {len(cells)} points in {wall:.1f} s wall "
+        f"({wall / len(cells):.2f} s a point) for {v['plant_time_s']:.1f} s of bench time on the DAQ clock "
+        f"({wall / v['plant_time_s']:.2f} x; settling {v['settle_plant_s']:.1f} s of it); grid median "
         f"{v['grid']['median_db']:.1f} dB, midpoints median {v['midpoint']['median_db']:.1f} dB; "
         f"per point: {split_line(splits)}",
         flush=True,
@@ -216,7 +222,8 @@ def main() -> None:
         if "grid" not in skip:
             grid(api, ends)
         if "validation" not in skip:
-            validation3(api, ends)
+            validation(api, ends, "3 x 3", MAP3)
+            validation(api, ends, "4 x 13 (25 rpm steps at the turn)", MAP_FINE)
         if "map" not in skip:
             map10(api, ends)
         api.close()

@@ -1,17 +1,19 @@
 """A LUT judged and refined along run-ups (issue 27), per machine: sweep -> validation -> refinement -> validation.
 
 Run: python -m tests.benchmarks.bench_runup_refinement [--seeds -,3] [--max-cells 40] [--rate 100]
-     [--interpolation cartesian|polar] [--lut-cells int11-sparse] [--floor-db 45] [--dump DIR]
+     [--interpolation cartesian|polar] [--lut-cells int11-sparse] [--floor-db 45] [--settle-s 0.005]
+     [--dump DIR]
 
-On the emulated bench (speedup 0; plant seconds are what a bench pays at speedup 1): a 4 x 5 probe map over
-1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
+On the emulated bench (speedup 0; plant seconds, every point's settling included, are what a bench pays at speedup
+1: bench_realtime checks them against the wall): a 4 x 5 probe map over 1..4 Nm x 1000..2600 rpm at 12 V, validated as it is (grid, midpoints, run-ups at up to --runup-torques torques),
 then a refinement (POST /maps/{id}/refine: placement from curves, then the same validation), within max_cells and
 max_bytes 2048 (int11 cells: 3 bytes a cell; --lut-cells int16 for 5, float32 for 9), in the drive's default
 interpolation between cells unless --interpolation names one (placement, validation and the LUT alike). Printed
 per round: the LUT's bytes and cells, the points judged (grid, midpoints, run-up bins) and how many hold at 30 dB,
 median and minimum, the points where the LUT makes the order worse than no compensation (harmful) and the cells
-given injection off by the guard, and the round's plant seconds; then the totals, and the points that still fail by
-kind (grid, midpoint, run-up bin): the share held depends on how many points the grid has to judge.
+given injection off by the guard, and the round's plant seconds (settling and measurements); then the totals, and
+the points that still fail by kind (grid, midpoint, run-up bin): the share held depends on how many points the grid
+has to judge.
 """
 
 from __future__ import annotations
@@ -31,10 +33,16 @@ from service.runs.plans import Grid
 from service.runs.refinement import RefineRequest
 from service.runs.validation import ValidationOptions, judged_points
 from service.settings import load_settings
+from service.store.records import bench_plant_s
 from tests.support.waiting import wait_run_finished
 
 GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], udc_v=[12])
-FLOOR_DB = ValidationOptions.model_fields["floor_db"].default
+# the validations' LUT windows end 15 dB under the 30 dB target (the service's default, 55 dB, resolves figures far
+# above the target), and 5 ms after an injection mode switch (the shaft mode is fitted in the window, service.model.
+# demodulation): paper-bench's calibration from nothing then costs 797 s of bench time instead of 1128 s, holding the
+# same points within 1 % (measured: the README)
+FLOOR_DB = 45.0
+SETTLE_S = 0.005
 ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
 
 
@@ -48,6 +56,7 @@ def machine(
     dump_dir: str | None = None,
     interpolation: str | None = None,
     floor_db: float = FLOOR_DB,
+    settle_s: float = SETTLE_S,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         overrides: dict = {"emulator.speedup": 0.0, "server.db_path": str(Path(tmp) / "r.db")}
@@ -58,13 +67,14 @@ def machine(
             t0 = time.perf_counter()
             sweep_id = svc.engine.submit_sweep(GRID, "probe", parse_options("probe", {}))
             sweep = wait_run_finished(lambda: svc.storage.get_sweep(sweep_id), 3600.0, f"sweep {sweep_id}")
-            sweep_plant_s = sum(float(r.get("plant_time_s") or 0.0) for r in svc.storage.sweep_results(sweep_id))
+            sweep_plant_s = sum(bench_plant_s(r) for r in svc.storage.sweep_results(sweep_id))
             options = ValidationOptions(
                 runups=True,
                 runup_rate_rpm_per_s=rate_rpm_per_s,
                 runup_torques_max=runup_torques,
                 interpolation=interpolation,
                 floor_db=floor_db,
+                settle_s=settle_s,
             )
             # the sweep's map as it is, judged the same way (the "before"; not part of the calibration's bench time)
             job_id = svc.engine.submit("validation", sweep["map_id"], True, options)
@@ -157,7 +167,13 @@ def main() -> None:
         "--floor-db",
         type=float,
         default=FLOOR_DB,
-        help=f"the validations' noise floor below the uncompensated order, dB (default the service's, {FLOOR_DB:g})",
+        help=f"the validations' noise floor below the uncompensated order, dB (default {FLOOR_DB:g}; the service's 55)",
+    )
+    parser.add_argument(
+        "--settle-s",
+        type=float,
+        default=SETTLE_S,
+        help=f"the validations' plant time after an injection mode switch, s (default {SETTLE_S:g}; the service's 0.02)",
     )
     args = parser.parse_args()
     for text in args.seeds.split(","):
@@ -171,6 +187,7 @@ def main() -> None:
             args.dump,
             args.interpolation,
             args.floor_db,
+            args.settle_s,
         )
 
 

@@ -13,6 +13,7 @@ from service.identification.adaptive import AdaptiveOptions
 from service.maps.build import build_map_from_sweep
 from service.maps.lut_export import export_map
 from service.model.operating_point import OperatingPoint
+from service.runs.plans import settling_order
 from service.runs.validation import (
     ValidationRefused,
     ValidationRun,
@@ -43,9 +44,26 @@ def test_validation_points_cover_the_finer_grid_with_their_kinds():
     assert grid == {(t, n) for t in axes["torque_nm"] for n in axes["speed_rpm"]}
     assert sum(1 for _, kind in points if kind == "midpoint") == 15 - 6
     assert (OperatingPoint(torque_nm=1.75, speed_rpm=1500.0, udc_v=12.0), "midpoint") in points
-    # speed changes slowest after U_dc: the load machine moves least
-    speeds = [op.speed_rpm for op, _ in points]
-    assert speeds == sorted(speeds)
+    # torque changes slowest after U_dc (a torque step costs the most settling), speed innermost, its direction
+    # alternating: consecutive points differ by one speed step
+    torques = [op.torque_nm for op, _ in points]
+    assert torques == sorted(torques)
+    assert [op.speed_rpm for op, _ in points[:6]] == [1000.0, 1500.0, 2000.0, 2000.0, 1500.0, 1000.0]
+    for (a, _), (b, _) in zip(points, points[1:]):
+        assert (a.torque_nm == b.torque_nm) != (a.speed_rpm == b.speed_rpm)
+
+
+def test_settling_order_steps_speed_innermost_and_alternates():
+    ops = [
+        OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
+        for u, n, t in [(24, 1000, 2), (12, 1100, 2), (12, 1000, 1), (12, 1100, 1), (12, 1000, 2), (24, 1100, 2)]
+    ]
+    got = [(op.udc_v, op.torque_nm, op.speed_rpm) for op in settling_order(ops)]
+    # U_dc, then torque rows; each row's speeds reverse the last row's direction (also across a U_dc change)
+    assert got == [(12, 1, 1000), (12, 1, 1100), (12, 2, 1100), (12, 2, 1000), (24, 2, 1000), (24, 2, 1100)]
+    assert sorted(settling_order(ops), key=lambda op: op.model_dump_json()) == sorted(
+        ops, key=lambda op: op.model_dump_json()
+    )
 
 
 def _cell(kind, db=None, status="measured", t=1.0):

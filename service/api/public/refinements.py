@@ -27,7 +27,8 @@ class RefinementRoundPublic(BaseModel):
     bytes: int | None = Field(None, description="the LUT image of this round's map, bytes of firmware memory")
     cells: int | None = Field(None, description="cells of this round's map")
     plant_time_s: float | None = Field(
-        None, description="bench time of the round: its cells' measurements and this validation, plant seconds"
+        None,
+        description="bench time of the round: its cells' settling and measurements and this validation, plant seconds",
     )
     points_judged: int | None = Field(None, description="points judged (grid, midpoints, run-up bins)")
     held: int | None = Field(None, description="of them, how many hold")
@@ -46,7 +47,9 @@ class PlacementRoundPublic(BaseModel):
     )
     bytes: int = Field(description="the LUT image with what is kept so far, bytes")
     cells: int = Field(description="cells of the map with what is kept so far")
-    plant_time_s: float = Field(description="bench time of the round's identifications, plant seconds")
+    plant_time_s: float = Field(
+        description="bench time of the round's identifications (settling included), plant seconds"
+    )
     left_out: list[str] = Field(default_factory=list, description="candidates that missed but did not fit max_bytes")
 
 

@@ -56,11 +56,14 @@ class ValidationCellPublic(BaseModel):
     at_noise_floor: bool | None = Field(
         None, description="the residual is within 3 noise rms of zero: suppression_db is a lower bound"
     )
-    plant_time_s: float | None = None
+    plant_time_s: float | None = Field(None, description="the point's measurements (both windows), plant seconds")
+    settle_plant_s: float | None = Field(
+        None, description="the point's settling, from the move's effect to steady (DAQ clock), plant seconds"
+    )
     reused: bool | None = Field(
         None,
         description="taken from the validation before (a refinement's guard round): the drive's LUT is the same here "
-        "as then; plant_time_s 0",
+        "as then; plant_time_s and settle_plant_s 0",
     )
     speed_rpm_measured: float | None = None
     harmonic_frequency_hz: float | None = None
@@ -94,7 +97,11 @@ class ValidationSummaryPublic(BaseModel):
     midpoint: dict[str, Any]
     runup: dict[str, Any] | None = Field(None, description="the run-up bins, as grid and midpoint")
     worst: dict[str, Any] | None = None
-    plant_time_s: float
+    plant_time_s: float = Field(
+        description="bench time: every point's settling and measurements and the run-up pairs, plant seconds (what a "
+        "bench pays at speedup 1, but for the download and the moves' commands)"
+    )
+    settle_plant_s: float | None = Field(None, description="of plant_time_s, the points' settling")
     points: int | None = Field(None, description="judged points: grid, midpoints and run-up bins measured")
     held: int | None = Field(None, description="of them, how many hold (holds)")
     median_db: float | None = None

@@ -28,7 +28,7 @@ from service.model.operating_point import OperatingPoint
 from service.runs.identify import check_plant_time, parse_options
 from service.runs.kinds.host import JobHost, JobKind
 from service.runs.kinds.sweep import check_first_take
-from service.runs.plans import Grid
+from service.runs.plans import Grid, settling_order
 from service.runs.refinement import (
     MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
@@ -50,7 +50,7 @@ from service.runs.validation import (
     run_validation,
     store_validation,
 )
-from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord
+from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord, bench_plant_s
 from service.store.storage import now_iso
 
 
@@ -219,11 +219,13 @@ class RefinementRun:
         candidates among them (phase place) or build the refined map from every result and move on to its
         validation."""
         measured = {(r["torque_nm"], r["speed_rpm"], r["udc_v"]) for r in self._round_results(sweep_id, state)}
-        points = [
-            OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
-            for t, n, u in state["pending"]
-            if (t, n, u) not in measured
-        ]
+        points = settling_order(
+            [
+                OperatingPoint(torque_nm=t, speed_rpm=n, udc_v=u)
+                for t, n, u in state["pending"]
+                if (t, n, u) not in measured
+            ]
+        )
         grid = Grid(**axes_with(state["axes"], state.get("candidates") or {}))
         self._publish_refinement(sweep_id, state, f"measuring {len(points)} cell(s)")
         self.runner.measure_points(
@@ -239,7 +241,7 @@ class RefinementRun:
         )
         if ctl.cancel.is_set():
             return
-        state["round_plant_s"] = sum(float(r.get("plant_time_s") or 0.0) for r in self._round_results(sweep_id, state))
+        state["round_plant_s"] = sum(bench_plant_s(r) for r in self._round_results(sweep_id, state))
         state["cells_added"] += len(state["pending"])  # the round's cells, also those measured before a crash
         if state.get("candidates"):
             state["phase"] = "place"  # the candidates' lines are judged before any map is built
@@ -514,7 +516,8 @@ class RefinementRun:
 
 
 def _close_round_plant(state: RefinementState, validation_plant_s: float = 0.0) -> float:
-    """The round's plant seconds (its cells' measurements, and its validation's), added to the refinement's."""
+    """The round's bench seconds (its cells' settling and measurements, and its validation's), added to the
+    refinement's."""
     round_plant_s = state.get("round_plant_s", 0.0) + validation_plant_s
     state["plant_time_s"] = state.get("plant_time_s", 0.0) + round_plant_s
     state["round_plant_s"] = 0.0
