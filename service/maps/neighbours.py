@@ -5,7 +5,7 @@ it varies smoothly with the operating point even across the shaft resonance, and
 theta* puts a new point some 20 dB down before its first step (and brings the sensor into range
 next to the resonance). The secondary path S does not share that smoothness in speed (its phase
 turns by 180 deg across the resonance), so a measured S is taken only from a cell at the same speed
-and DC-link voltage (the plan's innermost axis is torque: usually the point just measured).
+and DC-link voltage (a plan steps speed innermost: the torque row before has it).
 """
 
 from __future__ import annotations

@@ -6,8 +6,9 @@ Run: python -m tests.benchmarks.bench_sweep_quality [--seeds None,1,2,3,4,5] [--
 For each scenario (paper-bench, and seeded truths it has never seen) and method: a sweep over torque
 0.5..5 Nm x speed 500..3200 rpm at 12 V through the engine (neighbour priors included). Prints a table:
 cells >= 40 dB, ok, below target, no authority, failed; median and p95 plant time per point (the
-method, without the move to the point); the sweep's total plant and wall time; and the stored
-statuses that claim ok below their target (must be 0).
+method, without the move to the point); the sweep's total plant time, its bench time (plant time with every
+point's settling, records.bench_plant_s: what a bench pays at speedup 1) and the settling in it, and its wall
+time; and the stored statuses that claim ok below their target (must be 0).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from service.runs.identify import parse_options
 from service.runs.plans import Grid
 from service.runs.states import TransitionError
 from service.settings import load_settings
+from service.store.records import bench_plant_s
 
 TORQUES = [round(0.5 + 0.5 * i, 2) for i in range(10)]
 SPEEDS = [500 + 300 * i for i in range(10)]
@@ -85,6 +87,7 @@ def run_sweep(svc, method: str, decoupling: bool) -> dict:
         "median": float(np.median(plant)),
         "p95": float(np.percentile(plant, 95)),
         "plant_total": float(plant.sum()),
+        "bench_total": sum(bench_plant_s(r) for r in rows),
         "wall": wall,
         "dishonest": dishonest,
         "reasons": reasons,
@@ -105,7 +108,7 @@ def main() -> None:
     seeds = [None if s == "None" else int(s) for s in args.seeds.split(",")]
     print(
         f"{'scenario':18s} {'method':9s} {'decoupl':7s} {'>=40dB':>7s} {'ok':>4s} {'below':>6s} {'no_auth':>8s} {'failed':>7s} "
-        f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'wall s':>7s} {'ok<target':>9s}"
+        f"{'median s':>9s} {'p95 s':>7s} {'plant s':>8s} {'bench s':>8s} {'settle s':>8s} {'wall s':>7s} {'ok<target':>9s}"
     )
     for seed in seeds:
         with sweep_service(seed, "sweeps.db") as svc:
@@ -116,7 +119,8 @@ def main() -> None:
                 print(
                     f"{name:18s} {method:9s} {decoupling:7s} {r['reached']:>4d}/{r['n']:<3d} {st['ok']:>3d} {st['below_target']:>6d} "
                     f"{st['no_authority']:>8d} {st['failed']:>7d} {r['median']:>9.3f} {r['p95']:>7.3f} "
-                    f"{r['plant_total']:>8.1f} {r['wall']:>7.1f} {r['dishonest']:>9d}",
+                    f"{r['plant_total']:>8.1f} {r['bench_total']:>8.1f} {r['bench_total'] - r['plant_total']:>8.1f} "
+                    f"{r['wall']:>7.1f} {r['dishonest']:>9d}",
                     flush=True,
                 )
                 if r["interlock_trips"]:

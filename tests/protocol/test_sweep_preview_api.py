@@ -70,12 +70,12 @@ def test_preview_answers_the_plan_without_a_token_and_queues_nothing(api):
     marked = {v["speed_rpm"]: v for v in p["speed_axis"]}
     assert marked[1860.0]["added"] and any("onset of 4 Nm at 12 V" in r for r in marked[1860.0]["reasons"])
     assert not marked[1800.0]["added"] and marked[1800.0]["reasons"] == []
-    # the points in measuring order: U_dc, then speed, torque innermost alternating
+    # the points in measuring order: U_dc, then torque, speed innermost alternating (plans.settling_order)
     plan = SweepPlan.from_grid(Grid.model_validate(p["grid"]))
     assert p["points"] == [op.model_dump() for op in plan.points] and p["total"] == 44
-    assert p["points"][:5] == [
-        {"torque_nm": t, "speed_rpm": n, "udc_v": 12.0}
-        for t, n in [(1, 1000), (2, 1000), (3, 1000), (4, 1000), (4, 1400)]
+    speeds = p["grid"]["speed_rpm"]
+    assert p["points"][: 2 * len(speeds)] == [{"torque_nm": 1.0, "speed_rpm": n, "udc_v": 12.0} for n in speeds] + [
+        {"torque_nm": 2.0, "speed_rpm": n, "udc_v": 12.0} for n in reversed(speeds)
     ]
     est = p["estimate"]
     assert est["estimated_s"] == pytest.approx(3 + 44 * 0.9, abs=0.05) and est["worst_case_s"] > est["estimated_s"]

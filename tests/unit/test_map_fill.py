@@ -161,8 +161,9 @@ def test_second_pass_takes_each_non_ok_point_once_in_plan_order():
         row(1, 2000, "below_target", sweep_pass=2),
     ]
     again = second_pass_points(plan, current)
-    # plan order: 1000 rpm (1, 2 Nm), then 2000 rpm reversed (2, 1 Nm); 1 Nm / 2000 rpm already had its second pass
-    assert [(op.torque_nm, op.speed_rpm) for op in again] == [(2.0, 1000.0), (2.0, 2000.0)]
+    # plan order: 1 Nm (1000, 2000 rpm), then 2 Nm reversed (2000, 1000 rpm); 1 Nm / 2000 rpm already had its
+    # second pass
+    assert [(op.torque_nm, op.speed_rpm) for op in again] == [(2.0, 2000.0), (2.0, 1000.0)]
 
 
 def test_the_second_pass_prior_lies_between_the_neighbours_on_both_sides():
