@@ -34,9 +34,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, TypeVar, cast
 
 from service.bench.contracts import RunBench
 from service.bench.measurement import OperatingPointSession, SessionSettings
@@ -52,6 +53,9 @@ log = logging.getLogger(__name__)
 # torque actual below this share of the command (or of the other sign): the point is not reached
 TORQUE_REACHED_FRACTION = 0.5
 TORQUE_CHECK_MIN_NM = 0.2  # below this command the estimate's offset says nothing
+READ_WHILE_WORKING_S = 0.01  # reading_while: the DAQ is read this often (wall), well inside the reader's queue
+READ_WHILE_WORKING_SAMPLES = 65536
+T = TypeVar("T")
 
 
 def torque_reached(command_nm: float, actual_nm: float) -> bool:
@@ -91,6 +95,34 @@ class BenchRun:
 
     def guard(self) -> None:
         self.commands.guard()
+
+    def reading_while(self, work: Callable[[], T]) -> T:
+        """`work()` (seconds of computing inside the open run, between points: a run-up's order analysis) done in a
+        thread while this one goes on reading the DAQ and dropping what it reads, the run's guard checked between
+        reads (interlocks, cancel, the watchdog kicked). Unread for seconds, a DAQ at a real bench's clock overflows
+        (the reader's queue is full: whole frames lost), and the sync toggles of the next point's setpoints fall
+        into that hole, where their count can go wrong (measured: a validation's run-up pairs at speedup 1 failed
+        with "more sync toggles seen than setpoints written" after the analysis of the pair before). Nothing is
+        written meanwhile, so no toggle is due; one seen is counted as any is."""
+        done = threading.Event()
+        outcome: dict[str, Any] = {}
+
+        def target() -> None:
+            try:
+                outcome["value"] = work()
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                outcome["error"] = exc
+            finally:
+                done.set()
+
+        threading.Thread(target=target, name="ripplecal-run-work", daemon=True).start()
+        cursor = self.bench.accounting.cursor
+        while not done.wait(READ_WHILE_WORKING_S):
+            self.guard()
+            cursor.read_available(READ_WHILE_WORKING_SAMPLES)
+        if "error" in outcome:
+            raise outcome["error"]
+        return cast(T, outcome["value"])
 
     # --- points --------------------------------------------------------------------------------------
     @contextlib.contextmanager

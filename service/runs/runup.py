@@ -259,8 +259,11 @@ def analyse_runup(record: RampRecord, settings: Settings, req: RunupRequest) -> 
 
 
 def measure_runup(run: BenchRun, settings: Settings, req: RunupRequest, recorder: Any = None) -> dict[str, Any]:
-    """Record and analyse a run-up inside an open run (a validation's pairs: one order, a fraction of a second)."""
-    return analyse_runup(record_runup(run, settings, req, recorder), settings, req)
+    """Record and analyse a run-up inside an open run (a validation's pairs). The analysis of a survey takes seconds:
+    the run goes on reading the DAQ meanwhile (BenchRun.reading_while), so the next point's setpoints are counted
+    on a stream without a hole."""
+    record = record_runup(run, settings, req, recorder)
+    return run.reading_while(lambda: analyse_runup(record, settings, req))
 
 
 def _finite_or_none(values: np.ndarray) -> list[float | None]:

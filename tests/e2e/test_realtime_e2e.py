@@ -54,6 +54,22 @@ def test_a_sweep_and_its_validation_in_real_time(tmp_path):
         bench_s = sum(c["plant_time_s"] + c["settle_plant_s"] for c in cells)
         assert job["validation"]["plant_time_s"] == pytest.approx(bench_s)
         assert validation_wall_s >= bench_s  # real time: no faster than the plant
+
+        # run-ups in the same run, each analysed (a survey of 48 orders over a 12.5 s ramp: seconds) before the next
+        # point moves: the DAQ goes on being read meanwhile, so every pair is judged (unread, it overflowed and the
+        # next setpoints' sync toggles were miscounted: "more sync toggles seen than setpoints written")
+        options = {"runups": True, "runup_torques_max": 2, "runup_rate_rpm_per_s": 40}
+        r = api.post(f"/maps/{m['id']}/validate", {"force": holes(m) > 0, "options": options})
+        assert r.status_code == 202, r.text
+        job = api.job_finished(r.json()["id"], 600)
+        assert job["state"] == "done", job
+        v = job["validation"]
+        runup_cells = [c for c in v["cells"] if c["kind"] == "runup"]
+        assert runup_cells and all(c["status"] == "measured" for c in runup_cells), [
+            c["error"] for c in runup_cells if c["status"] != "measured"
+        ]
+        assert v["torques_run_up"] == [2.0, 3.0], v["torques_run_up"]
+        assert v["runup_plant_time_s"] >= 4 * 500 / 40  # two pairs of 12.5 s ramps
         status = api.get("/bench/status")
         assert not status["busy"] and status["drive"]["state"] == "switch_on_disabled", status
         api.close()
