@@ -104,8 +104,8 @@ class SweepPlan:
     def from_grid(cls, grid: Grid) -> "SweepPlan":
         """The grid's points in settling_order: U_dc outermost (the supply is slowest to change), then torque, speed
         innermost in alternating direction (measured, a 10 x 10 probe sweep over 0.5..5 Nm x 500..3200 rpm on
-        paper-bench: 41.3 s of bench time, 10.8 s of it settling, against 53.3 s and 23.4 s with torque
-        innermost; the same 77 cells ok)."""
+        paper-bench, tests/benchmarks/bench_sweep_quality.py: 41.9 s of bench time, 11.0 s of it settling, against
+        53.3 s and 23.4 s with torque innermost before; the same 77 cells ok)."""
         if grid.size() > MAX_GRID_POINTS:
             raise ValueError(f"grid has {grid.size()} points, more than {MAX_GRID_POINTS}")
         points = [
