@@ -131,6 +131,9 @@ class SweepRunner:
         stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
         results); `tags` go into every result's details."""
         rows_for_priors = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
+        # the rows priors are read from: loaded before each run, then each point's stored result added as the store
+        # gives it back (loaded again for every point, a refinement's hundreds of results cost more wall than its
+        # measurements: 245 s of a 618 s refinement at speedup 0, parsing every result's details each time)
         tags = {"sweep_pass": sweep_pass, **(tags or {})}
         if options.stop_margin_db is None:  # a cell meant for a LUT: identified to a margin below its target
             options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
@@ -151,14 +154,16 @@ class SweepRunner:
                 break
             if ctl.pause.is_set():
                 raise Paused()
+            point = None
             try:
+                # read again for each run (after a pause, a failure, a store that did not answer), before the drive is
+                # enabled: hundreds of rows take a refinement tenths of a second, the DAQ unread
+                prior_rows = cast(list[dict[str, Any]], list(rows_for_priors()))  # maps.neighbours reads dicts
                 with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
                     while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
                         point = _PointInFlight(points[i], self.host.new_recorder())
                         try:
-                            # the result rows are what maps.neighbours reads as dicts
-                            rows = cast(list[dict[str, Any]], rows_for_priors())
-                            prior = prior_from_neighbours(point.op, rows, grid.model_dump())
+                            prior = prior_from_neighbours(point.op, prior_rows, grid.model_dump())
                             result = identify_in_run(
                                 run,
                                 self.settings,
@@ -184,9 +189,10 @@ class SweepRunner:
                             log.warning("sweep %s point %s failed: %s", sweep_id, point.op.label(), exc)
                             row = self._failed_row(point, sweep, options, exc, sweep_id, tags)
                         point.row = row  # measured: kept if the database cannot take it now
-                        self._store_point(sweep_id, point.op, row, point.recorder)
+                        rid = self._store_point(sweep_id, point.op, row, point.recorder)
                         point = None
                         i += 1
+                        prior_rows += cast(list[dict[str, Any]], list(self.storage.results_by_id([rid]).values()))
             except StorageUnavailable as exc:
                 # the run has ended (bench made safe); the point measured is kept and written when the
                 # database answers again, or measured again if it was not measured yet
@@ -279,9 +285,8 @@ class SweepRunner:
         except StorageUnavailable as exc:
             self._storage_pause(sweep_id, ctl, exc, _PointInFlight(op, None, row["started_at"], row))
 
-    def _store_point(
-        self, sweep_id: int, op: OperatingPoint, row: dict[str, Any], recorder: RunRecorder | None
-    ) -> None:
+    def _store_point(self, sweep_id: int, op: OperatingPoint, row: dict[str, Any], recorder: RunRecorder | None) -> int:
+        """Store the point's result (and its recording); returns the result's id."""
         rid = self.host.insert_result(row, recorder)
         # the result by its id: the API's event stream shows it as a result (service/api/event_stream.py)
         self.broker.publish(
@@ -289,6 +294,7 @@ class SweepRunner:
             {"sweep_id": sweep_id, "operating_point": op.model_dump(), "state": row["status"], "result_id": rid},
         )
         self.host.publish_sweep(sweep_id)
+        return rid
 
     def _discarded_row(
         self,

@@ -57,7 +57,10 @@ from service.runs.runup_validation import measure_runup_pair, runup_range, runup
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
-STORE_SPACING = 10.0  # a running validation spends at most ~1/10 of its wall time storing its progress
+# a running validation spends at most ~1/40 of its wall time storing its progress (a refined map's 0.2 s stores then
+# come every ~8 s; at 1/10 they cost a calibration's validation 17 s of its 226 s at speedup 0, and its tenth at a
+# real bench's clock); its cells are told as they are measured (on_cell: the live view) all the same
+STORE_SPACING = 40.0
 
 
 class ValidationOptions(BaseModel):
@@ -323,7 +326,7 @@ def run_validation(
         nonlocal stored_at, store_s
         run.cells.extend(cells)
         # stored as it measures, but spaced by STORE_SPACING times what a store took (a store writes every cell
-        # so far: a small map's after each point, a refined map's thousands, 0.1-0.2 s each, about once a second;
+        # so far: a small map's after each point, a refined map's thousands, 0.1-0.2 s each, every few seconds;
         # stored per item, a row of points outside the envelope held the run's loop past the bench watchdog's
         # 3 s); the caller stores the end
         if on_progress is not None and time.monotonic() - stored_at >= STORE_SPACING * store_s:

@@ -211,3 +211,17 @@ def test_the_lut_objects_are_read_when_idle_never_during_a_run(svc):
         svc.bench.drive.lut_in_force = original
     assert during == 0
     assert bench_is_safe(svc)
+
+
+def test_each_sweep_point_starts_from_the_neighbour_measured_before_it_in_the_same_run(svc):
+    """Priors are read from the store once a run and each stored point added as the store gives it back
+    (SweepRunner.measure_points): a point's prior is the nearest ok result measured before it in the sweep."""
+    grid = Grid(torque_nm=[2.0], speed_rpm=[1200, 1300, 1400, 1500], udc_v=[12])
+    sweep_id = svc.engine.submit_sweep(grid, "probe", parse_options("probe", {}))
+    sweep = wait_for(lambda: (s := svc.storage.get_sweep(sweep_id))["state"] in ("done", "failed") and s, 300)
+    assert sweep["state"] == "done"
+    rows = sorted(svc.storage.sweep_results(sweep_id), key=lambda r: r["id"])  # in measuring order
+    assert [r["status"] for r in rows] == ["ok"] * 4
+    assert rows[0]["detail"]["details"]["prior"] is None  # nothing measured before it
+    for before, r in zip(rows, rows[1:]):
+        assert r["detail"]["details"]["prior"].startswith(f"neighbour 2 Nm / {before['speed_rpm']:g} rpm"), r
