@@ -955,6 +955,27 @@ def injection_unchanged(
     return same
 
 
+def injects_nothing(
+    m: dict[str, Any], fill: bool = True, interpolation: str | None = None
+) -> Callable[[Mapping[str, Any], float], bool]:
+    """nothing(point, half_width_rpm): True where the drive injects exactly nothing under the map's LUT image (built
+    as `lut_image(m, fill, interpolation)`, interpolated by Lut.theta, the drive's one definition: a corner of weight
+    > 0 turned off, flag 3, gives (0, 0)) at the operating point, or at every speed within half_width_rpm of it (a
+    run-up bin): at both ends, each breakpoint between them and midway between each two of those (inside an
+    interval every speed has the same corners of weight > 0)."""
+    lut = lut_codec.decode(lut_image(m, fill, interpolation))
+    breakpoints = sorted(float(v) for v in lut.speed_rpm)
+
+    def nothing(point: Mapping[str, Any], half_width_rpm: float = 0.0) -> bool:
+        t, n, u = float(point["torque_nm"]), float(point["speed_rpm"]), float(point["udc_v"])
+        lo, hi = n - half_width_rpm, n + half_width_rpm
+        edges = sorted({lo, hi, *(b for b in breakpoints if lo < b < hi)})
+        speeds = edges + [(a + b) / 2.0 for a, b in zip(edges, edges[1:])]
+        return all(lut.theta(t, s, u) == (0.0, 0.0) for s in speeds)
+
+    return nothing
+
+
 def _theta_quantum(m: dict[str, Any]) -> float:
     """The rad a unit of the map's integer cells stands for in its LUT image; 0 for float32 cells."""
     cells = cell_format(m)

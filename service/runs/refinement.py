@@ -411,7 +411,12 @@ MAX_GUARD_ROUNDS = 3  # injection turned off where harm is seen, validated again
 def harmful_points(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Judged points (grid, midpoints, run-up bins) where the LUT makes the order worse than no compensation
     (service/runs/runup_validation.py is_harm)."""
-    return [c for c in cells if c["status"] == "measured" and is_harm(c.get("suppression_db"), c.get("above_floor_db"))]
+    return [
+        c
+        for c in cells
+        if c["status"] == "measured"
+        and is_harm(c.get("suppression_db"), c.get("above_floor_db"), bool(c.get("no_injection")))
+    ]
 
 
 def corner_values(values: list[float], x: float) -> list[float]:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -70,14 +71,33 @@ def runup_range(
     return lo, last_inside
 
 
-def is_harm(suppression_db: float | None, above_floor_db: float | None) -> bool:
-    """The LUT made the order worse than no compensation, beyond what a measurement repeats to (module doc)."""
+def is_harm(suppression_db: float | None, above_floor_db: float | None, no_injection: bool = False) -> bool:
+    """The LUT made the order worse than no compensation, beyond what a measurement repeats to (module doc); never
+    where the drive injects nothing (`no_injection`, mark_no_injection)."""
     return (
-        suppression_db is not None
+        not no_injection
+        and suppression_db is not None
         and above_floor_db is not None
         and suppression_db < -HARM_MARGIN_DB
         and above_floor_db >= HARM_ABOVE_FLOOR_DB
     )
+
+
+def mark_no_injection(cells: list[dict[str, Any]], nothing: Callable[[Mapping[str, Any], float], bool]) -> None:
+    """Mark each measured point where the drive's LUT injects exactly nothing (`nothing(point, half_width_rpm)`,
+    service/maps/lut_export.py injects_nothing: a cell turned off, LUT flag 3, is a corner of its interval, or of
+    every interval its run-up bin spans) `no_injection`: its figure is no compensation by construction, two
+    measurements without injection compared, so never harm (is_harm) however far the two differ."""
+    for c in cells:
+        if c.get("status") != "measured" or c.get("suppression_db") is None:
+            continue
+        if nothing(c["operating_point"], (c.get("bin_rpm") or 0.0) / 2.0):
+            c["no_injection"] = True
+            if not c.get("holds"):
+                c["reason"] = (
+                    f"the drive injects nothing here (injection off in the LUT): {c['suppression_db']:.1f} dB is what "
+                    "two measurements without injection differ by"
+                )
 
 
 def _db(ratio: float) -> float:
@@ -124,6 +144,7 @@ def judge_bins(
                 "uncompensated_fs": a_off,
                 "residual_fs": a_lut,
                 "floor_rule_fs": floor_rule_fs,
+                "bin_rpm": off.get("bin_rpm"),  # the bin spans speed_rpm +- bin_rpm / 2 (mark_no_injection)
             }
         )
     return cells

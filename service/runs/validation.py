@@ -47,13 +47,14 @@ from service.identification.common import (
     periods_for,
 )
 from service.identification.session import MeasurementError, MeasurementSession, Window
+from service.maps.lut_export import injects_nothing
 from service.maps.view import MapView, map_view
 from service.model.harmonic import Phasor
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
 from service.model.operating_point import OperatingPoint
 from service.runs import lut_download
 from service.runs.plans import settling_order
-from service.runs.runup_validation import measure_runup_pair, runup_range, runup_torques
+from service.runs.runup_validation import mark_no_injection, measure_runup_pair, runup_range, runup_torques
 from service.settings import Settings
 from service.store.storage import Storage, now_iso
 
@@ -309,6 +310,8 @@ def run_validation(
     if on_progress is not None:
         on_progress(run)  # stored now: the drive holds this LUT from here on
     items = validation_items(m.axes, settings, options)
+    # where the drive injects nothing (the guard's cells off), a figure is no compensation, never harm
+    nothing = injects_nothing(m.model_dump(), options.fill, options.interpolation)
     # a grid point whose cell is not ok carries no injection in the LUT: say so beside its figure
     map_cells = {(c.torque_nm, c.speed_rpm, c.udc_v): c for c in m.cells}
 
@@ -339,6 +342,11 @@ def run_validation(
                 on_cell(cell, len(items))
 
     def measured(item: ValidationItem, brun: BenchRun) -> list[dict[str, Any]]:
+        cells = measured_cells(item, brun)
+        mark_no_injection(cells, nothing)
+        return cells
+
+    def measured_cells(item: ValidationItem, brun: BenchRun) -> list[dict[str, Any]]:
         if item.kind != "runup":
             return [
                 {
@@ -504,6 +512,8 @@ def summarize(cells: list[dict[str, Any]], harmonic_order: int | None = None) ->
     out["held"] = sum(1 for c in judged if c["holds"])
     out["median_db"] = statistics.median(values) if values else None
     out["min_db"] = min(values) if values else None
+    # judged where the drive injects nothing (runup_validation.mark_no_injection): no compensation, never harm
+    out["no_injection"] = sum(1 for c in judged if c.get("no_injection"))
     out["torques_run_up"] = sorted({c["operating_point"]["torque_nm"] for c in measured if c["kind"] == "runup"})
     further = sorted({o["order"] for c in measured for o in c.get("orders") or []})
     if further:  # a map of several orders: every order judged on its own (the first is the figures above)

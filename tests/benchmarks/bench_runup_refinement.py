@@ -45,7 +45,18 @@ GRID = Grid(torque_nm=[1, 2, 3, 4], speed_rpm=[1000, 1400, 1800, 2200, 2600], ud
 # same points within 1 % (measured: the README)
 FLOOR_DB = 45.0
 SETTLE_S = 0.005
-ROUND_KEYS = ("round", "bytes", "cells", "points_judged", "held", "median_db", "min_db", "harmful", "injection_off")
+ROUND_KEYS = (
+    "round",
+    "bytes",
+    "cells",
+    "points_judged",
+    "held",
+    "median_db",
+    "min_db",
+    "harmful",
+    "injection_off",
+    "no_injection",
+)
 
 
 def machine(

@@ -55,6 +55,10 @@ def test_a_cell_with_injection_off_gives_exactly_no_compensation_in_its_interval
     for point in IN_OFF_INTERVAL:
         c = by_point[point]
         assert c["status"] == "measured" and abs(c["suppression_db"]) <= 0.5, (point, c)
+        # marked: the drive injects nothing there, so its figure is no compensation, never harm
+        assert c.get("no_injection") is True, (point, c)
+    assert all(not c.get("no_injection") for p, c in by_point.items() if p not in IN_OFF_INTERVAL)
+    assert v["no_injection"] == len(IN_OFF_INTERVAL)
     # the far torque line (3 Nm) never touches the off cell: the drive compensates there as it did
     status = {(x["torque_nm"], x["speed_rpm"]): x["status"] for x in m["cells"]}
     far = [by_point[(3.0, n)] for n in (1200.0, 1600.0) if status[(3.0, n)] == "ok"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from service.maps.lut_export import injection_unchanged
+from service.maps.lut_export import injection_unchanged, injects_nothing
 from service.maps.placement import axes_with
 from service.model.operating_point import OperatingPoint
 from service.runs.refinement import (
@@ -15,6 +15,7 @@ from service.runs.refinement import (
     plan_round,
     reuse_where,
 )
+from service.runs.runup_validation import is_harm, mark_no_injection
 from service.runs.validation import ValidationItem
 
 AXES = {"torque_nm": [1.0, 2.0, 3.0], "speed_rpm": [1000.0, 2000.0, 3000.0], "udc_v": [12.0]}
@@ -235,6 +236,36 @@ def test_the_drives_injection_is_unchanged_only_where_no_changed_cell_weighs():
         assert same(point(1.5, 1500.0), False) and same(point(2.0, 2000.0), False)
         assert not same(point(1.5, 2250.0), False) and not same(point(3.0, 2750.0), False)
         assert not same(point(1.0, 1000.0), True)
+
+
+def test_the_drive_injects_nothing_only_where_an_off_cell_weighs_over_the_whole_bin():
+    """Injection off at (2 Nm, 2000 rpm): by the drive's rule (drivers/lut_image.py, any corner of weight > 0 at
+    flag 3) nothing is injected for 1 < t < 3 Nm x 1000 < n < 3000 rpm, and on the lines through the cell within
+    that; a run-up bin is nothing only when every speed it spans is."""
+    for cells in ("float32", "int11"):
+        nothing = injects_nothing(lut_map(AXES, smooth, off=[(2.0, 2000.0)], lut_cells=cells))
+        off = {(t, n) for t in (1.5, 2.0, 2.5) for n in (1500.0, 2000.0, 2500.0)}
+        for t in (1.0, 1.5, 2.0, 2.5, 3.0):
+            for n in (1000.0, 1500.0, 2000.0, 2500.0, 3000.0):
+                assert nothing(point(t, n), 0.0) is ((t, n) in off), (cells, t, n)
+        assert nothing(point(1.5, 1995.0), 5.0) and nothing(point(1.5, 2985.0), 5.0)  # 1990..2000, 2980..2990
+        assert not nothing(point(1.5, 2995.0), 5.0)  # at 3000 rpm, its end, the cell at 2000 rpm weighs 0
+        assert not nothing(point(1.5, 1003.0), 5.0)  # 998..1008 reaches below 1000 rpm, where the cell weighs 0
+        assert not nothing(point(1.0, 2000.0), 5.0)  # on the 1 Nm row the cell at 2 Nm weighs 0
+    assert not injects_nothing(lut_map(AXES, smooth))(point(2.0, 2000.0), 5.0)
+
+
+def test_where_the_drive_injects_nothing_a_figure_below_zero_is_no_harm():
+    """Two measurements without injection differ by a little either way: marked no_injection (with the reason
+    said), such a point is never harm, so the guard does not chase it; elsewhere the same figure is."""
+    nothing = injects_nothing(lut_map(AXES, smooth, off=[(2.0, 2000.0)]))
+    inside, outside = runup_bin(1.5, 2400.0, -0.8, above_floor_db=40.0), runup_bin(1.5, 1000.0, -0.8, 40.0)
+    inside["bin_rpm"] = outside["bin_rpm"] = 10.0
+    inside["holds"] = outside["holds"] = False
+    mark_no_injection([inside, outside], nothing)
+    assert inside["no_injection"] and "injects nothing" in inside["reason"] and "no_injection" not in outside
+    assert harmful_points([inside, outside]) == [outside]
+    assert is_harm(-0.8, 40.0) and not is_harm(-0.8, 40.0, no_injection=True)
 
 
 def test_a_rounds_validation_takes_the_earlier_cells_where_the_injection_is_the_same():

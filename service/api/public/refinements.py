@@ -33,6 +33,13 @@ class RefinementRoundPublic(BaseModel):
     points_judged: int | None = Field(None, description="points judged (grid, midpoints, run-up bins)")
     held: int | None = Field(None, description="of them, how many hold")
     median_db: float | None = None
+    harmful: int | None = Field(
+        None, description="points where the LUT makes the order worse than no compensation (runup_validation.is_harm)"
+    )
+    injection_off: int | None = Field(None, description="cells the guard had turned injection off at (LUT flag 3)")
+    no_injection: int | None = Field(
+        None, description="judged points where the drive injects nothing (those cells weigh there): never harm"
+    )
 
 
 class PlacementRoundPublic(BaseModel):

@@ -60,6 +60,12 @@ class ValidationCellPublic(BaseModel):
     settle_plant_s: float | None = Field(
         None, description="the point's settling, from the move's effect to steady (DAQ clock), plant seconds"
     )
+    no_injection: bool | None = Field(
+        None,
+        description="the drive's LUT injects nothing here (a cell turned off, LUT flag 3, weighs at the point or over "
+        "its whole run-up bin): the figure is no compensation by construction, never harm",
+    )
+    bin_rpm: float | None = Field(None, description="run-up bins: the bin's width, rpm (speed_rpm its centre)")
     reused: bool | None = Field(
         None,
         description="taken from the validation before (a refinement's guard round): the drive's LUT is the same here "
@@ -113,6 +119,9 @@ class ValidationSummaryPublic(BaseModel):
     )
     orders: list[OrderSummaryPublic] | None = Field(
         None, description="a map of several orders: each order's points, held, median and minimum (grid and midpoints)"
+    )
+    no_injection: int | None = Field(
+        None, description="judged points where the drive's LUT injects nothing (cells turned off): never harm"
     )
     items_reused: int | None = Field(
         None,

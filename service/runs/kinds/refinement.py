@@ -411,6 +411,8 @@ class RefinementRun:
                 "held": summary.get("held"),
                 "median_db": summary.get("median_db"),
                 "harmful": len(harmful),
+                # judged where the drive injects nothing (cells turned off): never harm (mark_no_injection)
+                "no_injection": summary.get("no_injection"),
                 "injection_off": len(state.get("guard_off", [])),
             }
         )
