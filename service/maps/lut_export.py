@@ -930,6 +930,14 @@ def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None 
     )
 
 
+def _speeds_spanning(breakpoints: list[float], lo: float, hi: float) -> list[float]:
+    """The speeds at which a question about the drive's LUT over [lo, hi] rpm is settled: both ends, each breakpoint
+    between them and midway between each two of those (inside an interval every speed has the same corners of
+    weight > 0, and the theta is an interpolation of them)."""
+    edges = sorted({lo, hi, *(b for b in breakpoints if lo < b < hi)})
+    return edges + [(a + b) / 2.0 for a, b in zip(edges, edges[1:])]
+
+
 def injection_unchanged(
     before: dict[str, Any], after: dict[str, Any], fill: bool = True, interpolation: str | None = None
 ) -> Callable[[Mapping[str, Any], bool], bool]:
@@ -942,7 +950,7 @@ def injection_unchanged(
     lut_b = lut_codec.decode(lut_image(after, fill, interpolation))
     tolerance_rad = 1e-9 + 2.0 * max(_theta_quantum(before), _theta_quantum(after))
     breakpoints = sorted({float(v) for v in (*lut_a.speed_rpm, *lut_b.speed_rpm)})
-    along = breakpoints + [(a + b) / 2.0 for a, b in zip(breakpoints, breakpoints[1:])]
+    along = _speeds_spanning(breakpoints, breakpoints[0], breakpoints[-1])
 
     def same(point: Mapping[str, Any], along_speed: bool = False) -> bool:
         t, u = float(point["torque_nm"]), float(point["udc_v"])
@@ -961,16 +969,13 @@ def injects_nothing(
     """nothing(point, half_width_rpm): True where the drive injects exactly nothing under the map's LUT image (built
     as `lut_image(m, fill, interpolation)`, interpolated by Lut.theta, the drive's one definition: a corner of weight
     > 0 turned off, flag 3, gives (0, 0)) at the operating point, or at every speed within half_width_rpm of it (a
-    run-up bin): at both ends, each breakpoint between them and midway between each two of those (inside an
-    interval every speed has the same corners of weight > 0)."""
+    run-up bin; _speeds_spanning)."""
     lut = lut_codec.decode(lut_image(m, fill, interpolation))
     breakpoints = sorted(float(v) for v in lut.speed_rpm)
 
     def nothing(point: Mapping[str, Any], half_width_rpm: float = 0.0) -> bool:
         t, n, u = float(point["torque_nm"]), float(point["speed_rpm"]), float(point["udc_v"])
-        lo, hi = n - half_width_rpm, n + half_width_rpm
-        edges = sorted({lo, hi, *(b for b in breakpoints if lo < b < hi)})
-        speeds = edges + [(a + b) / 2.0 for a, b in zip(edges, edges[1:])]
+        speeds = _speeds_spanning(breakpoints, n - half_width_rpm, n + half_width_rpm)
         return all(lut.theta(t, s, u) == (0.0, 0.0) for s in speeds)
 
     return nothing

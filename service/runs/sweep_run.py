@@ -131,9 +131,6 @@ class SweepRunner:
         stop came between points). Priors come from `neighbour_rows()` (default: the sweep's current
         results); `tags` go into every result's details."""
         rows_for_priors = neighbour_rows or (lambda: self.storage.sweep_results(sweep_id))
-        # the rows priors are read from: loaded before each run, then each point's stored result added as the store
-        # gives it back (loaded again for every point, a refinement's hundreds of results cost more wall than its
-        # measurements: 245 s of a 618 s refinement at speedup 0, parsing every result's details each time)
         tags = {"sweep_pass": sweep_pass, **(tags or {})}
         if options.stop_margin_db is None:  # a cell meant for a LUT: identified to a margin below its target
             options = options.model_copy(update={"stop_margin_db": LUT_MARGIN_DB})
@@ -154,11 +151,12 @@ class SweepRunner:
                 break
             if ctl.pause.is_set():
                 raise Paused()
-            point = None
             try:
-                # read again for each run (after a pause, a failure, a store that did not answer), before the drive is
-                # enabled: hundreds of rows take a refinement tenths of a second, the DAQ unread
-                prior_rows = cast(list[dict[str, Any]], list(rows_for_priors()))  # maps.neighbours reads dicts
+                # the rows priors are read from (maps.neighbours reads dicts): read before each run (after a pause, a
+                # failure, a store that did not answer), before the drive is enabled, then each point's stored result
+                # added as the store gives it back (read for every point, a refinement's hundreds of results cost 245 s
+                # of a 618 s refinement's wall at speedup 0, and held the DAQ unread in the open run)
+                prior_rows = cast(list[dict[str, Any]], list(rows_for_priors()))
                 with self.bench.run(cancel=ctl.cancel, **run_settings(self.settings, options)) as run:
                     while i < len(points) and not ctl.pause.is_set() and not ctl.cancel.is_set():
                         point = _PointInFlight(points[i], self.host.new_recorder())
