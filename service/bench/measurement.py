@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Literal, overload
 
 import numpy as np
@@ -32,7 +32,7 @@ from service.bench.point_stream import PointStream
 from service.bench.setpoint_accounting import DaqCursor
 from service.identification.session import MeasurementError, Window
 from service.model.demodulation import HarmonicFit, ResonanceMode, ResonanceTracker, fit_harmonic
-from service.model.harmonic import Phasor, mechanical_speed_rpm, whole_period_samples
+from service.model.harmonic import mechanical_speed_rpm, whole_period_samples
 
 log = logging.getLogger(__name__)
 
@@ -233,14 +233,25 @@ class OperatingPointSession:
             self.on_window(window)
         return window
 
-    def phasor_at(self, window: Window, order: int) -> Phasor:
-        """Order `order`'s phasor over a window this session measured (whole electrical turns), demodulated as the
-        window's own order is: with the shaft mode as a nuisance (a further order near the resonance reads the ring
-        of every step otherwise)."""
+    def order_window(self, window: Window, order: int, also: tuple[int, ...] = ()) -> Window:
+        """The same samples as a window of order `order` (whole electrical turns: every order is whole in them),
+        demodulated as the window's own order is, with the shaft mode as a nuisance (a further order near the
+        resonance reads the ring of every step otherwise) and the orders `also` fitted beside it (an uncompensated
+        6th left in the residual fills the 12th's noise bins), and with its own noise: the residual's density about
+        f_order (service.model.demodulation), which is what acts on its phasor. Near the drive's voltage limit the
+        lines about the 6th are not those about the 12th (seed 3, 100 ms windows, the phasor's scatter over 40 of
+        them against the estimate: 2 Nm / 2600 rpm 3.8e-5 / 3.7e-5 fs at the 6th, 6.7e-5 / 7.3e-5 at the 12th)."""
         turns = max(1, window.phasor.periods // self.harmonic_order)
-        return fit_harmonic(
-            window.alpha_fs, window.angle_rad, self.sample_rate_hz, order, turns * order, self.resonance.mode
-        ).phasor
+        fit = fit_harmonic(
+            window.alpha_fs,
+            window.angle_rad,
+            self.sample_rate_hz,
+            order,
+            turns * order,
+            self.resonance.mode,
+            also_orders=also,
+        )
+        return replace(window, phasor=fit.phasor, noise_std_fs=fit.noise_std_fs, ring_fs=fit.ring_fs)
 
     def _publish(self, **values: object) -> None:
         """Tell the observer what the run sees; the live view must never stop a measurement."""

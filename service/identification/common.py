@@ -30,8 +30,9 @@ PRECISION_FOR_TARGET = 5.0  # a window meant to confirm the target has sigma <= 
 MIN_PERIODS = 12  # two electrical turns at h = 6: every integer order but h averages out
 
 
-def floor_amplitude(noise_std_fs: float) -> float:
-    """The amplitude at and below which a phasor is not resolved from a window's noise (AT_FLOOR_SIGMAS), fs."""
+def floor_amplitude(noise_std_fs: Any) -> Any:
+    """The amplitude at and below which a phasor is not resolved from a window's noise (AT_FLOOR_SIGMAS), fs;
+    element-wise over an array of noises (several orders measured in one window, orders.py)."""
     return AT_FLOOR_SIGMAS * math.sqrt(2.0) * noise_std_fs
 
 
@@ -137,7 +138,7 @@ def meets(window: Window, amplitude_limit_fs: float) -> bool:
     return not bool(short_of(window.phasor.amplitude, window.noise_std_fs, amplitude_limit_fs))
 
 
-def short_of(amplitude_fs: Any, noise_std_fs: float, amplitude_limit_fs: Any) -> Any:
+def short_of(amplitude_fs: Any, noise_std_fs: Any, amplitude_limit_fs: Any) -> Any:
     """Not below the limit with confidence: |a| + CONFIDENCE_SIGMAS sigma > limit; element-wise over arrays of
     amplitudes and limits (several orders measured in one window, orders.py)."""
     return amplitude_fs + CONFIDENCE_SIGMAS * noise_std_fs > amplitude_limit_fs

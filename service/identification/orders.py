@@ -21,7 +21,9 @@ from that window if it resolved an order short of its target). An order whose ta
 longest window's noise (judged from the reference, sigma ~ 1/sqrt(samples)) is said not confirmable here: no
 window is sized for it, and it is stepped only while a window resolves it.
 
-Every order is judged on its own (common.verdict with its own uncompensated phasor and target): the result's
+Every order is judged on its own (common.verdict with its own uncompensated phasor, target and noise: the window's
+residual density about that order's frequency, the other orders fitted beside it, session.order_window; the noise
+about the 6th is not the noise about the 12th near the drive's voltage limit, measured): the result's
 own fields are the first order's (the run's harmonic order), `details.orders` lists every order
 {order, status, theta_cos, theta_sin, gamma_deg, delta_deg, suppression_db, target_db, reason}, and
 `details.jacobian` the measured J (`cross_paths`: its off-diagonal blocks, fs/rad).
@@ -107,11 +109,12 @@ class OrdersOptions(ProbeOptions):
         )
 
 
-def noise_at(window: Window, session: MeasurementSession, periods: int) -> float:
-    """The noise std of each phasor component a window of `periods` would have, from `window`'s (fs): white
-    sensor noise, so sigma ~ 1/sqrt(samples)."""
+def noise_at(window: Window, session: MeasurementSession, periods: int, noise_std_fs: Any = None) -> Any:
+    """The noise std of each phasor component a window of `periods` would have, from `window`'s (fs; or from
+    `noise_std_fs`, every order's over that window): white within each order's band, so sigma ~ 1/sqrt(samples)."""
     samples = periods / session.harmonic_frequency_hz * session.sample_rate_hz
-    return window.noise_std_fs * math.sqrt(window.phasor.samples / max(samples, 1.0))
+    noise = window.noise_std_fs if noise_std_fs is None else noise_std_fs
+    return noise * math.sqrt(window.phasor.samples / max(samples, 1.0))
 
 
 def distinct_orders(orders: list[int]) -> list[int]:
@@ -121,14 +124,16 @@ def distinct_orders(orders: list[int]) -> list[int]:
     return orders
 
 
-def order_phasors(session: MeasurementSession, window: Window, orders: list[int]) -> np.ndarray:
-    """[a_c, a_s] of every order, stacked: the session's own order from the window's fit, the others by the
-    session over the same window (with the shaft mode as a nuisance, as its own)."""
-    out = []
+def order_phasors(session: MeasurementSession, window: Window, orders: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """[a_c, a_s] of every order, stacked, and every order's noise std per phasor component (fs): the session's own
+    order from the window's fit, the others by the session over the same window (session.order_window: with the
+    shaft mode as a nuisance, as its own, and the noise about its own frequency, which is what acts on its phasor)."""
+    out, noise = [], []
     for h in orders:
-        p = window.phasor if h == session.harmonic_order else session.phasor_at(window, h)
-        out += [p.a_c, p.a_s]
-    return np.array(out)
+        w = window if h == session.harmonic_order else session.order_window(window, h, tuple(orders))
+        out += [w.phasor.a_c, w.phasor.a_s]
+        noise.append(w.noise_std_fs)
+    return np.array(out), np.array(noise)
 
 
 def _per_order(a: np.ndarray) -> np.ndarray:
@@ -168,14 +173,28 @@ def identify_orders(
     max_periods = max(min_periods, periods_for(session, options.max_window_s))
     history: list[list[float]] = []
 
+    # each order's noise against the run's own order's over one window (their bands differ: near the voltage limit
+    # the drive's lines about the 6th are not those about the 12th), from the last window: what a noise limit on
+    # every order asks of the window, whose extension session.measure judges on its own order
+    noise_ratio = np.ones(n)
+
     def measure(
-        theta: np.ndarray, noise_limit_fs: float | None, longest: int = max_periods
-    ) -> tuple[Window, np.ndarray]:
+        theta: np.ndarray, noise_limit_fs: np.ndarray | None, longest: int = max_periods
+    ) -> tuple[Window, np.ndarray, np.ndarray]:
+        """The window at theta, every order's phasor and noise; `noise_limit_fs`: per order (inf: none)."""
+        nonlocal noise_ratio
         session.apply_theta(float(theta[0]), float(theta[1]), _further(orders, theta))
-        w = session.measure(min_periods, max_noise_std_fs=noise_limit_fs, max_periods=longest)
-        a = order_phasors(session, w, orders)
+        limit = None if noise_limit_fs is None else float(np.min(noise_limit_fs / noise_ratio))
+        w = session.measure(min_periods, max_noise_std_fs=None if limit == math.inf else limit, max_periods=longest)
+        a, noise = order_phasors(session, w, orders)
+        if noise[0] > 0 and np.all(noise > 0):
+            noise_ratio = noise / noise[0]
         history.append([w.end_time_s, *theta.tolist(), *_per_order(a).tolist()])
-        return w, a
+        return w, a, noise
+
+    def only(mask: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """`values` where `mask`, no limit elsewhere."""
+        return np.where(mask, values, math.inf)
 
     # an order whose target lies within the noise of the longest window cannot be confirmed at any window this
     # run may take: it is still cancelled while a window resolves it, but no window is sized for its target
@@ -184,25 +203,25 @@ def identify_orders(
     def limits_of(amplitudes: np.ndarray) -> np.ndarray:
         return np.array([target_amplitude(u, options.target_db) for u in amplitudes])
 
-    def confirmable_in(window: Window, limits: np.ndarray) -> np.ndarray:
-        return np.asarray(limits >= CONFIRMABLE_SIGMAS * noise_at(window, session, longest_periods))
+    def confirmable_in(window: Window, noise: np.ndarray, limits: np.ndarray) -> np.ndarray:
+        return np.asarray(limits >= CONFIRMABLE_SIGMAS * noise_at(window, session, longest_periods, noise))
 
     theta = np.zeros(2 * n)
-    # the reference: every confirmable order's phasor to 1 % of the smallest (+-0.1 dB on each suppression figure)
-    before, a0 = measure(theta, None)
+    # the reference: every confirmable order's phasor to 1 % of itself (+-0.1 dB on each suppression figure)
+    before, a0, noise0 = measure(theta, None)
     first = _per_order(a0)
-    confirmable = confirmable_in(before, limits_of(first))
-    if np.any(confirmable) and before.noise_std_fs > 0.01 * float(np.min(first[confirmable])):
-        before, a0 = measure(theta, 0.01 * float(np.min(first[confirmable])))
+    confirmable = confirmable_in(before, noise0, limits_of(first))
+    if np.any(noise0[confirmable] > 0.01 * first[confirmable]):
+        before, a0, noise0 = measure(theta, only(confirmable, 0.01 * first))
     uncompensated = _per_order(a0)
     if np.any(uncompensated <= 0):
         raise MeasurementError("an order reads exactly zero without compensation: nothing to cancel")
     limits = limits_of(uncompensated)
     stops = np.array([stop_amplitude(u, options) for u in uncompensated])
-    confirmable = confirmable_in(before, limits)
-    longest_noise_fs = noise_at(before, session, longest_periods)
-    # the smallest amplitude any window is sized to resolve (an order not confirmable here sizes none)
-    smallest_fs = float(np.min(uncompensated[confirmable] if np.any(confirmable) else uncompensated))
+    confirmable = confirmable_in(before, noise0, limits)
+    longest_noise_fs = noise_at(before, session, longest_periods, noise0)
+    # the orders a window is sized to resolve (an order not confirmable here sizes none, unless none is confirmable)
+    sized = confirmable if np.any(confirmable) else np.ones(n, dtype=bool)
 
     # the probes: each order's from the model's |theta*| of the main order, scaled by that order's amplitude
     model_theta_rad = uncompensated[0] / abs(s_hat)
@@ -226,7 +245,7 @@ def identify_orders(
             step = np.zeros(2 * n)
             step[k] = probe_rad[k // 2]
             # the probe's response (about probe_fraction of every order's amplitude) resolved to a fiftieth
-            _probe_window, a_k = measure(step, options.probe_fraction * smallest_fs / 50.0)
+            _probe_window, a_k, _noise = measure(step, only(sized, options.probe_fraction * uncompensated / 50.0))
             columns.append((a_k - a0) / step[k])
         probed_j = np.column_stack(columns)
         if abs(np.linalg.det(probed_j)) < 1e-300:
@@ -237,7 +256,7 @@ def identify_orders(
 
     # a, the phasors stepped from, and the noise std of the window that measured them (fs): whether a step may
     # use an order's phasor is judged by its own window's noise, not by the last window's (a probe's, a step's)
-    a, a_noise_fs = a0, before.noise_std_fs
+    a, a_noise_fs = a0, noise0
     use = prior if options.use_prior else None
     start = None if use is None else use.orders_theta(orders)
     prior_j = None if use is None else use.orders_jacobian(orders)
@@ -245,9 +264,9 @@ def identify_orders(
     if start is not None and np.any(start):
         # the neighbours' theta of every order: the first step starts some 20 dB down (as probe.py)
         start, _ = _clamp_sum(start, gamma_max_rad)
-        start_w, a_start = measure(start, smallest_fs / 50.0)
+        _start_w, a_start, start_noise = measure(start, only(sized, uncompensated / 50.0))
         if float(np.max(_per_order(a_start) / uncompensated)) < 1.0:
-            theta, a, a_noise_fs = start, a_start, start_w.noise_std_fs
+            theta, a, a_noise_fs = start, a_start, start_noise
             notes.append(f"started from {use.source if use is not None else 'a prior'}")
     if prior_j is not None:
         jacobian, probed = prior_j, None  # the neighbour's J (same speed): probed again only if it does not hold
@@ -266,7 +285,7 @@ def identify_orders(
     best_theta, best_a, best_noise_fs = theta.copy(), a, a_noise_fs  # the point whose worst order is least
     limited = False
     failures, damping, steps = 0, 1.0, 0
-    final: tuple[Window, np.ndarray] | None = None
+    final: tuple[Window, np.ndarray, np.ndarray] | None = None
     for steps in range(1, options.max_newton_steps + 1):
         # an order not confirmable here steps only while the window that measured it resolved it from its noise: a
         # step on its noise would inject a 12th of the noise's size, larger than the order itself
@@ -284,7 +303,7 @@ def identify_orders(
             need = np.where(confirmable, np.maximum(limits / STEP_PRECISION, _per_order(a) / 20.0), _per_order(a) / 5.0)
             # up to the longest window: an order the step windows of max_window_s no longer resolve to a third of its
             # target would only walk on their noise, each step a window lost
-            w, new_a = measure(target, float(np.min(need[free[0::2]])), longest_periods)
+            w, new_a, new_noise = measure(target, only(free[0::2], need), longest_periods)
         except MeasurementError as exc:
             if not exc.over_range:
                 raise
@@ -292,29 +311,29 @@ def identify_orders(
             continue
         d_theta, d_a = target - theta, new_a - a
         # a step too small to move the phasors above their noise would teach J the noise (as probe.py)
-        if float(np.linalg.norm(jacobian @ d_theta)) > 20.0 * max(w.noise_std_fs, 1e-12) * math.sqrt(2 * n):
+        if float(np.linalg.norm(jacobian @ d_theta)) > 20.0 * max(float(np.sqrt(2.0 * np.sum(new_noise**2))), 1e-12):
             broyden = jacobian + np.outer(d_a - jacobian @ d_theta, d_theta) / float(d_theta @ d_theta)
             if abs(np.linalg.det(broyden)) > 1e-300:
                 jacobian = broyden
         amplitudes = _per_order(new_a)
         # every order done as common.done judges one: its target met with confidence and its margin reached
-        open_orders = short_of(amplitudes, w.noise_std_fs, limits) | (amplitudes > stops)
+        open_orders = short_of(amplitudes, new_noise, limits) | (amplitudes > stops)
         # an order not confirmable here stays open while this window resolves it (the others' injection raises
         # it: the rotation's gamma^2 term puts order h's angle squared on order 2h, sec. 2.4)
-        open_orders &= confirmable | (amplitudes > floor_amplitude(w.noise_std_fs))
+        open_orders &= confirmable | (amplitudes > floor_amplitude(new_noise))
         if not np.any(open_orders):
-            final, best_theta = (w, new_a), target.copy()
+            final, best_theta = (w, new_a, new_noise), target.copy()
             break
         # an open order whose residual the longest window allowed no longer resolves from its noise has nothing
         # left to steer by (a shorter window's noise says only that the window was short)
-        floor_fs = floor_amplitude(w.noise_std_fs) if w.phasor.periods >= longest_periods else 0.0
+        floor_fs = floor_amplitude(new_noise) if w.phasor.periods >= longest_periods else np.zeros(n)
         resolved = open_orders & (amplitudes > floor_fs)
         # progress: any open order still resolved down by a fifth from the point stepped from, the worst order no
         # worse (the orders converge at their own pace: the smallest one near its noise must not stop the others,
         # nor keep them stepping; not each order's lowest so far: the 6th's injection raises the 12th on the way)
         improved = bool(np.any((amplitudes < 0.8 * _per_order(a)) & resolved)) and worst(new_a) < worst(a)
         if worst(new_a) < worst(best_a):
-            best_theta, best_a, best_noise_fs = target.copy(), new_a, w.noise_std_fs
+            best_theta, best_a, best_noise_fs = target.copy(), new_a, new_noise
         if not np.any(resolved):
             break  # every open order at its noise floor: only a longer window (the confirmation's) tells more
         failures = 0 if improved else failures + 1
@@ -329,20 +348,18 @@ def identify_orders(
             continue
         if failures >= 2:
             break  # no order improves any more: noise floor or non-linearity
-        theta, a, a_noise_fs = (
-            (target, new_a, w.noise_std_fs) if improved else (best_theta.copy(), best_a, best_noise_fs)
-        )
+        theta, a, a_noise_fs = (target, new_a, new_noise) if improved else (best_theta.copy(), best_a, best_noise_fs)
     if final is None:
         # the confirmation: as long as the smallest confirmable target needs, up to confirm_window_s
         if np.any(confirmable):
-            confirm_fs = float(np.min(limits[confirmable])) / PRECISION_FOR_TARGET
+            confirm_fs = only(confirmable, limits / PRECISION_FOR_TARGET)
             final = measure(best_theta, confirm_fs, longest_periods)
             # the confirmation resolved an order the steps' windows could not and found it short of its target:
             # one more joint step from this precise window, confirmed by a window as long (kept if no order lost)
-            w, a = final
+            w, a, noise = final
             amplitudes = _per_order(a)
-            short = confirmable & short_of(amplitudes, w.noise_std_fs, limits)
-            if np.any(short & (amplitudes > floor_amplitude(w.noise_std_fs))):
+            short = confirmable & short_of(amplitudes, noise, limits)
+            if np.any(short & (amplitudes > floor_amplitude(noise))):
                 stepped, stepped_limited = _clamp_sum(best_theta - np.linalg.solve(jacobian, a), gamma_max_rad)
                 again = measure(stepped, confirm_fs, longest_periods)
                 if worst(again[1]) < worst(a):
@@ -350,7 +367,7 @@ def identify_orders(
                     notes.append("one more step after the confirmation")
         else:
             final = measure(best_theta, None, max_periods)
-    final_w, final_a = final
+    final_w, final_a, final_noise = final
 
     per_order = []
     for k, order in enumerate(orders):
@@ -358,16 +375,17 @@ def identify_orders(
             float(final_a[2 * k]), float(final_a[2 * k + 1]), final_w.phasor.samples, final_w.phasor.periods
         )
         suppression = 20.0 * math.log10(uncompensated[k] / max(residual.amplitude, 1e-300))
+        order_final = replace(final_w, phasor=residual, noise_std_fs=float(final_noise[k]))
         status, reason = verdict(
             suppression,
             options.target_db,
-            replace(final_w, phasor=residual),
+            order_final,
             float(uncompensated[k]),
             conditions if k == 0 else None,
             limited,
         )
         if status != "ok" and not confirmable[k]:
-            standing_db = 20.0 * math.log10(uncompensated[k] / (CONFIRMABLE_SIGMAS * longest_noise_fs))
+            standing_db = 20.0 * math.log10(uncompensated[k] / (CONFIRMABLE_SIGMAS * longest_noise_fs[k]))
             reason += (
                 f"; {NOT_CONFIRMABLE}: the order stands {standing_db:.1f} dB above {CONFIRMABLE_SIGMAS:g} sigma of "
                 f"the longest window's noise ({options.confirm_window_s:g} s), {options.target_db:g} dB asked"
@@ -384,7 +402,7 @@ def identify_orders(
                 "suppression_db": suppression,
                 "target_db": options.target_db,
                 # the final window's noise against this order's uncompensated amplitude: how far 40 dB is resolvable
-                "noise_floor_db": noise_floor_db(final_w, float(uncompensated[k])),
+                "noise_floor_db": noise_floor_db(order_final, float(uncompensated[k])),
                 "reason": reason,
                 "uncompensated": {
                     "a_c": float(a0[2 * k]),

@@ -50,8 +50,9 @@ class MeasurementSession(Protocol):
         """Next valid window of `periods` whole harmonic periods (bad windows are re-measured); with
         `max_noise_std_fs`, extended up to `max_periods` until the phasor's noise std is at most that."""
 
-    def phasor_at(self, window: Window, order: int) -> Phasor:
-        """Another order's phasor over a window this session measured (windows span whole electrical turns)."""
+    def order_window(self, window: Window, order: int, also: tuple[int, ...] = ()) -> Window:
+        """The same samples as a window of another order, the orders `also` fitted beside it: its phasor and its
+        own noise (windows span whole electrical turns)."""
 
     @property
     def plant_time_s(self) -> float:

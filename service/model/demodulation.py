@@ -110,8 +110,11 @@ def fit_harmonic(
     periods: int,
     mode: ResonanceMode | None = None,
     usable: np.ndarray | None = None,
+    also_orders: tuple[int, ...] = (),
 ) -> HarmonicFit:
-    """Phasor of order h over a window of whole periods, with `mode` (if given) as a nuisance.
+    """Phasor of order h over a window of whole periods, with `mode` (if given) as a nuisance, and the orders
+    `also_orders` (the other orders a run injects at once) among the nuisance orders: a larger order left in the
+    residual leaks into the noise estimate and, by the window's ends cut to the nearest sample, into the phasor.
 
     The window must span whole periods (callers cut it with harmonic.whole_period_samples); the
     time origin of the mode is the window's first sample. `usable` (bool per sample) leaves samples
@@ -121,7 +124,8 @@ def fit_harmonic(
     t_s = np.arange(n) / sample_rate_hz
     turns = periods / harmonic_order
     electrical_hz = turns * sample_rate_hz / n
-    x = _design(angle_rad, t_s, harmonic_order, mode, nuisance_orders(harmonic_order, electrical_hz, mode))
+    others = sorted((set(nuisance_orders(harmonic_order, electrical_hz, mode)) | set(also_orders)) - {harmonic_order})
+    x = _design(angle_rad, t_s, harmonic_order, mode, others)
     alpha = np.asarray(alpha_fs, dtype=float)
     if usable is not None and not usable.all():
         x, alpha = x[usable], alpha[usable]

@@ -224,9 +224,13 @@ def measure_point(
         speed_rpm = session.speed_rpm_measured
         f_h = session.harmonic_frequency_hz
         torque_actual_nm, _ = run.torque_actual()  # the torque the point ran at, over its measurement
+        every_order = (session.harmonic_order, *further_orders)  # each fitted beside the others
         orders = [
             _order_figures(
-                h, measurement.phasor_at(reference, h), measurement.phasor_at(residual, h), residual, options
+                h,
+                measurement.order_window(reference, h, every_order).phasor,
+                measurement.order_window(residual, h, every_order),
+                options,
             )
             for h in further_orders
         ]
@@ -256,11 +260,11 @@ def measure_point(
     }
 
 
-def _order_figures(
-    order: int, uncompensated: Phasor, residual: Phasor, window: Window, options: ValidationOptions
-) -> dict[str, Any]:
-    """A further order's figure at a validation point: its suppression from its own uncompensated and LUT-mode
-    phasors, judged against the validation's target as the map's own order is."""
+def _order_figures(order: int, uncompensated: Phasor, window: Window, options: ValidationOptions) -> dict[str, Any]:
+    """A further order's figure at a validation point: its suppression from its own uncompensated phasor and the
+    LUT-mode window of that order (its phasor and its own noise), judged against the validation's target as the
+    map's own order is."""
+    residual = window.phasor
     a0, a = uncompensated.amplitude, residual.amplitude
     suppression_db = 20.0 * math.log10(a0 / a) if a0 > 0 and a > 0 else None
     floor_db = noise_floor_db(window, a0)

@@ -10,11 +10,12 @@ It synthesises real sample records so that the phasor demodulation is exercised 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from service.identification.session import Window
-from service.model.harmonic import Phasor, demodulate, phasor
+from service.model.harmonic import demodulate, phasor
 
 
 class AffinePlantSession:
@@ -78,9 +79,10 @@ class AffinePlantSession:
             self.noise_fs * math.sqrt(2.0 / p.samples),
         )
 
-    def phasor_at(self, window: Window, order: int) -> Phasor:
+    def order_window(self, window: Window, order: int, also: tuple[int, ...] = ()) -> Window:
+        """The same samples as a window of `order`: white noise, so the same noise per phasor component."""
         turns = window.phasor.periods // self.harmonic_order
-        return demodulate(window.alpha_fs, window.angle_rad, order, turns * order)
+        return replace(window, phasor=demodulate(window.alpha_fs, window.angle_rad, order, turns * order))
 
     def signal(self, angle: np.ndarray) -> np.ndarray:
         """alpha without noise at the electrical angles `angle`."""

@@ -152,3 +152,29 @@ def test_the_noise_estimate_is_the_white_noise_phasor_std():
     expected = 1e-3 * math.sqrt(2.0 / len(alpha))
     assert np.median(stds) == pytest.approx(expected, rel=0.3)
     assert np.std(errors) == pytest.approx(expected, rel=0.3)
+
+
+@pytest.mark.parametrize("turns", [3, 12])
+def test_a_larger_order_fitted_beside_leaves_the_smaller_ones_phasor_and_noise_right(turns):
+    """An uncompensated 6th of 0.5 fs beside a 12th of 2e-3 fs, at a speed whose turn is no whole number of samples
+    (the window's ends cut to the nearest sample): the 12th fitted with the 6th beside it (`also_orders`) has the
+    white noise's phasor std sigma sqrt(2 / N) (closed form) and its phasor within a few of it; left in the residual,
+    the 6th leaks into both by tens of times that."""
+    f_e_hz, sigma = 197.3, 1e-4
+    truth = 2e-3 * complex(math.cos(1.0), math.sin(1.0))  # a_c + j a_s of cos(12 phi - 1)
+    noise_ratio, error_ratio, left_in = [], [], []
+    for seed in range(20):
+        n_max = int(turns / f_e_hz * FS_HZ) + 64
+        angle = (2 * math.pi * f_e_hz * np.arange(n_max) / FS_HZ + 0.3) % (2 * math.pi)
+        alpha = 0.5 * np.cos(6 * angle + 0.4) + 2e-3 * np.cos(12 * angle - 1.0)
+        alpha += sigma * np.random.default_rng(seed).standard_normal(n_max)
+        n = whole_period_samples(angle, 12, turns * 12)
+        expected = sigma * math.sqrt(2.0 / n)
+        fit = fit_harmonic(alpha[:n], angle[:n], FS_HZ, 12, turns * 12, also_orders=(6,))
+        noise_ratio.append(fit.noise_std_fs / expected)
+        error_ratio.append(abs(complex(fit.phasor.a_c, fit.phasor.a_s) - truth) / expected)
+        alone = fit_harmonic(alpha[:n], angle[:n], FS_HZ, 12, turns * 12)
+        left_in.append(abs(complex(alone.phasor.a_c, alone.phasor.a_s) - truth) / expected)
+    assert np.median(noise_ratio) == pytest.approx(1.0, rel=0.3)
+    assert np.median(error_ratio) < 3.0
+    assert np.median(left_in) > 10.0
