@@ -48,6 +48,7 @@ MAX_CLIPPED_FRACTION = 0.9
 # this long; the speed within SPEED_TOLERANCE of the target in the last two; the mean h-th phasor of
 # the last two blocks within the settling precision of the two before (or within their noise).
 SETTLE_BLOCK_MIN_S = 0.01
+MAX_WINDOW_GROWTH = 4.0  # a window extended for precision grows at most this much before its noise is judged again
 SPEED_TOLERANCE = 0.005
 SETTLE_NOISE_SIGMAS = 3.0
 MIN_SETTLE_PRECISION = 0.002  # 0.2 % of |a|: finer than this is below what any window resolves
@@ -205,8 +206,11 @@ class OperatingPointSession:
         fit = self._fit(samples, periods)
         limit = max(max_periods or periods, periods)
         while max_noise_std_fs is not None and fit.noise_std_fs > max_noise_std_fs and periods < limit:
-            # noise std falls as 1/sqrt(N): ask for what that predicts, in whole turns, 20 % to spare
-            want = periods * (fit.noise_std_fs / max_noise_std_fs) ** 2 * 1.2
+            # noise std falls as 1/sqrt(N): ask for what that predicts, in whole turns, 20 % to spare, but at most
+            # MAX_WINDOW_GROWTH times the window before judging its noise again: a window of a few turns has too few
+            # bins between the orders for the noise density and falls back to the residual's whole rms, unfitted
+            # orders included (service.model.demodulation), which predicted ~1 s where 0.2 s held (500 rpm, the 12th)
+            want = periods * min((fit.noise_std_fs / max_noise_std_fs) ** 2 * 1.2, MAX_WINDOW_GROWTH)
             more = min(limit, self.harmonic_order * math.ceil(want / self.harmonic_order)) - periods
             if more <= 0:
                 break
