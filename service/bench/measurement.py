@@ -118,6 +118,9 @@ class OperatingPointSession:
         self.harmonic_order = settings.harmonic_order
         self.sample_rate_hz = stream.sample_rate_hz
         self.settle_after_theta_s = settings.settle_after_theta_s  # a validation sets its own
+        # the other orders the drive injects beside the session's own (a run of several orders sets them): fitted
+        # beside it in every window, as order_window fits them beside each other
+        self.also_orders: tuple[int, ...] = ()
         self._observe = observe
         self.on_window = on_window
         self.theta_in_force: tuple[float, float] | None = None  # (cos, sin) the drive applies now in manual mode
@@ -285,6 +288,7 @@ class OperatingPointSession:
             self.harmonic_order,
             periods,
             usable=~clipped if clipped.any() else None,
+            also_orders=self.also_orders,
         )
         self.noise_rms_fs = fit.residual_rms_fs
         return fit

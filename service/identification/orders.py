@@ -169,6 +169,7 @@ def identify_orders(
     orders = [h] + [o for o in options.orders if o != h]
     n = len(orders)
     session.settle_after_theta_s = options.settle_s
+    session.also_orders = tuple(orders[1:])  # the run's own order fitted with the others beside, as they are
     min_periods = periods_for(session, options.window_s)
     max_periods = max(min_periods, periods_for(session, options.max_window_s))
     history: list[list[float]] = []

@@ -37,6 +37,7 @@ class MeasurementSession(Protocol):
     harmonic_order: int
     sample_rate_hz: float
     settle_after_theta_s: float  # plant time apply_theta lets pass after the setpoint took effect
+    also_orders: tuple[int, ...]  # the other orders injected beside the session's own, fitted beside it in measure
 
     def apply_theta(
         self, theta_cos_rad: float, theta_sin_rad: float, further: tuple[tuple[int, float, float], ...] = ()

@@ -267,10 +267,14 @@ class ResonanceTracker:
         harmonic_order: int,
         periods: int,
         usable: np.ndarray | None = None,
+        also_orders: tuple[int, ...] = (),
     ) -> HarmonicFit:
-        """The window's harmonic fit with the current mode; a strong ring first refines the mode
-        (never from a window with samples left out: the search needs the whole record)."""
-        result = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.mode, usable)
+        """The window's harmonic fit with the current mode, the orders `also_orders` fitted beside (fit_harmonic);
+        a strong ring first refines the mode (never from a window with samples left out: the search needs the
+        whole record)."""
+        result = fit_harmonic(
+            alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.mode, usable, also_orders
+        )
         if usable is not None and not usable.all():
             return result
         with self._lock:
@@ -288,7 +292,15 @@ class ResonanceTracker:
         )
         if precision <= 0:
             return result
-        refit = fit_harmonic(alpha_fs, angle_rad, sample_rate_hz, harmonic_order, periods, self.nominal.scaled(k))
+        refit = fit_harmonic(
+            alpha_fs,
+            angle_rad,
+            sample_rate_hz,
+            harmonic_order,
+            periods,
+            self.nominal.scaled(k),
+            also_orders=also_orders,
+        )
         if refit.ring_fs > RING_SNR_TO_LEARN * max(refit.ring_std_fs, 1e-12):
             with self._lock:
                 # each window an estimate with its own precision: the strong rings next to the

@@ -208,6 +208,7 @@ def measure_point(
     each judged from the same two windows (whole electrical turns: every order is whole in them) in `orders`."""
     with run.operating_point(op) as session:
         session.settle_after_theta_s = options.settle_s
+        session.also_orders = further_orders  # the map's own order fitted with its other orders beside
         # the bench's session is a MeasurementSession; the protocol declares harmonic_frequency_hz a settable
         # attribute where the session has a read-only property (service/identification/session.py)
         measurement = cast(MeasurementSession, session)

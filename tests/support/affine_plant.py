@@ -40,6 +40,7 @@ class AffinePlantSession:
         self.rng = np.random.default_rng(seed)
         self.settle_samples = settle_samples
         self.settle_after_theta_s = settle_samples / sample_rate_hz
+        self.also_orders: tuple[int, ...] = ()  # white noise: nothing of another order to fit beside
         self.theta = 0j
         self.sample = 0
         self._plant_samples = 0

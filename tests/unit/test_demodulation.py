@@ -178,3 +178,32 @@ def test_a_larger_order_fitted_beside_leaves_the_smaller_ones_phasor_and_noise_r
     assert np.median(noise_ratio) == pytest.approx(1.0, rel=0.3)
     assert np.median(error_ratio) < 3.0
     assert np.median(left_in) > 10.0
+
+
+@pytest.mark.parametrize("turns", [3, 12])
+def test_the_sessions_own_fit_takes_the_runs_other_orders_beside_it(turns):
+    """The session's own window (ResonanceTracker.fit, what OperatingPointSession.measure fits) of a 6th near its
+    target, 2e-3 fs, beside an uncompensated 18th of 0.2 fs (a run of orders [6, 18]; the 18th is none of the 6th's
+    usual nuisance orders 1, 5, 7, 12 nor near the shaft mode), at a speed whose turn is no whole number of samples:
+    with the run's other orders beside it (`also_orders`) the 6th's phasor is within a few of the white noise's
+    sigma sqrt(2 / N) (closed form) and its noise estimate is that sigma; without them the 18th leaks into the
+    phasor by several times it."""
+    f_e_hz, sigma = 197.3, 1e-4
+    truth = 2e-3 * complex(math.cos(1.0), math.sin(1.0))
+    error_ratio, noise_ratio, left_in = [], [], []
+    for seed in range(20):
+        n_max = int(turns / f_e_hz * FS_HZ) + 64
+        angle = (2 * math.pi * f_e_hz * np.arange(n_max) / FS_HZ + 0.3) % (2 * math.pi)
+        alpha = 2e-3 * np.cos(6 * angle - 1.0) + 0.2 * np.cos(18 * angle + 0.4)
+        alpha += sigma * np.random.default_rng(seed).standard_normal(n_max)
+        n = whole_period_samples(angle, 6, turns * 6)
+        expected = sigma * math.sqrt(2.0 / n)
+        tracker = ResonanceTracker(PAPER_MODE)
+        fit = tracker.fit(alpha[:n], angle[:n], FS_HZ, 6, turns * 6, also_orders=(18,))
+        error_ratio.append(abs(complex(fit.phasor.a_c, fit.phasor.a_s) - truth) / expected)
+        noise_ratio.append(fit.noise_std_fs / expected)
+        alone = ResonanceTracker(PAPER_MODE).fit(alpha[:n], angle[:n], FS_HZ, 6, turns * 6)
+        left_in.append(abs(complex(alone.phasor.a_c, alone.phasor.a_s) - truth) / expected)
+    assert np.median(error_ratio) < 3.0
+    assert np.median(noise_ratio) == pytest.approx(1.0, rel=0.3)
+    assert np.median(left_in) > 4.0  # 47 x at 3 turns, 7 x at 12 (the cut end's share falls as 1 / N)
