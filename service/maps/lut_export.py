@@ -30,6 +30,7 @@ from typing import Any, Callable, cast
 import numpy as np
 
 from drivers import lut_image as lut_codec
+from drivers.lut_image import Interpolation as Interpolation  # the request field, for the layers above
 from service import __version__
 from service.maps import quality as map_quality
 from service.maps.view import order_map
@@ -126,6 +127,8 @@ def interpolation_text(interpolation: str) -> str:
     return {
         "cartesian": "cartesian: theta_cos and theta_sin multilinear",
         "polar": "polar: gamma multilinear, delta multilinear along the shortest arc",
+        "cubic": "cubic: theta along speed a cubic Hermite of each row (slopes from the neighbours), multilinear "
+        "across torque and U_dc",
     }[interpolation]
 
 
@@ -468,6 +471,7 @@ def _c_order_header(m: dict[str, Any], mode: str, suffix: str = "") -> str:
         "/* interpolation modes (the LUT image's header byte) and the one this LUT is meant for */",
         f"#define {macro}_INTERPOLATION_CARTESIAN {lut_codec.INTERPOLATIONS.index('cartesian')}u",
         f"#define {macro}_INTERPOLATION_POLAR {lut_codec.INTERPOLATIONS.index('polar')}u",
+        f"#define {macro}_INTERPOLATION_CUBIC {lut_codec.INTERPOLATIONS.index('cubic')}u",
         f"#define {macro}_INTERPOLATION {macro}_INTERPOLATION_{mode.upper()}",
         f"#define {macro}_FILLED_CELLS {sum(1 for c in m['cells'] if cell_flag(c) == lut_codec.FLAG_FILLED)}u",
         f"#define {macro}_INJECTION_OFF_CELLS {_off_cells(m)}u",
@@ -510,7 +514,10 @@ _C_INTERPOLATOR = r"""/* Reference interpolator: the drive's rule (docs/interfac
  *   on, puts them into the drive's image); other cells count as theta 0;
  * - cartesian: theta multilinear; polar: gamma multilinear, delta averaged over the corners with an
  *   entry and gamma > 0, each unwrapped to within +-pi of the one with the largest weight (the first in
- *   [udc][speed][torque] order on a tie), weights renormalised over them;
+ *   [udc][speed][torque] order on a tie), weights renormalised over them; cubic: along speed the cubic
+ *   Hermite of each row's theta, each corner's slope the three-point derivative from its neighbours where
+ *   they and it are entries (else the interval's secant; a corner without an entry: linear), then
+ *   multilinear across torque and U_dc;
  * - then, as the drive: |theta| clamped to gamma_max_rad (0x2000:5, 0 .. pi; 0 gives theta 0); pass
  *   HUGE_VALF for no clamp. */
 
@@ -552,6 +559,54 @@ static inline unsigned @A_axis_corners(const float *axis, unsigned n, float x, u
 static inline int @A_entry(unsigned u, unsigned n, unsigned t, int with_fill)
 {
     return @A_valid[u][n][t] || (with_fill && @A_filled[u][n][t]);
+}
+
+/* cubic along speed in the row (u, t) at the nn (1 or 2) speed corners in[] of weights wn[], as Lut.theta */
+static inline void @A_cubic_row(unsigned u, unsigned t, const unsigned in[2], const float wn[2], unsigned nn,
+                                int with_fill, float *theta_cos_rad, float *theta_sin_rad)
+{
+    const unsigned j = in[0];
+    const int e0 = @A_entry(u, j, t, with_fill);
+    float c0 = e0 ? @M_THETA_COS(u, j, t) : 0.0f, s0 = e0 ? @M_THETA_SIN(u, j, t) : 0.0f;
+    float c1, s1, h, f, dc, ds, mc0, ms0, mc1, ms1, h00, h10, h01, h11;
+    int e1;
+    if (nn == 1u) {
+        *theta_cos_rad = c0;
+        *theta_sin_rad = s0;
+        return;
+    }
+    e1 = @A_entry(u, j + 1u, t, with_fill);
+    c1 = e1 ? @M_THETA_COS(u, j + 1u, t) : 0.0f;
+    s1 = e1 ? @M_THETA_SIN(u, j + 1u, t) : 0.0f;
+    if (!e0 || !e1) { /* a corner without an entry: linear */
+        *theta_cos_rad = wn[0] * c0 + wn[1] * c1;
+        *theta_sin_rad = wn[0] * s0 + wn[1] * s1;
+        return;
+    }
+    h = @A_speed_rpm[j + 1u] - @A_speed_rpm[j];
+    f = wn[1];
+    dc = (c1 - c0) / h;
+    ds = (s1 - s0) / h;
+    mc0 = dc;
+    ms0 = ds;
+    mc1 = dc;
+    ms1 = ds;
+    if (j > 0u && @A_entry(u, j - 1u, t, with_fill)) {
+        const float hl = @A_speed_rpm[j] - @A_speed_rpm[j - 1u];
+        mc0 = (h * (c0 - @M_THETA_COS(u, j - 1u, t)) / hl + hl * dc) / (hl + h);
+        ms0 = (h * (s0 - @M_THETA_SIN(u, j - 1u, t)) / hl + hl * ds) / (hl + h);
+    }
+    if (j + 2u < @M_N_SPEED && @A_entry(u, j + 2u, t, with_fill)) {
+        const float hr = @A_speed_rpm[j + 2u] - @A_speed_rpm[j + 1u];
+        mc1 = (hr * dc + h * (@M_THETA_COS(u, j + 2u, t) - c1) / hr) / (h + hr);
+        ms1 = (hr * ds + h * (@M_THETA_SIN(u, j + 2u, t) - s1) / hr) / (h + hr);
+    }
+    h00 = (1.0f + 2.0f * f) * (1.0f - f) * (1.0f - f);
+    h10 = f * (1.0f - f) * (1.0f - f);
+    h01 = f * f * (3.0f - 2.0f * f);
+    h11 = f * f * (f - 1.0f);
+    *theta_cos_rad = h00 * c0 + h10 * h * mc0 + h01 * c1 + h11 * h * mc1;
+    *theta_sin_rad = h00 * s0 + h10 * h * ms0 + h01 * s1 + h11 * h * ms1;
 }
 
 /* polar over the corners: gamma multilinear, delta along the shortest arc around the reference */
@@ -605,7 +660,7 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
 {
     unsigned it[2], in[2], iu[2], nt, nn, nu, a, b, c, k, n_corners = 0u;
     unsigned corner[8][3];
-    float wt[2], wn[2], wu[2], weight[8], tc = 0.0f, ts = 0.0f, gamma;
+    float wt[2], wn[2] = {1.0f, 0.0f}, wu[2], weight[8], tc = 0.0f, ts = 0.0f, gamma;
     nt = @A_axis_corners(@A_torque_nm, @M_N_TORQUE, torque_nm, it, wt);
     nn = @A_axis_corners(@A_speed_rpm, @M_N_SPEED, speed_rpm, in, wn);
     nu = @A_axis_corners(@A_udc_v, @M_N_UDC, udc_v, iu, wu);
@@ -628,6 +683,15 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
     }
     if (@M_INTERPOLATION == @M_INTERPOLATION_POLAR) {
         @A_polar(corner, weight, n_corners, with_fill, &tc, &ts);
+    } else if (@M_INTERPOLATION == @M_INTERPOLATION_CUBIC) {
+        for (a = 0u; a < nu; a++) {
+            for (c = 0u; c < nt; c++) {
+                float rc, rs;
+                @A_cubic_row(iu[a], it[c], in, wn, nn, with_fill, &rc, &rs);
+                tc += wu[a] * wt[c] * rc;
+                ts += wu[a] * wt[c] * rs;
+            }
+        }
     } else {
         for (k = 0u; k < n_corners; k++) {
             const unsigned u = corner[k][0], n = corner[k][1], t = corner[k][2];
@@ -932,10 +996,11 @@ def order_image(m: dict[str, Any], fill: bool = True, interpolation: str | None 
 
 def _speeds_spanning(breakpoints: list[float], lo: float, hi: float) -> list[float]:
     """The speeds at which a question about the drive's LUT over [lo, hi] rpm is settled: both ends, each breakpoint
-    between them and midway between each two of those (inside an interval every speed has the same corners of
-    weight > 0, and the theta is an interpolation of them)."""
+    between them and a quarter, half and three quarters of the way between each two of those (inside an interval
+    every speed has the same corners of weight > 0, and the theta is an interpolation of them: linear, or in "cubic"
+    a cubic along speed, which its two ends and three inner points settle)."""
     edges = sorted({lo, hi, *(b for b in breakpoints if lo < b < hi)})
-    return edges + [(a + b) / 2.0 for a, b in zip(edges, edges[1:])]
+    return edges + [a + k * (b - a) / 4.0 for a, b in zip(edges, edges[1:]) for k in (1, 2, 3)]
 
 
 def injection_unchanged(
@@ -944,7 +1009,7 @@ def injection_unchanged(
     """same(point, along_speed): True where the drive injects the same theta under both maps' LUT images (built as
     `lut_image(m, fill, interpolation)`, interpolated by Lut.theta, the drive's one definition) at the operating
     point, or (along_speed: a run-up) at every speed at its torque and U_dc: at each breakpoint of both speed axes
-    and midway between them (between them both are interpolations of the same corners). The same means within
+    and between them (`_speeds_spanning`). The same means within
     rounding: two quanta of integer cells (an inserted cell may change a map's quantum), else 1e-9 rad."""
     lut_a = lut_codec.decode(lut_image(before, fill, interpolation))
     lut_b = lut_codec.decode(lut_image(after, fill, interpolation))

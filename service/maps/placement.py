@@ -40,7 +40,7 @@ from itertools import product
 
 import numpy as np
 
-from drivers.lut_image import AXES, FLAG_NONE, FLAG_OK, SPARSE, between
+from drivers.lut_image import AXES, FLAG_NONE, FLAG_OK, SPARSE, along_row, between
 from service.maps.lut_export import SPARSE_BAR_DB, image_bytes, stored_mask
 
 PLACED_AXES = ("torque_nm", "speed_rpm")  # of AXES (the LUT's, torque, speed, U_dc): U_dc lines stay as they are
@@ -112,8 +112,13 @@ def judge_candidates(
                     return (cell[0], cell[1], cell[2])
 
                 ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
-                if ta is not None and tb is not None and tc is not None:
-                    out[axis][c].append(predicted_db(tc, between(ta, tb, a, b, c, interpolation)))
+                if ta is None or tb is None or tc is None:
+                    continue
+                if interpolation == "cubic" and axis == "speed_rpm":  # the corners' slopes from their neighbours
+                    lut = along_row(values, [thetas.get(at(v)) for v in values], c, interpolation)
+                else:
+                    lut = between(ta, tb, a, b, c, interpolation)
+                out[axis][c].append(predicted_db(tc, lut))
     return out
 
 

@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 from itertools import product
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Mapping, NotRequired, TypedDict
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from service.identification.registry import METHODS
-from service.maps.lut_export import SPARSE, image_bytes
+from service.maps.lut_export import SPARSE, Interpolation, image_bytes
 from service.maps.placement import grid_bytes
 from service.names import MAX_NAME_LENGTH, check_name
 from service.runs.runup_validation import is_harm
@@ -51,6 +51,15 @@ RUNUP_STRETCH_GAP_RPM = 25.0  # failing run-up bins this close (2 bins missing a
 MERGE_INSERT_RPM = 20.0  # a speed inserted this close to another candidate of the round joins it
 
 Cell = tuple[float, float, float]  # a cell's (torque_nm, speed_rpm, udc_v), the order of AXES
+
+
+# the drive's interpolation a refinement places and validates in unless its request or its source map names one: cubic
+# along speed, as its maps are dense where theta* turns (a loop past the field-weakening onset, which chords cut).
+# Measured (tests/benchmarks/bench_runup_refinement.py, int11 cells, 2048 bytes, run-ups at 7 torques): points and
+# bins held cubic / polar 99.0 / 96.3 % (paper-bench), 99.2 / 95.8 % (seed 5), the worst 6.6 / -8.8 dB with no cell
+# turned off. A coarse map stays polar (DEFAULT_INTERPOLATION): seed 5's 4 x 5 probe map holds 431 of 1161 points
+# cubic against 523 polar (a cubic through breakpoints 400 rpm apart overshoots the loop).
+REFINED_INTERPOLATION: Interpolation = "cubic"
 
 
 class RefineRequest(BaseModel):
@@ -110,6 +119,15 @@ class RefineRequest(BaseModel):
         description="curves: first place breakpoints from theta* identified between them (bisection along torque "
         "and speed, service/maps/placement.py), then validate; validation: insert only where a validation fails",
     )
+
+    @model_validator(mode="after")
+    def _cubic_takes_every_cell(self) -> RefineRequest:
+        if self.lut_cells == SPARSE and self.validation.interpolation == "cubic":
+            raise ValueError(
+                "validation.interpolation cubic takes every cell of a row (each corner's slope from its neighbours): "
+                "lut_cells int11-sparse derives cells from two stored ones; use int11, int16 or float32"
+            )
+        return self
 
 
 class RefinementState(TypedDict):

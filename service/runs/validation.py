@@ -29,7 +29,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Any, Callable, Literal, cast
+from typing import Any, Callable, cast
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -47,7 +47,7 @@ from service.identification.common import (
     periods_for,
 )
 from service.identification.session import MeasurementError, MeasurementSession, Window
-from service.maps.lut_export import injects_nothing
+from service.maps.lut_export import Interpolation, injects_nothing
 from service.maps.view import MapView, map_view
 from service.model.harmonic import Phasor
 from service.model.limits import check_any_inside, check_limits, outside_envelope, torque_departure
@@ -84,7 +84,7 @@ class ValidationOptions(BaseModel):
         description="the map's fills go into the drive too (the validation measures what the "
         "drive does at filled cells)",
     )
-    interpolation: Literal["cartesian", "polar"] | None = Field(
+    interpolation: Interpolation | None = Field(
         None, description="what the drive interpolates between cells (default: the service's)"
     )
     override_envelope_model: bool = Field(

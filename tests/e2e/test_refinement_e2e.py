@@ -159,8 +159,9 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
     """placement curves (service/maps/placement.py): lines of candidate cells identified at the midpoints, kept
     where the drive's interpolation of their neighbours misses, bisected again; then one map, validated, its LUT
     in int11 cells (image version 6), or int11-sparse (version 7: per-row speed breakpoints). Placed and validated
-    in the drive's default interpolation, or in the one the validation names: the refined map records it, and its
-    validation's download (which names none) puts it in the drive, as every later download and export would."""
+    in a refinement's default interpolation (cubic; an int11-sparse LUT the drive's default, cubic is never sparse),
+    or in the one the validation names: the refined map records it, and its validation's download (which names none)
+    puts it in the drive, as every later download and export would."""
     db = tmp_path / "curves.db"
     svc, api = start(emu, db)
     try:
@@ -197,7 +198,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
             final_round = [r for r in result["rounds"] if r["map_id"] == result["map_id"]]
             assert final_round and final_round[-1]["bytes"] == receipt["bytes"], (result["rounds"], receipt)
         assert refined["provenance"]["lut_cells"] == lut_cells
-        assert refined["provenance"]["interpolation"] == receipt["interpolation"] == (interpolation or "polar")
+        assert refined["provenance"]["interpolation"] == receipt["interpolation"] == (interpolation or "cubic")
         # the first validation judges the placed map, every identified cell once, all within the budget
         assert result["rounds"][0]["map_id"] != source and result["cells_added"] <= 24
         assert set(results_per_point(db, result["refinement_id"]).values()) <= {1}

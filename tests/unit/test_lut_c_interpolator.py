@@ -2,7 +2,7 @@
 export_c) gives the drive's theta: compiled by gcc (-std=c99 -Wall -Wextra -Werror, at -O0 and -O2) and
 compared with the interpolation the emulated drive runs (drivers.lut_image.decode(lut_image(m)).theta, then
 the clamp to gamma_max of plant_emulator/drive_firmware.py effective_theta) at every grid point, every
-midpoint, points beyond the axis ends, seeded random points and non-finite ones, cartesian and polar, with
+midpoint, points beyond the axis ends, seeded random points and non-finite ones, cartesian, polar and cubic, with
 and without the fill, on maps with filled cells, holes, injection-off cells, a zero theta, non-uniform and
 one-value axes, phases that wrap around +-180 deg and phases that turn once around a cell (the
 reference corner's tie-break decides).
@@ -203,6 +203,11 @@ def largest_difference(name: str, interpolation: str, c_theta: HeaderTheta, poin
 @pytest.mark.parametrize("name", list(MAPS))
 def test_the_headers_theta_is_the_drives_within_one_int16_quantum(tmp_path, name, interpolation, optimise):
     m = MAPS[name]
+    if interpolation == "cubic" and name == "int11-sparse cells":
+        # a version 7 image derives cells from two stored ones: cubic (slopes from the neighbours) is refused
+        with pytest.raises(lut_image.LutImageError, match="cubic"):
+            service_image(m, interpolation=interpolation)
+        return
     c_theta = HeaderTheta(tmp_path, export_map(m, "c", interpolation=interpolation), m["id"], (optimise,))
     points = probe_points(m["axes"])
     for with_fill in (True, False):

@@ -282,13 +282,13 @@ def test_decode_refuses_a_bad_flag_interpolation_or_reserved_field():
 
     with pytest.raises(lut_image.LutImageError, match="flags must be one of"):
         lut_image.decode(patched(len(good) - 5, 3))
-    with pytest.raises(lut_image.LutImageError, match="interpolation 2 unknown"):
-        lut_image.decode(patched(7, 2))
+    with pytest.raises(lut_image.LutImageError, match="interpolation 3 unknown"):
+        lut_image.decode(patched(7, 3))
     with pytest.raises(lut_image.LutImageError, match="reserved header field"):
         lut_image.decode(patched(14, 1))
     with pytest.raises(lut_image.LutImageError, match="flags must be 0"):
         lut_image.encode(6, [1.0], [1000.0], [12.0], [0.0], [0.0], [4], map_id=1)
-    with pytest.raises(lut_image.LutImageError, match="interpolation 'spline' is not one of cartesian, polar"):
+    with pytest.raises(lut_image.LutImageError, match="interpolation 'spline' is not one of cartesian, polar, cubic"):
         lut_image.encode(6, [1.0], [1000.0], [12.0], [0.0], [0.0], map_id=1, interpolation="spline")
 
 

@@ -24,6 +24,8 @@ TORQUE = [1.0, 2.0]
 SPEED = [1000.0, 1100.0, 1200.0, 1300.0, 1400.0]
 UDC = [12.0]
 SHAPE = (1, len(SPEED), len(TORQUE))
+# a version 7 image derives cells from two stored ones: cubic (slopes from the neighbours) is refused there
+SPARSE_INTERPOLATIONS = [mode for mode in lut_image.INTERPOLATIONS if mode != "cubic"]
 
 
 def polar(gamma_deg: float, delta_deg: float) -> complex:
@@ -77,7 +79,7 @@ def hand_interpolation(a: complex, b: complex, f: float, interpolation: str) -> 
     return complex(gamma * math.cos(delta), -gamma * math.sin(delta))
 
 
-@pytest.mark.parametrize("interpolation", lut_image.INTERPOLATIONS)
+@pytest.mark.parametrize("interpolation", SPARSE_INTERPOLATIONS)
 def test_a_row_interpolates_between_its_stored_cells_only(interpolation):
     thetas = random_thetas(3)
     stored = np.ones(SHAPE, dtype=bool)
@@ -215,3 +217,11 @@ def test_a_sparse_maps_image_holds_every_cell_within_the_bar_and_fits_its_budget
     assert lut.stored.sum() < roomy.stored.sum() < lut.stored.size
     assert len(service_image(sparse_map(max_bytes=(size + every) // 2), interpolation="polar")) <= (size + every) // 2
     assert lut_image.decode(service_image(sparse_map(max_bytes=every), interpolation="polar")).stored.all()
+
+
+def test_a_cubic_image_is_never_sparse():
+    thetas = random_thetas(3)
+    with pytest.raises(lut_image.LutImageError, match="cubic"):
+        lut_image.encode(
+            6, TORQUE, SPEED, UDC, *arrays(thetas), map_id=5, interpolation="cubic", cell_format="int11-sparse"
+        )

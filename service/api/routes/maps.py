@@ -15,7 +15,7 @@ from service.api.public.validations import ValidationPublic, validation_public
 from service.api.refusals import refusals_at
 from service.api.schemas import ValidationCreate
 from service.maps.compare import MapComparison, compare_maps
-from service.maps.lut_export import EXPORT_FORMATS, export_map
+from service.maps.lut_export import EXPORT_FORMATS, Interpolation, export_map
 from service.runs import lut_download
 from service.runs.refinement import RefineRequest
 
@@ -105,7 +105,7 @@ def download_map(
         description="the fill rule's entries of the cells that are not ok go in "
         "too (flagged filled in the image); false: only ok cells inject",
     ),
-    interpolation: Literal["cartesian", "polar"] | None = Query(
+    interpolation: Interpolation | None = Query(
         None,
         description="what the drive interpolates between cells (default: the map's own, the one a refinement "
         "placed and validated it in, else the service's, drivers/lut_image.DEFAULT_INTERPOLATION)",

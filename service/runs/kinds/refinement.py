@@ -11,7 +11,7 @@ from service import __version__
 from service.errors import NotFound
 from service.identification.common import MethodOptions
 from service.maps.build import build_map
-from service.maps.lut_export import cell_count, injection_unchanged, lut_image, map_interpolation
+from service.maps.lut_export import SPARSE, cell_count, injection_unchanged, lut_image, map_interpolation
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     axes_with,
@@ -32,6 +32,7 @@ from service.runs.plans import Grid, settling_order
 from service.runs.refinement import (
     MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
+    REFINED_INTERPOLATION,
     RefinementState,
     RefineRequest,
     check_request,
@@ -139,8 +140,11 @@ def saved_state(sweep: SweepRecord) -> RefinementState:
 
 def _interpolation(state: RefinementState, source: MapRecord) -> str:
     """The drive's interpolation the refinement places and validates in: its validation's, else the source map's
-    own (lut_export.map_interpolation: a refined map's, else the drive's default)."""
+    own (a refined map's), else REFINED_INTERPOLATION (cubic; an int11-sparse LUT, which cubic cannot be: the
+    drive's default)."""
     named = ValidationOptions.model_validate(state["validation"]).interpolation
+    if named is None and "interpolation" not in (source.get("provenance") or {}) and state.get("lut_cells") != SPARSE:
+        named = REFINED_INTERPOLATION
     return map_interpolation(dict(source), named)
 
 
