@@ -79,19 +79,23 @@ The corners c of the enclosing cell carry w_c = w_torque w_speed w_udc (sum 1; c
   theta_cos = gamma cos delta, theta_sin = -gamma sin delta. E empty: theta = 0.
   E.g. gamma 3 deg at delta 0 and 90 deg, midway: cartesian gives gamma 3 cos 45 deg at 45 deg, polar
   3 deg at 45 deg; delta 350 and 10 deg midway: polar 0 deg (not 180).
-- cubic (mode 2): along speed a cubic Hermite of theta (cartesian) in each row (the cells of one torque and
-  U_dc), then multilinear across torque and U_dc as cartesian is: theta = sum_{torque, udc corners} w_t w_u
-  row(x). In the row's interval x_j <= x < x_j+1 (h = x_j+1 - x_j, f as above):
-      row(x) = (1 + 2f)(1 - f)^2 theta_j + f (1 - f)^2 h m_j + f^2 (3 - 2f) theta_j+1 + f^2 (f - 1) h m_j+1
-  with each corner's slope m_k from its row's neighbours: the three-point derivative of a non-uniform axis
-      m_k = (h_r d_l + h_l d_r) / (h_l + h_r)   (d_l, d_r the secants to the cells left and right of k,
+- cubic (mode 2): a cubic Hermite of theta (cartesian) along speed in each row (the cells of one torque and
+  U_dc), then across torque over those rows' values at the speed, then linear across U_dc. On an axis, in the
+  interval x_j <= x < x_j+1 (h = x_j+1 - x_j, f as above) with values v:
+      H(x) = (1 + 2f)(1 - f)^2 v_j + f (1 - f)^2 h m_j + f^2 (3 - 2f) v_j+1 + f^2 (f - 1) h m_j+1
+  each corner's slope m_k the three-point derivative of a non-uniform axis
+      m_k = (h_r d_l + h_l d_r) / (h_l + h_r)   (d_l, d_r the secants to the values left and right of k,
                                                   h_l, h_r their widths)
-  where the cells k - 1, k and k + 1 are all entries, else the interval's own secant (theta_j+1 - theta_j) / h
-  (an axis end, a neighbour without an entry or off: never a cell outside the interval's corners acts beyond
-  its slope). A corner without an entry: the row is cartesian's linear blend there (theta_c = 0). The turn at
-  the field-weakening onset is a loop of theta* along speed, not a line: at 25 rpm steps, seed 5's theta*
-  scanned every 5 rpm over 1900..2500 rpm at 1..3 Nm holds 30 dB at 98.3 % of the points between
-  breakpoints cubic, 89.5 % polar and 88.9 % cartesian (docs/interfaces.md, "LUT image").
+  where the values k - 1, k and k + 1 are all whole, else the interval's own secant (v_j+1 - v_j) / h (an axis
+  end, a neighbour not whole: never a value outside the interval's corners acts beyond its slope). Along speed a
+  value is whole at a cell with an entry; a corner without one makes the row cartesian's linear blend there
+  (theta_c = 0). Across torque a row's value is whole where its speed corners of weight > 0 are entries; a
+  corner row not whole makes it linear across torque there. The turn at the field-weakening onset is a loop of
+  theta* along speed and moves with torque: theta* identified every 5 rpm over 1900..2500 rpm at 1..3 Nm
+  (seed 5) holds 30 dB between breakpoints 25 rpm apart at 98.3 % of the points cubic, 89.5 % polar and
+  88.9 % cartesian; every 12.5 rpm and 0.0625 Nm over 2050..2300 rpm, between rows 0.25 Nm and speeds 12.5 rpm
+  apart, 97.6 % cubic across torque too against 90.9 % linear across torque and 91.3 % polar
+  (docs/interfaces.md, "LUT image").
 The drive then clamps |theta| to gamma_max (0x2000:5).
 """
 
@@ -223,24 +227,38 @@ class Lut:
             return self._polar(corners)
         if self.interpolation == "cubic":
             theta = sum(
-                wu * wt * self._row(iu, it, speed_rpm)
+                wu * self._across_torque(iu, torque_nm, speed_rpm)
                 for (iu, wu) in _weights(self.udc_v, udc_v)
-                for (it, wt) in _weights(self.torque_nm, torque_nm)
-                if wu * wt != 0.0
+                if wu != 0.0
             )
             return float(theta.real), float(theta.imag)
         tc = sum(w * float(self.theta_cos[c]) for c, w in corners)  # 0 where flag 0 (decode)
         ts = sum(w * float(self.theta_sin[c]) for c, w in corners)
         return float(tc), float(ts)
 
-    def _row(self, iu: int, it: int, speed_rpm: float) -> complex:
-        """theta along speed in the row of (iu, it), cubic (module doc): None at cells without an entry."""
+    def _row(self, iu: int, it: int, speed_rpm: float) -> tuple[complex, bool]:
+        """theta along speed in the row of (iu, it), cubic (module doc), and whether it is whole: every speed corner
+        of weight > 0 an entry."""
         entry = self.entry[iu, :, it]
         row = [
             complex(c, s) if e else None
             for c, s, e in zip(self.theta_cos[iu, :, it], self.theta_sin[iu, :, it], entry, strict=True)
         ]
-        return along_row(self.speed_rpm, row, speed_rpm, "cubic")
+        whole = all(row[i] is not None for i, w in _weights(self.speed_rpm, speed_rpm) if w != 0.0)
+        return along_row(self.speed_rpm, row, speed_rpm, "cubic"), whole
+
+    def _across_torque(self, iu: int, torque_nm: float, speed_rpm: float) -> complex:
+        """The rows' theta at speed_rpm interpolated across torque, cubic (module doc): the Hermite of the two
+        torque corners' rows, each slope from the rows beside it where they are whole, else linear."""
+        corners = _weights(self.torque_nm, torque_nm)
+        j = corners[0][0]
+        near = {k: self._row(iu, k, speed_rpm) for k in range(j - 1, j + 3) if 0 <= k < len(self.torque_nm)}
+        if len(corners) == 1 or not (near[j][1] and near[j + 1][1]):
+            return sum(w * near[k][0] for k, w in corners)  # a corner not whole: linear, as cartesian
+        column: list[complex | None] = [None] * len(self.torque_nm)
+        for k, (value, whole) in near.items():
+            column[k] = value if whole else None
+        return along_row(self.torque_nm, column, torque_nm, "cubic")
 
     def _polar(self, corners) -> tuple[float, float]:
         gamma_c, delta_c = self._gamma_delta
@@ -292,10 +310,10 @@ def between(theta_a: complex, theta_b: complex, x_a: float, x_b: float, x: float
 
 
 def along_row(xs, row: list[complex | None], x: float, interpolation: str) -> complex:
-    """theta at x along one axis whose breakpoints `xs` (strictly increasing) carry `row` (None: no entry, theta 0),
+    """theta at x along one axis whose breakpoints `xs` (strictly increasing) carry `row` (None: not whole, theta 0),
     by the drive's rule (module doc; clamped at the ends): `between` of the interval's two corners, or in "cubic"
-    the Hermite with each corner's slope from its neighbours (the placement's prediction along speed, and
-    Lut.theta's rows)."""
+    the Hermite with each corner's slope from its neighbours (Lut.theta's rows and columns, and the placement's
+    prediction along either axis)."""
     weights = _weights(np.asarray(xs, dtype=float), x)
     if len(weights) == 1:
         return row[weights[0][0]] or 0j

@@ -127,8 +127,8 @@ def interpolation_text(interpolation: str) -> str:
     return {
         "cartesian": "cartesian: theta_cos and theta_sin multilinear",
         "polar": "polar: gamma multilinear, delta multilinear along the shortest arc",
-        "cubic": "cubic: theta along speed a cubic Hermite of each row (slopes from the neighbours), multilinear "
-        "across torque and U_dc",
+        "cubic": "cubic: a cubic Hermite of theta along speed in each row, then across torque (slopes from the "
+        "neighbours), linear across U_dc",
     }[interpolation]
 
 
@@ -514,10 +514,10 @@ _C_INTERPOLATOR = r"""/* Reference interpolator: the drive's rule (docs/interfac
  *   on, puts them into the drive's image); other cells count as theta 0;
  * - cartesian: theta multilinear; polar: gamma multilinear, delta averaged over the corners with an
  *   entry and gamma > 0, each unwrapped to within +-pi of the one with the largest weight (the first in
- *   [udc][speed][torque] order on a tie), weights renormalised over them; cubic: along speed the cubic
- *   Hermite of each row's theta, each corner's slope the three-point derivative from its neighbours where
- *   they and it are entries (else the interval's secant; a corner without an entry: linear), then
- *   multilinear across torque and U_dc;
+ *   [udc][speed][torque] order on a tie), weights renormalised over them; cubic: the cubic Hermite of
+ *   each row's theta along speed, then of those rows' values across torque, each corner's slope the
+ *   three-point derivative from its neighbours where they and it are whole (else the interval's secant; a
+ *   corner not whole: linear), then linear across U_dc;
  * - then, as the drive: |theta| clamped to gamma_max_rad (0x2000:5, 0 .. pi; 0 gives theta 0); pass
  *   HUGE_VALF for no clamp. */
 
@@ -561,19 +561,39 @@ static inline int @A_entry(unsigned u, unsigned n, unsigned t, int with_fill)
     return @A_valid[u][n][t] || (with_fill && @A_filled[u][n][t]);
 }
 
-/* cubic along speed in the row (u, t) at the nn (1 or 2) speed corners in[] of weights wn[], as Lut.theta */
-static inline void @A_cubic_row(unsigned u, unsigned t, const unsigned in[2], const float wn[2], unsigned nn,
-                                int with_fill, float *theta_cos_rad, float *theta_sin_rad)
+/* the cubic Hermite on an axis between x[j] and x[j+1] at weight f of x[j+1]: values v0, v1 at the corners, vl at
+ * x[j-1] (have_l) and vr at x[j+2] (have_r) for the slopes (the three-point derivative; else the secant) */
+static inline float @A_hermite(const float *x, unsigned j, float f, float v0, float v1, int have_l, float vl,
+                               int have_r, float vr)
+{
+    const float h = x[j + 1u] - x[j], d = (v1 - v0) / h;
+    float m0 = d, m1 = d;
+    if (have_l) {
+        const float hl = x[j] - x[j - 1u];
+        m0 = (h * (v0 - vl) / hl + hl * d) / (hl + h);
+    }
+    if (have_r) {
+        const float hr = x[j + 2u] - x[j + 1u];
+        m1 = (hr * d + h * (vr - v1) / hr) / (h + hr);
+    }
+    return (1.0f + 2.0f * f) * (1.0f - f) * (1.0f - f) * v0 + f * (1.0f - f) * (1.0f - f) * h * m0 +
+           f * f * (3.0f - 2.0f * f) * v1 + f * f * (f - 1.0f) * h * m1;
+}
+
+/* cubic along speed in the row (u, t) at the nn (1 or 2) speed corners in[] of weights wn[], as Lut.theta's rows;
+ * returns 1 where the row is whole there (every speed corner of weight > 0 an entry) */
+static inline int @A_cubic_row(unsigned u, unsigned t, const unsigned in[2], const float wn[2], unsigned nn,
+                               int with_fill, float *theta_cos_rad, float *theta_sin_rad)
 {
     const unsigned j = in[0];
     const int e0 = @A_entry(u, j, t, with_fill);
-    float c0 = e0 ? @M_THETA_COS(u, j, t) : 0.0f, s0 = e0 ? @M_THETA_SIN(u, j, t) : 0.0f;
-    float c1, s1, h, f, dc, ds, mc0, ms0, mc1, ms1, h00, h10, h01, h11;
-    int e1;
+    const float c0 = e0 ? @M_THETA_COS(u, j, t) : 0.0f, s0 = e0 ? @M_THETA_SIN(u, j, t) : 0.0f;
+    float c1, s1;
+    int e1, have_l, have_r;
     if (nn == 1u) {
         *theta_cos_rad = c0;
         *theta_sin_rad = s0;
-        return;
+        return e0;
     }
     e1 = @A_entry(u, j + 1u, t, with_fill);
     c1 = e1 ? @M_THETA_COS(u, j + 1u, t) : 0.0f;
@@ -581,32 +601,47 @@ static inline void @A_cubic_row(unsigned u, unsigned t, const unsigned in[2], co
     if (!e0 || !e1) { /* a corner without an entry: linear */
         *theta_cos_rad = wn[0] * c0 + wn[1] * c1;
         *theta_sin_rad = wn[0] * s0 + wn[1] * s1;
+        return 0;
+    }
+    have_l = j > 0u && @A_entry(u, j - 1u, t, with_fill);
+    have_r = j + 2u < @M_N_SPEED && @A_entry(u, j + 2u, t, with_fill);
+    *theta_cos_rad = @A_hermite(@A_speed_rpm, j, wn[1], c0, c1, have_l, have_l ? @M_THETA_COS(u, j - 1u, t) : 0.0f,
+                                have_r, have_r ? @M_THETA_COS(u, j + 2u, t) : 0.0f);
+    *theta_sin_rad = @A_hermite(@A_speed_rpm, j, wn[1], s0, s1, have_l, have_l ? @M_THETA_SIN(u, j - 1u, t) : 0.0f,
+                                have_r, have_r ? @M_THETA_SIN(u, j + 2u, t) : 0.0f);
+    return 1;
+}
+
+/* cubic across torque at U_dc index u: the rows' theta at the speed (in[], wn[], nn) between the torque corners
+ * it[] (weights wt[], nt of them), the Hermite where both corner rows are whole, each slope from the rows beside
+ * them where those are whole; else linear, as Lut.theta */
+static inline void @A_cubic_column(unsigned u, const unsigned it[2], const float wt[2], unsigned nt,
+                                   const unsigned in[2], const float wn[2], unsigned nn, int with_fill,
+                                   float *theta_cos_rad, float *theta_sin_rad)
+{
+    const unsigned j = it[0];
+    float c0, s0, c1 = 0.0f, s1 = 0.0f, cl = 0.0f, sl = 0.0f, cr = 0.0f, sr = 0.0f;
+    int w0, w1, have_l = 0, have_r = 0;
+    w0 = @A_cubic_row(u, j, in, wn, nn, with_fill, &c0, &s0);
+    if (nt == 1u) {
+        *theta_cos_rad = c0;
+        *theta_sin_rad = s0;
         return;
     }
-    h = @A_speed_rpm[j + 1u] - @A_speed_rpm[j];
-    f = wn[1];
-    dc = (c1 - c0) / h;
-    ds = (s1 - s0) / h;
-    mc0 = dc;
-    ms0 = ds;
-    mc1 = dc;
-    ms1 = ds;
-    if (j > 0u && @A_entry(u, j - 1u, t, with_fill)) {
-        const float hl = @A_speed_rpm[j] - @A_speed_rpm[j - 1u];
-        mc0 = (h * (c0 - @M_THETA_COS(u, j - 1u, t)) / hl + hl * dc) / (hl + h);
-        ms0 = (h * (s0 - @M_THETA_SIN(u, j - 1u, t)) / hl + hl * ds) / (hl + h);
+    w1 = @A_cubic_row(u, j + 1u, in, wn, nn, with_fill, &c1, &s1);
+    if (!w0 || !w1) {
+        *theta_cos_rad = wt[0] * c0 + wt[1] * c1;
+        *theta_sin_rad = wt[0] * s0 + wt[1] * s1;
+        return;
     }
-    if (j + 2u < @M_N_SPEED && @A_entry(u, j + 2u, t, with_fill)) {
-        const float hr = @A_speed_rpm[j + 2u] - @A_speed_rpm[j + 1u];
-        mc1 = (hr * dc + h * (@M_THETA_COS(u, j + 2u, t) - c1) / hr) / (h + hr);
-        ms1 = (hr * ds + h * (@M_THETA_SIN(u, j + 2u, t) - s1) / hr) / (h + hr);
+    if (j > 0u) {
+        have_l = @A_cubic_row(u, j - 1u, in, wn, nn, with_fill, &cl, &sl);
     }
-    h00 = (1.0f + 2.0f * f) * (1.0f - f) * (1.0f - f);
-    h10 = f * (1.0f - f) * (1.0f - f);
-    h01 = f * f * (3.0f - 2.0f * f);
-    h11 = f * f * (f - 1.0f);
-    *theta_cos_rad = h00 * c0 + h10 * h * mc0 + h01 * c1 + h11 * h * mc1;
-    *theta_sin_rad = h00 * s0 + h10 * h * ms0 + h01 * s1 + h11 * h * ms1;
+    if (j + 2u < @M_N_TORQUE) {
+        have_r = @A_cubic_row(u, j + 2u, in, wn, nn, with_fill, &cr, &sr);
+    }
+    *theta_cos_rad = @A_hermite(@A_torque_nm, j, wt[1], c0, c1, have_l, cl, have_r, cr);
+    *theta_sin_rad = @A_hermite(@A_torque_nm, j, wt[1], s0, s1, have_l, sl, have_r, sr);
 }
 
 /* polar over the corners: gamma multilinear, delta along the shortest arc around the reference */
@@ -660,7 +695,7 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
 {
     unsigned it[2], in[2], iu[2], nt, nn, nu, a, b, c, k, n_corners = 0u;
     unsigned corner[8][3];
-    float wt[2], wn[2] = {1.0f, 0.0f}, wu[2], weight[8], tc = 0.0f, ts = 0.0f, gamma;
+    float wt[2] = {1.0f, 0.0f}, wn[2] = {1.0f, 0.0f}, wu[2], weight[8], tc = 0.0f, ts = 0.0f, gamma;
     nt = @A_axis_corners(@A_torque_nm, @M_N_TORQUE, torque_nm, it, wt);
     nn = @A_axis_corners(@A_speed_rpm, @M_N_SPEED, speed_rpm, in, wn);
     nu = @A_axis_corners(@A_udc_v, @M_N_UDC, udc_v, iu, wu);
@@ -685,12 +720,10 @@ static inline void @A_theta(float torque_nm, float speed_rpm, float udc_v, int w
         @A_polar(corner, weight, n_corners, with_fill, &tc, &ts);
     } else if (@M_INTERPOLATION == @M_INTERPOLATION_CUBIC) {
         for (a = 0u; a < nu; a++) {
-            for (c = 0u; c < nt; c++) {
-                float rc, rs;
-                @A_cubic_row(iu[a], it[c], in, wn, nn, with_fill, &rc, &rs);
-                tc += wu[a] * wt[c] * rc;
-                ts += wu[a] * wt[c] * rs;
-            }
+            float rc, rs;
+            @A_cubic_column(iu[a], it, wt, nt, in, wn, nn, with_fill, &rc, &rs);
+            tc += wu[a] * rc;
+            ts += wu[a] * rs;
         }
     } else {
         for (k = 0u; k < n_corners; k++) {

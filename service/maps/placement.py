@@ -36,6 +36,7 @@ torque over 1000..2600 rpm (up and down), where a 10 rpm step identified with it
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from itertools import product
 
 import numpy as np
@@ -114,7 +115,7 @@ def judge_candidates(
                 ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
                 if ta is None or tb is None or tc is None:
                     continue
-                if interpolation == "cubic" and axis == "speed_rpm":  # the corners' slopes from their neighbours
+                if interpolation == "cubic":  # the corners' slopes from their neighbours on this axis
                     lut = along_row(values, [thetas.get(at(v)) for v in values], c, interpolation)
                 else:
                     lut = between(ta, tb, a, b, c, interpolation)
@@ -177,9 +178,11 @@ def place(
     lut_cells: str = "float32",
     thetas: dict[Cell, complex] | None = None,
     interpolation: str = "polar",
+    affordable: Callable[[dict[str, list[float]]], str | None] | None = None,
 ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[str]]:
     """(kept values per axis, the next round's candidates, reasons for what was left out): candidates with a cell
-    short of target_db + PLACE_MARGIN_DB are kept while the image fits max_bytes, those with the most short cells
+    short of target_db + PLACE_MARGIN_DB are kept while the image fits max_bytes (and `affordable(axes)`, what the
+    grid with them would cost in another budget, says nothing against them), those with the most short cells
     per byte of their line first (a full grid: a torque row costs a cell per speed value; a version 7 image: a
     speed value costs a cell only in the rows where it is short, `_line_bytes`), then the worst; the next
     candidates are the midpoints of the kept values' two halves. lut_cells: the image's cell format (bytes);
@@ -204,6 +207,10 @@ def place(
             size = image_bytes(axes_with(axes, {**kept, axis: [*kept[axis], c]}), lut_cells)
         if max_bytes is not None and size > max_bytes:
             reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: the LUT would exceed {max_bytes} bytes")
+            continue
+        against = None if affordable is None else affordable(axes_with(axes, {**kept, axis: [*kept[axis], c]}))
+        if against is not None:
+            reasons.append(f"{axis} {c:g} (predicted {db:.1f} dB) left out: {against}")
             continue
         kept[axis].append(c)
         spent += line_bytes

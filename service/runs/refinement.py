@@ -41,7 +41,8 @@ from service.runs.runup_validation import is_harm
 
 if TYPE_CHECKING:  # validation.py runs the items; this module only reads them
     from service.runs.validation import ValidationItem
-from service.runs.validation import ValidationOptions
+    from service.settings import Settings
+from service.runs.validation import ValidationOptions, validation_items
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
 MAX_ROUNDS = 8  # a refinement that has not converged in this many rounds stops and says so
@@ -97,8 +98,10 @@ class RefineRequest(BaseModel):
         None,
         gt=0,
         le=7 * 24 * 3600,
-        description="bench time the refinement may spend (plant seconds of its measurements and validations); "
-        "it stops after the round that spends it. None: no limit beyond max_cells",
+        description="bench time the refinement may spend (plant seconds of its measurements and validations, each "
+        "point's settling counted), spent ahead: no value is inserted and no round started whose cells and "
+        "validation would not fit by the predicted cost (BenchBudget); the guard's round, which turns injection off "
+        "where the LUT made things worse, runs regardless. None: no limit beyond max_cells",
     )
     method: str = Field("probe", description="identification method of the new cells (GET /methods)")
     options: dict[str, Any] = Field(default_factory=dict, description="the method's options (as for a sweep)")
@@ -441,6 +444,71 @@ def corner_values(values: list[float], x: float) -> list[float]:
     """The breakpoints of an axis with a non-zero weight in the drive's interpolation at x (clamped at the ends)."""
     x = min(max(x, values[0]), values[-1])
     return [x] if x in values else list(_neighbours(values, x) or (x,))
+
+
+# What bench time costs before this refinement measured it, plant s: a cell identified (its move, settling and
+# windows; measured on the refinement's own placement rounds once one ran), a stepped validation point (its move,
+# settling, the uncompensated and the LUT-mode window) and a run-up beyond its ramp (the move to its start, the
+# settling there). Measured on issue 27's calibrations (int11, ~600 cells, run-ups at 7 torques at 100 rpm/s, floor
+# 45 dB): placement rounds 0.35-0.65 s a cell, one validation 589-661 s for ~2250 points and 7 run-up pairs
+CELL_S = 0.5
+VALIDATION_POINT_S = 0.15
+RUNUP_APPROACH_S = 3.0
+# a round after a validation measures its cells again and the validation points around them, and runs the run-up
+# pairs whose LUT changed again (measured: 112-121 s for 20 cells at the turn)
+REVALIDATED_POINTS_PER_CELL = 8
+REVALIDATED_RUNUP_PAIRS = 2
+
+
+@dataclass(frozen=True)
+class BenchBudget:
+    """max_bench_s spent ahead (what the user pays): what is spent, what a cell costs, and what a validation of a
+    grid would (its points and run-up pairs, `validation_items`), so a refinement inserts no value whose cells and
+    validation would not fit, rather than finding out after the round that spent it."""
+
+    max_bench_s: float
+    spent_s: float
+    cell_s: float
+    settings: Settings
+    options: ValidationOptions
+
+    def validation_s(self, axes: dict[str, list[float]]) -> float:
+        """Predicted plant time of one validation of the grid `axes` (every point and run-up pair measured)."""
+        cost = 0.0
+        for item in validation_items(axes, self.settings, self.options):
+            if item.not_run is not None:
+                continue
+            if item.kind == "runup" and item.speed_range is not None:
+                ramp_s = (item.speed_range[1] - item.speed_range[0]) / self.options.runup_rate_rpm_per_s
+                cost += 2 * (ramp_s + RUNUP_APPROACH_S)
+            elif item.kind != "runup":
+                cost += VALIDATION_POINT_S
+        return cost
+
+    def against(self, cells: int, axes: dict[str, list[float]]) -> str | None:
+        """Why measuring `cells` more and validating the grid `axes` does not fit the budget (None: it does)."""
+        need_s = cells * self.cell_s + self.validation_s(axes)
+        if self.spent_s + need_s <= self.max_bench_s:
+            return None
+        return (
+            f"the bench time budget (max_bench_s = {self.max_bench_s:g} s, {self.spent_s:.0f} s spent) would not "
+            f"hold its {cells} cell(s) and the validation ({need_s:.0f} s predicted)"
+        )
+
+    def against_round(self, cells: int, axes: dict[str, list[float]]) -> str | None:
+        """Why a round after a validation of the grid `axes`, measuring `cells` again, does not fit the budget (None:
+        it does)."""
+        ramp_s = 0.0
+        if self.options.runups:
+            span_rpm = max(axes["speed_rpm"]) - min(axes["speed_rpm"])
+            ramp_s = REVALIDATED_RUNUP_PAIRS * 2 * (span_rpm / self.options.runup_rate_rpm_per_s + RUNUP_APPROACH_S)
+        need_s = cells * (self.cell_s + REVALIDATED_POINTS_PER_CELL * VALIDATION_POINT_S) + ramp_s
+        if self.spent_s + need_s <= self.max_bench_s:
+            return None
+        return (
+            f"the bench time budget (max_bench_s = {self.max_bench_s:g} s) is spent: {self.spent_s:.0f} s, and "
+            f"another round of {cells} cell(s) would take ~{need_s:.0f} s"
+        )
 
 
 def no_progress(rounds: list[dict[str, Any]]) -> str | None:

@@ -206,3 +206,32 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
         api.close()
     finally:
         svc.stop()
+
+
+def test_a_refinement_inserts_nothing_its_bench_time_budget_cannot_validate(emu, tmp_path):
+    """max_bench_s spent ahead (service/runs/refinement.py BenchBudget): the first placement round's lines are
+    measured, but a 3 x 3 grid's validation alone (25 points) would cost more than the 3 s budget, so no value is
+    inserted, each left out with the budget as its reason; the map as it is is validated once, and no round follows
+    it but the guard's (the verdict names the budget where points still fail)."""
+    db = tmp_path / "budget.db"
+    svc, api = start(emu, db)
+    try:
+        source = swept_map(api)
+        body = {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int11", "max_bench_s": 3.0}
+        r = api.post(f"/maps/{source}/refine", body)
+        assert r.status_code == 202, r.text
+        job = api.job_finished(r.json()["id"], 600)
+        assert job["state"] == "done", job
+        result = job["result"]
+        placement = result["placement"]
+        assert placement and not any(placement[0]["inserted"].values()), placement
+        assert placement[0]["left_out"] and all("bench time budget" in why for why in placement[0]["left_out"])
+        assert api.get(f"/maps/{result['map_id']}")["axes"] == api.get(f"/maps/{source}")["axes"]
+        # one validation; after it only the guard, which never waits on a budget (never worse than no compensation)
+        rounds = result["rounds"]
+        assert len(rounds) == 1 or (len(rounds) == 2 and rounds[1]["injection_off"] > 0), rounds
+        assert not result["holds"] and "bench time budget" in (result["stopped"] or ""), result["stopped"]
+        assert not api.get("/bench/status")["busy"]
+        api.close()
+    finally:
+        svc.stop()

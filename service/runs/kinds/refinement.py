@@ -30,9 +30,11 @@ from service.runs.kinds.host import JobHost, JobKind
 from service.runs.kinds.sweep import check_first_take
 from service.runs.plans import Grid, settling_order
 from service.runs.refinement import (
+    CELL_S,
     MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
     REFINED_INTERPOLATION,
+    BenchBudget,
     RefinementState,
     RefineRequest,
     check_request,
@@ -267,15 +269,30 @@ class RefinementRun:
         interpolation = _interpolation(state, source)
         judged = judge_candidates(state["axes"], candidates, thetas, interpolation)
         cells_format = state.get("lut_cells", "float32")
-        kept, following, reasons = place(
-            state["axes"], judged, state["target_db"], state.get("max_bytes"), cells_format, thetas, interpolation
-        )
-        state["axes"] = axes_with(state["axes"], kept)
         round_plant_s = _close_round_plant(state)
         placed = state.setdefault("placement_rounds", [])
+        measured_now = len(self._round_results(sweep_id, state))
+        measured = {(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"])) for r in rows}
+        budget = self._budget(state, placed + [{"plant_time_s": round_plant_s, "measured": measured_now}])
+
+        def affordable(grown: dict[str, list[float]]) -> str | None:
+            return None if budget is None else budget.against(len(cells_to_measure(grown, {}, measured)), grown)
+
+        kept, following, reasons = place(
+            state["axes"],
+            judged,
+            state["target_db"],
+            state.get("max_bytes"),
+            cells_format,
+            thetas,
+            interpolation,
+            affordable,
+        )
+        state["axes"] = axes_with(state["axes"], kept)
         placed.append(
             {
                 "round": state["round"],
+                "measured": measured_now,
                 "candidates": {a: len(v) for a, v in candidates.items()},
                 "inserted": kept,
                 "worst_predicted_db": worst_db(judged),
@@ -285,14 +302,12 @@ class RefinementRun:
                 "left_out": reasons,
             }
         )
-        measured = {(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"])) for r in rows}
         pending = cells_to_measure(state["axes"], following, measured)
-        max_bench_s = state.get("max_bench_s")
         if not (
             any(following.values())
             and len(placed) < MAX_PLACE_ROUNDS
             and state["cells_added"] + len(pending) <= state["max_cells"]
-            and (max_bench_s is None or state["plant_time_s"] < max_bench_s)
+            and (budget is None or budget.against(len(pending), state["axes"]) is None)
         ):
             # placement ends; the cells of the grid not measured yet (where two kept values cross) still are
             following, pending = {}, cells_to_measure(state["axes"], {}, measured)
@@ -420,7 +435,7 @@ class RefinementRun:
                 "injection_off": len(state.get("guard_off", [])),
             }
         )
-        max_bench_s = state.get("max_bench_s")
+        budget = self._budget(state, state.get("placement_rounds", []))
         guarding = state.get("guard_rounds", 0) > 0  # a guarded map is the last: its flags hold on its own axes
         stopped: str | None = None  # why the refinement ends here (None: it holds, or it goes on)
         if guarding or plan.failing == 0:
@@ -430,11 +445,8 @@ class RefinementRun:
         elif not plan.cells:
             ending, stopped = True, plan.why_nothing_fits(state.get("max_bytes"))
             state["stopped_details"] = plan.reasons
-        elif max_bench_s is not None and state["plant_time_s"] >= max_bench_s:
-            ending = True
-            stopped = (
-                f"the bench time budget (max_bench_s = {max_bench_s:g} s) is spent ({state['plant_time_s']:.0f} s)"
-            )
+        elif budget is not None and (over := budget.against_round(len(plan.cells), m.axes)) is not None:
+            ending, stopped = True, over
         elif state["round"] + 1 >= MAX_ROUNDS:
             ending, stopped = True, f"after {MAX_ROUNDS} rounds"
         else:
@@ -465,6 +477,22 @@ class RefinementRun:
             f"{plan.failing} point(s) still below {state['target_db']:g} dB: " + "; ".join(r for r in reasons if r)
             if plan.failing or harmful
             else None
+        )
+
+    def _budget(self, state: RefinementState, placed: list[dict[str, Any]]) -> BenchBudget | None:
+        """The refinement's max_bench_s as a BenchBudget (None: none), a cell's cost measured on the placement rounds
+        `placed` so far (CELL_S before any)."""
+        max_bench_s = state.get("max_bench_s")
+        if max_bench_s is None:
+            return None
+        cells = sum(r.get("measured", 0) for r in placed)
+        cell_s = sum(r["plant_time_s"] for r in placed if r.get("measured")) / cells if cells else CELL_S
+        return BenchBudget(
+            max_bench_s,
+            state.get("plant_time_s", 0.0),
+            cell_s,
+            self.settings,
+            ValidationOptions.model_validate(state["validation"]),
         )
 
     def _round_reuse(
