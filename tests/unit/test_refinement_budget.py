@@ -43,3 +43,21 @@ def test_the_placement_leaves_out_a_value_the_budget_cannot_validate():
     kept, _following, reasons = place(AXES, judged, 30.0, None, "int11", {}, "cubic", small)
     assert kept == {"torque_nm": [], "speed_rpm": []}
     assert len(reasons) == 2 and all(r.endswith("left out: over the budget") for r in reasons)
+
+
+def test_only_the_candidate_lines_the_budget_can_measure_and_validate_are_taken():
+    from service.runs.kinds.refinement import affordable_candidates
+
+    measured = {(t, n, 12.0) for t in AXES["torque_nm"] for n in AXES["speed_rpm"]}
+    candidates = {"torque_nm": [1.5], "speed_rpm": [1100.0]}
+    # the speed line: 2 cells at 0.5 s and the 3 x 7 points of the grid with it; the torque line as well: 3 more
+    # cells (the crossing waits until both are kept) and 5 x 7 points
+    speed_only_s = 2 * 0.5 + 21 * VALIDATION_POINT_S
+    both_s = 5 * 0.5 + 35 * VALIDATION_POINT_S
+    assert affordable_candidates(budget(both_s + 0.1), AXES, candidates, measured) == candidates
+    taken = affordable_candidates(budget(speed_only_s + 0.1), AXES, candidates, measured)
+    assert taken == {"torque_nm": [], "speed_rpm": [1100.0]}
+    assert affordable_candidates(budget(speed_only_s - 0.1), AXES, candidates, measured) == {
+        "torque_nm": [],
+        "speed_rpm": [],
+    }

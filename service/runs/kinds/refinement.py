@@ -14,6 +14,7 @@ from service.maps.build import build_map
 from service.maps.lut_export import SPARSE, cell_count, injection_unchanged, lut_image, map_interpolation
 from service.maps.placement import (
     MAX_PLACE_ROUNDS,
+    Cell,
     axes_with,
     candidate_cells,
     cells_to_measure,
@@ -302,6 +303,8 @@ class RefinementRun:
                 "left_out": reasons,
             }
         )
+        if budget is not None:  # only the candidates whose lines, and the grid's validation with them, fit
+            following = affordable_candidates(budget, state["axes"], following, measured)
         pending = cells_to_measure(state["axes"], following, measured)
         if not (
             any(following.values())
@@ -547,6 +550,20 @@ class RefinementRun:
                 "cells_added": state["cells_added"],
             },
         )
+
+
+def affordable_candidates(
+    budget: BenchBudget, axes: dict[str, list[float]], candidates: dict[str, list[float]], measured: set[Cell]
+) -> dict[str, list[float]]:
+    """The candidates whose lines the budget can measure and whose grid it can then validate, taken speed values
+    first (a speed line is one cell a torque row, and the turn is along speed), each in order along its axis."""
+    taken: dict[str, list[float]] = {axis: [] for axis in candidates}
+    for axis in sorted(candidates, key=lambda a: a != "speed_rpm"):
+        for value in candidates[axis]:
+            trial = {**taken, axis: [*taken[axis], value]}
+            if budget.against(len(cells_to_measure(axes, trial, measured)), axes_with(axes, trial)) is None:
+                taken = trial
+    return taken
 
 
 def _close_round_plant(state: RefinementState, validation_plant_s: float = 0.0) -> float:
