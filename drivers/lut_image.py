@@ -252,8 +252,10 @@ class Lut:
         torque corners' rows, each slope from the rows beside it where they are whole, else linear."""
         corners = _weights(self.torque_nm, torque_nm)
         j = corners[0][0]
+        if len(corners) == 1:  # at an axis end or a one-value axis: that row
+            return self._row(iu, j, speed_rpm)[0]
         near = {k: self._row(iu, k, speed_rpm) for k in range(j - 1, j + 3) if 0 <= k < len(self.torque_nm)}
-        if len(corners) == 1 or not (near[j][1] and near[j + 1][1]):
+        if not (near[j][1] and near[j + 1][1]):
             return sum(w * near[k][0] for k, w in corners)  # a corner not whole: linear, as cartesian
         column: list[complex | None] = [None] * len(self.torque_nm)
         for k, (value, whole) in near.items():

@@ -479,11 +479,14 @@ class BenchBudget:
             if item.not_run is not None:
                 continue
             if item.kind == "runup" and item.speed_range is not None:
-                ramp_s = (item.speed_range[1] - item.speed_range[0]) / self.options.runup_rate_rpm_per_s
-                cost += 2 * (ramp_s + RUNUP_APPROACH_S)
+                cost += self.runup_pair_s(item.speed_range[1] - item.speed_range[0])
             elif item.kind != "runup":
                 cost += VALIDATION_POINT_S
         return cost
+
+    def runup_pair_s(self, span_rpm: float) -> float:
+        """A run-up pair over `span_rpm`: two ramps at the validation's rate, each with its approach."""
+        return 2 * (span_rpm / self.options.runup_rate_rpm_per_s + RUNUP_APPROACH_S)
 
     def against(self, cells: int, axes: dict[str, list[float]]) -> str | None:
         """Why measuring `cells` more and validating the grid `axes` does not fit the budget (None: it does)."""
@@ -498,11 +501,10 @@ class BenchBudget:
     def against_round(self, cells: int, axes: dict[str, list[float]]) -> str | None:
         """Why a round after a validation of the grid `axes`, measuring `cells` again, does not fit the budget (None:
         it does)."""
-        ramp_s = 0.0
+        runups_s = 0.0
         if self.options.runups:
-            span_rpm = max(axes["speed_rpm"]) - min(axes["speed_rpm"])
-            ramp_s = REVALIDATED_RUNUP_PAIRS * 2 * (span_rpm / self.options.runup_rate_rpm_per_s + RUNUP_APPROACH_S)
-        need_s = cells * (self.cell_s + REVALIDATED_POINTS_PER_CELL * VALIDATION_POINT_S) + ramp_s
+            runups_s = REVALIDATED_RUNUP_PAIRS * self.runup_pair_s(max(axes["speed_rpm"]) - min(axes["speed_rpm"]))
+        need_s = cells * (self.cell_s + REVALIDATED_POINTS_PER_CELL * VALIDATION_POINT_S) + runups_s
         if self.spent_s + need_s <= self.max_bench_s:
             return None
         return (

@@ -43,6 +43,15 @@ def swept_map(api: Api) -> int:
     return sweep["map_id"]
 
 
+def refinement_result(api: Api, source: int, body: dict, timeout_s: float) -> dict:
+    """POST /maps/{source}/refine with `body`, waited for: the job's result, once it is done."""
+    r = api.post(f"/maps/{source}/refine", body)
+    assert r.status_code == 202, r.text
+    job = api.job_finished(r.json()["id"], timeout_s)
+    assert job["state"] == "done", job
+    return job["result"]
+
+
 def test_a_refinement_validates_inserts_identifies_and_names_the_refined_map(emu, tmp_path):
     db = tmp_path / "refine.db"
     svc, api = start(emu, db)
@@ -169,11 +178,7 @@ def test_a_refinement_places_breakpoints_from_curves_before_it_validates(emu, tm
         body = {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": lut_cells}
         if interpolation is not None:
             body["validation"] = {"interpolation": interpolation}
-        r = api.post(f"/maps/{source}/refine", body)
-        assert r.status_code == 202, r.text
-        job = api.job_finished(r.json()["id"], 900)
-        assert job["state"] == "done", job
-        result = job["result"]
+        result = refinement_result(api, source, body, 900)
         placement = result["placement"]
         # round one: the midpoint of each axis' one interval, a line of cells each (2 + 2 + their cross cell)
         assert placement and placement[0]["candidates"] == {"torque_nm": 1, "speed_rpm": 1}
@@ -218,11 +223,7 @@ def test_a_refinement_inserts_nothing_its_bench_time_budget_cannot_validate(emu,
     try:
         source = swept_map(api)
         body = {"target_db": 30, "max_cells": 24, "placement": "curves", "lut_cells": "int11", "max_bench_s": 3.0}
-        r = api.post(f"/maps/{source}/refine", body)
-        assert r.status_code == 202, r.text
-        job = api.job_finished(r.json()["id"], 600)
-        assert job["state"] == "done", job
-        result = job["result"]
+        result = refinement_result(api, source, body, 600)
         placement = result["placement"]
         assert placement and not any(placement[0]["inserted"].values()), placement
         assert placement[0]["left_out"] and all("bench time budget" in why for why in placement[0]["left_out"])
