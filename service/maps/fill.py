@@ -30,6 +30,7 @@ from typing import Any, Iterable, cast
 
 MEASURED_MIN_DB = 20.0
 NO_AUTHORITY_MIN_DB = 6.0
+MEASURED_SOURCE = "measured: its own theta"  # rule 1's fill_source begins so (is_measured_fill)
 AXES = ("torque_nm", "speed_rpm", "udc_v")
 Key = tuple[float, float, float]  # a cell by its AXES values
 
@@ -106,8 +107,13 @@ def _measured(c: dict[str, Any], status: str) -> Fill | None:
     return Fill(
         float(c["theta_cos"]),
         float(c["theta_sin"]),
-        f"measured: its own theta ({status}, {db:.1f} dB against the uncompensated harmonic{attempt})",
+        f"{MEASURED_SOURCE} ({status}, {db:.1f} dB against the uncompensated harmonic{attempt})",
     )
+
+
+def is_measured_fill(fill_source: str | None) -> bool:
+    """Whether a filled cell's entry is its own measured theta (rule 1), not one made from its neighbours."""
+    return fill_source is not None and fill_source.startswith(MEASURED_SOURCE)
 
 
 def _interpolated(

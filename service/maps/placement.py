@@ -123,6 +123,40 @@ def judge_candidates(
     return out
 
 
+def bend_db(
+    axes: dict[str, list[float]], candidates: dict[str, list[float]], thetas: dict[Cell, complex]
+) -> dict[str, dict[float, float]]:
+    """Each candidate's need before its line is measured, per axis (dB; lower: more need): over the lines of its
+    axis with evidence, the worst of predicted_db(cubic, chord), the cubic Hermite through the grid's theta* (each
+    corner's slope from its neighbours) against the chord between the candidate's two neighbours at the candidate's
+    value. The two interpolants differ by h^2/8 of the curve's second derivative at an interval's middle (and agree
+    where theta* runs straight): where theta* bends on the grid's breakpoints, the drive's interpolation is the least
+    sure. inf: no evidence (an axis end, a neighbour not identified), nothing seen to bend."""
+    out: dict[str, dict[float, float]] = {}
+    for axis in PLACED_AXES:
+        k = AXES.index(axis)
+        values = sorted(map(float, axes[axis]))
+        others = [sorted(map(float, axes[a])) for a in AXES if a != axis]
+        out[axis] = {}
+        for c in candidates.get(axis, []):
+            worst = math.inf
+            for rest in product(*others):
+
+                def at(x: float) -> Cell:
+                    cell = list(rest)
+                    cell.insert(k, x)
+                    return (cell[0], cell[1], cell[2])
+
+                row = [thetas.get(at(v)) for v in values]
+                j = sum(1 for v in values if v < c) - 1
+                if j < 0 or j + 1 >= len(values) or row[j] is None or row[j + 1] is None:
+                    continue
+                chord = between(row[j], row[j + 1], values[j], values[j + 1], c, "cartesian")  # type: ignore[arg-type]
+                worst = min(worst, predicted_db(along_row(values, row, c, "cubic"), chord))
+            out[axis][c] = worst
+    return out
+
+
 def worst_db(judged: dict[str, dict[float, list[float]]]) -> dict[str, float | None]:
     """Per axis, the worst predicted suppression over every candidate's line (None: no evidence)."""
     return {axis: min((db for dbs in by.values() for db in dbs), default=None) for axis, by in judged.items()}

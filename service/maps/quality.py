@@ -3,7 +3,7 @@
 Arithmetic in theta = (theta_cos, theta_sin), rad (docs/conventions.md, Injection and theta: never gamma/delta,
 which wrap at 0/360 deg).
 Only `ok` cells take part (a filled cell, service/maps/fill.py, carries a fill, not a measurement: it is
-neither judged nor a reference); a cell's neighbours are the cells one grid index away along each
+neither judged nor a reference, but for a fill of the cell's own measured theta, below its target: a reference); a cell's neighbours are the cells one grid index away along each
 axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
 spacing, and the fit interpolates by position.
 
@@ -47,6 +47,7 @@ from collections.abc import Container
 from dataclasses import dataclass, field
 from typing import Any
 
+from service.maps.fill import is_measured_fill
 from service.model.secondary_path import gamma_delta
 
 AXES = ("torque_nm", "speed_rpm", "udc_v")
@@ -81,7 +82,7 @@ class CellQuality:
 
 @dataclass
 class MapQuality:
-    cells: dict[Key, CellQuality]  # ok cells only
+    cells: dict[Key, CellQuality]  # ok cells only (a fill of a cell's own theta is a reference, not judged)
     gradient_rad_per_unit: dict[str, float | None]  # g_k per axis (of the final references)
 
     def count(self, quality: str) -> int:
@@ -94,15 +95,19 @@ def cell_key(cell: dict[str, Any]) -> Key:
 
 def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQuality:
     """Quality of every ok cell of a map (cells as MapCellPublic dicts, axes as the map's)."""
-    # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok
+    # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok, but for a
+    # below-target cell's fill of its own theta (>= fill.MEASURED_MIN_DB; not no_authority's, clamped at gamma_max):
+    # theta* measured, a reference for
+    # its neighbours, never judged (at the turn, where |theta*| passes near zero, such cells are common: without them
+    # a turn cell has a neighbour on one side only, and the loop it runs reads as an outlier)
     theta = {
         cell_key(c): (float(c["theta_cos"]), float(c["theta_sin"]))
         for c in cells
-        if c["status"] == "ok"
-        and not c.get("filled")
-        and c.get("theta_cos") is not None
-        and c.get("theta_sin") is not None
+        if (c["status"] == "ok" and not c.get("filled"))
+        or (c["status"] == "below_target" and c.get("filled") and is_measured_fill(c.get("fill_source")))
+        if c.get("theta_cos") is not None and c.get("theta_sin") is not None
     }
+    judged = [cell_key(c) for c in cells if c["status"] == "ok" and not c.get("filled") and cell_key(c) in theta]
     values = {a: sorted({float(x) for x in axes.get(a) or []}) for a in AXES}
     index = {a: {v: i for i, v in enumerate(values[a])} for a in AXES}
     # each ok cell's ok neighbours: (neighbour, axis, spacing), found once
@@ -126,13 +131,13 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
     flagged: set[Key] = set()
     why: dict[Key, CellQuality] = {}  # each outlier as it was when flagged (its fit may lose references later)
     axis_values = [values[a] for a in AXES]
-    fits = {k: _fit(k, near[k], theta, axis_values, flagged) for k in theta}
+    fits = {k: _fit(k, near[k], theta, axis_values, flagged) for k in judged}
     # more outliers than a quarter of the cells: a noisy map, not a few bad points; the cells then
     # over the factor are all flagged at once instead of one by one
-    one_by_one = max(1, int(len(theta) * ONE_BY_ONE_SHARE))
+    one_by_one = max(1, int(len(judged) * ONE_BY_ONE_SHARE))
     while True:
         gradients = _gradients(pairs, flagged)
-        evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
+        evaluated = {k: _evaluate(fits[k], gradients) for k in judged}
         over = sorted(
             (
                 (c.score, k)
@@ -151,10 +156,11 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
         flagged.add(worst)
         why[worst] = evaluated[worst]
         for other, _, _ in near[worst]:  # only the worst's neighbours lose a reference
-            fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta, axis_values, flagged)
+            if other in fits:
+                fits[other] = _fit(other, [n for n in near[other] if n[0] not in flagged], theta, axis_values, flagged)
     if len(flagged) > one_by_one:  # flagged at once: the fits without all of them
-        fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta, axis_values, flagged) for k in theta}
-        evaluated = {k: _evaluate(fits[k], gradients) for k in theta}
+        fits = {k: _fit(k, [n for n in near[k] if n[0] not in flagged], theta, axis_values, flagged) for k in judged}
+        evaluated = {k: _evaluate(fits[k], gradients) for k in judged}
     for k in flagged:
         evaluated[k] = why[k]
         evaluated[k].quality = "outlier"
@@ -225,9 +231,14 @@ def _fit(
                 # cell does not excuse itself: at a turn, as at an axis end of a steep map, the map changes that fast)
                 beyond = _next_along(o, pos, o[pos] - key[pos], axis_values[pos])
                 span = abs(beyond[pos] - o[pos]) if beyond is not None else 0.0
-                # no reference beyond, or one so close that the line would be extrapolated over more than its span
-                # (its noise amplified): the neighbour as it is
-                if beyond is None or beyond not in theta or beyond in flagged or span < dx:
+                if beyond is None or beyond not in theta or beyond in flagged:
+                    values.append(theta[o])  # no reference beyond: the neighbour as it is
+                    continue
+                across[a] = math.hypot(theta[o][0] - theta[beyond][0], theta[o][1] - theta[beyond][1]) / span
+                if span < dx:
+                    # one so close that the line would be extrapolated over more than its span (its noise amplified):
+                    # the neighbour as it is, and the map's change there all the same (a refined map's last speed
+                    # past the turn, 100 rpm beyond a pair 50 rpm apart, moves as fast as that pair does)
                     values.append(theta[o])
                     continue
                 k = dx / span
@@ -237,7 +248,6 @@ def _fit(
                         theta[o][1] + k * (theta[o][1] - theta[beyond][1]),
                     )
                 )
-                across[a] = math.hypot(theta[o][0] - theta[beyond][0], theta[o][1] - theta[beyond][1]) / span
     fit = (statistics.median([v[0] for v in values]), statistics.median([v[1] for v in values]))
     value = theta[key]
     return around, fit, math.hypot(value[0] - fit[0], value[1] - fit[1]), across

@@ -448,11 +448,17 @@ def corner_values(values: list[float], x: float) -> list[float]:
 
 # What bench time costs before this refinement measured it, plant s: a cell identified (its move, settling and
 # windows; measured on the refinement's own placement rounds once one ran), a stepped validation point (its move,
-# settling, the uncompensated and the LUT-mode window) and a run-up beyond its ramp (the move to its start, the
-# settling there). Measured on issue 27's calibrations (int11, ~600 cells, run-ups at 7 torques at 100 rpm/s, floor
-# 45 dB): placement rounds 0.35-0.65 s a cell, one validation 589-661 s for ~2250 points and 7 run-up pairs
+# settling, the uncompensated and the LUT-mode window; measured by the refinement's validations: `point_cost_s`) and a
+# run-up beyond its ramp (the move to its start, the settling there). Measured on issue 27's calibrations (int11,
+# ~600 cells, run-ups at 7 torques at 100 rpm/s, floor 45 dB): placement rounds 0.35-0.65 s a cell, a validation point
+# 0.153-0.213 s. A point's cost is two thirds its settling, and settling is what the machine sets (its shaft's
+# damping): before a validation measured one, a point is predicted at POINT_S_PER_CELL_SETTLE_S times the mean
+# settling of the placement's cells (measured ratio 1.29-1.31 on paper-bench and seed 5, 1.58 on seed 7; a point's
+# move is smaller than a cell's, its two windows add). The source map's own validation is no measure: its points, 200
+# rpm apart, settle longer (paper-bench 0.214 s a point against 0.155 s on the refined map, seed 5 0.248 and 0.213)
 CELL_S = 0.5
-VALIDATION_POINT_S = 0.15
+VALIDATION_POINT_S = 0.2
+POINT_S_PER_CELL_SETTLE_S = 1.4
 RUNUP_APPROACH_S = 3.0
 # a round after a validation measures its cells again and the validation points around them, and runs the run-up
 # pairs whose LUT changed again (measured: 112-121 s for 20 cells at the turn)
@@ -471,6 +477,7 @@ class BenchBudget:
     cell_s: float
     settings: Settings
     options: ValidationOptions
+    point_s: float = VALIDATION_POINT_S  # a stepped validation point, plant s (point_cost_s where one was measured)
 
     def validation_s(self, axes: dict[str, list[float]]) -> float:
         """Predicted plant time of one validation of the grid `axes` (every point and run-up pair measured)."""
@@ -481,7 +488,7 @@ class BenchBudget:
             if item.kind == "runup" and item.speed_range is not None:
                 cost += self.runup_pair_s(item.speed_range[1] - item.speed_range[0])
             elif item.kind != "runup":
-                cost += VALIDATION_POINT_S
+                cost += self.point_s
         return cost
 
     def runup_pair_s(self, span_rpm: float) -> float:
@@ -504,13 +511,24 @@ class BenchBudget:
         runups_s = 0.0
         if self.options.runups:
             runups_s = REVALIDATED_RUNUP_PAIRS * self.runup_pair_s(max(axes["speed_rpm"]) - min(axes["speed_rpm"]))
-        need_s = cells * (self.cell_s + REVALIDATED_POINTS_PER_CELL * VALIDATION_POINT_S) + runups_s
+        need_s = cells * (self.cell_s + REVALIDATED_POINTS_PER_CELL * self.point_s) + runups_s
         if self.spent_s + need_s <= self.max_bench_s:
             return None
         return (
             f"the bench time budget (max_bench_s = {self.max_bench_s:g} s) is spent: {self.spent_s:.0f} s, and "
             f"another round of {cells} cell(s) would take ~{need_s:.0f} s"
         )
+
+
+def point_cost_s(cells: list[dict[str, Any]]) -> float | None:
+    """What a stepped validation point cost on this bench, plant s: the mean settling and windows of the points a
+    validation measured itself (not taken from an earlier one, not a run-up's bins); None: it measured none."""
+    costs = [
+        float(c.get("plant_time_s") or 0.0) + float(c.get("settle_plant_s") or 0.0)
+        for c in cells
+        if c["kind"] != "runup" and c.get("status") == "measured" and not c.get("reused")
+    ]
+    return sum(costs) / len(costs) if costs else None
 
 
 def no_progress(rounds: list[dict[str, Any]]) -> str | None:

@@ -231,6 +231,8 @@ def test_a_refinement_inserts_nothing_its_bench_time_budget_cannot_validate(emu,
         # one validation; after it only the guard, which never waits on a budget (never worse than no compensation)
         rounds = result["rounds"]
         assert len(rounds) == 1 or (len(rounds) == 2 and rounds[1]["injection_off"] > 0), rounds
+        # what a stepped point of that validation cost (the budget's next prediction): its settling and two windows
+        assert 0.01 < rounds[0]["point_s"] < 2.0, rounds[0]
         assert not result["holds"] and "bench time budget" in (result["stopped"] or ""), result["stopped"]
         assert not api.get("/bench/status")["busy"]
         api.close()

@@ -347,3 +347,56 @@ def test_a_refined_maps_turn_is_not_called_outliers_and_a_bad_cell_on_it_still_i
         ]
         q = map_quality.assess(spoiled, data["axes"])
         assert [k[:2] for k, c in q.cells.items() if c.quality == "outlier"] == [at], at
+
+
+# a refined map past the turn: flat to 2000 rpm, then theta* moves 0.01 deg per rpm (1 deg per 100 rpm), the last
+# speed 100 rpm beyond a pair 50 rpm apart
+TURN_AXES = {
+    "torque_nm": [1.0, 2.0, 3.0],
+    "speed_rpm": [1000.0, 1200.0, 1400.0, 1600.0, 1800.0, 2000.0, 2100.0, 2150.0, 2250.0],
+    "udc_v": [12.0],
+}
+FAST_RAD_PER_RPM = np.array([math.radians(0.01), 0.0])
+
+
+def past_the_turn(p):
+    t = np.array(theta_of(3.0, 280.0)) + FAST_RAD_PER_RPM * max(0.0, p[1] - 2000.0)
+    return float(t[0]), float(t[1])
+
+
+def test_an_axis_end_past_the_turn_moves_as_fast_as_the_pair_before_it():
+    # the last cell's one speed neighbour (2150) is 100 rpm away and the one beyond it (2100) 50 rpm: the line is not
+    # extrapolated over twice its span, but the map's change there (1 deg per 100 rpm, the median change along speed
+    # is 0) is the step expected, so the end is not an outlier of a map that turns fast
+    q = map_quality.assess(_cells(TURN_AXES, past_the_turn), TURN_AXES)
+    assert all(c.quality == "consistent" for c in q.cells.values()), {
+        k: c.reason for k, c in q.cells.items() if c.quality != "consistent"
+    }
+
+
+def test_a_below_target_cells_own_theta_is_a_reference_not_judged():
+    # theta* loops at 2200 rpm (a fifth of a turn each 25 rpm at 1 Nm, slower with torque): the cell at 2200 rpm has
+    # speed neighbours on both sides only where 2225's below-target measurement counts as one
+    axes = {"torque_nm": [1.0, 1.25, 1.5], "speed_rpm": [2100.0, 2150.0, 2200.0, 2225.0, 2250.0], "udc_v": [12.0]}
+
+    def loop(p):
+        phase = math.radians(72.0 / 25.0 * (p[1] - 2100.0) / p[0])
+        g = math.radians(1.0)
+        return g * math.cos(phase), g * math.sin(phase)
+
+    at = (1.0, 2225.0, 12.0)
+
+    def filled(source):
+        cells = _cells(axes, loop, {at: "below_target"})
+        for c in cells:
+            if (c["torque_nm"], c["speed_rpm"], c["udc_v"]) == at:
+                c.update(filled=True, fill_source=source)  # the fill of its own theta: theta as measured
+        return cells
+
+    q = map_quality.assess(filled("measured: its own theta (below_target, 43.8 dB against the uncompensated)"), axes)
+    assert at not in q.cells  # a reference, not judged
+    assert q.cells[(1.0, 2200.0, 12.0)].quality == "consistent"
+    assert at in q.cells[(1.0, 2200.0, 12.0)].neighbours
+    # a fill made from the neighbours is no measurement: not a reference
+    q = map_quality.assess(filled("interpolated (polar) from ok cells"), axes)
+    assert at not in q.cells[(1.0, 2200.0, 12.0)].neighbours

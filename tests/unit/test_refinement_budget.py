@@ -5,10 +5,12 @@ value whose cells and validation would not fit (service/maps/placement.py place,
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
-from service.maps.placement import place
-from service.runs.refinement import RUNUP_APPROACH_S, VALIDATION_POINT_S, BenchBudget
+from service.maps.placement import axes_with, bend_db, place
+from service.runs.refinement import RUNUP_APPROACH_S, VALIDATION_POINT_S, BenchBudget, point_cost_s
 from service.runs.validation import ValidationOptions
 from service.settings import load_settings
 
@@ -54,10 +56,65 @@ def test_only_the_candidate_lines_the_budget_can_measure_and_validate_are_taken(
     # cells (the crossing waits until both are kept) and 5 x 7 points
     speed_only_s = 2 * 0.5 + 21 * VALIDATION_POINT_S
     both_s = 5 * 0.5 + 35 * VALIDATION_POINT_S
-    assert affordable_candidates(budget(both_s + 0.1), AXES, candidates, measured) == candidates
-    taken = affordable_candidates(budget(speed_only_s + 0.1), AXES, candidates, measured)
+    assert affordable_candidates(budget(both_s + 0.1), AXES, candidates, measured, {}) == candidates
+    taken = affordable_candidates(budget(speed_only_s + 0.1), AXES, candidates, measured, {})
     assert taken == {"torque_nm": [], "speed_rpm": [1100.0]}
-    assert affordable_candidates(budget(speed_only_s - 0.1), AXES, candidates, measured) == {
+    assert affordable_candidates(budget(speed_only_s - 0.1), AXES, candidates, measured, {}) == {
         "torque_nm": [],
         "speed_rpm": [],
     }
+
+
+SPEEDS = [1000.0, 1200.0, 1400.0, 1600.0, 1800.0]
+
+
+def test_a_candidates_bend_is_the_chords_miss_of_the_curve_through_the_grid():
+    # theta* quadratic along speed, q(n) = A + B n + C n^2: the Hermite with three-point slopes holds it exactly, the
+    # chord between two breakpoints h apart misses it at the interval's middle by C h^2 / 4 (= q'' h^2 / 8)
+    a, b, c = 0.3 + 0.4j, 1e-4 - 2e-4j, 3e-7 + 1e-7j
+    axes = {"torque_nm": [1.0], "speed_rpm": SPEEDS, "udc_v": [12.0]}
+    thetas = {(1.0, n, 12.0): a + b * n + c * n * n for n in SPEEDS}
+    bends = bend_db(axes, {"speed_rpm": [1300.0, 1500.0]}, thetas)["speed_rpm"]
+    for n in (1300.0, 1500.0):
+        expected = 20 * math.log10(abs(a + b * n + c * n * n) / (abs(c) * 200.0**2 / 4))
+        assert bends[n] == pytest.approx(expected, abs=1e-9)
+    # straight: both interpolants agree, nothing bends; no evidence (a neighbour not identified): inf as well
+    straight = {(1.0, n, 12.0): a + b * n for n in SPEEDS}
+    assert bend_db(axes, {"speed_rpm": [1300.0]}, straight)["speed_rpm"][1300.0] == math.inf
+    del straight[(1.0, 1400.0, 12.0)]
+    assert bend_db(axes, {"speed_rpm": [1300.0]}, straight)["speed_rpm"][1300.0] == math.inf
+
+
+def test_a_budget_for_one_line_takes_it_where_theta_bends_not_first_along_the_axis():
+    from service.runs.kinds.refinement import affordable_candidates
+
+    axes = {"torque_nm": [1.0, 2.0], "speed_rpm": SPEEDS, "udc_v": [12.0]}
+    # theta* straight but at 1600 rpm, where it turns (both torque rows)
+    thetas = {(t, n, 12.0): (0.2 + 0.5j if n == 1600.0 else 1.0 + 0.5j) for t in (1.0, 2.0) for n in SPEEDS}
+    measured = set(thetas)
+    candidates = {"speed_rpm": [1100.0, 1300.0, 1500.0, 1700.0]}
+    one_line = axes_with(axes, {"speed_rpm": [1100.0]})
+    one_line_s = 2 * 0.5 + budget(1e6).validation_s(one_line)
+    taken = affordable_candidates(budget(one_line_s + 0.1), axes, candidates, measured, thetas)
+    assert len(taken["speed_rpm"]) == 1 and taken["speed_rpm"][0] in (1500.0, 1700.0)  # an interval at the turn
+    # with no theta* seen to bend anywhere, in order along the axis
+    flat = {cell: 1.0 + 0.5j for cell in thetas}
+    assert affordable_candidates(budget(one_line_s + 0.1), axes, candidates, measured, flat) == {"speed_rpm": [1100.0]}
+
+
+def test_a_points_cost_is_what_the_validation_measured_itself():
+    def cell(kind: str, plant_s: float, settle_s: float, **more) -> dict:
+        return {"kind": kind, "status": "measured", "plant_time_s": plant_s, "settle_plant_s": settle_s, **more}
+
+    cells = [
+        cell("grid", 0.08, 0.12),
+        cell("midpoint", 0.06, 0.14),
+        cell("midpoint", 0.0, 0.0, reused=True),  # taken from an earlier validation: it cost nothing now
+        cell("runup", 0.0, 0.0),  # a run-up's bins: the pair's cost is counted apart
+        {"kind": "midpoint", "status": "failed", "error": "x"},
+    ]
+    assert point_cost_s(cells) == pytest.approx((0.2 + 0.2) / 2)
+    assert point_cost_s([cell("runup", 0.0, 0.0)]) is None
+    # the budget predicts a validation at the point cost it is given
+    measured = BenchBudget(1e6, 0.0, 0.5, load_settings(environ={}), ValidationOptions(), point_s=0.25)
+    assert measured.validation_s(AXES) == pytest.approx(15 * 0.25)

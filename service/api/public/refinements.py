@@ -30,6 +30,11 @@ class RefinementRoundPublic(BaseModel):
         None,
         description="bench time of the round: its cells' settling and measurements and this validation, plant seconds",
     )
+    point_s: float | None = Field(
+        None,
+        description="what a stepped validation point cost in this round's validation (settling and windows), plant "
+        "seconds: the bench time budget's prediction of the next validation (null: every point was taken as it was)",
+    )
     points_judged: int | None = Field(None, description="points judged (grid, midpoints, run-up bins)")
     held: int | None = Field(None, description="of them, how many hold")
     median_db: float | None = None

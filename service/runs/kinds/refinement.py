@@ -4,6 +4,7 @@ body measures a round's cells through the sweep's (service/runs/sweep_run.py Swe
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, cast
 
@@ -16,6 +17,7 @@ from service.maps.placement import (
     MAX_PLACE_ROUNDS,
     Cell,
     axes_with,
+    bend_db,
     candidate_cells,
     cells_to_measure,
     first_candidates,
@@ -34,7 +36,9 @@ from service.runs.refinement import (
     CELL_S,
     MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
+    POINT_S_PER_CELL_SETTLE_S,
     REFINED_INTERPOLATION,
+    VALIDATION_POINT_S,
     BenchBudget,
     RefinementState,
     RefineRequest,
@@ -43,6 +47,7 @@ from service.runs.refinement import (
     harmful_points,
     no_progress,
     plan_round,
+    point_cost_s,
     reuse_where,
 )
 from service.runs.states import Cancelled, Paused, SweepControl, SweepState
@@ -54,7 +59,7 @@ from service.runs.validation import (
     run_validation,
     store_validation,
 )
-from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord, bench_plant_s
+from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord, bench_plant_s, bench_settle_s
 from service.store.storage import now_iso
 
 
@@ -272,9 +277,12 @@ class RefinementRun:
         cells_format = state.get("lut_cells", "float32")
         round_plant_s = _close_round_plant(state)
         placed = state.setdefault("placement_rounds", [])
-        measured_now = len(self._round_results(sweep_id, state))
+        round_results = self._round_results(sweep_id, state)
+        measured_now = len(round_results)
+        settle_plant_s = sum(bench_settle_s(r) for r in round_results)
         measured = {(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"])) for r in rows}
-        budget = self._budget(state, placed + [{"plant_time_s": round_plant_s, "measured": measured_now}])
+        this_round = {"plant_time_s": round_plant_s, "settle_plant_s": settle_plant_s, "measured": measured_now}
+        budget = self._budget(state, [*placed, this_round])
 
         def affordable(grown: dict[str, list[float]]) -> str | None:
             return None if budget is None else budget.against(len(cells_to_measure(grown, {}, measured)), grown)
@@ -300,11 +308,12 @@ class RefinementRun:
                 "bytes": grid_bytes(state["axes"], thetas, cells_format, interpolation),
                 "cells": cell_count(state["axes"]),
                 "plant_time_s": round_plant_s,
+                "settle_plant_s": settle_plant_s,  # of it, the cells' settling (the budget's point cost before any)
                 "left_out": reasons,
             }
         )
         if budget is not None:  # only the candidates whose lines, and the grid's validation with them, fit
-            following = affordable_candidates(budget, state["axes"], following, measured)
+            following = affordable_candidates(budget, state["axes"], following, measured, thetas)
         pending = cells_to_measure(state["axes"], following, measured)
         if not (
             any(following.values())
@@ -429,6 +438,7 @@ class RefinementRun:
                 "bytes": len(lut_image(m.model_dump(), interpolation=options.interpolation)),
                 "cells": cell_count(m.axes),
                 "plant_time_s": round_plant_s,
+                "point_s": point_cost_s(run.cells),  # what a stepped point cost here, plant s (the budget's next)
                 "points_judged": summary.get("points"),
                 "held": summary.get("held"),
                 "median_db": summary.get("median_db"),
@@ -484,18 +494,26 @@ class RefinementRun:
 
     def _budget(self, state: RefinementState, placed: list[dict[str, Any]]) -> BenchBudget | None:
         """The refinement's max_bench_s as a BenchBudget (None: none), a cell's cost measured on the placement rounds
-        `placed` so far (CELL_S before any)."""
+        `placed` so far (CELL_S before any), a stepped validation point's on the refinement's latest validation that
+        measured one, else POINT_S_PER_CELL_SETTLE_S times the placement cells' mean settling (a machine whose shaft
+        settles longer pays more a point), else VALIDATION_POINT_S."""
         max_bench_s = state.get("max_bench_s")
         if max_bench_s is None:
             return None
         cells = sum(r.get("measured", 0) for r in placed)
         cell_s = sum(r["plant_time_s"] for r in placed if r.get("measured")) / cells if cells else CELL_S
+        point_s = next((r["point_s"] for r in reversed(state["rounds"]) if r.get("point_s")), None)
+        if point_s is None:  # before a validation measured one: from the cells' settling on this bench
+            settled = [r for r in placed if r.get("measured") and "settle_plant_s" in r]
+            settle_s = sum(r["settle_plant_s"] for r in settled) / sum(r["measured"] for r in settled) if settled else 0
+            point_s = POINT_S_PER_CELL_SETTLE_S * settle_s if settle_s > 0 else VALIDATION_POINT_S
         return BenchBudget(
             max_bench_s,
             state.get("plant_time_s", 0.0),
             cell_s,
             self.settings,
             ValidationOptions.model_validate(state["validation"]),
+            point_s,
         )
 
     def _round_reuse(
@@ -553,16 +571,26 @@ class RefinementRun:
 
 
 def affordable_candidates(
-    budget: BenchBudget, axes: dict[str, list[float]], candidates: dict[str, list[float]], measured: set[Cell]
+    budget: BenchBudget,
+    axes: dict[str, list[float]],
+    candidates: dict[str, list[float]],
+    measured: set[Cell],
+    thetas: dict[Cell, complex],
 ) -> dict[str, list[float]]:
-    """The candidates whose lines the budget can measure and whose grid it can then validate, taken speed values
-    first (a speed line is one cell a torque row, and the turn is along speed), each in order along its axis."""
+    """The candidates whose lines the budget can measure and whose grid it can then validate, taken where theta*
+    bends most on the grid first (placement.bend_db; ties: speed values first, a speed line is one cell a torque
+    row). In order along the axes, a budget that holds a few lines spent them where theta* runs straight (seed 5: six
+    speed lines at 1100..1825 rpm measured, all held, while the turn's 2125..2275 rpm failed 17-21 dB)."""
+    bends = bend_db(axes, candidates, thetas)
     taken: dict[str, list[float]] = {axis: [] for axis in candidates}
-    for axis in sorted(candidates, key=lambda a: a != "speed_rpm"):
-        for value in candidates[axis]:
-            trial = {**taken, axis: [*taken[axis], value]}
-            if budget.against(len(cells_to_measure(axes, trial, measured)), axes_with(axes, trial)) is None:
-                taken = trial
+    for _db, _torque, value, axis in sorted(
+        (bends.get(axis, {}).get(value, math.inf), axis != "speed_rpm", value, axis)
+        for axis, values in candidates.items()
+        for value in values
+    ):
+        trial = {**taken, axis: sorted([*taken[axis], value])}
+        if budget.against(len(cells_to_measure(axes, trial, measured)), axes_with(axes, trial)) is None:
+            taken = trial
     return taken
 
 
