@@ -36,7 +36,7 @@ torque over 1000..2600 rpm (up and down), where a 10 rpm step identified with it
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from itertools import product
 
 import numpy as np
@@ -84,6 +84,19 @@ def predicted_db(theta_true: complex, theta_lut: complex) -> float:
     return 20.0 * math.log10(abs(theta_true) / error) if theta_true != 0 else -math.inf
 
 
+def _lines(axes: dict[str, list[float]], axis: str) -> Iterator[Callable[[float], Cell]]:
+    """Each line of `axis` through the grid `axes` (the other axes' values fixed), as the cell at a value on it."""
+    k = AXES.index(axis)
+    for rest in product(*(sorted(map(float, axes[a])) for a in AXES if a != axis)):
+
+        def at(x: float, rest: tuple[float, ...] = rest) -> Cell:
+            cell = list(rest)
+            cell.insert(k, x)
+            return (cell[0], cell[1], cell[2])
+
+        yield at
+
+
 def judge_candidates(
     axes: dict[str, list[float]],
     candidates: dict[str, list[float]],
@@ -94,9 +107,7 @@ def judge_candidates(
     per axis."""
     out: dict[str, dict[float, list[float]]] = {}
     for axis in PLACED_AXES:
-        k = AXES.index(axis)
         values = sorted(map(float, axes[axis]))
-        others = [sorted(map(float, axes[a])) for a in AXES if a != axis]
         out[axis] = {}
         for c in candidates.get(axis, []):
             lower = [v for v in values if v < c]
@@ -105,13 +116,7 @@ def judge_candidates(
             if not lower or not upper:
                 continue
             a, b = lower[-1], upper[0]
-            for rest in product(*others):
-
-                def at(x: float) -> Cell:
-                    cell = list(rest)
-                    cell.insert(k, x)
-                    return (cell[0], cell[1], cell[2])
-
+            for at in _lines(axes, axis):
                 ta, tb, tc = thetas.get(at(a)), thetas.get(at(b)), thetas.get(at(c))
                 if ta is None or tb is None or tc is None:
                     continue
@@ -134,19 +139,11 @@ def bend_db(
     sure. inf: no evidence (an axis end, a neighbour not identified), nothing seen to bend."""
     out: dict[str, dict[float, float]] = {}
     for axis in PLACED_AXES:
-        k = AXES.index(axis)
         values = sorted(map(float, axes[axis]))
-        others = [sorted(map(float, axes[a])) for a in AXES if a != axis]
         out[axis] = {}
         for c in candidates.get(axis, []):
             worst = math.inf
-            for rest in product(*others):
-
-                def at(x: float) -> Cell:
-                    cell = list(rest)
-                    cell.insert(k, x)
-                    return (cell[0], cell[1], cell[2])
-
+            for at in _lines(axes, axis):
                 row = [thetas.get(at(v)) for v in values]
                 j = sum(1 for v in values if v < c) - 1
                 if j < 0 or j + 1 >= len(values) or row[j] is None or row[j + 1] is None:
