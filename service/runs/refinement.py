@@ -448,17 +448,15 @@ def corner_values(values: list[float], x: float) -> list[float]:
 
 # What bench time costs before this refinement measured it, plant s: a cell identified (its move, settling and
 # windows; measured on the refinement's own placement rounds once one ran), a stepped validation point (its move,
-# settling, the uncompensated and the LUT-mode window; measured by the refinement's validations: `point_cost_s`) and a
+# settling, the uncompensated and the LUT-mode window; measured by each validation for the next: `point_cost_s`) and a
 # run-up beyond its ramp (the move to its start, the settling there). Measured on issue 27's calibrations (int11,
-# ~600 cells, run-ups at 7 torques at 100 rpm/s, floor 45 dB): placement rounds 0.35-0.65 s a cell, a validation point
-# 0.153-0.213 s. A point's cost is two thirds its settling, and settling is what the machine sets (its shaft's
-# damping): before a validation measured one, a point is predicted at POINT_S_PER_CELL_SETTLE_S times the mean
-# settling of the placement's cells (measured ratio 1.29-1.31 on paper-bench and seed 5, 1.58 on seed 7; a point's
-# move is smaller than a cell's, its two windows add). The source map's own validation is no measure: its points, 200
-# rpm apart, settle longer (paper-bench 0.214 s a point against 0.155 s on the refined map, seed 5 0.248 and 0.213)
+# ~600 cells, run-ups at 7 torques at 100 rpm/s, floor 45 dB): placement rounds 0.35-0.65 s a cell; a validation point
+# 0.153-0.213 s at speedup 0 (paper-bench to seed 5, whose shaft settles longer), 0.170-0.231 s at speedup 1. Nothing
+# measured before the first validation predicts its points: their cost over the placement cells' mean settling ranged
+# 1.06-1.74 (machine and clock), and the source map's own validation, 200 rpm apart, settles longer (0.214 / 0.248 s a
+# point against 0.155 / 0.213 s on the refined maps); so its points are taken at the middle of the range measured
 CELL_S = 0.5
 VALIDATION_POINT_S = 0.2
-POINT_S_PER_CELL_SETTLE_S = 1.4
 RUNUP_APPROACH_S = 3.0
 # a round after a validation measures its cells again and the validation points around them, and runs the run-up
 # pairs whose LUT changed again (measured: 112-121 s for 20 cells at the turn)

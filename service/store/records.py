@@ -92,13 +92,8 @@ def bench_plant_s(row: ResultRecord) -> float:
     """Plant seconds a result held the bench, on the DAQ clock: the settling at its operating point (from the move's
     effect to steady, details.op_settle_plant_s) and its method's measurement (plant_time_s). What a bench pays at
     speedup 1 (the commands between them take milliseconds): a budget in bench time counts both."""
-    return float(row.get("plant_time_s") or 0.0) + bench_settle_s(row)
-
-
-def bench_settle_s(row: ResultRecord) -> float:
-    """Of bench_plant_s, the settling at the result's operating point (details.op_settle_plant_s), plant s."""
     details = (row.get("detail") or {}).get("details") or {}
-    return float(details.get("op_settle_plant_s") or 0.0)
+    return float(row.get("plant_time_s") or 0.0) + float(details.get("op_settle_plant_s") or 0.0)
 
 
 class MapCellRecord(TypedDict):

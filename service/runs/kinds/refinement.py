@@ -36,7 +36,6 @@ from service.runs.refinement import (
     CELL_S,
     MAX_GUARD_ROUNDS,
     MAX_ROUNDS,
-    POINT_S_PER_CELL_SETTLE_S,
     REFINED_INTERPOLATION,
     VALIDATION_POINT_S,
     BenchBudget,
@@ -59,7 +58,7 @@ from service.runs.validation import (
     run_validation,
     store_validation,
 )
-from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord, bench_plant_s, bench_settle_s
+from service.store.records import JobRecord, MapRecord, ResultRecord, SweepRecord, bench_plant_s
 from service.store.storage import now_iso
 
 
@@ -277,12 +276,9 @@ class RefinementRun:
         cells_format = state.get("lut_cells", "float32")
         round_plant_s = _close_round_plant(state)
         placed = state.setdefault("placement_rounds", [])
-        round_results = self._round_results(sweep_id, state)
-        measured_now = len(round_results)
-        settle_plant_s = sum(bench_settle_s(r) for r in round_results)
+        measured_now = len(self._round_results(sweep_id, state))
         measured = {(float(r["torque_nm"]), float(r["speed_rpm"]), float(r["udc_v"])) for r in rows}
-        this_round = {"plant_time_s": round_plant_s, "settle_plant_s": settle_plant_s, "measured": measured_now}
-        budget = self._budget(state, [*placed, this_round])
+        budget = self._budget(state, [*placed, {"plant_time_s": round_plant_s, "measured": measured_now}])
 
         def affordable(grown: dict[str, list[float]]) -> str | None:
             return None if budget is None else budget.against(len(cells_to_measure(grown, {}, measured)), grown)
@@ -308,7 +304,6 @@ class RefinementRun:
                 "bytes": grid_bytes(state["axes"], thetas, cells_format, interpolation),
                 "cells": cell_count(state["axes"]),
                 "plant_time_s": round_plant_s,
-                "settle_plant_s": settle_plant_s,  # of it, the cells' settling (the budget's point cost before any)
                 "left_out": reasons,
             }
         )
@@ -495,18 +490,13 @@ class RefinementRun:
     def _budget(self, state: RefinementState, placed: list[dict[str, Any]]) -> BenchBudget | None:
         """The refinement's max_bench_s as a BenchBudget (None: none), a cell's cost measured on the placement rounds
         `placed` so far (CELL_S before any), a stepped validation point's on the refinement's latest validation that
-        measured one, else POINT_S_PER_CELL_SETTLE_S times the placement cells' mean settling (a machine whose shaft
-        settles longer pays more a point), else VALIDATION_POINT_S."""
+        measured one (VALIDATION_POINT_S before any)."""
         max_bench_s = state.get("max_bench_s")
         if max_bench_s is None:
             return None
         cells = sum(r.get("measured", 0) for r in placed)
         cell_s = sum(r["plant_time_s"] for r in placed if r.get("measured")) / cells if cells else CELL_S
-        point_s = next((r["point_s"] for r in reversed(state["rounds"]) if r.get("point_s")), None)
-        if point_s is None:  # before a validation measured one: from the cells' settling on this bench
-            settled = [r for r in placed if r.get("measured") and "settle_plant_s" in r]
-            settle_s = sum(r["settle_plant_s"] for r in settled) / sum(r["measured"] for r in settled) if settled else 0
-            point_s = POINT_S_PER_CELL_SETTLE_S * settle_s if settle_s > 0 else VALIDATION_POINT_S
+        point_s = next((r["point_s"] for r in reversed(state["rounds"]) if r.get("point_s")), VALIDATION_POINT_S)
         return BenchBudget(
             max_bench_s,
             state.get("plant_time_s", 0.0),
