@@ -3,8 +3,8 @@
 Arithmetic in theta = (theta_cos, theta_sin), rad (docs/conventions.md, Injection and theta: never gamma/delta,
 which wrap at 0/360 deg).
 Only `ok` cells take part (a filled cell, service/maps/fill.py, carries a fill, not a measurement: it is
-neither judged nor a reference, but for a fill of the cell's own measured theta, below its target: a reference); a cell's neighbours are the cells one grid index away along each
-axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
+neither judged nor a reference, but for a below-target cell's fill of its own measured theta: a reference); a
+cell's neighbours are the cells one grid index away along each axis. Axes may be non-uniform (a refined map inserts breakpoints): every step is scaled by the real
 spacing, and the fit interpolates by position.
 
 The statistic (robust, scaled by the grid spacing):
@@ -97,9 +97,8 @@ def assess(cells: list[dict[str, Any]], axes: dict[str, list[float]]) -> MapQual
     """Quality of every ok cell of a map (cells as MapCellPublic dicts, axes as the map's)."""
     # filled cells are not ok (their theta is a fill, not a measurement): skipped with the other non-ok, but for a
     # below-target cell's fill of its own theta (>= fill.MEASURED_MIN_DB; not no_authority's, clamped at gamma_max):
-    # theta* measured, a reference for
-    # its neighbours, never judged (at the turn, where |theta*| passes near zero, such cells are common: without them
-    # a turn cell has a neighbour on one side only, and the loop it runs reads as an outlier)
+    # theta* measured, a reference for its neighbours, never judged (at the turn, where |theta*| passes near zero,
+    # such cells are common: without them a turn cell has a neighbour on one side only, and its loop reads as an outlier)
     theta = {
         cell_key(c): (float(c["theta_cos"]), float(c["theta_sin"]))
         for c in cells
