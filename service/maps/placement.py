@@ -146,9 +146,12 @@ def bend_db(
             for at in _lines(axes, axis):
                 row = [thetas.get(at(v)) for v in values]
                 j = sum(1 for v in values if v < c) - 1
-                if j < 0 or j + 1 >= len(values) or row[j] is None or row[j + 1] is None:
+                if j < 0 or j + 1 >= len(values):
                     continue
-                chord = between(row[j], row[j + 1], values[j], values[j + 1], c, "cartesian")  # type: ignore[arg-type]
+                a, b = row[j], row[j + 1]
+                if a is None or b is None:
+                    continue
+                chord = between(a, b, values[j], values[j + 1], c, "cartesian")
                 worst = min(worst, predicted_db(along_row(values, row, c, "cubic"), chord))
             out[axis][c] = worst
     return out
